@@ -1,0 +1,482 @@
+//! The Zenoh glue: session config, typed publishers and subscribers, liveliness.
+//!
+//! This is the only library that touches Zenoh. Every binary shares the same session flags
+//! ([`BusArgs`]: `--zenoh-config FILE`, `-e/--connect`, `-l/--listen`, `--mode`), so a user of one
+//! binary knows them all. Multicast scouting is off unless a config file turns it on: endpoints are
+//! explicit.
+//!
+//! Publishing never awaits the network on the caller's path: [`TypedPublisher::publish`] encodes and
+//! queues, and a task per publisher drains the queue into Zenoh. Streams (frames, arm state) use a
+//! small queue that drops the oldest entry under load and Zenoh's `CongestionControl::Drop`;
+//! results (clouds, views, fruits, maps, status) use a bounded queue the producer waits on and
+//! `CongestionControl::Block`. Subscribers decode every payload through the verified codec of
+//! `glasshouse-proto`; a payload that fails is counted in [`DropCounters`] and skipped.
+
+mod queue;
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use glasshouse_proto::{decode, decode_as, encode, keys, Header, Message, MessageKind};
+use queue::{Overflow, SampleQueue};
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::Session;
+
+pub use zenoh;
+
+#[derive(thiserror::Error, Debug)]
+pub enum BusError {
+    #[error("zenoh configuration: {0}")]
+    Config(String),
+    #[error("cannot open the zenoh session: {0}")]
+    Open(String),
+    #[error("cannot declare {what} on {key}: {reason}")]
+    Declare {
+        what: &'static str,
+        key: String,
+        reason: String,
+    },
+    #[error("the publisher task for {0} has stopped")]
+    Closed(String),
+    #[error(transparent)]
+    Key(#[from] keys::KeyError),
+}
+
+pub type Result<T, E = BusError> = std::result::Result<T, E>;
+
+/// The Zenoh role of a process.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    Peer,
+    Client,
+    Router,
+}
+
+impl Mode {
+    fn as_str(self) -> &'static str {
+        match self {
+            Mode::Peer => "peer",
+            Mode::Client => "client",
+            Mode::Router => "router",
+        }
+    }
+}
+
+/// Session flags shared by every Glasshouse binary.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct BusArgs {
+    /// Zenoh configuration file (JSON5, Zenoh's own format); flags below override it.
+    #[arg(
+        long = "zenoh-config",
+        value_name = "FILE",
+        env = "GLASSHOUSE_ZENOH_CONFIG"
+    )]
+    pub zenoh_config: Option<PathBuf>,
+    /// Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable).
+    #[arg(short = 'e', long = "connect", value_name = "ENDPOINT")]
+    pub connect: Vec<String>,
+    /// Endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable).
+    #[arg(short = 'l', long = "listen", value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// Zenoh mode [default: peer, or the config file's].
+    #[arg(long, value_enum)]
+    pub mode: Option<Mode>,
+}
+
+impl BusArgs {
+    /// Client session connecting to `endpoint`.
+    pub fn client(endpoint: &str) -> Self {
+        Self {
+            connect: vec![endpoint.to_owned()],
+            mode: Some(Mode::Client),
+            ..Self::default()
+        }
+    }
+
+    /// Router session listening on `endpoint`.
+    pub fn router(endpoint: &str) -> Self {
+        Self {
+            listen: vec![endpoint.to_owned()],
+            mode: Some(Mode::Router),
+            ..Self::default()
+        }
+    }
+}
+
+fn insert(config: &mut zenoh::Config, key: &str, value: &str) -> Result<()> {
+    config
+        .insert_json5(key, value)
+        .map_err(|e| BusError::Config(format!("{key} = {value}: {e}")))
+}
+
+fn json_list(items: &[String]) -> String {
+    serde_json::Value::from(items.to_vec()).to_string()
+}
+
+/// Builds the Zenoh configuration from the shared flags.
+pub fn zenoh_config(args: &BusArgs) -> Result<zenoh::Config> {
+    let mut config = match &args.zenoh_config {
+        Some(path) => zenoh::Config::from_file(path)
+            .map_err(|e| BusError::Config(format!("{}: {e}", path.display())))?,
+        None => {
+            let mut c = zenoh::Config::default();
+            insert(&mut c, "scouting/multicast/enabled", "false")?;
+            // Containers start in any order: clients keep retrying instead of exiting.
+            insert(
+                &mut c,
+                "connect/timeout_ms",
+                r#"{ router: -1, peer: -1, client: -1 }"#,
+            )?;
+            insert(
+                &mut c,
+                "connect/exit_on_failure",
+                r#"{ router: false, peer: false, client: false }"#,
+            )?;
+            // A busy consumer must slow a reliable producer down, not get its link closed.
+            insert(
+                &mut c,
+                "transport/link/tx/queue/congestion_control/block/wait_before_close",
+                "60000000",
+            )?;
+            c
+        }
+    };
+    if let Some(mode) = args.mode {
+        insert(&mut config, "mode", &format!("\"{}\"", mode.as_str()))?;
+    }
+    if !args.connect.is_empty() {
+        insert(&mut config, "connect/endpoints", &json_list(&args.connect))?;
+    }
+    if !args.listen.is_empty() {
+        insert(&mut config, "listen/endpoints", &json_list(&args.listen))?;
+    }
+    Ok(config)
+}
+
+/// Opens a session with the shared flags.
+pub async fn open(args: &BusArgs) -> Result<Session> {
+    let config = zenoh_config(args)?;
+    zenoh::open(config)
+        .await
+        .map_err(|e| BusError::Open(e.to_string()))
+}
+
+/// How a key's data travels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Delivery {
+    /// Sensor streams: a slow consumer loses old samples, never memory.
+    Stream,
+    /// Results and control: never dropped by the bus; producers wait for queue space.
+    Reliable,
+    /// A read-only observer (the dashboard): a deep queue that drops the oldest rather than
+    /// ever pushing back on the fleet.
+    Monitor,
+}
+
+/// Counts of messages a process dropped, by cause.
+#[derive(Debug, Default)]
+pub struct DropCounters {
+    /// Payloads that failed verification or decoding.
+    pub corrupt: AtomicU64,
+    /// Stream samples dropped because a queue was full.
+    pub overflow: AtomicU64,
+}
+
+impl DropCounters {
+    pub fn total(&self) -> u64 {
+        self.corrupt.load(Ordering::Relaxed) + self.overflow.load(Ordering::Relaxed)
+    }
+}
+
+/// A publisher of one key whose network writes happen on its own task.
+pub struct TypedPublisher {
+    key: String,
+    queue: Arc<SampleQueue<Vec<u8>>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl TypedPublisher {
+    /// Declares a publisher on `key` and starts its task.
+    pub async fn declare(
+        session: &Session,
+        key: String,
+        delivery: Delivery,
+        counters: Arc<DropCounters>,
+    ) -> Result<Self> {
+        let (congestion, priority, capacity, overflow) = match delivery {
+            Delivery::Stream => (
+                CongestionControl::Drop,
+                Priority::Data,
+                2,
+                Overflow::DropOldest,
+            ),
+            Delivery::Reliable | Delivery::Monitor => {
+                (CongestionControl::Block, Priority::Data, 64, Overflow::Wait)
+            }
+        };
+        let publisher = session
+            .declare_publisher(key.clone())
+            .congestion_control(congestion)
+            .priority(priority)
+            .await
+            .map_err(|e| BusError::Declare {
+                what: "publisher",
+                key: key.clone(),
+                reason: e.to_string(),
+            })?;
+        let queue = Arc::new(SampleQueue::new(capacity, overflow, counters));
+        let task_queue = queue.clone();
+        let task_key = key.clone();
+        let task = tokio::spawn(async move {
+            while let Some(bytes) = task_queue.pop().await {
+                if let Err(e) = publisher.put(bytes).await {
+                    tracing::warn!(key = %task_key, error = %e, "put failed");
+                }
+            }
+        });
+        Ok(Self { key, queue, task })
+    }
+
+    pub fn key(&self) -> &str {
+        &self.key
+    }
+
+    /// Encodes and queues one message. Streams never wait; reliable publishers wait for space.
+    pub async fn publish(&self, header: &Header, message: &Message) -> Result<()> {
+        self.publish_bytes(encode(header, message)).await
+    }
+
+    /// Queues an already encoded payload (also used to inject faults in tests).
+    pub async fn publish_bytes(&self, bytes: Vec<u8>) -> Result<()> {
+        if self.queue.push(bytes).await {
+            Ok(())
+        } else {
+            Err(BusError::Closed(self.key.clone()))
+        }
+    }
+
+    /// Sends what is queued, then stops the task.
+    pub async fn close(self) {
+        self.queue.close();
+        let _ = tokio::time::timeout(Duration::from_secs(2), self.task).await;
+    }
+}
+
+/// One received, verified and decoded message.
+#[derive(Clone, Debug)]
+pub struct Received {
+    pub key: String,
+    pub header: Header,
+    pub message: Message,
+    pub payload_bytes: usize,
+}
+
+/// A subscriber that decodes every payload and counts the ones it rejects.
+pub struct TypedSubscriber {
+    queue: Arc<SampleQueue<(String, Vec<u8>)>>,
+    counters: Arc<DropCounters>,
+    _subscriber: zenoh::pubsub::Subscriber<()>,
+}
+
+impl TypedSubscriber {
+    /// Subscribes to `key_expr`. The expected message kind comes from each key (see
+    /// [`keys::parse`]); payloads on keys outside the tree must decode as any kind.
+    pub async fn declare(
+        session: &Session,
+        key_expr: &str,
+        delivery: Delivery,
+        counters: Arc<DropCounters>,
+    ) -> Result<Self> {
+        let (capacity, overflow) = match delivery {
+            Delivery::Stream => (2, Overflow::DropOldest),
+            Delivery::Reliable => (256, Overflow::Wait),
+            Delivery::Monitor => (1024, Overflow::DropOldest),
+        };
+        let queue = Arc::new(SampleQueue::new(capacity, overflow, counters.clone()));
+        let cb_queue = queue.clone();
+        let subscriber = session
+            .declare_subscriber(key_expr.to_owned())
+            .callback(move |sample| {
+                let key = sample.key_expr().as_str().to_owned();
+                let bytes = sample.payload().to_bytes().into_owned();
+                cb_queue.push_blocking((key, bytes));
+            })
+            .await
+            .map_err(|e| BusError::Declare {
+                what: "subscriber",
+                key: key_expr.to_owned(),
+                reason: e.to_string(),
+            })?;
+        Ok(Self {
+            queue,
+            counters,
+            _subscriber: subscriber,
+        })
+    }
+
+    /// The next message that decodes; `None` once the subscriber is closed.
+    pub async fn recv(&self) -> Option<Received> {
+        loop {
+            let (key, bytes) = self.queue.pop().await?;
+            let expected = keys::parse(&key).and_then(|k| k.message_kind());
+            let decoded = match expected {
+                Some(kind) => decode_as(&bytes, kind),
+                None => decode(&bytes),
+            };
+            match decoded {
+                Ok((header, message)) => {
+                    return Some(Received {
+                        key,
+                        header,
+                        message,
+                        payload_bytes: bytes.len(),
+                    })
+                }
+                Err(e) => {
+                    let n = self.counters.corrupt.fetch_add(1, Ordering::Relaxed) + 1;
+                    // Log the first few and then every hundredth: a flood must not flood the log.
+                    if n <= 5 || n.is_multiple_of(100) {
+                        tracing::warn!(%key, bytes = bytes.len(), error = %e, dropped = n, "dropped a bad payload");
+                    }
+                }
+            }
+        }
+    }
+
+    /// The kind expected on a key of this project's tree.
+    pub fn expected_kind(key: &str) -> Option<MessageKind> {
+        keys::parse(key).and_then(|k| k.message_kind())
+    }
+}
+
+/// Declares this process's liveliness token; keep it alive for as long as the process is a member.
+pub async fn declare_alive(
+    session: &Session,
+    kind: keys::MemberKind,
+    id: &str,
+) -> Result<zenoh::liveliness::LivelinessToken> {
+    let key = keys::alive(kind, id)?;
+    session
+        .liveliness()
+        .declare_token(key.clone())
+        .await
+        .map_err(|e| BusError::Declare {
+            what: "liveliness token",
+            key,
+            reason: e.to_string(),
+        })
+}
+
+/// The ids of the live members of a kind right now.
+pub async fn live_members(session: &Session, kind: keys::MemberKind) -> Vec<String> {
+    let mut ids = Vec::new();
+    let Ok(replies) = session
+        .liveliness()
+        .get(keys::alive_all(kind))
+        .timeout(Duration::from_secs(1))
+        .await
+    else {
+        return ids;
+    };
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result() {
+            if let Some(keys::ParsedKey::Alive { id, .. }) = keys::parse(sample.key_expr().as_str())
+            {
+                ids.push(id);
+            }
+        }
+    }
+    ids.sort();
+    ids.dedup();
+    ids
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}
+
+/// Logs to stderr, filtered by `RUST_LOG` (default: info for Glasshouse, warn for the rest).
+pub fn init_tracing() {
+    let filter = tracing_subscriber_filter();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+fn tracing_subscriber_filter() -> tracing_subscriber::EnvFilter {
+    tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,glasshouse=info,edge=info,planner_service=info,detector_service=info,dashboard=info,glasshouse_edge=info,glasshouse_planner=info,glasshouse_detector=info,glasshouse_dashboard=info"))
+}
+
+/// A cloneable stop signal for service loops.
+#[derive(Clone, Debug)]
+pub struct Shutdown(tokio::sync::watch::Receiver<bool>);
+
+/// Fires a [`Shutdown`].
+#[derive(Debug)]
+pub struct ShutdownTrigger(tokio::sync::watch::Sender<bool>);
+
+impl Shutdown {
+    pub fn new() -> (ShutdownTrigger, Shutdown) {
+        let (tx, rx) = tokio::sync::watch::channel(false);
+        (ShutdownTrigger(tx), Shutdown(rx))
+    }
+
+    pub fn is_set(&self) -> bool {
+        *self.0.borrow()
+    }
+
+    /// Resolves once the trigger fired (or was dropped).
+    pub async fn wait(&mut self) {
+        let _ = self.0.wait_for(|&stop| stop).await;
+    }
+}
+
+impl ShutdownTrigger {
+    pub fn fire(&self) {
+        let _ = self.0.send(true);
+    }
+
+    /// Fires on Ctrl-C or SIGTERM.
+    pub fn fire_on_signal(self) {
+        tokio::spawn(async move {
+            shutdown_signal().await;
+            tracing::info!("shutting down");
+            self.fire();
+        });
+    }
+}
+
+/// Reads a service's JSON5 settings file, or the defaults when no file is given.
+pub fn load_settings<T: serde::de::DeserializeOwned + Default>(
+    path: Option<&std::path::Path>,
+) -> Result<T> {
+    let Some(path) = path else {
+        return Ok(T::default());
+    };
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| BusError::Config(format!("{}: {e}", path.display())))?;
+    json5::from_str(&text).map_err(|e| BusError::Config(format!("{}: {e}", path.display())))
+}

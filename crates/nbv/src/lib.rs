@@ -1,0 +1,783 @@
+//! Next-best-view planning over the ROI map and fruit estimates from ROI clusters.
+//!
+//! One planning call ([`plan_views`]) follows the paper's Algorithm 1 with the original code's
+//! defects fixed:
+//!
+//! - **ROI-targeted sampling**: targets are the map's ROI frontier (free voxels next to fruit with
+//!   unknown space beside them); the camera sits on a random sphere of radius U(0.3, 0.5) m around a
+//!   target, looking at it, inside the camera workspace and with no occupied voxel
+//!   (log-odds > ln(0.6/0.4)) on the segment target→camera.
+//! - **Exploration sampling**: frontier voxels (free, with an unknown and an occupied face
+//!   neighbour); the camera sits along the local surface normal (minus the sum of the occupied
+//!   18-neighbour offsets) looking back at the surface.
+//! - **Gain**: a `fan_width × fan_height` grid of rays spread over the field of view around the
+//!   camera's *optical* axis (camera `z`), each walked up to `gain_ray_range_m` or the first occupied
+//!   voxel. U_U is the mean share of unknown voxels per ray; U_P weighs unknown voxels 0.5, more when
+//!   close to a known ROI voxel. Empty rays contribute 0.
+//! - **Utility** = gain − `cost_weight_per_m` · (distance from the current camera).
+//! - **Selection**: Ours methods use the ROI list when its best utility exceeds the threshold,
+//!   otherwise the exploration list; Explo methods always explore. The result is ranked best first
+//!   and never empty when the workspace is a valid box: if nothing beats the threshold the best views
+//!   are returned anyway, and with no candidates at all random fallback views are scored.
+//!
+//! Free/unknown follows the map's single rule (see `glasshouse_roimap`): never updated is unknown,
+//! occupancy log-odds > 0 is occupied, anything else free.
+//!
+//! [`FruitTracker`] turns ROI clusters into fruit estimates with ids that stay stable across
+//! updates. Everything is deterministic for a given seed: randomness comes from `ChaCha8Rng`
+//! streams derived from it.
+
+use std::collections::HashMap;
+use std::fmt;
+use std::str::FromStr;
+
+use glasshouse_geom::{look_along, look_at, Aabb};
+use glasshouse_roimap::{KeyBuildHasher, Occupancy, RoiCluster, RoiMap, VoxelKey};
+use nalgebra::{Isometry3, Point3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+/// Which sampler produced a view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ViewKind {
+    Roi,
+    Exploration,
+}
+
+/// Information gain of a view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum GainKind {
+    /// U_U: share of unobserved voxels along the rays.
+    UnobservedVoxels,
+    /// U_P: unobserved voxels weighted up near known ROI voxels.
+    Proximity,
+}
+
+/// The paper's four planners.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    OursUu,
+    OursUp,
+    ExploUu,
+    ExploUp,
+}
+
+impl Method {
+    pub const ALL: [Method; 4] = [
+        Method::OursUu,
+        Method::OursUp,
+        Method::ExploUu,
+        Method::ExploUp,
+    ];
+
+    pub fn gain(&self) -> GainKind {
+        match self {
+            Method::OursUu | Method::ExploUu => GainKind::UnobservedVoxels,
+            Method::OursUp | Method::ExploUp => GainKind::Proximity,
+        }
+    }
+
+    /// True for the paper's "Ours" methods, which sample around ROI targets first.
+    pub fn uses_roi_sampling(&self) -> bool {
+        matches!(self, Method::OursUu | Method::OursUp)
+    }
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Method::OursUu => "ours-uu",
+            Method::OursUp => "ours-up",
+            Method::ExploUu => "explo-uu",
+            Method::ExploUp => "explo-up",
+        }
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Method {
+    type Err = PlanError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Method::ALL
+            .into_iter()
+            .find(|m| m.name().eq_ignore_ascii_case(s.trim()))
+            .ok_or_else(|| PlanError::UnknownMethod(s.to_string()))
+    }
+}
+
+/// Errors of planning. Bad input never panics.
+#[derive(thiserror::Error, Debug, Clone, PartialEq)]
+pub enum PlanError {
+    #[error("invalid planner configuration: {0}")]
+    InvalidConfig(String),
+    #[error("unknown method {0:?}; valid methods: ours-uu, ours-up, explo-uu, explo-up")]
+    UnknownMethod(String),
+    #[error("invalid {name}: bounds must be finite with min <= max")]
+    InvalidRegion { name: &'static str },
+    #[error("current camera pose is not finite")]
+    NonFinitePose,
+}
+
+/// Planner parameters. [`Default`] gives the paper's values.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PlannerConfig {
+    pub method: Method,
+    /// Tries of ROI-targeted sampling.
+    pub roi_samples: usize,
+    /// Frontier voxels drawn for exploration sampling (at most).
+    pub exploration_samples: usize,
+    /// Camera distance from its target, lower bound.
+    pub min_view_distance_m: f64,
+    /// Camera distance from its target, upper bound.
+    pub max_view_distance_m: f64,
+    /// Gain rays across the image.
+    pub fan_width: usize,
+    /// Gain rays down the image.
+    pub fan_height: usize,
+    pub horizontal_fov_rad: f64,
+    pub vertical_fov_rad: f64,
+    /// Length of each gain ray.
+    pub gain_ray_range_m: f64,
+    /// Utility lost per metre of camera travel (α).
+    pub cost_weight_per_m: f64,
+    /// ROI views are used when the best beats this; views at or below it are not ranked unless
+    /// nothing else is left.
+    pub utility_threshold: f64,
+    /// Distance up to which U_P raises the weight of unknown voxels near ROI.
+    pub proximity_max_dist_m: f64,
+    /// Voxels above this occupancy log-odds occlude ROI targets.
+    pub occlusion_occupancy_logodds: f32,
+    /// Length of the ranked list.
+    pub max_ranked_views: usize,
+}
+
+impl Default for PlannerConfig {
+    fn default() -> Self {
+        Self {
+            method: Method::OursUu,
+            roi_samples: 100,
+            exploration_samples: 100,
+            min_view_distance_m: 0.3,
+            max_view_distance_m: 0.5,
+            fan_width: 8,
+            fan_height: 6,
+            horizontal_fov_rad: 80f64.to_radians(),
+            // 4:3 image with an 80° horizontal field of view.
+            vertical_fov_rad: 2.0 * (40f64.to_radians().tan() * 0.75).atan(),
+            gain_ray_range_m: 1.0,
+            cost_weight_per_m: 0.2,
+            utility_threshold: 0.2,
+            proximity_max_dist_m: 0.3,
+            occlusion_occupancy_logodds: (0.6f32 / 0.4).ln(),
+            max_ranked_views: 20,
+        }
+    }
+}
+
+impl PlannerConfig {
+    pub fn validate(&self) -> Result<(), PlanError> {
+        let bad = |msg: &str| Err(PlanError::InvalidConfig(msg.to_string()));
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        if !(pos(self.min_view_distance_m)
+            && pos(self.max_view_distance_m)
+            && self.min_view_distance_m <= self.max_view_distance_m)
+        {
+            return bad("view distances must be finite, > 0 and min <= max");
+        }
+        if self.fan_width == 0 || self.fan_height == 0 {
+            return bad("fan_width and fan_height must be >= 1");
+        }
+        if self.fan_width.saturating_mul(self.fan_height) > 100_000 {
+            return bad("fan has too many rays (> 100000)");
+        }
+        let fov_ok = |v: f64| pos(v) && v < std::f64::consts::PI;
+        if !(fov_ok(self.horizontal_fov_rad) && fov_ok(self.vertical_fov_rad)) {
+            return bad("fields of view must be in (0, pi) radians");
+        }
+        if !(pos(self.gain_ray_range_m) && self.gain_ray_range_m <= 100.0) {
+            return bad("gain_ray_range_m must be in (0, 100] m");
+        }
+        if !(self.cost_weight_per_m.is_finite() && self.cost_weight_per_m >= 0.0) {
+            return bad("cost_weight_per_m must be finite and >= 0");
+        }
+        if !self.utility_threshold.is_finite() {
+            return bad("utility_threshold must be finite");
+        }
+        if !pos(self.proximity_max_dist_m) {
+            return bad("proximity_max_dist_m must be finite and > 0");
+        }
+        if !self.occlusion_occupancy_logodds.is_finite() {
+            return bad("occlusion_occupancy_logodds must be finite");
+        }
+        if self.max_ranked_views == 0 {
+            return bad("max_ranked_views must be >= 1");
+        }
+        Ok(())
+    }
+}
+
+/// Everything a planning call looks at.
+#[derive(Clone, Copy, Debug)]
+pub struct PlanningContext<'a> {
+    pub map: &'a RoiMap,
+    /// The current camera pose.
+    pub world_from_camera: Isometry3<f64>,
+    /// Where the camera may be placed.
+    pub camera_workspace: Aabb,
+    /// Where targets and frontiers may lie.
+    pub sampling_region: Aabb,
+}
+
+/// A candidate view with its score.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ScoredView {
+    pub world_from_camera: Isometry3<f64>,
+    /// gain − cost_weight · cost.
+    pub utility: f64,
+    pub gain: f64,
+    /// Straight-line distance from the current camera position.
+    pub cost_m: f64,
+    pub kind: ViewKind,
+}
+
+/// Result of [`plan_views`].
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Plan {
+    /// Best first.
+    pub views: Vec<ScoredView>,
+    /// Size of the ROI frontier (0 for Explo methods, which do not compute it).
+    pub roi_targets: usize,
+    /// Size of the exploration frontier.
+    pub exploration_frontier: usize,
+    /// Candidates whose gain was computed (ROI, exploration and fallback).
+    pub candidates_scored: usize,
+    /// Which list the views came from (fallback views count as exploration).
+    pub used_kind: ViewKind,
+}
+
+/// Edge of the cells of the ROI distance grid used by U_P (as in the original code).
+const ROI_DISTANCE_CELL_M: f64 = 0.05;
+
+/// Distance from 5 cm cells to the nearest known ROI voxel, stored only for cells closer than
+/// `max_dist`. ROI voxels are first reduced to one centroid per 5 cm cell, which keeps building
+/// cheap at the price of a few centimetres of error (as coarse as the original's grid).
+struct RoiDistanceField {
+    max_dist_m: f64,
+    distance_m: HashMap<VoxelKey, f32, KeyBuildHasher>,
+}
+
+fn cell_of(p: &Point3<f64>) -> VoxelKey {
+    let c = |v: f64| (v / ROI_DISTANCE_CELL_M).floor() as i32;
+    VoxelKey::new(c(p.x), c(p.y), c(p.z))
+}
+
+impl RoiDistanceField {
+    fn new(map: &RoiMap, max_dist_m: f64) -> Self {
+        let mut sums: HashMap<VoxelKey, (Vector3<f64>, u32), KeyBuildHasher> = HashMap::default();
+        for key in map.roi_keys() {
+            let centre = map.centre_of(key);
+            let e = sums
+                .entry(cell_of(&centre))
+                .or_insert((Vector3::zeros(), 0));
+            e.0 += centre.coords;
+            e.1 += 1;
+        }
+        let mut reps: Vec<(VoxelKey, Point3<f64>)> = sums
+            .into_iter()
+            .map(|(cell, (sum, n))| (cell, Point3::from(sum / f64::from(n))))
+            .collect();
+        reps.sort_by_key(|(cell, _)| *cell);
+        let reach = (max_dist_m / ROI_DISTANCE_CELL_M).ceil() as i32 + 1;
+        let mut distance_m: HashMap<VoxelKey, f32, KeyBuildHasher> = HashMap::default();
+        for (cell, rep) in &reps {
+            for dx in -reach..=reach {
+                for dy in -reach..=reach {
+                    for dz in -reach..=reach {
+                        let c = cell.offset(dx, dy, dz);
+                        let centre = Point3::new(
+                            (f64::from(c.x) + 0.5) * ROI_DISTANCE_CELL_M,
+                            (f64::from(c.y) + 0.5) * ROI_DISTANCE_CELL_M,
+                            (f64::from(c.z) + 0.5) * ROI_DISTANCE_CELL_M,
+                        );
+                        let d = (centre - rep).norm();
+                        if d < max_dist_m {
+                            let slot = distance_m.entry(c).or_insert(f32::INFINITY);
+                            *slot = slot.min(d as f32);
+                        }
+                    }
+                }
+            }
+        }
+        Self {
+            max_dist_m,
+            distance_m,
+        }
+    }
+
+    /// U_P weight of an unknown voxel centred at `p`.
+    fn unknown_weight(&self, p: &Point3<f64>) -> f64 {
+        match self.distance_m.get(&cell_of(p)) {
+            Some(&d) if f64::from(d) < self.max_dist_m => {
+                0.5 + 0.5 * (self.max_dist_m - f64::from(d)) / self.max_dist_m
+            }
+            _ => 0.5,
+        }
+    }
+}
+
+/// Computes the gain of views over one map; build once per planning call.
+pub struct GainEvaluator<'a> {
+    map: &'a RoiMap,
+    ray_range_m: f64,
+    /// Unit ray directions in the camera (optical) frame.
+    fan_in_camera: Vec<Vector3<f64>>,
+    /// Present for U_P.
+    proximity: Option<RoiDistanceField>,
+}
+
+impl<'a> GainEvaluator<'a> {
+    /// Gain of the kind `config.method.gain()`; the config should be valid.
+    pub fn new(map: &'a RoiMap, config: &PlannerConfig) -> Self {
+        let (w, h) = (config.fan_width.max(1), config.fan_height.max(1));
+        let mut fan_in_camera = Vec::with_capacity(w * h);
+        for row in 0..h {
+            let v_angle = config.vertical_fov_rad * ((row as f64 + 0.5) / h as f64 - 0.5);
+            for col in 0..w {
+                let h_angle = config.horizontal_fov_rad * ((col as f64 + 0.5) / w as f64 - 0.5);
+                // Pinhole grid: x right, y down, z forward (optical axis).
+                fan_in_camera.push(Vector3::new(h_angle.tan(), v_angle.tan(), 1.0).normalize());
+            }
+        }
+        let proximity = match config.method.gain() {
+            GainKind::Proximity => Some(RoiDistanceField::new(map, config.proximity_max_dist_m)),
+            GainKind::UnobservedVoxels => None,
+        };
+        Self {
+            map,
+            ray_range_m: config.gain_ray_range_m,
+            fan_in_camera,
+            proximity,
+        }
+    }
+
+    /// Mean over the fan of the per-ray weighted share of unknown voxels, in [0, 1].
+    pub fn gain(&self, world_from_camera: &Isometry3<f64>) -> f64 {
+        if self.fan_in_camera.is_empty() {
+            return 0.0;
+        }
+        let camera_in_world = Point3::from(world_from_camera.translation.vector);
+        let mut total = 0.0;
+        for dir_in_camera in &self.fan_in_camera {
+            let dir_in_world = world_from_camera.rotation * dir_in_camera;
+            let mut visited = 0usize;
+            let mut weight_sum = 0.0;
+            self.map.walk_ray(
+                &camera_in_world,
+                &dir_in_world,
+                self.ray_range_m,
+                |key, voxel| {
+                    visited += 1;
+                    match voxel {
+                        None => {
+                            weight_sum += match &self.proximity {
+                                None => 1.0,
+                                Some(field) => field.unknown_weight(&self.map.centre_of(key)),
+                            };
+                            true
+                        }
+                        // The occupied voxel that stops the ray still counts in N.
+                        Some(v) => v.occupancy() != Occupancy::Occupied,
+                    }
+                },
+            );
+            if visited > 0 {
+                total += weight_sum / visited as f64;
+            }
+        }
+        total / self.fan_in_camera.len() as f64
+    }
+}
+
+fn region_ok(b: &Aabb) -> bool {
+    (0..3).all(|i| b.min[i].is_finite() && b.max[i].is_finite() && b.min[i] <= b.max[i])
+}
+
+fn uniform_in(rng: &mut ChaCha8Rng, lo: f64, hi: f64) -> f64 {
+    if lo < hi {
+        rng.gen_range(lo..=hi)
+    } else {
+        lo
+    }
+}
+
+fn uniform_unit_vector(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+    let z: f64 = rng.gen_range(-1.0..=1.0);
+    let phi: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    Vector3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+fn point_in(rng: &mut ChaCha8Rng, b: &Aabb) -> Point3<f64> {
+    Point3::new(
+        uniform_in(rng, b.min.x, b.max.x),
+        uniform_in(rng, b.min.y, b.max.y),
+        uniform_in(rng, b.min.z, b.max.z),
+    )
+}
+
+/// Independent random streams per sampler, so one sampler's draws never shift another's.
+fn rng_stream(seed: u64, stream: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(stream);
+    rng
+}
+
+/// ROI-targeted candidate poses.
+fn sample_roi_views(
+    ctx: &PlanningContext,
+    config: &PlannerConfig,
+    targets: &[VoxelKey],
+    rng: &mut ChaCha8Rng,
+) -> Vec<Isometry3<f64>> {
+    let mut poses = Vec::new();
+    if targets.is_empty() {
+        return poses;
+    }
+    for _ in 0..config.roi_samples {
+        let target_in_world = ctx.map.centre_of(targets[rng.gen_range(0..targets.len())]);
+        let direction = uniform_unit_vector(rng);
+        let radius_m = uniform_in(rng, config.min_view_distance_m, config.max_view_distance_m);
+        let camera_in_world = target_in_world + direction * radius_m;
+        if !ctx.camera_workspace.contains(&camera_in_world) {
+            continue;
+        }
+        let mut occluded = false;
+        ctx.map
+            .walk_ray(&target_in_world, &direction, radius_m, |_, voxel| {
+                occluded =
+                    voxel.is_some_and(|v| v.occupancy_logodds > config.occlusion_occupancy_logodds);
+                !occluded
+            });
+        if !occluded {
+            poses.push(look_at(&camera_in_world, &target_in_world));
+        }
+    }
+    poses
+}
+
+/// Exploration candidate poses from the frontier.
+fn sample_exploration_views(
+    ctx: &PlanningContext,
+    config: &PlannerConfig,
+    frontier: &[VoxelKey],
+    rng: &mut ChaCha8Rng,
+) -> Vec<Isometry3<f64>> {
+    let amount = config.exploration_samples.min(frontier.len());
+    let mut picks = rand::seq::index::sample(rng, frontier.len(), amount).into_vec();
+    // Visit in frontier order so the candidate order does not depend on the sampler's internals.
+    picks.sort_unstable();
+    let mut poses = Vec::new();
+    for index in picks {
+        let key = frontier[index];
+        let mut sum = Vector3::<f64>::zeros();
+        for dx in -1i32..=1 {
+            for dy in -1i32..=1 {
+                for dz in -1i32..=1 {
+                    let manhattan = dx.abs() + dy.abs() + dz.abs();
+                    if (1..=2).contains(&manhattan)
+                        && ctx.map.occupancy(key.offset(dx, dy, dz)) == Occupancy::Occupied
+                    {
+                        sum += Vector3::new(f64::from(dx), f64::from(dy), f64::from(dz));
+                    }
+                }
+            }
+        }
+        // Occupied neighbours on opposite sides cancel: no usable normal.
+        let Some(normal) = (-sum).try_normalize(1e-9) else {
+            continue;
+        };
+        let radius_m = uniform_in(rng, config.min_view_distance_m, config.max_view_distance_m);
+        let camera_in_world = ctx.map.centre_of(key) + normal * radius_m;
+        if !ctx.camera_workspace.contains(&camera_in_world)
+            || ctx.map.occupancy(ctx.map.key_of(&camera_in_world)) == Occupancy::Occupied
+        {
+            continue;
+        }
+        poses.push(look_along(&camera_in_world, &(-normal)));
+    }
+    poses
+}
+
+/// Random views from the workspace towards the sampling region, for when no sampler found any.
+fn sample_fallback_views(
+    ctx: &PlanningContext,
+    config: &PlannerConfig,
+    rng: &mut ChaCha8Rng,
+) -> Vec<Isometry3<f64>> {
+    let wanted = config.exploration_samples.max(1);
+    let mut poses = Vec::with_capacity(wanted);
+    let mut last = None;
+    for _ in 0..wanted * 4 {
+        if poses.len() == wanted {
+            break;
+        }
+        let camera_in_world = point_in(rng, &ctx.camera_workspace);
+        let target_in_world = point_in(rng, &ctx.sampling_region);
+        let pose = look_at(&camera_in_world, &target_in_world);
+        if ctx.map.occupancy(ctx.map.key_of(&camera_in_world)) == Occupancy::Occupied {
+            last = Some(pose);
+            continue;
+        }
+        poses.push(pose);
+    }
+    // Even a workspace full of occupied voxels yields a view, so the robot is never left idle.
+    if poses.is_empty() {
+        poses.extend(last);
+    }
+    poses
+}
+
+fn score(
+    poses: Vec<Isometry3<f64>>,
+    kind: ViewKind,
+    evaluator: &GainEvaluator,
+    camera_in_world: &Point3<f64>,
+    config: &PlannerConfig,
+) -> Vec<ScoredView> {
+    let mut views: Vec<ScoredView> = poses
+        .into_iter()
+        .map(|pose| {
+            let gain = evaluator.gain(&pose);
+            let cost_m = (Point3::from(pose.translation.vector) - camera_in_world).norm();
+            ScoredView {
+                world_from_camera: pose,
+                utility: gain - config.cost_weight_per_m * cost_m,
+                gain,
+                cost_m,
+                kind,
+            }
+        })
+        .collect();
+    // Stable sort: equal utilities keep their (seeded) generation order.
+    views.sort_by(|a, b| b.utility.total_cmp(&a.utility));
+    views
+}
+
+/// Views above the threshold, or, when there are none, the best views anyway.
+fn rank(views: &[ScoredView], config: &PlannerConfig) -> Vec<ScoredView> {
+    let above: Vec<ScoredView> = views
+        .iter()
+        .filter(|v| v.utility > config.utility_threshold)
+        .take(config.max_ranked_views)
+        .cloned()
+        .collect();
+    if above.is_empty() {
+        views
+            .iter()
+            .take(config.max_ranked_views)
+            .cloned()
+            .collect()
+    } else {
+        above
+    }
+}
+
+/// One planning call: sample, score and rank candidate views (see the crate docs).
+pub fn plan_views(
+    ctx: &PlanningContext,
+    config: &PlannerConfig,
+    seed: u64,
+) -> Result<Plan, PlanError> {
+    config.validate()?;
+    if !region_ok(&ctx.camera_workspace) {
+        return Err(PlanError::InvalidRegion {
+            name: "camera workspace",
+        });
+    }
+    if !region_ok(&ctx.sampling_region) {
+        return Err(PlanError::InvalidRegion {
+            name: "sampling region",
+        });
+    }
+    let pose = &ctx.world_from_camera;
+    if !(pose.translation.vector.iter().all(|c| c.is_finite())
+        && pose.rotation.coords.iter().all(|c| c.is_finite()))
+    {
+        return Err(PlanError::NonFinitePose);
+    }
+    let camera_in_world = Point3::from(pose.translation.vector);
+    let evaluator = GainEvaluator::new(ctx.map, config);
+
+    let (roi_targets, roi_views) = if config.method.uses_roi_sampling() {
+        let targets = ctx.map.roi_frontier(&ctx.sampling_region);
+        let poses = sample_roi_views(ctx, config, &targets, &mut rng_stream(seed, 0));
+        let views = score(poses, ViewKind::Roi, &evaluator, &camera_in_world, config);
+        (targets.len(), views)
+    } else {
+        (0, Vec::new())
+    };
+    let frontier = ctx.map.exploration_frontier(&ctx.sampling_region);
+    let poses = sample_exploration_views(ctx, config, &frontier, &mut rng_stream(seed, 1));
+    let exploration_views = score(
+        poses,
+        ViewKind::Exploration,
+        &evaluator,
+        &camera_in_world,
+        config,
+    );
+    let mut candidates_scored = roi_views.len() + exploration_views.len();
+
+    let roi_best = roi_views.first().map(|v| v.utility);
+    let use_roi = roi_best.is_some_and(|u| u > config.utility_threshold);
+    let (views, used_kind) = if use_roi {
+        (rank(&roi_views, config), ViewKind::Roi)
+    } else if !exploration_views.is_empty() {
+        (rank(&exploration_views, config), ViewKind::Exploration)
+    } else if !roi_views.is_empty() {
+        // Weak ROI views still beat standing still.
+        (rank(&roi_views, config), ViewKind::Roi)
+    } else {
+        let poses = sample_fallback_views(ctx, config, &mut rng_stream(seed, 2));
+        let views = score(
+            poses,
+            ViewKind::Exploration,
+            &evaluator,
+            &camera_in_world,
+            config,
+        );
+        candidates_scored += views.len();
+        (rank(&views, config), ViewKind::Exploration)
+    };
+    Ok(Plan {
+        views,
+        roi_targets,
+        exploration_frontier: frontier.len(),
+        candidates_scored,
+        used_kind,
+    })
+}
+
+/// One fruit: an ROI cluster with a stable id.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FruitEstimate {
+    pub id: u32,
+    /// Mean of the voxel centres, world frame.
+    pub centre: Point3<f64>,
+    /// Box over the cluster's voxels, world frame.
+    pub min: Point3<f64>,
+    pub max: Point3<f64>,
+    /// Volume of the box.
+    pub volume_m3: f64,
+    pub voxel_count: usize,
+    /// Share of the box's surface voxels seen as ROI, in [0, 1].
+    pub confidence: f64,
+}
+
+/// Largest centre movement between updates for a cluster to keep its fruit id.
+pub const TRACK_MATCH_DISTANCE_M: f64 = 0.05;
+
+/// Share of the voxels on the surface of the cluster's key-space box that belong to the cluster:
+/// a fully observed fruit fills its box's faces more than a half-seen one.
+pub fn fruit_confidence(cluster: &RoiCluster) -> f64 {
+    let Some(first) = cluster.voxels.first() else {
+        return 0.0;
+    };
+    let (mut lo, mut hi) = (*first, *first);
+    for k in &cluster.voxels {
+        lo = VoxelKey::new(lo.x.min(k.x), lo.y.min(k.y), lo.z.min(k.z));
+        hi = VoxelKey::new(hi.x.max(k.x), hi.y.max(k.y), hi.z.max(k.z));
+    }
+    let extent = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1) as f64;
+    let (nx, ny, nz) = (extent(lo.x, hi.x), extent(lo.y, hi.y), extent(lo.z, hi.z));
+    let inner = (nx - 2.0).max(0.0) * (ny - 2.0).max(0.0) * (nz - 2.0).max(0.0);
+    let surface = nx * ny * nz - inner;
+    let on_surface = cluster
+        .voxels
+        .iter()
+        .filter(|k| {
+            k.x == lo.x || k.x == hi.x || k.y == lo.y || k.y == hi.y || k.z == lo.z || k.z == hi.z
+        })
+        .count() as f64;
+    if surface > 0.0 {
+        (on_surface / surface).clamp(0.0, 1.0)
+    } else {
+        0.0
+    }
+}
+
+/// Keeps fruit ids stable across cluster updates.
+#[derive(Clone, Debug)]
+pub struct FruitTracker {
+    previous: Vec<(u32, Point3<f64>)>,
+    next_id: u32,
+}
+
+impl Default for FruitTracker {
+    fn default() -> Self {
+        // Ids start at 1 so that 0 can mean "no fruit" in messages.
+        Self {
+            previous: Vec::new(),
+            next_id: 1,
+        }
+    }
+}
+
+impl FruitTracker {
+    /// Estimates for `clusters` (same order). Each cluster takes the id of the previous estimate
+    /// with the nearest centre within [`TRACK_MATCH_DISTANCE_M`] (greedy one-to-one, smallest
+    /// distance first); the others get fresh ids. Ids are never reused.
+    pub fn update(&mut self, clusters: &[RoiCluster]) -> Vec<FruitEstimate> {
+        let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
+        for (ci, cluster) in clusters.iter().enumerate() {
+            for (pi, (_, centre)) in self.previous.iter().enumerate() {
+                let d = (cluster.centre - centre).norm();
+                if d <= TRACK_MATCH_DISTANCE_M {
+                    pairs.push((d, ci, pi));
+                }
+            }
+        }
+        pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let mut id_of: Vec<Option<u32>> = vec![None; clusters.len()];
+        let mut taken = vec![false; self.previous.len()];
+        for (_, ci, pi) in pairs {
+            if id_of[ci].is_none() && !taken[pi] {
+                id_of[ci] = Some(self.previous[pi].0);
+                taken[pi] = true;
+            }
+        }
+        let estimates: Vec<FruitEstimate> = clusters
+            .iter()
+            .zip(id_of)
+            .map(|(cluster, id)| {
+                let id = id.unwrap_or_else(|| {
+                    let fresh = self.next_id;
+                    // 4 billion fruits will not happen; saturate rather than wrap to a used id.
+                    self.next_id = self.next_id.saturating_add(1);
+                    fresh
+                });
+                let size = cluster.max - cluster.min;
+                FruitEstimate {
+                    id,
+                    centre: cluster.centre,
+                    min: cluster.min,
+                    max: cluster.max,
+                    volume_m3: size.x.max(0.0) * size.y.max(0.0) * size.z.max(0.0),
+                    voxel_count: cluster.voxels.len(),
+                    confidence: fruit_confidence(cluster),
+                }
+            })
+            .collect();
+        self.previous = estimates.iter().map(|e| (e.id, e.centre)).collect();
+        estimates
+    }
+}
+
+#[cfg(test)]
+mod tests;

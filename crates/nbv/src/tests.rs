@@ -1,0 +1,399 @@
+use glasshouse_geom::optical_axis;
+use glasshouse_roimap::{MapConfig, Voxel};
+
+use super::*;
+
+fn k(x: i32, y: i32, z: i32) -> VoxelKey {
+    VoxelKey::new(x, y, z)
+}
+
+fn empty_map() -> RoiMap {
+    RoiMap::new(MapConfig::default()).expect("default map config is valid")
+}
+
+/// Sets every voxel of the inclusive key box to the given log-odds.
+fn set_box(map: &mut RoiMap, lo: VoxelKey, hi: VoxelKey, occupancy: f32, roi: f32) {
+    let v = Voxel {
+        occupancy_logodds: occupancy,
+        roi_logodds: roi,
+    };
+    let mut entries = Vec::new();
+    for x in lo.x..=hi.x {
+        for y in lo.y..=hi.y {
+            for z in lo.z..=hi.z {
+                entries.push((k(x, y, z), v));
+            }
+        }
+    }
+    map.apply_voxels(&entries);
+}
+
+fn aabb(min: [f64; 3], max: [f64; 3]) -> Aabb {
+    Aabb::new(Point3::from(min), Point3::from(max))
+}
+
+fn position(pose: &Isometry3<f64>) -> Point3<f64> {
+    Point3::from(pose.translation.vector)
+}
+
+fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    a.normalize()
+        .dot(&b.normalize())
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+const BLOB_CENTRE: [f64; 3] = [0.0, 0.02, 1.0];
+
+/// An occupied ROI blob of 4x4x4 voxels centred at `BLOB_CENTRE`, known free space in front of
+/// it (y < 0.04) and around its sides, unknown space behind it (y >= 0.04).
+fn blob_map() -> RoiMap {
+    let mut map = empty_map();
+    set_box(&mut map, k(-30, -60, 70), k(30, 3, 130), -1.0, 0.0);
+    set_box(&mut map, k(-2, 0, 98), k(1, 3, 101), 2.0, 2.0);
+    map
+}
+
+fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
+    PlanningContext {
+        map,
+        world_from_camera: look_along(&Point3::new(0.0, -0.4, 1.0), &Vector3::y()),
+        camera_workspace: aabb([-0.4, -0.6, 0.6], [0.4, -0.2, 1.4]),
+        sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
+    }
+}
+
+#[test]
+fn method_names_parse_and_display() {
+    for m in Method::ALL {
+        assert_eq!(m.to_string().parse::<Method>(), Ok(m));
+    }
+    assert_eq!("ours-up".parse::<Method>(), Ok(Method::OursUp));
+    assert_eq!(" Explo-UU ".parse::<Method>(), Ok(Method::ExploUu));
+    let err = "ours".parse::<Method>().expect_err("not a method");
+    let msg = err.to_string();
+    for name in ["ours-uu", "ours-up", "explo-uu", "explo-up"] {
+        assert!(msg.contains(name), "{msg}");
+    }
+    assert_eq!(Method::OursUp.gain(), GainKind::Proximity);
+    assert_eq!(Method::ExploUu.gain(), GainKind::UnobservedVoxels);
+    assert!(Method::OursUu.uses_roi_sampling());
+    assert!(!Method::ExploUp.uses_roi_sampling());
+}
+
+#[test]
+fn default_config_is_the_papers_and_validated() {
+    let c = PlannerConfig::default();
+    assert!(c.validate().is_ok());
+    assert!((c.vertical_fov_rad.to_degrees() - 64.36).abs() < 0.01);
+    assert!((c.occlusion_occupancy_logodds - 0.405_465).abs() < 1e-5);
+    for bad in [
+        PlannerConfig {
+            min_view_distance_m: 0.6,
+            ..c
+        },
+        PlannerConfig { fan_width: 0, ..c },
+        PlannerConfig {
+            horizontal_fov_rad: f64::NAN,
+            ..c
+        },
+        PlannerConfig {
+            max_ranked_views: 0,
+            ..c
+        },
+    ] {
+        assert!(matches!(bad.validate(), Err(PlanError::InvalidConfig(_))));
+    }
+    let map = empty_map();
+    let mut ctx = blob_context(&map);
+    ctx.camera_workspace = aabb([1.0, 0.0, 0.0], [0.0, 1.0, 1.0]);
+    assert!(matches!(
+        plan_views(&ctx, &c, 0),
+        Err(PlanError::InvalidRegion { .. })
+    ));
+}
+
+#[test]
+fn top_roi_view_looks_at_the_blob_from_the_workspace() {
+    let map = blob_map();
+    let ctx = blob_context(&map);
+    let config = PlannerConfig::default();
+    let plan = plan_views(&ctx, &config, 7).expect("valid plan");
+    assert_eq!(plan.roi_targets, 16);
+    assert_eq!(plan.used_kind, ViewKind::Roi);
+    assert!(!plan.views.is_empty() && plan.views.len() <= config.max_ranked_views);
+    for w in plan.views.windows(2) {
+        assert!(w[0].utility >= w[1].utility, "best first");
+    }
+    let blob = Point3::from(BLOB_CENTRE);
+    for view in &plan.views {
+        assert_eq!(view.kind, ViewKind::Roi);
+        assert!(view.utility > config.utility_threshold);
+        let eye = position(&view.world_from_camera);
+        assert!(ctx.camera_workspace.contains(&eye));
+        let angle = angle_deg(&optical_axis(&view.world_from_camera), &(blob - eye));
+        assert!(angle < 10.0, "angle {angle}");
+        let d = (blob - eye).norm();
+        assert!((0.27..=0.53).contains(&d), "distance {d}");
+        assert!((view.utility - (view.gain - 0.2 * view.cost_m)).abs() < 1e-12);
+    }
+}
+
+#[test]
+fn same_seed_same_plan() {
+    let map = blob_map();
+    let ctx = blob_context(&map);
+    for method in Method::ALL {
+        let config = PlannerConfig {
+            method,
+            ..PlannerConfig::default()
+        };
+        let a = plan_views(&ctx, &config, 1234).expect("valid plan");
+        let b = plan_views(&ctx, &config, 1234).expect("valid plan");
+        assert_eq!(a.views.len(), b.views.len());
+        assert_eq!(a.candidates_scored, b.candidates_scored);
+        for (x, y) in a.views.iter().zip(&b.views) {
+            assert_eq!(x.world_from_camera, y.world_from_camera);
+            assert_eq!(x.utility, y.utility);
+        }
+        let c = plan_views(&ctx, &config, 1235).expect("valid plan");
+        assert!(!c.views.is_empty());
+        if method.uses_roi_sampling() {
+            assert_ne!(
+                a.views[0].world_from_camera, c.views[0].world_from_camera,
+                "another seed samples other views"
+            );
+        } else {
+            assert_eq!(a.used_kind, ViewKind::Exploration);
+        }
+    }
+}
+
+#[test]
+fn unobserved_gain_is_one_into_unknown_and_zero_into_known_free() {
+    let config = PlannerConfig {
+        gain_ray_range_m: 0.25,
+        ..PlannerConfig::default()
+    };
+    let pose = look_along(
+        &Point3::new(0.005, 0.005, 1.005),
+        &Vector3::new(1.0, 0.3, 0.2),
+    );
+    let map = empty_map();
+    let gain = GainEvaluator::new(&map, &config).gain(&pose);
+    assert_eq!(gain, 1.0);
+
+    let mut known = empty_map();
+    set_box(&mut known, k(-35, -35, 65), k(35, 35, 135), -0.4055, 0.0);
+    let gain = GainEvaluator::new(&known, &config).gain(&pose);
+    assert_eq!(gain, 0.0);
+
+    // A wall right in front: rays stop at it, nothing unknown is counted.
+    let mut walled = empty_map();
+    set_box(&mut walled, k(0, -40, 60), k(1, 40, 140), -1.0, 0.0);
+    set_box(&mut walled, k(2, -40, 60), k(2, 40, 140), 2.0, 0.0);
+    let gain = GainEvaluator::new(&walled, &config).gain(&look_along(
+        &Point3::new(0.005, 0.005, 1.005),
+        &Vector3::x(),
+    ));
+    assert_eq!(gain, 0.0);
+}
+
+#[test]
+fn fan_is_cast_around_the_optical_axis() {
+    // Known free column above the camera, unknown everywhere else.
+    let mut map = empty_map();
+    set_box(&mut map, k(-10, -10, 100), k(9, 9, 199), -1.0, 0.0);
+    let config = PlannerConfig::default();
+    let evaluator = GainEvaluator::new(&map, &config);
+    let eye = Point3::new(0.005, 0.005, 1.005);
+    // Optical axis +x (unknown), image up (-y of camera) = world +z (known free).
+    let sideways = look_along(&eye, &Vector3::x());
+    assert!((sideways.rotation * -Vector3::y() - Vector3::z()).norm() < 1e-9);
+    let side_gain = evaluator.gain(&sideways);
+    assert!(side_gain > 0.8, "side gain {side_gain}");
+    let up_gain = evaluator.gain(&look_along(&eye, &Vector3::z()));
+    assert!(up_gain < side_gain - 0.2, "up {up_gain} side {side_gain}");
+}
+
+#[test]
+fn proximity_gain_rises_near_roi() {
+    let config = PlannerConfig {
+        method: Method::OursUp,
+        ..PlannerConfig::default()
+    };
+    let pose = look_along(&Point3::new(0.005, -0.25, 1.005), &Vector3::y());
+    let empty = empty_map();
+    let base = GainEvaluator::new(&empty, &config).gain(&pose);
+    assert!(
+        (base - 0.5).abs() < 1e-12,
+        "unknown voxels weigh 0.5: {base}"
+    );
+    let mut map = empty_map();
+    set_box(&mut map, k(-2, 0, 98), k(1, 3, 101), 2.0, 2.0);
+    let near = GainEvaluator::new(&map, &config).gain(&pose);
+    assert!(near > 0.55 && near <= 1.0, "near {near}");
+    // U_U ignores ROI: the same map scores lower-or-equal in share terms but never above 1.
+    let uu = GainEvaluator::new(&map, &PlannerConfig::default()).gain(&pose);
+    assert!(uu > near && uu <= 1.0);
+}
+
+#[test]
+fn exploration_when_there_is_no_roi() {
+    // A wall (occupied, no ROI) at y = 0 with known free space in front and unknown behind.
+    let mut map = empty_map();
+    set_box(&mut map, k(-20, -40, 80), k(20, -1, 120), -1.0, 0.0);
+    set_box(&mut map, k(-20, 0, 80), k(20, 0, 120), 2.0, -1.0);
+    let ctx = PlanningContext {
+        map: &map,
+        world_from_camera: look_along(&Point3::new(0.0, -0.4, 1.0), &Vector3::y()),
+        camera_workspace: aabb([-0.6, -0.7, 0.5], [0.6, -0.1, 1.5]),
+        sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
+    };
+    for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
+        let config = PlannerConfig {
+            method,
+            ..PlannerConfig::default()
+        };
+        let plan = plan_views(&ctx, &config, 3).expect("valid plan");
+        assert_eq!(plan.roi_targets, 0);
+        assert!(plan.exploration_frontier > 0);
+        assert_eq!(plan.used_kind, ViewKind::Exploration);
+        assert!(!plan.views.is_empty());
+        for view in &plan.views {
+            assert_eq!(view.kind, ViewKind::Exploration);
+            let eye = position(&view.world_from_camera);
+            assert!(ctx.camera_workspace.contains(&eye));
+            // Looking back towards the wall (normal points to -y).
+            assert!(optical_axis(&view.world_from_camera).y > 0.0);
+        }
+    }
+}
+
+#[test]
+fn never_empty_on_an_empty_map() {
+    let map = empty_map();
+    let ctx = PlanningContext {
+        map: &map,
+        world_from_camera: look_along(&Point3::new(0.0, 0.0, 1.0), &Vector3::y()),
+        camera_workspace: aabb([-0.5, -0.5, 0.5], [0.5, 0.0, 1.5]),
+        sampling_region: aabb([-1.0, 0.2, 0.0], [1.0, 0.8, 2.0]),
+    };
+    for method in Method::ALL {
+        let config = PlannerConfig {
+            method,
+            ..PlannerConfig::default()
+        };
+        let plan = plan_views(&ctx, &config, 11).expect("valid plan");
+        assert_eq!(plan.used_kind, ViewKind::Exploration);
+        assert!(!plan.views.is_empty());
+        assert!(plan.views.len() <= config.max_ranked_views);
+        assert!(plan.candidates_scored >= plan.views.len());
+        for view in &plan.views {
+            assert!(ctx
+                .camera_workspace
+                .contains(&position(&view.world_from_camera)));
+            assert!(view.utility.is_finite());
+        }
+    }
+    // A flat (zero-volume) workspace still yields a view.
+    let flat = PlanningContext {
+        camera_workspace: aabb([0.0, -0.3, 1.0], [0.0, -0.3, 1.0]),
+        ..ctx
+    };
+    let plan = plan_views(&flat, &PlannerConfig::default(), 5).expect("valid plan");
+    assert!(!plan.views.is_empty());
+    // Nothing above the threshold: the best views are returned anyway.
+    let strict = PlannerConfig {
+        utility_threshold: 5.0,
+        ..PlannerConfig::default()
+    };
+    let plan = plan_views(&ctx, &strict, 5).expect("valid plan");
+    assert!(!plan.views.is_empty());
+}
+
+fn cluster_at(centre: [f64; 3], half_voxels: i32) -> RoiCluster {
+    let res = 0.01;
+    let c = k(
+        (centre[0] / res).floor() as i32,
+        (centre[1] / res).floor() as i32,
+        (centre[2] / res).floor() as i32,
+    );
+    let mut voxels = Vec::new();
+    for x in -half_voxels..=half_voxels {
+        for y in -half_voxels..=half_voxels {
+            for z in -half_voxels..=half_voxels {
+                voxels.push(c.offset(x, y, z));
+            }
+        }
+    }
+    let side = f64::from(2 * half_voxels + 1) * res;
+    let min = Point3::new(
+        f64::from(c.x - half_voxels) * res,
+        f64::from(c.y - half_voxels) * res,
+        f64::from(c.z - half_voxels) * res,
+    );
+    RoiCluster {
+        voxels,
+        centre: Point3::from(centre),
+        min,
+        max: min + Vector3::repeat(side),
+    }
+}
+
+#[test]
+fn tracker_keeps_ids_for_moving_clusters_and_never_reuses_them() {
+    let mut tracker = FruitTracker::default();
+    let first = tracker.update(&[
+        cluster_at([0.0, 0.0, 1.0], 2),
+        cluster_at([0.3, 0.0, 1.0], 2),
+    ]);
+    assert_eq!(first.iter().map(|e| e.id).collect::<Vec<_>>(), vec![1, 2]);
+    assert_eq!(first[0].voxel_count, 125);
+    assert!((first[0].volume_m3 - 0.05f64.powi(3)).abs() < 1e-12);
+    assert_eq!(first[0].confidence, 1.0);
+
+    // Moved slightly, listed in another order, plus a new one.
+    let second = tracker.update(&[
+        cluster_at([0.8, 0.0, 1.0], 2),
+        cluster_at([0.32, 0.01, 1.0], 2),
+        cluster_at([0.01, 0.0, 1.01], 2),
+    ]);
+    assert_eq!(
+        second.iter().map(|e| e.id).collect::<Vec<_>>(),
+        vec![3, 2, 1]
+    );
+
+    // Two clusters near one old fruit: the nearer keeps the id, the other is new.
+    let third = tracker.update(&[
+        cluster_at([0.04, 0.0, 1.01], 2),
+        cluster_at([0.015, 0.0, 1.01], 2),
+    ]);
+    assert_eq!(third.iter().map(|e| e.id).collect::<Vec<_>>(), vec![4, 1]);
+
+    // Fruit 2 vanished; when it reappears it gets a fresh id, never an old one.
+    let fourth = tracker.update(&[cluster_at([0.32, 0.01, 1.0], 2)]);
+    assert_eq!(fourth[0].id, 5);
+    assert!(tracker.update(&[]).is_empty());
+}
+
+#[test]
+fn confidence_is_the_seen_share_of_the_box_surface() {
+    // Only the bottom face (z = lowest layer) of a 3x3x3 box: 9 of 26 surface voxels.
+    let full = cluster_at([0.0, 0.0, 1.0], 1);
+    let lowest = full.voxels.iter().map(|v| v.z).min().expect("non-empty");
+    let mut face = full.clone();
+    face.voxels.retain(|v| v.z == lowest);
+    // The key box of a single face is flat: every voxel is on its surface.
+    assert_eq!(fruit_confidence(&face), 1.0);
+    // Add one voxel on the top layer corner: box is 3x3x3, 10 of 26 surface voxels present.
+    let top_corner = full.voxels.iter().copied().max().expect("non-empty");
+    face.voxels.push(top_corner);
+    assert!((fruit_confidence(&face) - 10.0 / 26.0).abs() < 1e-12);
+    let hollow_missing: RoiCluster = RoiCluster {
+        voxels: Vec::new(),
+        ..full
+    };
+    assert_eq!(fruit_confidence(&hollow_missing), 0.0);
+}

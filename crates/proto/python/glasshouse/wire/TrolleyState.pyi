@@ -1,0 +1,17 @@
+from __future__ import annotations
+
+import flatbuffers
+import numpy as np
+
+import typing
+from typing import cast
+
+uoffset: typing.TypeAlias = flatbuffers.number_types.UOffsetTFlags.py_type
+
+class TrolleyState(object):
+  Starting = cast(int, ...)
+  Capturing = cast(int, ...)
+  WaitingForViews = cast(int, ...)
+  Moving = cast(int, ...)
+  Done = cast(int, ...)
+

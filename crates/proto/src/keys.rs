@@ -1,0 +1,262 @@
+//! Every Zenoh key expression of Glasshouse is built here, one function per key.
+//!
+//! Tree (ids are single chunks of `[A-Za-z0-9_-]`):
+//! - `gh/trolley/{tid}/{rgbd|arm|info|roi|views|fruits|map|status|truth}`: one trolley's data and
+//!   results (`truth`: the simulator's ground truth);
+//! - `gh/planner/{pid}/status`, `gh/detector/{did}/status`: service health;
+//! - `gh/fleet/fruits`: the merged fruit map;
+//! - `gh/alive/{trolley|planner|detector}/{id}`: liveliness tokens (membership), outside the data tree.
+
+use crate::MessageKind;
+
+/// Root of every key of this project.
+pub const ROOT: &str = "gh";
+/// Everything the dashboard subscribes to.
+pub const EVERYTHING: &str = "gh/**";
+/// The merged fruit map of the fleet.
+pub const FLEET_FRUITS: &str = "gh/fleet/fruits";
+/// Longest id accepted.
+pub const MAX_ID_LEN: usize = 64;
+
+#[derive(thiserror::Error, Debug, Clone, PartialEq, Eq)]
+pub enum KeyError {
+    #[error("id {0:?} is empty, longer than {MAX_ID_LEN} characters, or has a character outside [A-Za-z0-9_-]")]
+    InvalidId(String),
+}
+
+/// Checks that an id is one key chunk: 1..=64 characters of `[A-Za-z0-9_-]`.
+pub fn validate_id(id: &str) -> Result<(), KeyError> {
+    let ok = !id.is_empty()
+        && id.len() <= MAX_ID_LEN
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+    if ok {
+        Ok(())
+    } else {
+        Err(KeyError::InvalidId(id.to_owned()))
+    }
+}
+
+/// The per-trolley topics.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum TrolleyTopic {
+    /// RgbdFrame, edge → detectors (stream).
+    Rgbd,
+    /// ArmState, edge → planners, dashboard (stream).
+    Arm,
+    /// TrolleyInfo, edge → planners, dashboard (reliable, periodic).
+    Info,
+    /// RoiCloud, detector → planners, dashboard (reliable).
+    Roi,
+    /// RankedViews, owning planner → edge, dashboard (reliable).
+    Views,
+    /// FruitEstimates, owning planner → dashboard (reliable).
+    Fruits,
+    /// MapUpdate, owning planner → dashboard, replicas (reliable).
+    Map,
+    /// TrolleyStatus, edge → dashboard (reliable, periodic).
+    Status,
+    /// FruitEstimates holding the ground truth, simulated edges → dashboard (reliable, with info).
+    Truth,
+}
+
+impl TrolleyTopic {
+    pub const ALL: [TrolleyTopic; 9] = [
+        TrolleyTopic::Rgbd,
+        TrolleyTopic::Arm,
+        TrolleyTopic::Info,
+        TrolleyTopic::Roi,
+        TrolleyTopic::Views,
+        TrolleyTopic::Fruits,
+        TrolleyTopic::Map,
+        TrolleyTopic::Status,
+        TrolleyTopic::Truth,
+    ];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            TrolleyTopic::Rgbd => "rgbd",
+            TrolleyTopic::Arm => "arm",
+            TrolleyTopic::Info => "info",
+            TrolleyTopic::Roi => "roi",
+            TrolleyTopic::Views => "views",
+            TrolleyTopic::Fruits => "fruits",
+            TrolleyTopic::Map => "map",
+            TrolleyTopic::Status => "status",
+            TrolleyTopic::Truth => "truth",
+        }
+    }
+
+    /// The one message kind this topic carries.
+    pub fn message_kind(self) -> MessageKind {
+        match self {
+            TrolleyTopic::Rgbd => MessageKind::RgbdFrame,
+            TrolleyTopic::Arm => MessageKind::ArmState,
+            TrolleyTopic::Info => MessageKind::TrolleyInfo,
+            TrolleyTopic::Roi => MessageKind::RoiCloud,
+            TrolleyTopic::Views => MessageKind::RankedViews,
+            TrolleyTopic::Fruits => MessageKind::FruitEstimates,
+            TrolleyTopic::Map => MessageKind::MapUpdate,
+            TrolleyTopic::Status => MessageKind::TrolleyStatus,
+            TrolleyTopic::Truth => MessageKind::FruitEstimates,
+        }
+    }
+
+    fn parse(s: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|t| t.as_str() == s)
+    }
+}
+
+/// `gh/trolley/{tid}/{topic}`.
+pub fn trolley(tid: &str, topic: TrolleyTopic) -> Result<String, KeyError> {
+    validate_id(tid)?;
+    Ok(format!("{ROOT}/trolley/{tid}/{}", topic.as_str()))
+}
+
+/// `gh/trolley/*/{topic}`: one topic of every trolley.
+pub fn all_trolleys(topic: TrolleyTopic) -> String {
+    format!("{ROOT}/trolley/*/{}", topic.as_str())
+}
+
+/// `gh/planner/{pid}/status`: PlannerStatus.
+pub fn planner_status(pid: &str) -> Result<String, KeyError> {
+    validate_id(pid)?;
+    Ok(format!("{ROOT}/planner/{pid}/status"))
+}
+
+/// `gh/detector/{did}/status`: DetectorStatus.
+pub fn detector_status(did: &str) -> Result<String, KeyError> {
+    validate_id(did)?;
+    Ok(format!("{ROOT}/detector/{did}/status"))
+}
+
+/// Kinds of member that announce themselves with a liveliness token.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum MemberKind {
+    Trolley,
+    Planner,
+    Detector,
+}
+
+impl MemberKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            MemberKind::Trolley => "trolley",
+            MemberKind::Planner => "planner",
+            MemberKind::Detector => "detector",
+        }
+    }
+}
+
+/// `gh/alive/{kind}/{id}`: a member's liveliness token.
+pub fn alive(kind: MemberKind, id: &str) -> Result<String, KeyError> {
+    validate_id(id)?;
+    Ok(format!("{ROOT}/alive/{}/{id}", kind.as_str()))
+}
+
+/// `gh/alive/{kind}/*`: every member of a kind.
+pub fn alive_all(kind: MemberKind) -> String {
+    format!("{ROOT}/alive/{}/*", kind.as_str())
+}
+
+/// What a received key names.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ParsedKey {
+    Trolley { tid: String, topic: TrolleyTopic },
+    PlannerStatus { pid: String },
+    DetectorStatus { did: String },
+    FleetFruits,
+    Alive { kind: MemberKind, id: String },
+}
+
+impl ParsedKey {
+    /// The message kind published on this key, if it carries messages.
+    pub fn message_kind(&self) -> Option<MessageKind> {
+        match self {
+            ParsedKey::Trolley { topic, .. } => Some(topic.message_kind()),
+            ParsedKey::PlannerStatus { .. } => Some(MessageKind::PlannerStatus),
+            ParsedKey::DetectorStatus { .. } => Some(MessageKind::DetectorStatus),
+            ParsedKey::FleetFruits => Some(MessageKind::FruitEstimates),
+            ParsedKey::Alive { .. } => None,
+        }
+    }
+}
+
+/// Parses a concrete key of this project's tree; `None` for anything else.
+pub fn parse(key: &str) -> Option<ParsedKey> {
+    let rest = key.strip_prefix(ROOT)?.strip_prefix('/')?;
+    let parts: Vec<&str> = rest.split('/').collect();
+    let valid = |id: &str| validate_id(id).is_ok();
+    match parts.as_slice() {
+        ["trolley", tid, topic] if valid(tid) => Some(ParsedKey::Trolley {
+            tid: (*tid).to_owned(),
+            topic: TrolleyTopic::parse(topic)?,
+        }),
+        ["planner", pid, "status"] if valid(pid) => Some(ParsedKey::PlannerStatus {
+            pid: (*pid).to_owned(),
+        }),
+        ["detector", did, "status"] if valid(did) => Some(ParsedKey::DetectorStatus {
+            did: (*did).to_owned(),
+        }),
+        ["fleet", "fruits"] => Some(ParsedKey::FleetFruits),
+        ["alive", kind, id] if valid(id) => {
+            let kind = [
+                MemberKind::Trolley,
+                MemberKind::Planner,
+                MemberKind::Detector,
+            ]
+            .into_iter()
+            .find(|k| k.as_str() == *kind)?;
+            Some(ParsedKey::Alive {
+                kind,
+                id: (*id).to_owned(),
+            })
+        }
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_round_trip_through_parse() {
+        for topic in TrolleyTopic::ALL {
+            let key = trolley("t-1", topic).expect("valid id");
+            assert_eq!(
+                parse(&key),
+                Some(ParsedKey::Trolley {
+                    tid: "t-1".into(),
+                    topic
+                })
+            );
+        }
+        assert_eq!(
+            parse(&planner_status("p1").expect("valid")),
+            Some(ParsedKey::PlannerStatus { pid: "p1".into() })
+        );
+        assert_eq!(
+            parse(&alive(MemberKind::Planner, "p2").expect("valid")),
+            Some(ParsedKey::Alive {
+                kind: MemberKind::Planner,
+                id: "p2".into()
+            })
+        );
+        assert_eq!(parse(FLEET_FRUITS), Some(ParsedKey::FleetFruits));
+        assert_eq!(parse("gh/trolley/t1/bogus"), None);
+        assert_eq!(parse("other/trolley/t1/rgbd"), None);
+    }
+
+    #[test]
+    fn ids_must_be_single_chunks() {
+        for bad in ["", "a/b", "*", "a b", "t$", &"x".repeat(65)] {
+            assert!(
+                trolley(bad, TrolleyTopic::Rgbd).is_err(),
+                "{bad:?} accepted"
+            );
+        }
+        assert!(validate_id("trolley_07-b").is_ok());
+    }
+}

@@ -1,0 +1,159 @@
+//! Small, valid example messages of every kind, for tests and for fault injection.
+
+use glasshouse_geom::{look_at, Aabb, CameraIntrinsics};
+use nalgebra::{Isometry3, Point3};
+
+use crate::*;
+
+fn pose() -> Isometry3<f64> {
+    look_at(&Point3::new(0.1, -0.4, 1.0), &Point3::new(0.0, 0.3, 0.8))
+}
+
+fn region() -> Aabb {
+    Aabb::new(Point3::new(-1.0, -1.0, 0.0), Point3::new(1.0, 1.0, 1.5))
+}
+
+/// A header for trolley `t1`.
+pub fn header(seq: u64) -> Header {
+    Header {
+        seq,
+        stamp_ns: 1_000_000 * seq,
+        trolley_id: "t1".into(),
+        source_id: "sample".into(),
+        frame_id: "world".into(),
+    }
+}
+
+/// A small valid message of `kind`.
+pub fn message(kind: MessageKind) -> Message {
+    let intrinsics = CameraIntrinsics::from_horizontal_fov(8, 6, 80f64.to_radians());
+    match kind {
+        MessageKind::RgbdFrame => Message::RgbdFrame(RgbdFrame {
+            intrinsics,
+            world_from_camera: pose(),
+            depth_scale_m: 0.001,
+            min_range_m: 0.15,
+            max_range_m: 3.0,
+            depth: (0..48).map(|i| 500 + i * 10).collect(),
+            rgb: (0..144).map(|i| (i * 7 % 256) as u8).collect(),
+        }),
+        MessageKind::ArmState => Message::ArmState(ArmState {
+            joint_angles_rad: vec![0.0, -1.57, 1.2, 0.3, 1.57, 0.0],
+            world_from_camera: pose(),
+            rail_position_m: 1.5,
+            lift_height_m: 0.2,
+            moving: true,
+            views_done: 3,
+        }),
+        MessageKind::TrolleyInfo => Message::TrolleyInfo(TrolleyInfo {
+            arm_model: ArmModel::Ur5e,
+            mount: MountKind::RailLift,
+            world_from_base: Isometry3::translation(0.0, -0.7, 0.3),
+            joint_min_rad: vec![-std::f64::consts::TAU; 6],
+            joint_max_rad: vec![std::f64::consts::TAU; 6],
+            rail_min_m: 0.0,
+            rail_max_m: 20.0,
+            lift_min_m: 0.0,
+            lift_max_m: 3.0,
+            camera_workspace: region(),
+            sampling_region: region().inflated(0.1),
+            scenario: "row".into(),
+            scene_seed: 7,
+            intrinsics,
+        }),
+        MessageKind::RoiCloud => Message::RoiCloud(RoiCloud {
+            points_in_world: vec![
+                Point3::new(0.1, 0.2, 0.3),
+                Point3::new(0.4, 0.5, 0.6),
+                Point3::new(f32::NAN, 0.0, 0.0),
+            ],
+            roi: vec![true, false, false],
+            sensor_origin_in_world: Point3::new(0.0, -0.5, 1.0),
+            source_frame_seq: 42,
+            invalid_pixels: 5,
+            detector_id: "d1".into(),
+        }),
+        MessageKind::RankedViews => Message::RankedViews(RankedViews {
+            views: vec![
+                RankedView {
+                    world_from_camera: pose(),
+                    utility: 0.5,
+                    gain: 0.6,
+                    cost_m: 0.5,
+                    kind: ViewKind::Roi,
+                },
+                RankedView {
+                    world_from_camera: Isometry3::translation(0.2, 0.0, 1.0),
+                    utility: 0.3,
+                    gain: 0.35,
+                    cost_m: 0.25,
+                    kind: ViewKind::Exploration,
+                },
+            ],
+            based_on_seq: 42,
+            planning_time_ms: 12.5,
+            planner_id: "p1".into(),
+        }),
+        MessageKind::FruitEstimates => Message::FruitEstimates(FruitEstimates {
+            fruits: vec![Fruit {
+                id: 3,
+                centre_in_world: Point3::new(0.1, 0.2, 0.9),
+                box_min: Point3::new(0.07, 0.17, 0.86),
+                box_max: Point3::new(0.13, 0.23, 0.94),
+                volume_m3: 0.06 * 0.06 * 0.08,
+                voxel_count: 120,
+                confidence: 0.6,
+            }],
+            based_on_seq: 42,
+            planner_id: "p1".into(),
+        }),
+        MessageKind::MapUpdate => Message::MapUpdate(MapUpdate {
+            resolution_m: 0.01,
+            map_seq: 9,
+            based_on_seq: 42,
+            full: false,
+            voxels: vec![
+                VoxelChange {
+                    key: [1, -2, 3],
+                    occupancy_logodds: 0.8473,
+                    roi_logodds: 0.8473,
+                    state: VoxelState::Occupied,
+                },
+                VoxelChange {
+                    key: [-4, 5, 6],
+                    occupancy_logodds: -0.4055,
+                    roi_logodds: 0.0,
+                    state: VoxelState::Free,
+                },
+            ],
+            planner_id: "p1".into(),
+        }),
+        MessageKind::PlannerStatus => Message::PlannerStatus(PlannerStatus {
+            planner_id: "p1".into(),
+            owned_trolleys: vec!["t1".into(), "t2".into()],
+            standby_trolleys: vec!["t3".into()],
+            clouds_integrated: 10,
+            views_published: 9,
+            last_planning_time_ms: 30.0,
+            mean_planning_time_ms: 28.0,
+            dropped_messages: 1,
+            map_voxels: 12345,
+        }),
+        MessageKind::TrolleyStatus => Message::TrolleyStatus(TrolleyStatus {
+            state: TrolleyState::Moving,
+            views_done: 4,
+            frames_published: 5,
+            unreachable_views: 1,
+            reannounces: 0,
+            dropped_messages: 2,
+            last_views_seq: 4,
+            message: "moving".into(),
+        }),
+        MessageKind::DetectorStatus => Message::DetectorStatus(DetectorStatus {
+            detector_id: "d1".into(),
+            frames_processed: 7,
+            dropped_messages: 0,
+            mean_detect_time_ms: 8.0,
+        }),
+    }
+}

@@ -1,0 +1,722 @@
+use std::collections::{BTreeMap, BTreeSet};
+
+use super::*;
+
+/// Small seeded generator (SplitMix64) so tests need no extra crates.
+struct TestRng(u64);
+
+impl TestRng {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [lo, hi).
+    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
+    }
+}
+
+fn map() -> RoiMap {
+    RoiMap::new(MapConfig::default()).expect("default config is valid")
+}
+
+fn p32(x: f64, y: f64, z: f64) -> Point3<f32> {
+    Point3::new(x as f32, y as f32, z as f32)
+}
+
+fn k(x: i32, y: i32, z: i32) -> VoxelKey {
+    VoxelKey::new(x, y, z)
+}
+
+const MISS: f32 = -0.4055;
+const HIT: f32 = 0.8473;
+
+#[test]
+fn default_config_is_the_papers_and_valid() {
+    let c = MapConfig::default();
+    assert_eq!(c.resolution_m, 0.01);
+    assert_eq!(c.hit_logodds, HIT);
+    assert_eq!(c.miss_logodds, MISS);
+    assert_eq!(c.clamp_min_logodds, -2.0);
+    assert_eq!(c.clamp_max_logodds, 3.5110);
+    assert_eq!(c.roi_threshold_logodds, 1.0);
+    assert_eq!(c.max_range_m, None);
+    assert!(c.validate().is_ok());
+    for bad in [
+        MapConfig {
+            resolution_m: 0.0,
+            ..c
+        },
+        MapConfig {
+            resolution_m: f64::NAN,
+            ..c
+        },
+        MapConfig {
+            clamp_min_logodds: 4.0,
+            ..c
+        },
+        MapConfig {
+            max_range_m: Some(-1.0),
+            ..c
+        },
+        MapConfig {
+            hit_logodds: f32::INFINITY,
+            ..c
+        },
+    ] {
+        assert!(matches!(RoiMap::new(bad), Err(MapError::InvalidConfig(_))));
+    }
+}
+
+#[test]
+fn single_ray_along_x() {
+    let mut m = map();
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    let stats = m
+        .insert_scan(&origin, &[p32(0.105, 0.005, 0.005)], &[false])
+        .expect("valid scan");
+    assert_eq!(stats.free_updates, 10);
+    assert_eq!(stats.occupied_updates, 1);
+    for x in 0..10 {
+        assert_eq!(m.occupancy(k(x, 0, 0)), Occupancy::Free, "x = {x}");
+        assert_eq!(m.get(k(x, 0, 0)).map(|v| v.occupancy_logodds), Some(MISS));
+    }
+    assert_eq!(m.occupancy(k(10, 0, 0)), Occupancy::Occupied);
+    assert_eq!(m.get(k(10, 0, 0)).map(|v| v.occupancy_logodds), Some(HIT));
+    assert_eq!(m.len(), 11);
+    assert_eq!(m.occupancy(k(11, 0, 0)), Occupancy::Unknown);
+    assert_eq!(m.scans_inserted(), 1);
+}
+
+#[test]
+fn point_in_origin_voxel_frees_nothing() {
+    let mut m = map();
+    let origin = Point3::new(0.001, 0.001, 0.001);
+    let stats = m
+        .insert_scan(&origin, &[p32(0.009, 0.009, 0.009)], &[false])
+        .expect("valid scan");
+    assert_eq!(stats.free_updates, 0);
+    assert_eq!(m.occupancy(k(0, 0, 0)), Occupancy::Occupied);
+    assert_eq!(m.len(), 1);
+}
+
+#[test]
+fn occupied_wins_within_a_scan() {
+    let mut m = map();
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    // The second point's voxel (5,0,0) lies on the first point's ray.
+    let stats = m
+        .insert_scan(
+            &origin,
+            &[p32(0.105, 0.005, 0.005), p32(0.055, 0.005, 0.005)],
+            &[false, false],
+        )
+        .expect("valid scan");
+    assert_eq!(m.occupancy(k(5, 0, 0)), Occupancy::Occupied);
+    assert_eq!(m.get(k(5, 0, 0)).map(|v| v.occupancy_logodds), Some(HIT));
+    assert_eq!(stats.free_updates, 9);
+    assert_eq!(stats.occupied_updates, 2);
+}
+
+#[test]
+fn each_voxel_updated_once_per_scan() {
+    let mut m = map();
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    // Many rays fanning out share the voxels near the origin.
+    let points: Vec<Point3<f32>> = (0..50)
+        .map(|i| p32(0.5, 0.005 + 0.002 * f64::from(i), 0.005))
+        .collect();
+    m.insert_scan(&origin, &points, &vec![false; points.len()])
+        .expect("valid scan");
+    let origin_voxel = m.get(k(0, 0, 0)).expect("origin voxel known");
+    assert_eq!(origin_voxel.occupancy_logodds, MISS);
+    assert_eq!(m.get(k(20, 0, 0)).map(|v| v.occupancy_logodds), Some(MISS));
+    for (_, v) in m.iter() {
+        assert!(v.occupancy_logodds == MISS || v.occupancy_logodds == HIT);
+    }
+}
+
+#[test]
+fn clamping_after_many_scans() {
+    let mut m = map();
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    for _ in 0..20 {
+        m.insert_scan(&origin, &[p32(0.105, 0.005, 0.005)], &[true])
+            .expect("valid scan");
+    }
+    let free = m.get(k(3, 0, 0)).expect("known");
+    let occ = m.get(k(10, 0, 0)).expect("known");
+    assert_eq!(free.occupancy_logodds, -2.0);
+    assert_eq!(occ.occupancy_logodds, 3.5110);
+    assert_eq!(occ.roi_logodds, 3.5110);
+    assert_eq!(free.roi_logodds, 0.0, "free voxels get no ROI update");
+}
+
+#[test]
+fn beyond_range_frees_up_to_range_and_marks_nothing() {
+    let config = MapConfig {
+        max_range_m: Some(0.05),
+        ..MapConfig::default()
+    };
+    let mut m = RoiMap::new(config).expect("valid config");
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    let stats = m
+        .insert_scan(&origin, &[p32(0.205, 0.005, 0.005)], &[true])
+        .expect("valid scan");
+    assert_eq!(stats.beyond_range, 1);
+    assert_eq!(stats.occupied_updates, 0);
+    assert_eq!(stats.roi_updates + stats.non_roi_updates, 0);
+    // Range end at x = 0.055 lies in voxel 5, which is excluded like an end voxel.
+    for x in 0..5 {
+        assert_eq!(m.occupancy(k(x, 0, 0)), Occupancy::Free);
+    }
+    assert_eq!(m.len(), 5);
+    assert!(m.iter().all(|(_, v)| v.occupancy() == Occupancy::Free));
+    assert_eq!(m.occupancy(k(20, 0, 0)), Occupancy::Unknown);
+}
+
+#[test]
+fn non_finite_points_skipped_and_counted() {
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    let good = p32(0.105, 0.005, 0.005);
+    let mut clean = map();
+    clean
+        .insert_scan(&origin, &[good], &[true])
+        .expect("valid scan");
+    let mut dirty = map();
+    let pts = [
+        Point3::new(f32::NAN, 0.0, 0.0),
+        good,
+        Point3::new(0.1, f32::INFINITY, 0.0),
+        Point3::new(0.0, 0.0, f32::NEG_INFINITY),
+    ];
+    let stats = dirty
+        .insert_scan(&origin, &pts, &[true, true, false, true])
+        .expect("valid scan");
+    assert_eq!(stats.points, 4);
+    assert_eq!(stats.skipped_non_finite, 3);
+    let mut a: Vec<_> = clean.iter().collect();
+    let mut b: Vec<_> = dirty.iter().collect();
+    a.sort_by_key(|(k, _)| *k);
+    b.sort_by_key(|(k, _)| *k);
+    assert_eq!(a, b);
+}
+
+#[test]
+fn bad_input_is_a_typed_error_and_leaves_the_map_untouched() {
+    let mut m = map();
+    let origin = Point3::new(0.0, 0.0, 0.0);
+    assert!(matches!(
+        m.insert_scan(&origin, &[p32(0.1, 0.0, 0.0)], &[]),
+        Err(MapError::LengthMismatch { points: 1, roi: 0 })
+    ));
+    assert!(matches!(
+        m.insert_scan(
+            &Point3::new(f64::NAN, 0.0, 0.0),
+            &[p32(0.1, 0.0, 0.0)],
+            &[false]
+        ),
+        Err(MapError::NonFiniteOrigin)
+    ));
+    assert!(matches!(
+        m.insert_scan(&Point3::new(1e9, 0.0, 0.0), &[], &[]),
+        Err(MapError::OriginOutOfBounds)
+    ));
+    assert!(m.is_empty());
+    assert_eq!(m.scans_inserted(), 0);
+    assert!(m.take_changes().is_empty());
+    // A point far outside the key range is skipped rather than walked for ages.
+    let stats = m
+        .insert_scan(&origin, &[p32(1e8, 0.0, 0.0)], &[false])
+        .expect("scan with far point");
+    assert_eq!(stats.skipped_out_of_bounds, 1);
+    assert!(m.is_empty());
+}
+
+#[test]
+fn roi_wins_within_a_scan_and_threshold_needs_two_observations() {
+    let mut m = map();
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    // Two points in voxel (10,0,0): one ROI, one not.
+    let pts = [p32(0.102, 0.005, 0.005), p32(0.108, 0.006, 0.004)];
+    let stats = m
+        .insert_scan(&origin, &pts, &[false, true])
+        .expect("valid scan");
+    assert_eq!(stats.roi_updates, 1);
+    assert_eq!(stats.non_roi_updates, 0);
+    assert_eq!(m.get(k(10, 0, 0)).map(|v| v.roi_logodds), Some(HIT));
+    assert!(!m.is_roi(k(10, 0, 0)), "one observation is below 1.0");
+    m.insert_scan(&origin, &pts, &[true, false])
+        .expect("valid scan");
+    assert!(m.is_roi(k(10, 0, 0)), "two observations reach 1.0");
+    assert_eq!(m.roi_keys(), vec![k(10, 0, 0)]);
+    // A non-ROI observation lowers it again.
+    m.insert_scan(&origin, &pts[..1], &[false])
+        .expect("valid scan");
+    assert_eq!(
+        m.get(k(10, 0, 0)).map(|v| v.roi_logodds),
+        Some(HIT + HIT + MISS)
+    );
+}
+
+#[test]
+fn take_changes_returns_each_change_once() {
+    let mut m = map();
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    m.insert_scan(&origin, &[p32(0.105, 0.005, 0.005)], &[false])
+        .expect("valid scan");
+    let changes = m.take_changes();
+    assert_eq!(changes.len(), 11);
+    assert!(
+        changes.windows(2).all(|w| w[0].0 < w[1].0),
+        "sorted, unique"
+    );
+    assert_eq!(
+        changes[10],
+        (k(10, 0, 0), m.get(k(10, 0, 0)).expect("known"))
+    );
+    assert!(m.take_changes().is_empty());
+    // Saturated voxels stop changing and so stop being reported.
+    for _ in 0..10 {
+        m.insert_scan(&origin, &[p32(0.105, 0.005, 0.005)], &[false])
+            .expect("valid scan");
+    }
+    m.take_changes();
+    m.insert_scan(&origin, &[p32(0.105, 0.005, 0.005)], &[false])
+        .expect("valid scan");
+    // ROI log-odds of the end voxel still clamp at -2.0 after 12 misses: everything saturated.
+    assert!(m.take_changes().is_empty());
+    // apply_voxels records what it changed.
+    let v = Voxel {
+        occupancy_logodds: 1.0,
+        roi_logodds: 2.0,
+    };
+    m.apply_voxels(&[
+        (k(-5, 0, 0), v),
+        (k(3, 0, 0), m.get(k(3, 0, 0)).expect("known")),
+    ]);
+    assert_eq!(m.take_changes(), vec![(k(-5, 0, 0), v)]);
+    assert!(m.is_roi(k(-5, 0, 0)));
+}
+
+#[test]
+fn negative_coordinates_floor() {
+    let m = map();
+    assert_eq!(m.key_of(&Point3::new(-0.001, 0.001, -0.015)), k(-1, 0, -2));
+    assert_eq!(m.key_of(&Point3::new(0.0, 0.0099, -0.01)), k(0, 0, -1));
+    let c = m.centre_of(k(-1, 0, 2));
+    assert!((c - Point3::new(-0.005, 0.005, 0.025)).norm() < 1e-12);
+    assert_eq!(m.try_key_of(&Point3::new(f64::NAN, 0.0, 0.0)), None);
+
+    let mut m = map();
+    let origin = Point3::new(-0.005, -0.005, -0.005);
+    m.insert_scan(&origin, &[p32(-0.105, -0.005, -0.005)], &[false])
+        .expect("valid scan");
+    assert_eq!(m.occupancy(k(-11, -1, -1)), Occupancy::Occupied);
+    for x in -10..=-1 {
+        assert_eq!(m.occupancy(k(x, -1, -1)), Occupancy::Free);
+    }
+}
+
+/// Literal transcription of OctoMap's computeRayKeys (f64::MAX sentinels, key list output) plus a
+/// BTree-based update, as the reference for the optimised insertion.
+struct Reference {
+    res: f64,
+    cells: BTreeMap<VoxelKey, Voxel>,
+}
+
+impl Reference {
+    fn key(&self, p: &Point3<f64>) -> VoxelKey {
+        VoxelKey::new(
+            (p.x / self.res).floor() as i32,
+            (p.y / self.res).floor() as i32,
+            (p.z / self.res).floor() as i32,
+        )
+    }
+
+    fn ray_keys(&self, origin: &Point3<f64>, end: &Point3<f64>) -> Vec<VoxelKey> {
+        let ko = self.key(origin);
+        let ke = self.key(end);
+        let mut ray = Vec::new();
+        if ko == ke {
+            return ray;
+        }
+        ray.push(ko);
+        let length = (end - origin).norm();
+        let direction = (end - origin) / length;
+        let mut step = [0i32; 3];
+        let mut t_max = [f64::MAX; 3];
+        let mut t_delta = [f64::MAX; 3];
+        let mut cur = [ko.x, ko.y, ko.z];
+        for i in 0..3 {
+            step[i] = if direction[i] > 0.0 {
+                1
+            } else if direction[i] < 0.0 {
+                -1
+            } else {
+                0
+            };
+            if step[i] != 0 {
+                let border =
+                    (f64::from(cur[i]) + 0.5) * self.res + f64::from(step[i]) * self.res * 0.5;
+                t_max[i] = (border - origin[i]) / direction[i];
+                t_delta[i] = self.res / direction[i].abs();
+            }
+        }
+        loop {
+            let dim = if t_max[0] < t_max[1] {
+                if t_max[0] < t_max[2] {
+                    0
+                } else {
+                    2
+                }
+            } else if t_max[1] < t_max[2] {
+                1
+            } else {
+                2
+            };
+            cur[dim] += step[dim];
+            t_max[dim] += t_delta[dim];
+            let key = VoxelKey::new(cur[0], cur[1], cur[2]);
+            if key == ke {
+                break;
+            }
+            let dist = t_max[0].min(t_max[1]).min(t_max[2]);
+            if dist > length {
+                break;
+            }
+            ray.push(key);
+        }
+        ray
+    }
+
+    fn insert(&mut self, origin: &Point3<f64>, pts: &[Point3<f32>], roi: &[bool], max_range: f64) {
+        let c = MapConfig::default();
+        let mut free = BTreeSet::new();
+        let mut occ = BTreeSet::new();
+        let mut roi_set = BTreeSet::new();
+        let mut non_roi = BTreeSet::new();
+        for (p, &r) in pts.iter().zip(roi) {
+            let p: Point3<f64> = p.cast();
+            if !p.iter().all(|c| c.is_finite()) {
+                continue;
+            }
+            let d = (p - origin).norm();
+            if d <= max_range {
+                free.extend(self.ray_keys(origin, &p));
+                occ.insert(self.key(&p));
+                if r {
+                    roi_set.insert(self.key(&p));
+                } else {
+                    non_roi.insert(self.key(&p));
+                }
+            } else {
+                let end = origin + (p - origin) * (max_range / d);
+                free.extend(self.ray_keys(origin, &end));
+            }
+        }
+        let upd = |v: f32, d: f32| (v + d).clamp(c.clamp_min_logodds, c.clamp_max_logodds);
+        for key in free.difference(&occ) {
+            let v = self.cells.entry(*key).or_insert(Voxel::NEW);
+            v.occupancy_logodds = upd(v.occupancy_logodds, c.miss_logodds);
+        }
+        for key in &occ {
+            let v = self.cells.entry(*key).or_insert(Voxel::NEW);
+            v.occupancy_logodds = upd(v.occupancy_logodds, c.hit_logodds);
+        }
+        for key in &roi_set {
+            let v = self.cells.entry(*key).or_insert(Voxel::NEW);
+            v.roi_logodds = upd(v.roi_logodds, c.hit_logodds);
+        }
+        for key in non_roi.difference(&roi_set) {
+            let v = self.cells.entry(*key).or_insert(Voxel::NEW);
+            v.roi_logodds = upd(v.roi_logodds, c.miss_logodds);
+        }
+    }
+}
+
+fn random_cloud(rng: &mut TestRng, n: usize) -> (Vec<Point3<f32>>, Vec<bool>) {
+    let mut pts = Vec::with_capacity(n);
+    let mut roi = Vec::with_capacity(n);
+    for i in 0..n {
+        // Clustered points so that rays overlap and voxels collide.
+        let p = Point3::new(
+            rng.uniform(-0.3, 0.3),
+            rng.uniform(0.2, 0.5),
+            rng.uniform(-0.2, 0.2),
+        );
+        pts.push(p.cast::<f32>());
+        roi.push(i % 3 == 0 || rng.uniform(0.0, 1.0) < 0.2);
+    }
+    // Some axis-aligned and degenerate rays too.
+    pts.push(p32(0.0, 0.3, 0.0));
+    roi.push(false);
+    pts.push(p32(0.3, 0.0, 0.0));
+    roi.push(true);
+    (pts, roi)
+}
+
+#[test]
+fn matches_brute_force_reference() {
+    let mut rng = TestRng(42);
+    let mut m = map();
+    let mut reference = Reference {
+        res: 0.01,
+        cells: BTreeMap::new(),
+    };
+    for scan in 0..4 {
+        let origin = Point3::new(
+            rng.uniform(-0.05, 0.05),
+            rng.uniform(-0.05, 0.05),
+            rng.uniform(-0.05, 0.05),
+        );
+        let (pts, roi) = random_cloud(&mut rng, 800);
+        m.insert_scan(&origin, &pts, &roi).expect("valid scan");
+        reference.insert(&origin, &pts, &roi, f64::INFINITY);
+        let got: BTreeMap<VoxelKey, Voxel> = m.iter().collect();
+        assert_eq!(got.len(), reference.cells.len(), "scan {scan}");
+        assert!(got == reference.cells, "scan {scan} differs");
+    }
+    // A scan whose extent is too large for the dense key box takes the hash-set path.
+    let origin = Point3::new(0.013, -0.021, 0.007);
+    let far: Vec<Point3<f32>> = (0..60)
+        .map(|_| {
+            p32(
+                rng.uniform(-3.0, 3.0),
+                rng.uniform(-3.0, 3.0),
+                rng.uniform(-3.0, 3.0),
+            )
+        })
+        .collect();
+    let far_roi: Vec<bool> = (0..far.len()).map(|i| i % 2 == 0).collect();
+    m.insert_scan(&origin, &far, &far_roi).expect("valid scan");
+    reference.insert(&origin, &far, &far_roi, f64::INFINITY);
+    let got: BTreeMap<VoxelKey, Voxel> = m.iter().collect();
+    assert!(got == reference.cells, "sparse path differs");
+
+    // Same with a range limit.
+    let config = MapConfig {
+        max_range_m: Some(0.35),
+        ..MapConfig::default()
+    };
+    let mut m = RoiMap::new(config).expect("valid config");
+    let mut reference = Reference {
+        res: 0.01,
+        cells: BTreeMap::new(),
+    };
+    let origin = Point3::new(0.001, -0.003, 0.002);
+    let (pts, roi) = random_cloud(&mut rng, 800);
+    let stats = m.insert_scan(&origin, &pts, &roi).expect("valid scan");
+    assert!(stats.beyond_range > 0);
+    reference.insert(&origin, &pts, &roi, 0.35);
+    let got: BTreeMap<VoxelKey, Voxel> = m.iter().collect();
+    assert!(got == reference.cells);
+}
+
+/// Independent geometric check: each ray voxel is touched by the segment, consecutive voxels are
+/// face neighbours, and the walk starts at the origin voxel.
+#[test]
+fn ray_voxels_lie_on_the_segment_and_are_face_connected() {
+    let mut rng = TestRng(7);
+    let m = map();
+    let res = 0.01;
+    for _ in 0..300 {
+        let origin = Point3::new(
+            rng.uniform(-0.1, 0.1),
+            rng.uniform(-0.1, 0.1),
+            rng.uniform(-0.1, 0.1),
+        );
+        let dir = Vector3::new(
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
+        );
+        let range = rng.uniform(0.0, 0.4);
+        let mut keys = Vec::new();
+        m.walk_ray(&origin, &dir, range, |k, v| {
+            assert!(v.is_none());
+            keys.push(k);
+            true
+        });
+        assert_eq!(keys[0], m.key_of(&origin));
+        let end = origin + dir.normalize() * range;
+        assert_eq!(*keys.last().expect("non-empty"), m.key_of(&end));
+        for w in keys.windows(2) {
+            let d = (w[1].x - w[0].x).abs() + (w[1].y - w[0].y).abs() + (w[1].z - w[0].z).abs();
+            assert_eq!(d, 1, "face-connected");
+        }
+        for key in &keys[..keys.len() - 1] {
+            // Slab test of the segment against the voxel cube, with a little slack.
+            let lo = m.centre_of(*key) - Vector3::repeat(res / 2.0 + 1e-9);
+            let hi = m.centre_of(*key) + Vector3::repeat(res / 2.0 + 1e-9);
+            let (mut t0, mut t1) = (0.0f64, 1.0f64);
+            for i in 0..3 {
+                let o = origin[i];
+                let d = end[i] - origin[i];
+                if d.abs() < 1e-15 {
+                    assert!(o >= lo[i] && o <= hi[i]);
+                } else {
+                    let (a, b) = ((lo[i] - o) / d, (hi[i] - o) / d);
+                    t0 = t0.max(a.min(b));
+                    t1 = t1.min(a.max(b));
+                }
+            }
+            assert!(t0 <= t1, "voxel {key:?} not on segment");
+        }
+    }
+}
+
+#[test]
+fn walk_ray_visits_the_same_voxels_as_insertion() {
+    let mut rng = TestRng(99);
+    for _ in 0..50 {
+        let origin = Point3::new(
+            rng.uniform(-0.1, 0.1),
+            rng.uniform(-0.1, 0.1),
+            rng.uniform(-0.1, 0.1),
+        );
+        let target = Point3::new(
+            rng.uniform(-0.5, 0.5),
+            rng.uniform(-0.5, 0.5),
+            rng.uniform(-0.5, 0.5),
+        );
+        // Insert in f64 precision terms: use a point exactly representable in f32.
+        let target32: Point3<f32> = target.cast();
+        let target: Point3<f64> = target32.cast();
+        let mut m = map();
+        m.insert_scan(&origin, &[target32], &[false])
+            .expect("valid scan");
+        let mut walked = Vec::new();
+        m.walk_ray(
+            &origin,
+            &(target - origin),
+            (target - origin).norm(),
+            |k, _| {
+                walked.push(k);
+                true
+            },
+        );
+        let end_key = m.key_of(&target);
+        assert_eq!(walked.last(), Some(&end_key));
+        let mut free: Vec<VoxelKey> = m
+            .iter()
+            .filter(|(_, v)| v.occupancy() == Occupancy::Free)
+            .map(|(k, _)| k)
+            .collect();
+        free.sort();
+        let mut walked_free: Vec<VoxelKey> = walked[..walked.len() - 1].to_vec();
+        walked_free.sort();
+        assert_eq!(free, walked_free);
+    }
+    // Early stop.
+    let m = map();
+    let mut n = 0;
+    m.walk_ray(
+        &Point3::new(0.005, 0.005, 0.005),
+        &Vector3::x(),
+        1.0,
+        |_, _| {
+            n += 1;
+            n < 3
+        },
+    );
+    assert_eq!(n, 3);
+}
+
+fn set(m: &mut RoiMap, keys: &[VoxelKey], occupancy: f32, roi: f32) {
+    let v = Voxel {
+        occupancy_logodds: occupancy,
+        roi_logodds: roi,
+    };
+    let entries: Vec<(VoxelKey, Voxel)> = keys.iter().map(|&k| (k, v)).collect();
+    m.apply_voxels(&entries);
+}
+
+fn cube(lo: VoxelKey, hi: VoxelKey) -> Vec<VoxelKey> {
+    let mut out = Vec::new();
+    for x in lo.x..=hi.x {
+        for y in lo.y..=hi.y {
+            for z in lo.z..=hi.z {
+                out.push(k(x, y, z));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn clusters_of_two_separated_blobs() {
+    let mut m = map();
+    let a = cube(k(0, 0, 0), k(2, 2, 2));
+    let b = cube(k(10, 0, 0), k(11, 1, 1));
+    set(&mut m, &a, 2.0, 2.0);
+    set(&mut m, &b, 2.0, 2.0);
+    // A diagonal-only neighbour joins blob a (26-neighbourhood).
+    set(&mut m, &[k(3, 3, 3)], 2.0, 2.0);
+    // Occupied but not ROI: not part of any cluster.
+    set(&mut m, &[k(5, 0, 0)], 2.0, -1.0);
+    let clusters = m.clusters(1);
+    assert_eq!(clusters.len(), 2);
+    assert_eq!(clusters[0].voxels.len(), 28);
+    assert_eq!(clusters[0].voxels[0], k(0, 0, 0));
+    assert_eq!(clusters[1].voxels.len(), 8);
+    let c1 = &clusters[1];
+    assert!((c1.centre - Point3::new(0.11, 0.01, 0.01)).norm() < 1e-9);
+    assert!((c1.min - Point3::new(0.10, 0.0, 0.0)).norm() < 1e-9);
+    assert!((c1.max - Point3::new(0.12, 0.02, 0.02)).norm() < 1e-9);
+    assert!((clusters[0].max - Point3::new(0.04, 0.04, 0.04)).norm() < 1e-9);
+    // Minimum size filter.
+    let big = m.clusters(10);
+    assert_eq!(big.len(), 1);
+    assert_eq!(big[0].voxels.len(), 28);
+}
+
+#[test]
+fn frontiers_on_a_hand_built_map() {
+    let mut m = map();
+    // A row of free voxels y = 0, x = 0..=4, z = 0; an ROI voxel at (2,1,0) above it in y; an
+    // occupied non-ROI voxel at (4,-1,0). Everything else is unknown.
+    set(&mut m, &cube(k(0, 0, 0), k(4, 0, 0)), -1.0, 0.0);
+    set(&mut m, &[k(2, 1, 0)], 2.0, 2.0);
+    set(&mut m, &[k(4, -1, 0)], 2.0, -1.0);
+    // (2,0,0) is free, next to the ROI voxel and has unknown neighbours: the only ROI target.
+    let everywhere = Aabb::new(Point3::new(-1.0, -1.0, -1.0), Point3::new(1.0, 1.0, 1.0));
+    assert_eq!(m.roi_frontier(&everywhere), vec![k(2, 0, 0)]);
+    let mut expl = m.exploration_frontier(&everywhere);
+    expl.sort();
+    assert_eq!(expl, vec![k(2, 0, 0), k(4, 0, 0)]);
+
+    // Region filter: centre of (2,0,0) is (0.025, 0.005, 0.005).
+    let left = Aabb::new(Point3::new(-1.0, -1.0, -1.0), Point3::new(0.03, 1.0, 1.0));
+    assert_eq!(m.exploration_frontier(&left), vec![k(2, 0, 0)]);
+    let none = Aabb::new(Point3::new(0.5, 0.5, 0.5), Point3::new(1.0, 1.0, 1.0));
+    assert!(m.roi_frontier(&none).is_empty());
+
+    // Surround (2,0,0) with known voxels: no unknown neighbour, no longer a frontier.
+    set(&mut m, &[k(2, -1, 0), k(2, 0, 1), k(2, 0, -1)], -1.0, 0.0);
+    assert!(m.roi_frontier(&everywhere).is_empty());
+    assert_eq!(m.exploration_frontier(&everywhere), vec![k(4, 0, 0)]);
+
+    // A voxel with one miss counts as free (documented rule).
+    let mut m2 = map();
+    set(&mut m2, &[k(0, 0, 0)], MISS, 0.0);
+    set(&mut m2, &[k(1, 0, 0)], HIT, HIT + HIT);
+    assert_eq!(m2.occupancy(k(0, 0, 0)), Occupancy::Free);
+    assert_eq!(m2.roi_frontier(&everywhere), vec![k(0, 0, 0)]);
+}
+
+#[test]
+fn memory_and_debug_are_cheap() {
+    let mut m = map();
+    let origin = Point3::new(0.0, 0.0, 0.0);
+    let mut rng = TestRng(1);
+    let (pts, roi) = random_cloud(&mut rng, 200);
+    m.insert_scan(&origin, &pts, &roi).expect("valid scan");
+    assert!(m.memory_bytes() >= m.len() * std::mem::size_of::<(VoxelKey, Voxel)>());
+    let dbg = format!("{m:?}");
+    assert!(dbg.len() < 300);
+}

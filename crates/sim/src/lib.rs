@@ -1,0 +1,519 @@
+//! Simulated glasshouse: seeded plant scenes, ray-cast RGB-D camera, fruit ground truth.
+//!
+//! A [`Scene`] is generated from a [`ScenarioKind`] and a `u64` seed: capsicum-like plants (a stem,
+//! many thin leaves that hide fruit, red pepper-like fruits hanging under the leaves), a floor at
+//! `z = 0` and the fixed structure of the scenario (the arm's pole, trolley rails). Everything is
+//! an analytic primitive in a bounding-volume hierarchy; [`Scene::render`] ray casts every pixel of
+//! a pinhole [`CameraModel`] into an [`RgbdImage`] with range limits, grazing-angle dropouts and
+//! depth noise that grows with the square of the depth, all deterministic from seeds.
+//!
+//! Frames follow `glasshouse_geom`: world `z` up in metres, camera optical frame `x` right, `y`
+//! down, `z` forward; camera poses are `world_from_camera`.
+
+mod generate;
+mod shapes;
+
+use std::fmt;
+use std::str::FromStr;
+
+use glasshouse_geom::{look_at, Aabb, CameraIntrinsics};
+use nalgebra::{Isometry3, Point3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use generate::{Plant, Solid, FLOOR_ALBEDO};
+use shapes::{Bvh, Ray, Shape};
+
+/// Minimum distance from the camera centre to any solid for a position to count as free.
+pub const CAMERA_CLEARANCE_M: f64 = 0.05;
+
+/// Shading: `albedo * (AMBIENT + DIFFUSE * max(0, n·l))`.
+pub const AMBIENT: f32 = 0.45;
+pub const DIFFUSE: f32 = 0.55;
+
+/// Colour of pixels whose ray meets nothing.
+const SKY_RGB: [u8; 3] = [170, 200, 230];
+
+/// The simulated set-ups: the paper's two scenarios and a glasshouse row for the fleet.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum ScenarioKind {
+    /// Paper §VII-A scenario 1: arm on a static pole, four plants, two with seven fruits.
+    One,
+    /// Paper scenario 2: arm hanging from a ceiling gantry, four plants with seven fruits each.
+    Two,
+    /// A glasshouse row of eight plants beside a pipe-rail trolley.
+    Row,
+}
+
+/// A scenario name that is not one of the accepted spellings.
+#[derive(thiserror::Error, Debug, Clone, PartialEq, Eq)]
+#[error("unknown scenario {0:?}; valid names: 1, one, scenario1, 2, two, scenario2, row")]
+pub struct ParseScenarioError(pub String);
+
+impl FromStr for ScenarioKind {
+    type Err = ParseScenarioError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "1" | "one" | "scenario1" => Ok(ScenarioKind::One),
+            "2" | "two" | "scenario2" => Ok(ScenarioKind::Two),
+            "row" => Ok(ScenarioKind::Row),
+            _ => Err(ParseScenarioError(s.to_string())),
+        }
+    }
+}
+
+impl fmt::Display for ScenarioKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            ScenarioKind::One => "1",
+            ScenarioKind::Two => "2",
+            ScenarioKind::Row => "row",
+        })
+    }
+}
+
+/// Ground truth of one fruit: its axis-aligned box in the world frame.
+#[derive(Clone, Debug, Serialize)]
+pub struct FruitTruth {
+    pub id: u32,
+    pub centre: Point3<f64>,
+    pub half_extents_m: Vector3<f64>,
+    /// Box volume, `8 * hx * hy * hz`.
+    pub volume_m3: f64,
+}
+
+impl FruitTruth {
+    pub fn aabb(&self) -> Aabb {
+        Aabb::new(
+            self.centre - self.half_extents_m,
+            self.centre + self.half_extents_m,
+        )
+    }
+
+    /// Keys `k = floor(p / resolution_m)` of the voxels whose centres `(k + 0.5) * resolution_m`
+    /// lie inside the box. Empty for a non-positive or non-finite resolution.
+    pub fn voxel_keys(&self, resolution_m: f64) -> Vec<[i32; 3]> {
+        if !(resolution_m.is_finite() && resolution_m > 0.0) {
+            return Vec::new();
+        }
+        let b = self.aabb();
+        let range = |i: usize| {
+            let lo = (b.min[i] / resolution_m - 0.5).ceil() as i32;
+            let hi = (b.max[i] / resolution_m - 0.5).floor() as i32;
+            lo..=hi
+        };
+        let mut keys = Vec::new();
+        for x in range(0) {
+            for y in range(1) {
+                for z in range(2) {
+                    keys.push([x, y, z]);
+                }
+            }
+        }
+        keys
+    }
+}
+
+/// Pinhole RGB-D camera: intrinsics, valid depth range, noise and grazing-angle dropout.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraModel {
+    pub intrinsics: CameraIntrinsics,
+    pub min_range_m: f64,
+    pub max_range_m: f64,
+    /// Depth noise standard deviation at 1 m; it scales with depth squared.
+    pub depth_noise_std_at_1m_m: f64,
+    /// Pixels whose ray meets the surface with |cos(ray, normal)| below this are invalid.
+    pub grazing_cos_min: f64,
+}
+
+impl CameraModel {
+    /// The authors' simulated camera: 640x480, 80° horizontal field of view, 0.15-3.0 m.
+    pub fn paper_default() -> Self {
+        Self::with_resolution(640, 480)
+    }
+
+    /// The paper camera's field of view, range and noise at another image size.
+    pub fn with_resolution(width: u32, height: u32) -> Self {
+        Self {
+            intrinsics: CameraIntrinsics::from_horizontal_fov(width, height, 80f64.to_radians()),
+            min_range_m: 0.15,
+            max_range_m: 3.0,
+            depth_noise_std_at_1m_m: 0.0015,
+            grazing_cos_min: 0.1,
+        }
+    }
+}
+
+/// A rendered frame: depth along the optical axis (NaN = invalid) and RGB8, both row-major.
+#[derive(Clone, Debug)]
+pub struct RgbdImage {
+    pub intrinsics: CameraIntrinsics,
+    pub depth_m: Vec<f32>,
+    pub rgb: Vec<u8>,
+}
+
+impl RgbdImage {
+    /// Depth as integer units of `depth_scale_m` (0 = invalid, as depth cameras publish it).
+    /// Depths that do not fit a `u16` are invalid too.
+    pub fn depth_as_u16(&self, depth_scale_m: f64) -> Vec<u16> {
+        self.depth_m
+            .iter()
+            .map(|&d| {
+                let units = (d as f64 / depth_scale_m).round();
+                if units.is_finite() && units >= 1.0 && units <= u16::MAX as f64 {
+                    units as u16
+                } else {
+                    0
+                }
+            })
+            .collect()
+    }
+}
+
+/// A generated glasshouse scene with its ground truth. Cheap to query, immutable after generation.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    kind: ScenarioKind,
+    seed: u64,
+    fruits: Vec<FruitTruth>,
+    plants: Vec<Plant>,
+    /// Shapes in BVH order, with per-shape albedo and fruit index alongside.
+    shapes: Vec<Shape>,
+    albedo: Vec<[f32; 3]>,
+    fruit_index: Vec<Option<u32>>,
+    bvh: Bvh,
+    camera_workspace: Aabb,
+    sampling_region: Aabb,
+    initial_camera_pose: Isometry3<f64>,
+}
+
+/// What a single camera ray sees.
+struct RayHit {
+    t: f64,
+    shape: Option<usize>,
+    normal: Vector3<f64>,
+    albedo: [f32; 3],
+}
+
+impl Scene {
+    /// Generates the scenario; the same `(kind, seed)` always gives the same scene.
+    pub fn generate(kind: ScenarioKind, seed: u64) -> Scene {
+        let built = generate::build(kind, seed);
+        let plant_bounds = built
+            .solids
+            .iter()
+            .filter(|s| s.is_plant)
+            .map(|s| s.shape.bounds())
+            .reduce(|a, b| a.union(&b));
+        let sampling_region = match plant_bounds {
+            Some(b) => Aabb::new(Point3::from(b.min), Point3::from(b.max)).inflated(0.1),
+            None => built.camera_workspace,
+        };
+        let bounds: Vec<_> = built.solids.iter().map(|s| s.shape.bounds()).collect();
+        let (bvh, order) = Bvh::build(&bounds);
+        let ordered: Vec<&Solid> = order.iter().filter_map(|&i| built.solids.get(i)).collect();
+        let mut scene = Scene {
+            kind,
+            seed,
+            fruits: built.fruits,
+            plants: built.plants,
+            shapes: ordered.iter().map(|s| s.shape.clone()).collect(),
+            albedo: ordered.iter().map(|s| s.albedo).collect(),
+            fruit_index: ordered.iter().map(|s| s.fruit_index).collect(),
+            bvh,
+            camera_workspace: built.camera_workspace,
+            sampling_region,
+            initial_camera_pose: Isometry3::identity(),
+        };
+        scene.initial_camera_pose = scene.choose_initial_pose();
+        scene
+    }
+
+    pub fn kind(&self) -> ScenarioKind {
+        self.kind
+    }
+
+    pub fn seed(&self) -> u64 {
+        self.seed
+    }
+
+    pub fn fruits(&self) -> &[FruitTruth] {
+        &self.fruits
+    }
+
+    /// Plant stem bases on the floor, in generation order.
+    pub fn plant_bases(&self) -> Vec<Point3<f64>> {
+        self.plants.iter().map(|p| p.base_in_world).collect()
+    }
+
+    /// Where the camera centre may be placed (a box standing in for the arm's reachability).
+    pub fn camera_workspace(&self) -> Aabb {
+        self.camera_workspace
+    }
+
+    /// The plants' bounding box inflated by 10 cm: where view targets may lie.
+    pub fn sampling_region(&self) -> Aabb {
+        self.sampling_region
+    }
+
+    /// A free pose inside the workspace looking at a fruit-bearing plant and seeing some fruit.
+    pub fn initial_camera_pose(&self) -> Isometry3<f64> {
+        self.initial_camera_pose
+    }
+
+    /// Inside the camera workspace and at least [`CAMERA_CLEARANCE_M`] from every solid (floor
+    /// included).
+    pub fn is_camera_position_free(&self, p: &Point3<f64>) -> bool {
+        self.camera_workspace.contains(p)
+            && p.z >= CAMERA_CLEARANCE_M
+            && !self
+                .bvh
+                .any_within(&self.shapes, &p.coords, CAMERA_CLEARANCE_M)
+    }
+
+    /// Ground truth as JSON: scenario, seed and per fruit its box centre, full size and volume.
+    pub fn ground_truth_json(&self) -> String {
+        let fruits: Vec<serde_json::Value> = self
+            .fruits
+            .iter()
+            .map(|f| {
+                let size = f.half_extents_m * 2.0;
+                serde_json::json!({
+                    "id": f.id,
+                    "centre_m": [f.centre.x, f.centre.y, f.centre.z],
+                    "size_m": [size.x, size.y, size.z],
+                    "volume_m3": f.volume_m3,
+                })
+            })
+            .collect();
+        serde_json::json!({
+            "scenario": self.kind.to_string(),
+            "seed": self.seed,
+            "fruits": fruits,
+        })
+        .to_string()
+    }
+
+    /// First surface along a world ray (floor included), or None for the sky.
+    fn trace(&self, ray: &Ray, stack: &mut Vec<(u32, f32)>) -> Option<RayHit> {
+        // The floor is the infinite plane z = 0, seen from above only.
+        let floor_t = if ray.dir.z < -1e-12 && ray.origin.z > 0.0 {
+            Some(-ray.origin.z / ray.dir.z)
+        } else {
+            None
+        };
+        let t_limit = floor_t.unwrap_or(f64::INFINITY);
+        if let Some((t, i)) = self.bvh.closest_hit(&self.shapes, ray, t_limit, stack) {
+            let shape = self.shapes.get(i)?;
+            return Some(RayHit {
+                t,
+                shape: Some(i),
+                normal: shape.normal_at(&ray.at(t)),
+                albedo: self.albedo.get(i).copied().unwrap_or(FLOOR_ALBEDO),
+            });
+        }
+        floor_t.map(|t| RayHit {
+            t,
+            shape: None,
+            normal: Vector3::z(),
+            albedo: FLOOR_ALBEDO,
+        })
+    }
+
+    /// Ray casts the camera at `world_from_camera`. Deterministic for a given `noise_seed`; the
+    /// noise is drawn in row-major pixel order for valid pixels only.
+    pub fn render(
+        &self,
+        camera: &CameraModel,
+        world_from_camera: &Isometry3<f64>,
+        noise_seed: u64,
+    ) -> RgbdImage {
+        let k = camera.intrinsics;
+        let pixel_count = k.pixel_count();
+        let mut depth_m = vec![f32::NAN; pixel_count];
+        let mut rgb = vec![0u8; 3 * pixel_count];
+        let mut rng = ChaCha8Rng::seed_from_u64(noise_seed);
+        let mut spare_normal: Option<f64> = None;
+        let light = light_direction();
+        let rotation = world_from_camera.rotation.to_rotation_matrix();
+        let mut stack = Vec::with_capacity(64);
+        let origin = world_from_camera.translation.vector;
+        for v in 0..k.height as usize {
+            for u in 0..k.width as usize {
+                let pixel = v * k.width as usize + u;
+                let dir_in_camera = k.ray_direction(u as f64, v as f64);
+                let ray = Ray::new(origin, rotation * dir_in_camera);
+                let Some(hit) = self.trace(&ray, &mut stack) else {
+                    rgb[3 * pixel..3 * pixel + 3].copy_from_slice(&SKY_RGB);
+                    continue;
+                };
+                // Two-sided shading: turn the normal towards the camera.
+                let mut normal = hit.normal;
+                let cos_incidence = ray.dir.dot(&normal);
+                if cos_incidence > 0.0 {
+                    normal = -normal;
+                }
+                rgb[3 * pixel..3 * pixel + 3]
+                    .copy_from_slice(&shade(hit.albedo, normal.dot(&light)));
+                let depth = hit.t * dir_in_camera.z;
+                if cos_incidence.abs() < camera.grazing_cos_min
+                    || !(camera.min_range_m..=camera.max_range_m).contains(&depth)
+                {
+                    continue;
+                }
+                let std_m = camera.depth_noise_std_at_1m_m * depth * depth;
+                let noisy = if std_m > 0.0 {
+                    depth + std_m * standard_normal(&mut rng, &mut spare_normal)
+                } else {
+                    depth
+                };
+                if (camera.min_range_m..=camera.max_range_m).contains(&noisy) {
+                    depth_m[pixel] = noisy as f32;
+                }
+            }
+        }
+        RgbdImage {
+            intrinsics: k,
+            depth_m,
+            rgb,
+        }
+    }
+
+    /// Pixels with valid depth that see each fruit (indexed like [`Scene::fruits`]), noise-free.
+    /// A visibility oracle for tests and evaluation.
+    pub fn fruit_pixel_counts(
+        &self,
+        camera: &CameraModel,
+        world_from_camera: &Isometry3<f64>,
+    ) -> Vec<u32> {
+        let k = camera.intrinsics;
+        let mut counts = vec![0u32; self.fruits.len()];
+        let rotation = world_from_camera.rotation.to_rotation_matrix();
+        let mut stack = Vec::with_capacity(64);
+        let origin = world_from_camera.translation.vector;
+        for v in 0..k.height {
+            for u in 0..k.width {
+                let dir_in_camera = k.ray_direction(u as f64, v as f64);
+                let ray = Ray::new(origin, rotation * dir_in_camera);
+                let Some(hit) = self.trace(&ray, &mut stack) else {
+                    continue;
+                };
+                let depth = hit.t * dir_in_camera.z;
+                let fruit = hit
+                    .shape
+                    .and_then(|i| self.fruit_index.get(i).copied().flatten());
+                if let Some(f) = fruit {
+                    if ray.dir.dot(&hit.normal).abs() >= camera.grazing_cos_min
+                        && (camera.min_range_m..=camera.max_range_m).contains(&depth)
+                    {
+                        if let Some(c) = counts.get_mut(f as usize) {
+                            *c += 1;
+                        }
+                    }
+                }
+            }
+        }
+        counts
+    }
+
+    /// Tries views of the first fruit-bearing plant from the workspace side, nearest the preferred
+    /// direction first, and keeps the first free one that sees enough fruit.
+    fn choose_initial_pose(&self) -> Isometry3<f64> {
+        let probe = CameraModel::with_resolution(160, 120);
+        let ws = self.camera_workspace;
+        let fallback = look_at(&ws.centre(), &self.sampling_region.centre());
+        let Some(plant) = self
+            .plants
+            .iter()
+            .find(|p| p.fruit_count > 0)
+            .or(self.plants.first())
+        else {
+            return fallback;
+        };
+        let base = plant.base_in_world;
+        let plant_fruits: Vec<&FruitTruth> = self
+            .fruits
+            .iter()
+            .filter(|f| {
+                ((f.centre.x - base.x).powi(2) + (f.centre.y - base.y).powi(2)).sqrt() < 0.2
+            })
+            .collect();
+        let target_z = if plant_fruits.is_empty() {
+            0.8
+        } else {
+            plant_fruits.iter().map(|f| f.centre.z).sum::<f64>() / plant_fruits.len() as f64
+        };
+        let eye_z = target_z.clamp(ws.min.z, ws.max.z);
+        let towards = match self.kind {
+            ScenarioKind::Row => Vector3::new(0.0, -1.0, 0.0),
+            _ => {
+                let c = ws.centre();
+                Vector3::new(c.x - base.x, c.y - base.y, 0.0)
+                    .try_normalize(1e-9)
+                    .unwrap_or_else(Vector3::x)
+            }
+        };
+        let target = Point3::new(base.x, base.y, target_z);
+        let mut best: Option<(u32, Isometry3<f64>)> = None;
+        for distance_m in [0.45, 0.38, 0.52, 0.32, 0.6] {
+            for step in 0..13 {
+                // 0, +15°, -15°, +30°, ... up to ±90°.
+                let magnitude = ((step + 1) / 2) as f64 * 15f64.to_radians();
+                let angle = if step % 2 == 1 { magnitude } else { -magnitude };
+                let (s, c) = angle.sin_cos();
+                let dir = Vector3::new(
+                    c * towards.x - s * towards.y,
+                    s * towards.x + c * towards.y,
+                    0.0,
+                );
+                let eye = Point3::new(
+                    base.x + dir.x * distance_m,
+                    base.y + dir.y * distance_m,
+                    eye_z,
+                );
+                if !self.is_camera_position_free(&eye) {
+                    continue;
+                }
+                let pose = look_at(&eye, &target);
+                let seen: u32 = self.fruit_pixel_counts(&probe, &pose).iter().sum();
+                if seen >= 40 {
+                    return pose;
+                }
+                if best.as_ref().is_none_or(|(b, _)| seen > *b) {
+                    best = Some((seen, pose));
+                }
+            }
+        }
+        best.map(|(_, pose)| pose).unwrap_or(fallback)
+    }
+}
+
+/// Fixed light from above, slightly oblique so upright surfaces are not all equally lit.
+fn light_direction() -> Vector3<f64> {
+    Vector3::new(0.3, 0.2, 1.0).normalize()
+}
+
+/// Lambert shading with ambient, rounded to RGB8.
+pub fn shade(albedo: [f32; 3], n_dot_l: f64) -> [u8; 3] {
+    let factor = AMBIENT + DIFFUSE * (n_dot_l.max(0.0) as f32);
+    albedo.map(|a| (a * factor).round().clamp(0.0, 255.0) as u8)
+}
+
+/// Box-Muller standard normal, caching the second value of each pair.
+fn standard_normal(rng: &mut ChaCha8Rng, spare: &mut Option<f64>) -> f64 {
+    if let Some(z) = spare.take() {
+        return z;
+    }
+    // 1 - gen() lies in (0, 1], so the logarithm is finite.
+    let u1 = 1.0 - rng.gen::<f64>();
+    let u2 = rng.gen::<f64>();
+    let radius = (-2.0 * u1.ln()).sqrt();
+    let (s, c) = (std::f64::consts::TAU * u2).sin_cos();
+    *spare = Some(radius * s);
+    radius * c
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,615 @@
+//! Analytic primitives the scene is built from, and a bounding-volume hierarchy over them.
+//!
+//! Everything here is in the world frame, metres. Shapes answer three questions: their bounds, the
+//! first ray parameter at which a ray meets them, and whether a point lies within a clearance of
+//! them (for the camera's free-space test).
+
+use nalgebra::Vector3;
+
+/// Hits closer than this along a ray are ignored so a ray never re-hits its own start surface.
+const T_EPSILON: f64 = 1e-7;
+
+/// A ray with a unit direction; `inv_dir` speeds up the box slab test.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Ray {
+    pub origin: Vector3<f64>,
+    pub dir: Vector3<f64>,
+    /// Single-precision copies for the BVH box tests: `t = bound * inv - origin * inv`.
+    inv_dir_f32: [f32; 3],
+    origin_times_inv_f32: [f32; 3],
+}
+
+impl Ray {
+    pub fn new(origin: Vector3<f64>, dir: Vector3<f64>) -> Self {
+        // Nudge zero components so inverses stay finite and box tests never see inf * 0.
+        let safe = |d: f64| {
+            if d.abs() < 1e-9 {
+                1e-9f64.copysign(d)
+            } else {
+                d
+            }
+        };
+        let inv_dir = [1.0 / safe(dir.x), 1.0 / safe(dir.y), 1.0 / safe(dir.z)];
+        Self {
+            origin,
+            dir,
+            inv_dir_f32: inv_dir.map(|v| v as f32),
+            origin_times_inv_f32: [
+                (origin.x * inv_dir[0]) as f32,
+                (origin.y * inv_dir[1]) as f32,
+                (origin.z * inv_dir[2]) as f32,
+            ],
+        }
+    }
+
+    pub fn at(&self, t: f64) -> Vector3<f64> {
+        self.origin + self.dir * t
+    }
+}
+
+/// Axis-aligned bounds, kept as plain arrays for the hot traversal loop.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Bounds {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+}
+
+impl Bounds {
+    pub fn empty() -> Self {
+        Self {
+            min: [f64::INFINITY; 3],
+            max: [f64::NEG_INFINITY; 3],
+        }
+    }
+
+    pub fn from_centre_half(centre: &Vector3<f64>, half: &Vector3<f64>) -> Self {
+        Self {
+            min: [centre.x - half.x, centre.y - half.y, centre.z - half.z],
+            max: [centre.x + half.x, centre.y + half.y, centre.z + half.z],
+        }
+    }
+
+    pub fn union(&self, other: &Bounds) -> Self {
+        let mut out = *self;
+        for i in 0..3 {
+            out.min[i] = out.min[i].min(other.min[i]);
+            out.max[i] = out.max[i].max(other.max[i]);
+        }
+        out
+    }
+
+    pub fn centroid(&self) -> [f64; 3] {
+        [
+            0.5 * (self.min[0] + self.max[0]),
+            0.5 * (self.min[1] + self.max[1]),
+            0.5 * (self.min[2] + self.max[2]),
+        ]
+    }
+
+    pub fn overlaps(&self, other: &Bounds, margin_m: f64) -> bool {
+        (0..3).all(|i| {
+            self.min[i] - margin_m <= other.max[i] && other.min[i] - margin_m <= self.max[i]
+        })
+    }
+}
+
+/// One analytic solid or surface.
+#[derive(Clone, Debug)]
+pub(crate) enum Shape {
+    /// Axis-aligned ellipsoid (fruit).
+    Ellipsoid {
+        centre: Vector3<f64>,
+        radii: Vector3<f64>,
+    },
+    /// Flat two-sided elliptical disc (leaf); `u`, `v` are unit in-plane axes, `normal = u × v`.
+    Disc {
+        centre: Vector3<f64>,
+        normal: Vector3<f64>,
+        u: Vector3<f64>,
+        v: Vector3<f64>,
+        half_u_m: f64,
+        half_v_m: f64,
+    },
+    /// Capped cylinder from `base` along the unit `axis` (stems, poles, pipes).
+    Cylinder {
+        base: Vector3<f64>,
+        axis: Vector3<f64>,
+        length_m: f64,
+        radius_m: f64,
+    },
+}
+
+impl Shape {
+    pub fn bounds(&self) -> Bounds {
+        match self {
+            Shape::Ellipsoid { centre, radii } => Bounds::from_centre_half(centre, radii),
+            Shape::Disc {
+                centre,
+                u,
+                v,
+                half_u_m,
+                half_v_m,
+                ..
+            } => {
+                let half = Vector3::from_fn(|i, _| {
+                    ((half_u_m * u[i]).powi(2) + (half_v_m * v[i]).powi(2)).sqrt()
+                });
+                Bounds::from_centre_half(centre, &half)
+            }
+            Shape::Cylinder {
+                base,
+                axis,
+                length_m,
+                radius_m,
+            } => {
+                let top = base + axis * *length_m;
+                let half =
+                    Vector3::from_fn(|i, _| radius_m * (1.0 - axis[i] * axis[i]).max(0.0).sqrt());
+                Bounds::from_centre_half(base, &half).union(&Bounds::from_centre_half(&top, &half))
+            }
+        }
+    }
+
+    /// Smallest ray parameter in (epsilon, t_max) where the ray meets the shape.
+    #[inline]
+    pub fn intersect(&self, ray: &Ray, t_max: f64) -> Option<f64> {
+        match self {
+            Shape::Ellipsoid { centre, radii } => {
+                let oc = (ray.origin - centre).component_div(radii);
+                let d = ray.dir.component_div(radii);
+                let a = d.dot(&d);
+                let b = oc.dot(&d);
+                let c = oc.dot(&oc) - 1.0;
+                let disc = b * b - a * c;
+                if disc < 0.0 || a <= 0.0 {
+                    return None;
+                }
+                let sq = disc.sqrt();
+                let t0 = (-b - sq) / a;
+                let t1 = (-b + sq) / a;
+                [t0, t1].into_iter().find(|&t| t > T_EPSILON && t < t_max)
+            }
+            Shape::Disc {
+                centre,
+                normal,
+                u,
+                v,
+                half_u_m,
+                half_v_m,
+            } => {
+                let denom = ray.dir.dot(normal);
+                if denom.abs() < 1e-12 {
+                    return None;
+                }
+                let t = (centre - ray.origin).dot(normal) / denom;
+                if !(t > T_EPSILON && t < t_max) {
+                    return None;
+                }
+                let p = ray.at(t) - centre;
+                let s = p.dot(u) / half_u_m;
+                let w = p.dot(v) / half_v_m;
+                (s * s + w * w <= 1.0).then_some(t)
+            }
+            Shape::Cylinder {
+                base,
+                axis,
+                length_m,
+                radius_m,
+            } => {
+                let oc = ray.origin - base;
+                let d_axial = ray.dir.dot(axis);
+                let o_axial = oc.dot(axis);
+                let d_perp = ray.dir - axis * d_axial;
+                let o_perp = oc - axis * o_axial;
+                let mut best = t_max;
+                let mut found = false;
+                let a = d_perp.dot(&d_perp);
+                if a > 1e-14 {
+                    let b = o_perp.dot(&d_perp);
+                    let c = o_perp.dot(&o_perp) - radius_m * radius_m;
+                    let disc = b * b - a * c;
+                    if disc >= 0.0 {
+                        let sq = disc.sqrt();
+                        for t in [(-b - sq) / a, (-b + sq) / a] {
+                            let h = o_axial + t * d_axial;
+                            if t > T_EPSILON && t < best && (0.0..=*length_m).contains(&h) {
+                                best = t;
+                                found = true;
+                                break;
+                            }
+                        }
+                    }
+                }
+                if d_axial.abs() > 1e-12 {
+                    for cap_h in [0.0, *length_m] {
+                        let t = (cap_h - o_axial) / d_axial;
+                        if t > T_EPSILON && t < best {
+                            let q = o_perp + d_perp * t;
+                            if q.dot(&q) <= radius_m * radius_m {
+                                best = t;
+                                found = true;
+                            }
+                        }
+                    }
+                }
+                found.then_some(best)
+            }
+        }
+    }
+
+    /// Unit surface normal at a point on the surface (outward for solids; either side for discs).
+    pub fn normal_at(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        match self {
+            Shape::Ellipsoid { centre, radii } => (p - centre)
+                .component_div(&radii.component_mul(radii))
+                .try_normalize(1e-15)
+                .unwrap_or_else(Vector3::z),
+            Shape::Disc { normal, .. } => *normal,
+            Shape::Cylinder {
+                base,
+                axis,
+                length_m,
+                radius_m,
+            } => {
+                let rel = p - base;
+                let h = rel.dot(axis);
+                let radial = rel - axis * h;
+                let side_gap = (radial.norm() - radius_m).abs();
+                let cap_gap = h.abs().min((h - length_m).abs());
+                if cap_gap < side_gap {
+                    if h < 0.5 * length_m {
+                        -axis
+                    } else {
+                        *axis
+                    }
+                } else {
+                    radial.try_normalize(1e-15).unwrap_or(*axis)
+                }
+            }
+        }
+    }
+
+    /// True when `p` is within `clearance_m` of the shape (or inside it). Ellipsoids and discs use a
+    /// close approximation of the true distance, which is all the free-space test needs.
+    pub fn is_within(&self, p: &Vector3<f64>, clearance_m: f64) -> bool {
+        match self {
+            Shape::Ellipsoid { centre, radii } => {
+                let grown = radii.add_scalar(clearance_m);
+                (p - centre).component_div(&grown).norm_squared() <= 1.0
+            }
+            Shape::Disc {
+                centre,
+                normal,
+                u,
+                v,
+                half_u_m,
+                half_v_m,
+            } => {
+                let rel = p - centre;
+                let off_plane = rel.dot(normal);
+                if off_plane.abs() > clearance_m {
+                    return false;
+                }
+                let (s, w) = (rel.dot(u), rel.dot(v));
+                let q = (s / half_u_m).powi(2) + (w / half_v_m).powi(2);
+                let in_plane_gap = if q <= 1.0 {
+                    0.0
+                } else {
+                    // Radial projection onto the ellipse boundary: exact for circles, close for leaves.
+                    let scale = 1.0 / q.sqrt();
+                    ((s - s * scale).powi(2) + (w - w * scale).powi(2)).sqrt()
+                };
+                off_plane * off_plane + in_plane_gap * in_plane_gap <= clearance_m * clearance_m
+            }
+            Shape::Cylinder {
+                base,
+                axis,
+                length_m,
+                radius_m,
+            } => {
+                let rel = p - base;
+                let h = rel.dot(axis);
+                let radial = (rel - axis * h).norm();
+                let dh = (-h).max(h - length_m).max(0.0);
+                let dr = (radial - radius_m).max(0.0);
+                dh * dh + dr * dr <= clearance_m * clearance_m
+            }
+        }
+    }
+}
+
+/// Node box in single precision, rounded outwards, for a compact and fast traversal.
+#[derive(Clone, Copy, Debug)]
+struct NodeBox {
+    min: [f32; 3],
+    max: [f32; 3],
+}
+
+impl NodeBox {
+    fn from_bounds(b: &Bounds) -> Self {
+        // 10 µm outward margin covers f32 rounding for scenes within a few hundred metres.
+        Self {
+            min: b.min.map(|v| (v - 1e-5) as f32),
+            max: b.max.map(|v| (v + 1e-5) as f32),
+        }
+    }
+
+    #[inline(always)]
+    fn hit(&self, ray: &Ray, t_max: f32) -> Option<f32> {
+        #[inline(always)]
+        fn min(a: f32, b: f32) -> f32 {
+            if a < b {
+                a
+            } else {
+                b
+            }
+        }
+        #[inline(always)]
+        fn max(a: f32, b: f32) -> f32 {
+            if a > b {
+                a
+            } else {
+                b
+            }
+        }
+        let inv = &ray.inv_dir_f32;
+        let oi = &ray.origin_times_inv_f32;
+        let x0 = self.min[0] * inv[0] - oi[0];
+        let x1 = self.max[0] * inv[0] - oi[0];
+        let y0 = self.min[1] * inv[1] - oi[1];
+        let y1 = self.max[1] * inv[1] - oi[1];
+        let z0 = self.min[2] * inv[2] - oi[2];
+        let z1 = self.max[2] * inv[2] - oi[2];
+        let t_near = max(max(min(x0, x1), min(y0, y1)), max(min(z0, z1), 0.0));
+        let t_far = min(min(max(x0, x1), max(y0, y1)), min(max(z0, z1), t_max));
+        (t_near <= t_far).then_some(t_near)
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Node {
+    bounds: NodeBox,
+    /// Leaf: index of the first primitive. Interior: index of the right child (left is next).
+    first_or_right: u32,
+    /// Number of primitives in a leaf; 0 marks an interior node.
+    count: u32,
+}
+
+const MAX_LEAF_SIZE: usize = 4;
+const SAH_BINS: usize = 16;
+/// Cost of one shape test relative to one box test, for the surface-area heuristic.
+const SHAPE_TEST_COST: f64 = 8.0;
+
+fn half_area(b: &Bounds) -> f64 {
+    let d = [
+        b.max[0] - b.min[0],
+        b.max[1] - b.min[1],
+        b.max[2] - b.min[2],
+    ];
+    if d.iter().any(|x| *x < 0.0) {
+        return 0.0;
+    }
+    d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+}
+
+/// Binned surface-area-heuristic split. Reorders `order` so the left part comes first and returns
+/// its length, or None when keeping a leaf is cheaper (or nothing separates the centroids).
+fn sah_split(order: &mut [usize], bounds: &[Bounds], centroids: &[[f64; 3]]) -> Option<usize> {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for &i in order.iter() {
+        for a in 0..3 {
+            lo[a] = lo[a].min(centroids[i][a]);
+            hi[a] = hi[a].max(centroids[i][a]);
+        }
+    }
+    let parent_area = half_area(
+        &order
+            .iter()
+            .fold(Bounds::empty(), |acc, &i| acc.union(&bounds[i])),
+    );
+    let leaf_cost = SHAPE_TEST_COST * order.len() as f64;
+    let bin_of = |c: f64, a: usize| -> usize {
+        let extent = hi[a] - lo[a];
+        (((c - lo[a]) / extent * SAH_BINS as f64) as usize).min(SAH_BINS - 1)
+    };
+    let mut best: Option<(f64, usize, usize)> = None;
+    for a in 0..3 {
+        if hi[a] - lo[a] <= 1e-12 {
+            continue;
+        }
+        let mut bin_bounds = [Bounds::empty(); SAH_BINS];
+        let mut bin_counts = [0usize; SAH_BINS];
+        for &i in order.iter() {
+            let b = bin_of(centroids[i][a], a);
+            bin_bounds[b] = bin_bounds[b].union(&bounds[i]);
+            bin_counts[b] += 1;
+        }
+        // Sweep from the right to get suffix areas, then from the left to evaluate each plane.
+        let mut right_area = [0.0; SAH_BINS];
+        let mut right_count = [0usize; SAH_BINS];
+        let mut acc = Bounds::empty();
+        let mut count = 0;
+        for b in (1..SAH_BINS).rev() {
+            acc = acc.union(&bin_bounds[b]);
+            count += bin_counts[b];
+            right_area[b] = half_area(&acc);
+            right_count[b] = count;
+        }
+        let mut left = Bounds::empty();
+        let mut left_count = 0;
+        for b in 1..SAH_BINS {
+            left = left.union(&bin_bounds[b - 1]);
+            left_count += bin_counts[b - 1];
+            if left_count == 0 || right_count[b] == 0 {
+                continue;
+            }
+            let cost = 1.0
+                + SHAPE_TEST_COST
+                    * (half_area(&left) * left_count as f64
+                        + right_area[b] * right_count[b] as f64)
+                    / parent_area.max(1e-300);
+            if best.is_none_or(|(c, _, _)| cost < c) {
+                best = Some((cost, a, b));
+            }
+        }
+    }
+    let (cost, axis, split_bin) = best?;
+    if cost >= leaf_cost && order.len() <= 8 {
+        return None;
+    }
+    order.sort_unstable_by_key(|&i| bin_of(centroids[i][axis], axis) >= split_bin);
+    let mid = order
+        .iter()
+        .take_while(|&&i| bin_of(centroids[i][axis], axis) < split_bin)
+        .count();
+    (mid > 0 && mid < order.len()).then_some(mid)
+}
+const STACK_DEPTH: usize = 128;
+
+/// Bounding-volume hierarchy over shapes, median split on the widest centroid axis.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Bvh {
+    nodes: Vec<Node>,
+}
+
+impl Bvh {
+    /// Builds the hierarchy and returns it with the permutation that orders the shapes for it:
+    /// `order[k]` is the original index of the shape that must sit at position `k`.
+    pub fn build(bounds: &[Bounds]) -> (Self, Vec<usize>) {
+        let mut order: Vec<usize> = (0..bounds.len()).collect();
+        let centroids: Vec<[f64; 3]> = bounds.iter().map(Bounds::centroid).collect();
+        let mut bvh = Bvh::default();
+        if !bounds.is_empty() {
+            bvh.build_node(&mut order, 0, bounds, &centroids);
+        }
+        (bvh, order)
+    }
+
+    fn build_node(
+        &mut self,
+        order: &mut [usize],
+        start: usize,
+        bounds: &[Bounds],
+        centroids: &[[f64; 3]],
+    ) {
+        let index = self.nodes.len();
+        let node_bounds = order
+            .iter()
+            .fold(Bounds::empty(), |acc, &i| acc.union(&bounds[i]));
+        self.nodes.push(Node {
+            bounds: NodeBox::from_bounds(&node_bounds),
+            first_or_right: start as u32,
+            count: order.len() as u32,
+        });
+        if order.len() <= MAX_LEAF_SIZE {
+            return;
+        }
+        let Some(mid) = sah_split(order, bounds, centroids) else {
+            return;
+        };
+        let (left, right) = order.split_at_mut(mid);
+        self.build_node(left, start, bounds, centroids);
+        let right_index = self.nodes.len() as u32;
+        self.build_node(right, start + mid, bounds, centroids);
+        self.nodes[index].first_or_right = right_index;
+        self.nodes[index].count = 0;
+    }
+
+    /// Closest shape hit before `t_max`: (t, index into the ordered shapes). `stack` is scratch
+    /// space reused across rays to avoid per-ray allocation.
+    pub fn closest_hit(
+        &self,
+        shapes: &[Shape],
+        ray: &Ray,
+        t_max: f64,
+        stack: &mut Vec<(u32, f32)>,
+    ) -> Option<(f64, usize)> {
+        let root = self.nodes.first()?;
+        let mut best_t = t_max;
+        let mut best_t_f32 = t_max as f32;
+        let mut best = None;
+        stack.clear();
+        if let Some(t) = root.bounds.hit(ray, best_t_f32) {
+            stack.push((0, t));
+        }
+        while let Some((node_index, t_entry)) = stack.pop() {
+            if t_entry > best_t_f32 {
+                continue;
+            }
+            let Some(node) = self.nodes.get(node_index as usize) else {
+                continue;
+            };
+            if node.count > 0 {
+                let first = node.first_or_right as usize;
+                let end = first + node.count as usize;
+                for (k, shape) in shapes.get(first..end).unwrap_or(&[]).iter().enumerate() {
+                    if let Some(t) = shape.intersect(ray, best_t) {
+                        best_t = t;
+                        best_t_f32 = t as f32;
+                        best = Some(first + k);
+                    }
+                }
+                continue;
+            }
+            let left = node_index + 1;
+            let right = node.first_or_right;
+            let hit_of = |i: u32| {
+                self.nodes
+                    .get(i as usize)
+                    .and_then(|n| n.bounds.hit(ray, best_t_f32))
+            };
+            // Push the farther child first so the nearer one is visited first and shrinks best_t.
+            match (hit_of(left), hit_of(right)) {
+                (Some(tl), Some(tr)) => {
+                    if tl <= tr {
+                        stack.push((right, tr));
+                        stack.push((left, tl));
+                    } else {
+                        stack.push((left, tl));
+                        stack.push((right, tr));
+                    }
+                }
+                (Some(tl), None) => stack.push((left, tl)),
+                (None, Some(tr)) => stack.push((right, tr)),
+                (None, None) => {}
+            }
+        }
+        best.map(|i| (best_t, i))
+    }
+
+    /// True when any shape lies within `clearance_m` of `p`.
+    pub fn any_within(&self, shapes: &[Shape], p: &Vector3<f64>, clearance_m: f64) -> bool {
+        if self.nodes.is_empty() {
+            return false;
+        }
+        let mut stack = [0u32; STACK_DEPTH];
+        let mut sp = 1usize;
+        while sp > 0 {
+            sp -= 1;
+            let node_index = stack[sp];
+            let node = &self.nodes[node_index as usize];
+            let b = &node.bounds;
+            let inside = (0..3).all(|i| {
+                p[i] >= b.min[i] as f64 - clearance_m && p[i] <= b.max[i] as f64 + clearance_m
+            });
+            if !inside {
+                continue;
+            }
+            if node.count > 0 {
+                let first = node.first_or_right as usize;
+                if shapes[first..first + node.count as usize]
+                    .iter()
+                    .any(|s| s.is_within(p, clearance_m))
+                {
+                    return true;
+                }
+            } else if sp + 2 <= STACK_DEPTH {
+                stack[sp] = node_index + 1;
+                stack[sp + 1] = node.first_or_right;
+                sp += 2;
+            }
+        }
+        false
+    }
+}

@@ -1,0 +1,460 @@
+#![allow(clippy::unwrap_used)]
+
+use super::*;
+use generate::{
+    GREEN_FRUIT_ALBEDO, LEAF_RANGE, RED_FRUIT_RANGE, STEM_ALBEDO, STRUCTURE_ALBEDO,
+    YELLOW_FRUIT_ALBEDO,
+};
+
+/// PCL's integer HSI and the paper's default rule (a copy of glasshouse-detect's, which this
+/// crate may not depend on), to check that albedos are chosen right.
+fn is_roi(r: u8, g: u8, b: u8) -> bool {
+    let (r, g, b) = (r as i32, g as i32, b as i32);
+    let hx = (2.0 * r as f32 - g as f32 - b as f32) / 4.0;
+    let hy = (g - b) as f32 * 111.0 / 255.0;
+    let h = ((hy.atan2(hx) * 128.0 / std::f32::consts::PI) as i32).clamp(-128, 127);
+    let i = (r + g + b) / 3;
+    let m = r.min(g).min(b);
+    let s = if i == 0 { 0 } else { 255 - (m * 255) / i };
+    (-20..=35).contains(&h) && s >= 30 && i >= 30
+}
+
+fn corners(range: [(f32, f32); 3]) -> Vec<[f32; 3]> {
+    let mut out = Vec::new();
+    for r in [range[0].0, range[0].1] {
+        for g in [range[1].0, range[1].1] {
+            for b in [range[2].0, range[2].1] {
+                out.push([r, g, b]);
+            }
+        }
+    }
+    out
+}
+
+fn shading_steps() -> impl Iterator<Item = f64> {
+    (0..=100).map(|i| i as f64 / 100.0).chain([-1.0])
+}
+
+#[test]
+fn red_fruit_passes_hsi_rule_under_any_shading_and_nothing_else_does() {
+    for albedo in corners(RED_FRUIT_RANGE) {
+        for n_dot_l in shading_steps() {
+            let [r, g, b] = shade(albedo, n_dot_l);
+            assert!(
+                is_roi(r, g, b),
+                "red {albedo:?} at {n_dot_l} -> {r},{g},{b}"
+            );
+        }
+    }
+    let mut never = corners(LEAF_RANGE);
+    never.extend([
+        STEM_ALBEDO,
+        FLOOR_ALBEDO,
+        STRUCTURE_ALBEDO,
+        GREEN_FRUIT_ALBEDO,
+        YELLOW_FRUIT_ALBEDO,
+    ]);
+    for albedo in never {
+        for n_dot_l in shading_steps() {
+            let [r, g, b] = shade(albedo, n_dot_l);
+            assert!(!is_roi(r, g, b), "{albedo:?} at {n_dot_l} -> {r},{g},{b}");
+        }
+    }
+    assert!(!is_roi(SKY_RGB[0], SKY_RGB[1], SKY_RGB[2]));
+}
+
+#[test]
+fn scenario_names_parse_and_display() {
+    for (name, kind) in [
+        ("1", ScenarioKind::One),
+        ("one", ScenarioKind::One),
+        ("Scenario1", ScenarioKind::One),
+        ("2", ScenarioKind::Two),
+        ("two", ScenarioKind::Two),
+        ("scenario2", ScenarioKind::Two),
+        ("row", ScenarioKind::Row),
+    ] {
+        assert_eq!(name.parse::<ScenarioKind>().unwrap(), kind);
+        assert_eq!(kind.to_string().parse::<ScenarioKind>().unwrap(), kind);
+    }
+    let err = "three".parse::<ScenarioKind>().unwrap_err().to_string();
+    assert!(err.contains("three") && err.contains("row") && err.contains("scenario1"));
+}
+
+#[test]
+fn same_seed_gives_identical_scene_and_image_other_seed_differs() {
+    let camera = CameraModel::with_resolution(160, 120);
+    let a = Scene::generate(ScenarioKind::Two, 11);
+    let b = Scene::generate(ScenarioKind::Two, 11);
+    assert_eq!(a.ground_truth_json(), b.ground_truth_json());
+    assert_eq!(a.initial_camera_pose(), b.initial_camera_pose());
+    let ia = a.render(&camera, &a.initial_camera_pose(), 5);
+    let ib = b.render(&camera, &b.initial_camera_pose(), 5);
+    assert_eq!(ia.rgb, ib.rgb);
+    let bits = |img: &RgbdImage| img.depth_m.iter().map(|d| d.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&ia), bits(&ib));
+    // Another noise seed changes the depth but not the colour.
+    let ic = a.render(&camera, &a.initial_camera_pose(), 6);
+    assert_eq!(ia.rgb, ic.rgb);
+    assert_ne!(bits(&ia), bits(&ic));
+
+    let c = Scene::generate(ScenarioKind::Two, 12);
+    assert_ne!(a.ground_truth_json(), c.ground_truth_json());
+    assert_ne!(a.plant_bases(), c.plant_bases());
+}
+
+fn check_fruit_invariants(scene: &Scene) {
+    let fruits = scene.fruits();
+    for (i, f) in fruits.iter().enumerate() {
+        assert_eq!(f.id as usize, i);
+        let h = f.half_extents_m;
+        assert!(
+            (0.025..=0.04).contains(&h.x) && (0.025..=0.04).contains(&h.y),
+            "{h:?}"
+        );
+        assert!((0.03..=0.045).contains(&h.z), "{h:?}");
+        assert!((0.4..=1.3).contains(&f.centre.z));
+        assert!((f.volume_m3 - f.aabb().volume_m3()).abs() < 1e-12);
+        // Near its plant's stem.
+        let axis_distance = scene
+            .plant_bases()
+            .iter()
+            .map(|b| ((f.centre.x - b.x).powi(2) + (f.centre.y - b.y).powi(2)).sqrt())
+            .fold(f64::INFINITY, f64::min);
+        assert!((0.04..=0.12).contains(&axis_distance), "{axis_distance}");
+        for g in &fruits[i + 1..] {
+            let (a, b) = (f.aabb(), g.aabb());
+            let overlap = (0..3).all(|k| a.min[k] < b.max[k] && b.min[k] < a.max[k]);
+            assert!(!overlap, "fruits {} and {} overlap", f.id, g.id);
+        }
+    }
+}
+
+fn check_spacing(scene: &Scene) {
+    let bases = scene.plant_bases();
+    for (i, a) in bases.iter().enumerate() {
+        for b in &bases[i + 1..] {
+            assert!((a - b).norm() >= 0.4 - 1e-9, "plants {a} and {b} too close");
+        }
+    }
+}
+
+#[test]
+fn scenario_one_invariants() {
+    for seed in 0..5 {
+        let scene = Scene::generate(ScenarioKind::One, seed);
+        assert_eq!(scene.fruits().len(), 14);
+        assert_eq!(scene.plant_bases().len(), 4);
+        for b in scene.plant_bases() {
+            let r = b.coords.xy().norm();
+            assert!((0.45..=0.8).contains(&r), "plant at {r} m from the pole");
+        }
+        check_spacing(&scene);
+        check_fruit_invariants(&scene);
+        // The pole itself is not free space.
+        assert!(!scene.is_camera_position_free(&Point3::new(0.0, 0.0, 0.5)));
+    }
+}
+
+#[test]
+fn scenario_two_and_row_invariants() {
+    for seed in 0..5 {
+        let scene = Scene::generate(ScenarioKind::Two, seed);
+        assert_eq!(scene.fruits().len(), 28);
+        for b in scene.plant_bases() {
+            assert!(b.x.abs() <= 0.7 && b.y.abs() <= 0.7);
+        }
+        check_spacing(&scene);
+        check_fruit_invariants(&scene);
+
+        let row = Scene::generate(ScenarioKind::Row, seed);
+        assert_eq!(row.plant_bases().len(), 8);
+        assert!((40..=56).contains(&row.fruits().len()));
+        check_spacing(&row);
+        check_fruit_invariants(&row);
+    }
+}
+
+#[test]
+fn regions_and_initial_pose_are_consistent() {
+    for kind in [ScenarioKind::One, ScenarioKind::Two, ScenarioKind::Row] {
+        let scene = Scene::generate(kind, 3);
+        let region = scene.sampling_region();
+        for f in scene.fruits() {
+            assert!(region.contains(&f.aabb().min) && region.contains(&f.aabb().max));
+        }
+        let pose = scene.initial_camera_pose();
+        let eye = Point3::from(pose.translation.vector);
+        assert!(scene.is_camera_position_free(&eye), "{kind}: {eye}");
+        let seen = scene.fruit_pixel_counts(&CameraModel::with_resolution(160, 120), &pose);
+        assert!(
+            seen.iter().any(|&c| c > 0),
+            "{kind}: initial pose sees no fruit"
+        );
+        // Outside the workspace or inside the floor clearance is never free.
+        let ws = scene.camera_workspace();
+        assert!(!scene.is_camera_position_free(&(ws.max + Vector3::repeat(0.01))));
+    }
+}
+
+#[test]
+fn ground_truth_json_lists_every_fruit() {
+    let scene = Scene::generate(ScenarioKind::One, 4);
+    let v: serde_json::Value = serde_json::from_str(&scene.ground_truth_json()).unwrap();
+    assert_eq!(v["scenario"], "1");
+    assert_eq!(v["seed"], 4);
+    let fruits = v["fruits"].as_array().unwrap();
+    assert_eq!(fruits.len(), 14);
+    let f0 = &scene.fruits()[0];
+    assert_eq!(fruits[0]["id"], 0);
+    assert!((fruits[0]["size_m"][2].as_f64().unwrap() - 2.0 * f0.half_extents_m.z).abs() < 1e-12);
+    assert!((fruits[0]["centre_m"][0].as_f64().unwrap() - f0.centre.x).abs() < 1e-12);
+    assert!((fruits[0]["volume_m3"].as_f64().unwrap() - f0.volume_m3).abs() < 1e-15);
+}
+
+#[test]
+fn voxel_keys_are_the_voxels_centred_in_the_box() {
+    let f = FruitTruth {
+        id: 0,
+        centre: Point3::new(0.1, -0.2, 0.8),
+        half_extents_m: Vector3::new(0.03, 0.025, 0.04),
+        volume_m3: 8.0 * 0.03 * 0.025 * 0.04,
+    };
+    let keys = f.voxel_keys(0.01);
+    // 6 x 5 x 8 voxel centres fit (give or take a boundary voxel per axis).
+    assert!(
+        (6 * 5 * 8..=7 * 6 * 9).contains(&keys.len()),
+        "{}",
+        keys.len()
+    );
+    let b = f.aabb();
+    for k in &keys {
+        let c = Point3::new(k[0] as f64 + 0.5, k[1] as f64 + 0.5, k[2] as f64 + 0.5) * 0.01;
+        assert!(b.contains(&c));
+    }
+    assert!(f.voxel_keys(0.0).is_empty() && f.voxel_keys(f64::NAN).is_empty());
+}
+
+/// A free camera position 0.4 m from the fruit whose central ray meets that fruit first.
+fn clear_view_of(scene: &Scene, fruit: &FruitTruth) -> Option<Isometry3<f64>> {
+    let mut stack = Vec::new();
+    for i in 0..400 {
+        // Fibonacci sphere: deterministic, evenly spread directions.
+        let z = 1.0 - 2.0 * (i as f64 + 0.5) / 400.0;
+        let phi = i as f64 * 2.399_963_229_728_653;
+        let r = (1.0 - z * z).sqrt();
+        let dir = Vector3::new(r * phi.cos(), r * phi.sin(), z);
+        let eye = fruit.centre + dir * 0.4;
+        if !scene.is_camera_position_free(&eye) {
+            continue;
+        }
+        let ray = Ray::new(eye.coords, -dir);
+        let Some(hit) = scene.trace(&ray, &mut stack) else {
+            continue;
+        };
+        let fruit_hit = hit.shape.and_then(|s| scene.fruit_index[s]);
+        if fruit_hit == Some(fruit.id) {
+            return Some(look_at(&eye, &fruit.centre));
+        }
+    }
+    None
+}
+
+#[test]
+fn camera_sees_red_fruit_at_expected_depth_and_sky_is_invalid() {
+    let scene = Scene::generate(ScenarioKind::Two, 1);
+    let mut camera = CameraModel::with_resolution(161, 121);
+    camera.depth_noise_std_at_1m_m = 0.0;
+    let fruit = &scene.fruits()[0];
+    let pose = clear_view_of(&scene, fruit).expect("some free view sees fruit 0");
+    let image = scene.render(&camera, &pose, 0);
+    let centre = 60 * 161 + 80;
+    let depth = image.depth_m[centre] as f64;
+    let max_half = fruit.half_extents_m.max();
+    let min_half = fruit.half_extents_m.min();
+    assert!(
+        depth >= 0.4 - max_half - 1e-6 && depth <= 0.4 - min_half + 1e-6,
+        "depth {depth}"
+    );
+    let rgb = &image.rgb[3 * centre..3 * centre + 3];
+    assert!(is_roi(rgb[0], rgb[1], rgb[2]), "{rgb:?}");
+
+    // Straight up from above the plants: nothing but sky.
+    let up = glasshouse_geom::look_along(&Point3::new(0.0, 0.0, 2.5), &Vector3::z());
+    let sky = scene.render(&camera, &up, 0);
+    assert!(sky.depth_m.iter().all(|d| d.is_nan()));
+    assert!(sky.rgb.chunks(3).all(|p| p == SKY_RGB));
+}
+
+#[test]
+fn depth_is_along_the_optical_axis_and_noise_grows_with_range() {
+    let scene = Scene::generate(ScenarioKind::Row, 2);
+    let mut exact = CameraModel::with_resolution(64, 48);
+    exact.depth_noise_std_at_1m_m = 0.0;
+    let noisy = CameraModel::with_resolution(64, 48);
+    // Looking straight down at the floor, away from plants and rails: depth = height everywhere.
+    let spread_at = |height_m: f64| {
+        let pose = glasshouse_geom::look_along(&Point3::new(1.0, -3.0, height_m), &(-Vector3::z()));
+        let truth = scene.render(&exact, &pose, 0);
+        for d in &truth.depth_m {
+            assert!((*d as f64 - height_m).abs() < 1e-5, "{d} vs {height_m}");
+        }
+        let measured = scene.render(&noisy, &pose, 9);
+        let errors: Vec<f64> = measured
+            .depth_m
+            .iter()
+            .zip(&truth.depth_m)
+            .map(|(m, t)| (*m - *t) as f64)
+            .collect();
+        assert!(errors.iter().all(|e| e.is_finite()));
+        let mean = errors.iter().sum::<f64>() / errors.len() as f64;
+        (errors.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / errors.len() as f64).sqrt()
+    };
+    let near = spread_at(0.5);
+    let far = spread_at(2.0);
+    // Expected std: 0.0015 * d^2 = 0.375 mm and 6 mm.
+    assert!((near - 0.000375).abs() < 0.0002, "near std {near}");
+    assert!((far - 0.006).abs() < 0.002, "far std {far}");
+    assert!(far > 5.0 * near);
+
+    // Beyond the maximum range or closer than the minimum: invalid.
+    let too_high = glasshouse_geom::look_along(&Point3::new(1.0, -3.0, 3.2), &(-Vector3::z()));
+    assert!(scene
+        .render(&exact, &too_high, 0)
+        .depth_m
+        .iter()
+        .all(|d| d.is_nan()));
+    let too_low = glasshouse_geom::look_along(&Point3::new(1.0, -3.0, 0.1), &(-Vector3::z()));
+    assert!(scene
+        .render(&exact, &too_low, 0)
+        .depth_m
+        .iter()
+        .all(|d| d.is_nan()));
+}
+
+#[test]
+fn grazing_surfaces_are_invalid() {
+    let scene = Scene::generate(ScenarioKind::Row, 2);
+    let mut camera = CameraModel::with_resolution(64, 48);
+    camera.depth_noise_std_at_1m_m = 0.0;
+    // Camera 0.2 m above the floor looking almost horizontally: far floor pixels are grazing.
+    let pose = glasshouse_geom::look_along(
+        &Point3::new(1.0, -3.0, 0.2),
+        &Vector3::new(0.0, -1.0, -0.12),
+    );
+    let image = scene.render(&camera, &pose, 0);
+    let k = camera.intrinsics;
+    let (mut grazing, mut steep) = (0, 0);
+    for v in 0..48 {
+        for u in 0..64 {
+            let d_cam = k.ray_direction(u as f64, v as f64);
+            let sin_down = -(pose.rotation * d_cam).z;
+            let depth = image.depth_m[v * 64 + u];
+            if sin_down > 0.0 && sin_down < 0.095 {
+                assert!(depth.is_nan(), "grazing pixel {u},{v} has depth {depth}");
+                grazing += 1;
+            } else if sin_down > 0.105 && 0.2 / sin_down * d_cam.z < 2.9 {
+                assert!(depth.is_finite(), "pixel {u},{v} should be valid");
+                steep += 1;
+            }
+        }
+    }
+    assert!(grazing > 100 && steep > 100, "{grazing} {steep}");
+}
+
+#[test]
+fn leaves_hide_fruit_from_the_initial_view_but_other_views_reveal_it() {
+    for kind in [ScenarioKind::One, ScenarioKind::Two] {
+        let scene = Scene::generate(kind, 5);
+        let camera = CameraModel::with_resolution(320, 240);
+        let seen = scene.fruit_pixel_counts(&camera, &scene.initial_camera_pose());
+        let visible = seen.iter().filter(|&&c| c > 0).count();
+        assert!(
+            visible > 0 && visible < scene.fruits().len(),
+            "{kind}: {visible}"
+        );
+        // Every fruit can be seen from some free camera position 0.4 m away.
+        let hidden: Vec<u32> = scene
+            .fruits()
+            .iter()
+            .filter(|f| clear_view_of(&scene, f).is_none())
+            .map(|f| f.id)
+            .collect();
+        assert!(hidden.is_empty(), "{kind}: fruits {hidden:?} never visible");
+    }
+}
+
+#[test]
+fn leaves_occlude_a_good_share_of_fruit_surface() {
+    // From a ring of views around each fruit-bearing plant, compare seen fruit pixels with the
+    // count when leaves are removed: the foliage must hide a real share of it.
+    let scene = Scene::generate(ScenarioKind::Two, 8);
+    let mut bare = scene.clone();
+    for (i, shape) in bare.shapes.iter_mut().enumerate() {
+        if matches!(shape, Shape::Disc { .. }) && bare.fruit_index[i].is_none() {
+            // Shrink leaves to nothing rather than rebuilding the hierarchy.
+            if let Shape::Disc {
+                half_u_m, half_v_m, ..
+            } = shape
+            {
+                *half_u_m = 1e-9;
+                *half_v_m = 1e-9;
+            }
+        }
+    }
+    let camera = CameraModel::with_resolution(160, 120);
+    let (mut with_leaves, mut without) = (0u64, 0u64);
+    for base in scene.plant_bases() {
+        for k in 0..8 {
+            let a = k as f64 * std::f64::consts::TAU / 8.0;
+            let eye = Point3::new(base.x + 0.5 * a.cos(), base.y + 0.5 * a.sin(), 0.85);
+            let pose = look_at(&eye, &Point3::new(base.x, base.y, 0.85));
+            with_leaves += scene
+                .fruit_pixel_counts(&camera, &pose)
+                .iter()
+                .map(|&c| c as u64)
+                .sum::<u64>();
+            without += bare
+                .fruit_pixel_counts(&camera, &pose)
+                .iter()
+                .map(|&c| c as u64)
+                .sum::<u64>();
+        }
+    }
+    let hidden_share = 1.0 - with_leaves as f64 / without as f64;
+    eprintln!("hidden share of fruit pixels: {hidden_share:.2}");
+    assert!(
+        (0.2..0.9).contains(&hidden_share),
+        "hidden share {hidden_share}"
+    );
+}
+
+#[test]
+fn depth_as_u16_marks_invalid_as_zero() {
+    let image = RgbdImage {
+        intrinsics: CameraIntrinsics::from_horizontal_fov(3, 1, 1.0),
+        depth_m: vec![f32::NAN, 1.2345, 100.0],
+        rgb: vec![0; 9],
+    };
+    assert_eq!(image.depth_as_u16(0.001), vec![0, 1235, 0]);
+}
+
+#[test]
+fn bad_camera_inputs_do_not_panic() {
+    let scene = Scene::generate(ScenarioKind::One, 0);
+    let mut camera = CameraModel::with_resolution(8, 6);
+    let nan_pose = Isometry3::translation(f64::NAN, 0.0, 1.0);
+    assert!(scene
+        .render(&camera, &nan_pose, 0)
+        .depth_m
+        .iter()
+        .all(|d| d.is_nan()));
+    camera.intrinsics.fx = 0.0;
+    let _ = scene.render(&camera, &scene.initial_camera_pose(), 0);
+    let empty = scene.render(
+        &CameraModel::with_resolution(0, 0),
+        &scene.initial_camera_pose(),
+        0,
+    );
+    assert!(empty.depth_m.is_empty() && empty.rgb.is_empty());
+}

@@ -1,0 +1,407 @@
+//! The dashboard process: subscribes to everything and logs it to Rerun.
+//!
+//! Read-only: it declares no publisher. It keeps a [`FleetState`] (what each trolley, planner and
+//! detector last said) for embedding processes and, with a recording path, logs every message to a
+//! Rerun `.rrd` under `trolleys/{tid}/...`: camera pose and pinhole, colour and depth images, the
+//! latest ROI cloud, ROI and occupied voxels (rebuilt from MapUpdate deltas), ranked views as
+//! arrows with the executed one highlighted, fruit boxes labelled with size and volume, and time
+//! series. Timelines: `sim_time` (the stamp of the data) and `wall_time`.
+
+mod recorder;
+pub mod web;
+
+use std::collections::{BTreeMap, VecDeque};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use glasshouse_bus::{Delivery, DropCounters, Received, Shutdown, TypedSubscriber};
+use glasshouse_proto::keys::{self, ParsedKey, TrolleyTopic};
+use glasshouse_proto::{
+    DetectorStatus, Fruit, Header, Message, PlannerStatus, RankedViews, TrolleyInfo, TrolleyStatus,
+};
+use serde::Deserialize;
+use zenoh::Session;
+
+pub use recorder::Recorder;
+
+/// Dashboard settings; a JSON5 file may set any of them.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DashboardSettings {
+    /// Write everything to this Rerun recording (.rrd).
+    pub record: Option<PathBuf>,
+    /// Serve the live stream to Rerun viewers (gRPC) and the bundled web viewer.
+    pub serve: Option<ServeSettings>,
+    /// Address of the fleet web page and JSON API (e.g. `0.0.0.0:8080`); none = off.
+    pub http_listen: Option<String>,
+}
+
+/// Live Rerun serving: a gRPC server that buffers up to a memory limit, plus the web viewer.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServeSettings {
+    pub bind_ip: String,
+    pub grpc_port: u16,
+    pub web_viewer_port: u16,
+    /// Host name put in the viewer URLs printed and linked from the web page.
+    pub public_host: String,
+    /// Bytes of log data the gRPC server keeps for late viewers (oldest dropped first).
+    pub memory_limit_bytes: u64,
+}
+
+impl Default for ServeSettings {
+    fn default() -> Self {
+        Self {
+            bind_ip: "0.0.0.0".into(),
+            grpc_port: 9877,
+            web_viewer_port: 9090,
+            public_host: "localhost".into(),
+            memory_limit_bytes: 512 << 20,
+        }
+    }
+}
+
+impl ServeSettings {
+    /// The gRPC URL a viewer connects to.
+    pub fn grpc_url(&self) -> String {
+        format!("rerun+http://{}:{}/proxy", self.public_host, self.grpc_port)
+    }
+
+    /// The web viewer URL, opening the live stream.
+    pub fn web_viewer_url(&self) -> String {
+        format!(
+            "http://{}:{}/?url={}",
+            self.public_host,
+            self.web_viewer_port,
+            self.grpc_url().replace(':', "%3A").replace('/', "%2F")
+        )
+    }
+}
+
+/// Frame → views latencies kept per trolley (the newest).
+const LATENCY_WINDOW: usize = 256;
+/// Frames remembered per trolley while waiting for their views.
+const PENDING_FRAMES: usize = 64;
+
+/// What the dashboard knows about one trolley.
+#[derive(Clone, Debug, Default)]
+pub struct TrolleyView {
+    /// When the latest frame arrived (wall clock of this process).
+    pub last_frame_at: Option<Instant>,
+    /// Arrival of recent frames by sequence, to time frame → views.
+    pending_frames: VecDeque<(u64, Instant)>,
+    /// Recent frame → views latencies in milliseconds.
+    pub latencies_ms: VecDeque<f64>,
+    pub info: Option<TrolleyInfo>,
+    pub status: Option<TrolleyStatus>,
+    pub fruits: Vec<Fruit>,
+    pub last_views: Option<RankedViews>,
+    pub frames: u64,
+    pub clouds: u64,
+    pub views_messages: u64,
+    pub map_updates: u64,
+    pub map_voxels_changed: u64,
+    pub planner_id: String,
+    /// Ground truth, when the source is the simulator.
+    pub truth: Vec<Fruit>,
+    /// Share of the ground-truth fruit voxels inside detected boxes (paper-method §5), when
+    /// the truth is known.
+    pub covered_volume: Option<f64>,
+}
+
+/// Everything the dashboard has heard.
+#[derive(Clone, Debug, Default)]
+pub struct FleetState {
+    pub trolleys: BTreeMap<String, TrolleyView>,
+    pub planners: BTreeMap<String, PlannerStatus>,
+    pub detectors: BTreeMap<String, DetectorStatus>,
+    pub messages: u64,
+}
+
+impl TrolleyView {
+    /// Latency percentile (0..=100) over the recent window, in milliseconds.
+    pub fn latency_percentile_ms(&self, percentile: f64) -> Option<f64> {
+        if self.latencies_ms.is_empty() {
+            return None;
+        }
+        let mut sorted: Vec<f64> = self.latencies_ms.iter().copied().collect();
+        sorted.sort_by(f64::total_cmp);
+        let rank = (percentile / 100.0 * (sorted.len() - 1) as f64).round() as usize;
+        sorted.get(rank.min(sorted.len() - 1)).copied()
+    }
+
+    /// Messages this trolley reported dropping.
+    pub fn drops(&self) -> u64 {
+        self.status.as_ref().map_or(0, |s| s.dropped_messages)
+    }
+}
+
+impl FleetState {
+    /// Folds one received message, received at `now`, into the state.
+    pub fn apply(&mut self, key: &ParsedKey, header: &Header, message: &Message, now: Instant) {
+        self.messages += 1;
+        match (key, message) {
+            (ParsedKey::Trolley { tid, topic }, message) => {
+                let t = self.trolleys.entry(tid.clone()).or_default();
+                match (topic, message) {
+                    (TrolleyTopic::Rgbd, Message::RgbdFrame(_)) => {
+                        t.frames += 1;
+                        t.last_frame_at = Some(now);
+                        // A re-announced frame keeps its first arrival time.
+                        if !t.pending_frames.iter().any(|(seq, _)| *seq == header.seq) {
+                            if t.pending_frames.len() >= PENDING_FRAMES {
+                                t.pending_frames.pop_front();
+                            }
+                            t.pending_frames.push_back((header.seq, now));
+                        }
+                    }
+                    (TrolleyTopic::Info, Message::TrolleyInfo(info)) => t.info = Some(info.clone()),
+                    (TrolleyTopic::Status, Message::TrolleyStatus(s)) => t.status = Some(s.clone()),
+                    (TrolleyTopic::Roi, Message::RoiCloud(_)) => t.clouds += 1,
+                    (TrolleyTopic::Views, Message::RankedViews(v)) => {
+                        t.views_messages += 1;
+                        if let Some(i) = t
+                            .pending_frames
+                            .iter()
+                            .position(|(seq, _)| *seq == v.based_on_seq)
+                        {
+                            let (_, at) = t.pending_frames[i];
+                            t.pending_frames.drain(..=i);
+                            if t.latencies_ms.len() >= LATENCY_WINDOW {
+                                t.latencies_ms.pop_front();
+                            }
+                            t.latencies_ms
+                                .push_back(now.duration_since(at).as_secs_f64() * 1e3);
+                        }
+                        t.planner_id = v.planner_id.clone();
+                        t.last_views = Some(v.clone());
+                    }
+                    (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => {
+                        t.fruits = f.fruits.clone();
+                        t.covered_volume = covered_volume(&t.fruits, &t.truth);
+                    }
+                    (TrolleyTopic::Truth, Message::FruitEstimates(f)) if t.truth != f.fruits => {
+                        t.truth = f.fruits.clone();
+                        t.covered_volume = covered_volume(&t.fruits, &t.truth);
+                    }
+                    (TrolleyTopic::Map, Message::MapUpdate(m)) => {
+                        t.map_updates += 1;
+                        t.map_voxels_changed += m.voxels.len() as u64;
+                    }
+                    _ => {}
+                }
+            }
+            (ParsedKey::PlannerStatus { pid }, Message::PlannerStatus(s)) => {
+                self.planners.insert(pid.clone(), s.clone());
+            }
+            (ParsedKey::DetectorStatus { did }, Message::DetectorStatus(s)) => {
+                self.detectors.insert(did.clone(), s.clone());
+            }
+            _ => {}
+        }
+    }
+}
+
+/// Voxels (1 cm) whose centres lie inside a box.
+fn box_voxels(f: &Fruit, out: &mut std::collections::HashSet<[i32; 3]>) {
+    const RES: f32 = 0.01;
+    let lo = f.box_min.map(|v| (v / RES - 0.5).ceil() as i32);
+    let hi = f.box_max.map(|v| (v / RES - 0.5).floor() as i32);
+    // Boxes beyond a few metres are not fruit; skip rather than allocate without bound.
+    if (0..3).any(|i| hi[i] < lo[i] || hi[i] - lo[i] > 300) {
+        return;
+    }
+    for x in lo.x..=hi.x {
+        for y in lo.y..=hi.y {
+            for z in lo.z..=hi.z {
+                out.insert([x, y, z]);
+            }
+        }
+    }
+}
+
+/// |voxels of detected boxes ∩ voxels of ground-truth boxes| / |voxels of ground-truth boxes|.
+pub fn covered_volume(detected: &[Fruit], truth: &[Fruit]) -> Option<f64> {
+    let mut truth_voxels = std::collections::HashSet::new();
+    truth.iter().for_each(|f| box_voxels(f, &mut truth_voxels));
+    if truth_voxels.is_empty() {
+        return None;
+    }
+    let mut detected_voxels = std::collections::HashSet::new();
+    detected
+        .iter()
+        .for_each(|f| box_voxels(f, &mut detected_voxels));
+    let covered = detected_voxels.intersection(&truth_voxels).count();
+    Some(covered as f64 / truth_voxels.len() as f64)
+}
+
+/// Counters the dashboard exposes, and where it serves.
+#[derive(Debug, Default)]
+pub struct DashboardCounters {
+    pub drops: Arc<DropCounters>,
+    /// The bound address of the web page, once it listens.
+    pub http_addr: Mutex<Option<SocketAddr>>,
+}
+
+/// Logs the series the dashboard derives itself (latency, covered volume).
+fn log_derived(
+    recorder: &mut Recorder,
+    state: &Mutex<FleetState>,
+    key: &ParsedKey,
+    message: &Message,
+) -> anyhow::Result<()> {
+    let ParsedKey::Trolley { tid, topic } = key else {
+        return Ok(());
+    };
+    let (latency, covered) = {
+        let Ok(s) = state.lock() else { return Ok(()) };
+        let Some(t) = s.trolleys.get(tid) else {
+            return Ok(());
+        };
+        (t.latencies_ms.back().copied(), t.covered_volume)
+    };
+    match (topic, message) {
+        (TrolleyTopic::Views, Message::RankedViews(_)) => {
+            if let Some(ms) = latency {
+                recorder.log_scalar(&format!("trolleys/{tid}/frame_to_views_ms"), ms)?;
+            }
+        }
+        (TrolleyTopic::Fruits | TrolleyTopic::Truth, Message::FruitEstimates(_)) => {
+            if let Some(c) = covered {
+                recorder.log_scalar(&format!("trolleys/{tid}/covered_volume"), c)?;
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+/// Runs the dashboard until `shutdown` fires; the recording is flushed before it returns.
+pub async fn run(
+    session: Session,
+    settings: DashboardSettings,
+    mut shutdown: Shutdown,
+    state: Arc<Mutex<FleetState>>,
+    counters: Arc<DashboardCounters>,
+) -> anyhow::Result<()> {
+    let mut recorder = if settings.record.is_some() || settings.serve.is_some() {
+        Some(Recorder::new(
+            settings.record.as_deref(),
+            settings.serve.as_ref(),
+        )?)
+    } else {
+        None
+    };
+    let viewer_url = settings.serve.as_ref().map(ServeSettings::web_viewer_url);
+    let http = match &settings.http_listen {
+        Some(addr) => {
+            let listener = tokio::net::TcpListener::bind(addr)
+                .await
+                .map_err(|e| anyhow::anyhow!("cannot listen on {addr}: {e}"))?;
+            let bound = listener.local_addr()?;
+            if let Ok(mut a) = counters.http_addr.lock() {
+                *a = Some(bound);
+            }
+            tracing::info!(url = %format!("http://{bound}/"), "fleet web page");
+            let app = web::router(web::WebState {
+                fleet: state.clone(),
+                counters: counters.clone(),
+                rerun_viewer_url: viewer_url.clone(),
+            });
+            let mut stop = shutdown.clone();
+            Some(tokio::spawn(async move {
+                axum::serve(listener, app)
+                    .with_graceful_shutdown(async move { stop.wait().await })
+                    .await
+            }))
+        }
+        None => None,
+    };
+    // Frames and arm states are streams (keep the newest); everything else a deep monitor queue.
+    let mut key_exprs = vec![
+        (keys::all_trolleys(TrolleyTopic::Rgbd), Delivery::Stream),
+        (keys::all_trolleys(TrolleyTopic::Arm), Delivery::Stream),
+        (
+            format!("{}/planner/*/status", keys::ROOT),
+            Delivery::Monitor,
+        ),
+        (
+            format!("{}/detector/*/status", keys::ROOT),
+            Delivery::Monitor,
+        ),
+        (keys::FLEET_FRUITS.to_owned(), Delivery::Monitor),
+    ];
+    for topic in TrolleyTopic::ALL {
+        if !matches!(topic, TrolleyTopic::Rgbd | TrolleyTopic::Arm) {
+            key_exprs.push((keys::all_trolleys(topic), Delivery::Monitor));
+        }
+    }
+    let (tx, mut rx) = tokio::sync::mpsc::channel::<Received>(64);
+    let mut subscribers = Vec::new();
+    for (key_expr, delivery) in key_exprs {
+        let sub = Arc::new(
+            TypedSubscriber::declare(&session, &key_expr, delivery, counters.drops.clone()).await?,
+        );
+        subscribers.push(sub.clone());
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            while let Some(received) = sub.recv().await {
+                if tx.send(received).await.is_err() {
+                    break;
+                }
+            }
+        });
+    }
+    drop(tx);
+    tracing::info!(record = ?settings.record, "dashboard started");
+    loop {
+        tokio::select! {
+            _ = shutdown.wait() => break,
+            received = rx.recv() => {
+                let Some(received) = received else { break };
+                let Some(key) = keys::parse(&received.key) else { continue };
+                if let Ok(mut s) = state.lock() {
+                    s.apply(&key, &received.header, &received.message, Instant::now());
+                }
+                if let Some(recorder) = recorder.as_mut() {
+                    if let Err(e) = recorder.log(&key, &received.header, &received.message) {
+                        tracing::warn!(error = %e, "rerun logging failed");
+                    }
+                    if let Err(e) = log_derived(recorder, &state, &key, &received.message) {
+                        tracing::warn!(error = %e, "rerun logging failed");
+                    }
+                }
+            }
+        }
+    }
+    // Drain what already arrived so the recording ends with the latest results.
+    while let Ok(received) = rx.try_recv() {
+        if let Some(key) = keys::parse(&received.key) {
+            if let Ok(mut s) = state.lock() {
+                s.apply(&key, &received.header, &received.message, Instant::now());
+            }
+            if let Some(recorder) = recorder.as_mut() {
+                let _ = recorder.log(&key, &received.header, &received.message);
+            }
+        }
+    }
+    if let Some(recorder) = recorder {
+        recorder.finish()?;
+    }
+    if let Some(http) = http {
+        match tokio::time::timeout(std::time::Duration::from_secs(5), http).await {
+            Ok(Ok(Err(e))) => tracing::warn!(error = %e, "web server stopped with an error"),
+            Err(_) => tracing::warn!("web server did not stop in time"),
+            _ => {}
+        }
+    }
+    let messages = state.lock().map(|s| s.messages).unwrap_or(0);
+    tracing::info!(
+        messages,
+        dropped = counters.drops.total(),
+        "dashboard stopped"
+    );
+    Ok(())
+}

@@ -1,0 +1,90 @@
+//! `dashboard`: subscribes to everything on the Glasshouse bus, records it to Rerun and serves
+//! the fleet web page.
+
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use clap::Parser;
+use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
+
+/// Read-only monitor of the fleet: a web page with fleet, planner and fruit tables (JSON API at
+/// /api/fleet, /api/trolleys/{id}/fruits, /healthz), a Rerun recording and/or a live Rerun stream.
+///
+/// Settings: defaults, then `--config FILE` (JSON5: record, serve {bind_ip, grpc_port,
+/// web_viewer_port, public_host, memory_limit_bytes}, http_listen), then the flags below.
+#[derive(Parser, Debug)]
+#[command(name = "dashboard", version)]
+struct Cli {
+    /// Settings file (JSON5).
+    #[arg(short, long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Write a Rerun recording (.rrd) to FILE.
+    #[arg(long, value_name = "FILE")]
+    record: Option<PathBuf>,
+    /// Serve the live 3D stream: a Rerun gRPC server plus the bundled web viewer.
+    #[arg(long)]
+    serve: bool,
+    /// gRPC port of the live stream (with --serve).
+    #[arg(long, default_value_t = 9877)]
+    grpc_port: u16,
+    /// Port of the Rerun web viewer (with --serve).
+    #[arg(long, default_value_t = 9090)]
+    web_viewer_port: u16,
+    /// Megabytes of log data kept for late viewers (with --serve; oldest dropped first).
+    #[arg(long, default_value_t = 512)]
+    memory_limit_mb: u64,
+    /// Host name used in the viewer URLs (what remote browsers reach this machine as).
+    #[arg(long, default_value = "localhost")]
+    public_host: String,
+    /// Address of the fleet web page and JSON API.
+    #[arg(long, value_name = "ADDR", default_value = "0.0.0.0:8080")]
+    http: String,
+    /// Do not serve the web page.
+    #[arg(long)]
+    no_http: bool,
+    #[command(flatten)]
+    bus: BusArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    glasshouse_bus::init_tracing();
+    let cli = Cli::parse();
+    let mut settings: DashboardSettings = glasshouse_bus::load_settings(cli.config.as_deref())?;
+    if cli.record.is_some() {
+        settings.record = cli.record;
+    }
+    if cli.serve {
+        settings.serve = Some(ServeSettings {
+            grpc_port: cli.grpc_port,
+            web_viewer_port: cli.web_viewer_port,
+            memory_limit_bytes: cli.memory_limit_mb << 20,
+            public_host: cli.public_host.clone(),
+            ..ServeSettings::default()
+        });
+    }
+    if cli.no_http {
+        settings.http_listen = None;
+    } else if settings.http_listen.is_none() || cli.http != "0.0.0.0:8080" {
+        settings.http_listen = Some(cli.http);
+    }
+    if let Some(serve) = &settings.serve {
+        println!("live 3D view: {}", serve.web_viewer_url());
+        println!("Rerun viewer: rerun {}", serve.grpc_url());
+    }
+    let session = glasshouse_bus::open(&cli.bus).await?;
+    let (trigger, shutdown) = Shutdown::new();
+    trigger.fire_on_signal();
+    let state = Arc::new(Mutex::new(FleetState::default()));
+    let result = glasshouse_dashboard::run(
+        session.clone(),
+        settings,
+        shutdown,
+        state,
+        Arc::new(DashboardCounters::default()),
+    )
+    .await;
+    let _ = session.close().await;
+    result
+}

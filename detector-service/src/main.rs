@@ -1,0 +1,48 @@
+//! `detector-service`: RGB-D frames in, ROI point clouds out.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use clap::Parser;
+use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_detector::{DetectorCounters, DetectorSettings};
+
+/// Turns the RGB-D frames of every trolley into ROI-labelled world point clouds (HSI rule).
+///
+/// Settings: defaults, then `--config FILE` (JSON5: detector_id, voxel_size_m,
+/// status_period_ms), then the flags below.
+#[derive(Parser, Debug)]
+#[command(name = "detector-service", version)]
+struct Cli {
+    /// Settings file (JSON5).
+    #[arg(short, long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Detector id (one key chunk).
+    #[arg(long)]
+    detector_id: Option<String>,
+    #[command(flatten)]
+    bus: BusArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    glasshouse_bus::init_tracing();
+    let cli = Cli::parse();
+    let mut settings: DetectorSettings = glasshouse_bus::load_settings(cli.config.as_deref())?;
+    if let Some(v) = cli.detector_id {
+        settings.detector_id = v;
+    }
+    settings.validate()?;
+    let session = glasshouse_bus::open(&cli.bus).await?;
+    let (trigger, shutdown) = Shutdown::new();
+    trigger.fire_on_signal();
+    let result = glasshouse_detector::run(
+        session.clone(),
+        settings,
+        shutdown,
+        Arc::new(DetectorCounters::default()),
+    )
+    .await;
+    let _ = session.close().await;
+    result
+}

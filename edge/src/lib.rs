@@ -1,0 +1,369 @@
+//! The trolley process: streams RGB-D frames and arm state, executes ranked views.
+//!
+//! The loop is the paper's Algorithm 1 split across machines: capture a frame (seq n) and publish
+//! it with the arm state; wait for RankedViews planned on frame n; execute the first view the arm
+//! can reach; capture again. When no planner answers in time the edge re-announces frame n.
+//! The source is the simulated glasshouse ([`glasshouse_sim`]); the clock is simulated: each view
+//! costs its motion time plus a capture time.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use glasshouse_bus::{
+    declare_alive, Delivery, DropCounters, Received, Shutdown, TypedPublisher, TypedSubscriber,
+};
+use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
+use glasshouse_proto::{
+    ArmModel, ArmState, Fruit, FruitEstimates, Header, Message, MountKind, RankedView, RgbdFrame,
+    TrolleyInfo, TrolleyState, TrolleyStatus,
+};
+use glasshouse_sim::{CameraModel, ScenarioKind, Scene};
+use nalgebra::Isometry3;
+use serde::Deserialize;
+use zenoh::Session;
+
+/// Depth is sent in millimetres.
+pub const DEPTH_SCALE_M: f32 = 0.001;
+
+/// Edge settings; every field has a default, a JSON5 file may set any of them.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EdgeConfig {
+    pub trolley_id: String,
+    /// Scenario name: `1`, `2` or `row`.
+    pub scenario: String,
+    pub seed: u64,
+    pub width: u32,
+    pub height: u32,
+    /// Stop after this many executed views (0 = run until shut down).
+    pub max_views: u32,
+    /// Re-announce the current frame when no views arrive within this time.
+    pub views_timeout_ms: u64,
+    /// Simulated time to capture one view.
+    pub capture_time_s: f64,
+    /// Simulated camera speed between views.
+    pub camera_speed_m_per_s: f64,
+}
+
+impl Default for EdgeConfig {
+    fn default() -> Self {
+        Self {
+            trolley_id: "t1".into(),
+            scenario: "2".into(),
+            seed: 1,
+            width: 640,
+            height: 480,
+            max_views: 0,
+            views_timeout_ms: 3000,
+            capture_time_s: 0.5,
+            camera_speed_m_per_s: 0.5,
+        }
+    }
+}
+
+impl EdgeConfig {
+    pub fn validate(&self) -> anyhow::Result<ScenarioKind> {
+        keys::validate_id(&self.trolley_id)?;
+        anyhow::ensure!(
+            (16..=1280).contains(&self.width) && (12..=960).contains(&self.height),
+            "image size {}x{} outside 16x12..1280x960",
+            self.width,
+            self.height
+        );
+        anyhow::ensure!(
+            self.capture_time_s >= 0.0 && self.camera_speed_m_per_s > 0.0,
+            "capture time must be >= 0 and camera speed > 0"
+        );
+        self.scenario
+            .parse::<ScenarioKind>()
+            .map_err(|e| anyhow::anyhow!("{e}"))
+    }
+}
+
+/// What the edge reports to an embedding process (the demo prints these).
+#[derive(Clone, Debug)]
+pub enum EdgeEvent {
+    /// A view was executed.
+    ViewDone {
+        views_done: u32,
+        frame_seq: u64,
+        view: RankedView,
+        sim_time_s: f64,
+    },
+    /// No planner answered frame `frame_seq` in time; it was published again.
+    Reannounced { frame_seq: u64 },
+    /// The view budget is spent and the last frame was answered.
+    Finished { views_done: u32, frames: u64 },
+}
+
+/// Counters the edge exposes to tests and status messages.
+#[derive(Debug, Default)]
+pub struct EdgeCounters {
+    pub drops: Arc<DropCounters>,
+}
+
+/// Runs the trolley until its view budget is spent or `shutdown` fires.
+pub async fn run(
+    session: Session,
+    config: EdgeConfig,
+    mut shutdown: Shutdown,
+    events: Option<tokio::sync::mpsc::UnboundedSender<EdgeEvent>>,
+    counters: Arc<EdgeCounters>,
+) -> anyhow::Result<()> {
+    let scenario = config.validate()?;
+    let tid = config.trolley_id.clone();
+    let drops = counters.drops.clone();
+    let publisher = |topic, delivery| {
+        let session = session.clone();
+        let drops = drops.clone();
+        let key = keys::trolley(&tid, topic);
+        async move { TypedPublisher::declare(&session, key?, delivery, drops).await }
+    };
+    let rgbd = publisher(TrolleyTopic::Rgbd, Delivery::Stream).await?;
+    let arm = publisher(TrolleyTopic::Arm, Delivery::Stream).await?;
+    let info_pub = publisher(TrolleyTopic::Info, Delivery::Reliable).await?;
+    let status_pub = publisher(TrolleyTopic::Status, Delivery::Reliable).await?;
+    let truth_pub = publisher(TrolleyTopic::Truth, Delivery::Reliable).await?;
+    let views_sub = TypedSubscriber::declare(
+        &session,
+        &keys::trolley(&tid, TrolleyTopic::Views)?,
+        Delivery::Reliable,
+        drops.clone(),
+    )
+    .await?;
+    let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
+
+    let scene = Arc::new(Scene::generate(scenario, config.seed));
+    let camera = Arc::new(CameraModel::with_resolution(config.width, config.height));
+    let info = trolley_info(&scene, &camera, &config);
+    let truth = Message::FruitEstimates(ground_truth(&scene, &tid));
+    let mut pose = scene.initial_camera_pose();
+    let mut sim_time_s = 0.0;
+    let mut frame_seq = 0u64;
+    let mut status = TrolleyStatus {
+        state: TrolleyState::Starting,
+        views_done: 0,
+        frames_published: 0,
+        unreachable_views: 0,
+        reannounces: 0,
+        dropped_messages: 0,
+        last_views_seq: 0,
+        message: String::new(),
+    };
+    tracing::info!(trolley = %tid, %scenario, seed = config.seed, "edge started");
+    let header = |seq: u64, sim_time_s: f64| Header {
+        seq,
+        stamp_ns: (sim_time_s * 1e9) as u64,
+        trolley_id: tid.clone(),
+        source_id: tid.clone(),
+        frame_id: "world".into(),
+    };
+    let emit = |event: EdgeEvent| {
+        if let Some(tx) = &events {
+            let _ = tx.send(event);
+        }
+    };
+
+    let arm_state = |moving: bool, views_done: u32, pose: &Isometry3<f64>| {
+        Message::ArmState(ArmState {
+            joint_angles_rad: Vec::new(),
+            world_from_camera: *pose,
+            rail_position_m: 0.0,
+            lift_height_m: 0.0,
+            moving,
+            views_done,
+        })
+    };
+    'capture: loop {
+        if shutdown.is_set() {
+            break;
+        }
+        frame_seq += 1;
+        status.state = TrolleyState::Capturing;
+        let frame = {
+            let (scene, camera) = (scene.clone(), camera.clone());
+            let noise_seed = config.seed.wrapping_mul(1_000_003).wrapping_add(frame_seq);
+            tokio::task::spawn_blocking(move || render_frame(&scene, &camera, &pose, noise_seed))
+                .await
+                .context("render task failed")?
+        };
+        let frame_msg = Message::RgbdFrame(frame);
+        let info_msg = Message::TrolleyInfo(info.clone());
+        let arm_msg = arm_state(false, status.views_done, &pose);
+        let announce = |seq: u64, t: f64| {
+            let h = header(seq, t);
+            let (info_pub, arm, rgbd, truth_pub) = (&info_pub, &arm, &rgbd, &truth_pub);
+            let (info_msg, arm_msg, frame_msg, truth) = (&info_msg, &arm_msg, &frame_msg, &truth);
+            async move {
+                info_pub.publish(&h, info_msg).await?;
+                truth_pub.publish(&h, truth).await?;
+                arm.publish(&h, arm_msg).await?;
+                rgbd.publish(&h, frame_msg).await
+            }
+        };
+        announce(frame_seq, sim_time_s).await?;
+        status.frames_published += 1;
+        status.state = TrolleyState::WaitingForViews;
+        status.dropped_messages = drops.total();
+        status_pub
+            .publish(
+                &header(frame_seq, sim_time_s),
+                &Message::TrolleyStatus(status.clone()),
+            )
+            .await?;
+
+        // Wait for views planned on this frame; re-announce it when nobody answers.
+        let views = loop {
+            let timeout = Duration::from_millis(config.views_timeout_ms);
+            tokio::select! {
+                _ = shutdown.wait() => break 'capture,
+                received = tokio::time::timeout(timeout, views_sub.recv()) => match received {
+                    Err(_) => {
+                        status.reannounces += 1;
+                        tracing::info!(trolley = %tid, frame_seq, "no views yet; re-announcing the frame");
+                        emit(EdgeEvent::Reannounced { frame_seq });
+                        announce(frame_seq, sim_time_s).await?;
+                    }
+                    Ok(None) => break 'capture,
+                    Ok(Some(Received { header, message: Message::RankedViews(views), .. })) => {
+                        if header.trolley_id == tid && views.based_on_seq == frame_seq {
+                            break views;
+                        }
+                        tracing::debug!(based_on = views.based_on_seq, frame_seq, "ignoring views planned on another frame");
+                    }
+                    Ok(Some(_)) => {}
+                },
+            }
+        };
+        status.last_views_seq = views.based_on_seq;
+        if config.max_views > 0 && status.views_done >= config.max_views {
+            emit(EdgeEvent::Finished {
+                views_done: status.views_done,
+                frames: status.frames_published,
+            });
+            break;
+        }
+        // Execute the first reachable view (Algorithm 1: "moveToPose, else the next view").
+        let reachable = views.views.iter().position(|v| {
+            scene.is_camera_position_free(&v.world_from_camera.translation.vector.into())
+        });
+        status.unreachable_views += reachable.unwrap_or(views.views.len()) as u32;
+        let Some(index) = reachable else {
+            tracing::info!(trolley = %tid, frame_seq, offered = views.views.len(), "no reachable view; capturing again");
+            sim_time_s += config.capture_time_s;
+            continue;
+        };
+        let view = views.views[index].clone();
+        status.state = TrolleyState::Moving;
+        let distance_m =
+            (view.world_from_camera.translation.vector - pose.translation.vector).norm();
+        sim_time_s += distance_m / config.camera_speed_m_per_s + config.capture_time_s;
+        arm.publish(
+            &header(frame_seq, sim_time_s),
+            &arm_state(true, status.views_done, &view.world_from_camera),
+        )
+        .await?;
+        pose = view.world_from_camera;
+        status.views_done += 1;
+        emit(EdgeEvent::ViewDone {
+            views_done: status.views_done,
+            frame_seq,
+            view,
+            sim_time_s,
+        });
+    }
+
+    status.state = TrolleyState::Done;
+    status.dropped_messages = drops.total();
+    status.message = format!(
+        "{} views, {} frames",
+        status.views_done, status.frames_published
+    );
+    status_pub
+        .publish(
+            &header(frame_seq, sim_time_s),
+            &Message::TrolleyStatus(status.clone()),
+        )
+        .await?;
+    for p in [rgbd, arm, info_pub, status_pub, truth_pub] {
+        p.close().await;
+    }
+    tracing::info!(trolley = %tid, views = status.views_done, frames = status.frames_published,
+        dropped = drops.total(), corrupt = drops.corrupt.load(Ordering::Relaxed), "edge stopped");
+    Ok(())
+}
+
+/// Renders the simulated camera and packs the frame for the wire (depth in millimetres).
+pub fn render_frame(
+    scene: &Scene,
+    camera: &CameraModel,
+    world_from_camera: &Isometry3<f64>,
+    noise_seed: u64,
+) -> RgbdFrame {
+    let image = scene.render(camera, world_from_camera, noise_seed);
+    let depth = image
+        .depth_m
+        .iter()
+        .map(|&d| {
+            if d.is_finite() && d > 0.0 {
+                (d / DEPTH_SCALE_M).round().clamp(1.0, u16::MAX as f32) as u16
+            } else {
+                0
+            }
+        })
+        .collect();
+    RgbdFrame {
+        intrinsics: image.intrinsics,
+        world_from_camera: *world_from_camera,
+        depth_scale_m: DEPTH_SCALE_M,
+        min_range_m: camera.min_range_m as f32,
+        max_range_m: camera.max_range_m as f32,
+        depth,
+        rgb: image.rgb,
+    }
+}
+
+/// The simulator's fruits as FruitEstimates (box centre, extent and volume; confidence 1).
+fn ground_truth(scene: &Scene, tid: &str) -> FruitEstimates {
+    FruitEstimates {
+        fruits: scene
+            .fruits()
+            .iter()
+            .map(|f| {
+                let aabb = f.aabb();
+                Fruit {
+                    id: f.id,
+                    centre_in_world: f.centre.cast(),
+                    box_min: aabb.min.cast(),
+                    box_max: aabb.max.cast(),
+                    volume_m3: f.volume_m3 as f32,
+                    voxel_count: f.voxel_keys(0.01).len().min(u32::MAX as usize) as u32,
+                    confidence: 1.0,
+                }
+            })
+            .collect(),
+        based_on_seq: 0,
+        planner_id: format!("truth-{tid}"),
+    }
+}
+
+fn trolley_info(scene: &Scene, camera: &CameraModel, config: &EdgeConfig) -> TrolleyInfo {
+    TrolleyInfo {
+        arm_model: ArmModel::None,
+        mount: MountKind::FreeCamera,
+        world_from_base: Isometry3::identity(),
+        joint_min_rad: Vec::new(),
+        joint_max_rad: Vec::new(),
+        rail_min_m: 0.0,
+        rail_max_m: 0.0,
+        lift_min_m: 0.0,
+        lift_max_m: 0.0,
+        camera_workspace: scene.camera_workspace(),
+        sampling_region: scene.sampling_region(),
+        scenario: config.scenario.clone(),
+        scene_seed: config.seed,
+        intrinsics: camera.intrinsics,
+    }
+}

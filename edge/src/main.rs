@@ -1,0 +1,80 @@
+//! `edge`: one trolley (simulated glasshouse source) on the Glasshouse bus.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use clap::Parser;
+use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_edge::{EdgeConfig, EdgeCounters};
+
+/// Streams RGB-D frames and arm state of one trolley and executes the views planners send.
+///
+/// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
+/// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
+/// camera_speed_m_per_s), then the flags below.
+#[derive(Parser, Debug)]
+#[command(name = "edge", version)]
+struct Cli {
+    /// Settings file (JSON5).
+    #[arg(short, long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Trolley id (one key chunk: letters, digits, '-' and '_').
+    #[arg(long)]
+    trolley_id: Option<String>,
+    /// Simulated scenario: 1, 2 or row.
+    #[arg(long)]
+    scenario: Option<String>,
+    /// Scene seed.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Stop after this many views (0 = run until stopped).
+    #[arg(long)]
+    max_views: Option<u32>,
+    /// Image width in pixels (height follows at 4:3 unless --height is given).
+    #[arg(long)]
+    width: Option<u32>,
+    /// Image height in pixels.
+    #[arg(long)]
+    height: Option<u32>,
+    #[command(flatten)]
+    bus: BusArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    glasshouse_bus::init_tracing();
+    let cli = Cli::parse();
+    let mut config: EdgeConfig = glasshouse_bus::load_settings(cli.config.as_deref())?;
+    if let Some(v) = cli.trolley_id {
+        config.trolley_id = v;
+    }
+    if let Some(v) = cli.scenario {
+        config.scenario = v;
+    }
+    if let Some(v) = cli.seed {
+        config.seed = v;
+    }
+    if let Some(v) = cli.max_views {
+        config.max_views = v;
+    }
+    if let Some(w) = cli.width {
+        config.width = w;
+        config.height = cli.height.unwrap_or(w * 3 / 4);
+    } else if let Some(h) = cli.height {
+        config.height = h;
+    }
+    config.validate()?;
+    let session = glasshouse_bus::open(&cli.bus).await?;
+    let (trigger, shutdown) = Shutdown::new();
+    trigger.fire_on_signal();
+    let result = glasshouse_edge::run(
+        session.clone(),
+        config,
+        shutdown,
+        None,
+        Arc::new(EdgeCounters::default()),
+    )
+    .await;
+    let _ = session.close().await;
+    result
+}

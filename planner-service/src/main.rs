@@ -1,0 +1,61 @@
+//! `planner-service`: ROI maps, next best views and fruit estimates for every trolley it hears.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use clap::Parser;
+use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_planner::{PlannerCounters, PlannerSettings};
+
+/// Integrates ROI clouds into a voxel map per trolley, publishes ranked next best views and
+/// fruit estimates.
+///
+/// Settings: defaults, then `--config FILE` (JSON5: planner_id, method, seed, resolution_m,
+/// max_range_m, min_cluster_voxels, status_period_ms), then the flags below.
+#[derive(Parser, Debug)]
+#[command(name = "planner-service", version)]
+struct Cli {
+    /// Settings file (JSON5).
+    #[arg(short, long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Planner id (one key chunk).
+    #[arg(long)]
+    planner_id: Option<String>,
+    /// Planning method: ours-uu, ours-up, explo-uu or explo-up.
+    #[arg(long)]
+    method: Option<String>,
+    /// Planner seed (views are seeded from it and the frame sequence).
+    #[arg(long)]
+    seed: Option<u64>,
+    #[command(flatten)]
+    bus: BusArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    glasshouse_bus::init_tracing();
+    let cli = Cli::parse();
+    let mut settings: PlannerSettings = glasshouse_bus::load_settings(cli.config.as_deref())?;
+    if let Some(v) = cli.planner_id {
+        settings.planner_id = v;
+    }
+    if let Some(v) = cli.method {
+        settings.method = v;
+    }
+    if let Some(v) = cli.seed {
+        settings.seed = v;
+    }
+    settings.validate()?;
+    let session = glasshouse_bus::open(&cli.bus).await?;
+    let (trigger, shutdown) = Shutdown::new();
+    trigger.fire_on_signal();
+    let result = glasshouse_planner::run(
+        session.clone(),
+        settings,
+        shutdown,
+        Arc::new(PlannerCounters::default()),
+    )
+    .await;
+    let _ = session.close().await;
+    result
+}

@@ -1,0 +1,321 @@
+//! `glasshouse demo`: the whole loop in one process over real Zenoh sessions.
+
+use std::net::TcpListener;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
+use glasshouse_detector::{DetectorCounters, DetectorSettings};
+use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
+use glasshouse_planner::{PlannerCounters, PlannerSettings};
+use glasshouse_proto::{Fruit, ViewKind};
+use serde::Serialize;
+
+#[derive(clap::Args, Debug)]
+pub struct DemoArgs {
+    /// Simulated scenario: 1, 2 or row.
+    #[arg(long, default_value = "2")]
+    pub scenario: String,
+    /// Scene and planner seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Number of views to execute.
+    #[arg(long, default_value_t = 20)]
+    pub views: u32,
+    /// Planning method: ours-uu, ours-up, explo-uu or explo-up.
+    #[arg(long, default_value = "ours-uu")]
+    pub method: String,
+    /// Image width in pixels (height is 3/4 of it).
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    /// Write a Rerun recording of the run.
+    #[arg(long, value_name = "FILE.rrd")]
+    pub record: Option<PathBuf>,
+    /// Serve while running: the fleet web page, a live Rerun stream and the Rerun web viewer
+    /// (the URLs are printed).
+    #[arg(long)]
+    pub serve: bool,
+    /// Address of the fleet web page with --serve.
+    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:8080")]
+    pub http: String,
+    /// Keep serving after the run until Ctrl-C (with --serve).
+    #[arg(long)]
+    pub linger: bool,
+    /// Write the result as JSON: {"views", "frames", "fruits": [{centre_m, size_m, volume_m3, ...}]}.
+    #[arg(long, value_name = "FILE")]
+    pub summary_json: Option<PathBuf>,
+    /// Give up when the pipeline makes no progress for this long.
+    #[arg(long, default_value_t = 60)]
+    pub stall_timeout_s: u64,
+}
+
+#[derive(Serialize)]
+struct FruitSummary {
+    id: u32,
+    centre_m: [f32; 3],
+    size_m: [f32; 3],
+    volume_m3: f32,
+    voxel_count: u32,
+    confidence: f32,
+}
+
+#[derive(Serialize)]
+struct Summary {
+    scenario: String,
+    seed: u64,
+    views: u32,
+    frames: u64,
+    wall_time_s: f64,
+    sim_time_s: f64,
+    fruits: Vec<FruitSummary>,
+}
+
+fn free_port() -> anyhow::Result<u16> {
+    let listener = TcpListener::bind("127.0.0.1:0").context("no free loopback port")?;
+    Ok(listener.local_addr()?.port())
+}
+
+pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let edge_config = EdgeConfig {
+        scenario: args.scenario.clone(),
+        seed: args.seed,
+        max_views: args.views.max(1),
+        width: args.width,
+        height: args.width * 3 / 4,
+        ..EdgeConfig::default()
+    };
+    edge_config.validate()?;
+    let planner_settings = PlannerSettings {
+        method: args.method.clone(),
+        seed: args.seed,
+        ..PlannerSettings::default()
+    };
+    planner_settings.validate()?;
+
+    // An in-process router on a free loopback port; every component is a client of it.
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
+    let router = glasshouse_bus::open(&BusArgs::router(&endpoint)).await?;
+    let client_args = BusArgs::client(&endpoint);
+    let client = || glasshouse_bus::open(&client_args);
+    let (trigger, shutdown) = Shutdown::new();
+    let (edge_trigger, edge_shutdown) = Shutdown::new();
+
+    let state = Arc::new(Mutex::new(FleetState::default()));
+    let serve = args.serve.then(|| ServeSettings {
+        bind_ip: "127.0.0.1".into(),
+        ..ServeSettings::default()
+    });
+    if let Some(serve) = &serve {
+        println!("fleet web page:   http://{}/", args.http);
+        println!("live 3D view:     {}", serve.web_viewer_url());
+        println!("Rerun viewer:     rerun {}", serve.grpc_url());
+    }
+    let dashboard = tokio::spawn(glasshouse_dashboard::run(
+        client().await?,
+        DashboardSettings {
+            record: args.record.clone(),
+            serve: serve.clone(),
+            http_listen: args.serve.then(|| args.http.clone()),
+        },
+        shutdown.clone(),
+        state.clone(),
+        Arc::new(DashboardCounters::default()),
+    ));
+    let detector = tokio::spawn(glasshouse_detector::run(
+        client().await?,
+        DetectorSettings::default(),
+        shutdown.clone(),
+        Arc::new(DetectorCounters::default()),
+    ));
+    let planner = tokio::spawn(glasshouse_planner::run(
+        client().await?,
+        planner_settings,
+        shutdown.clone(),
+        Arc::new(PlannerCounters::default()),
+    ));
+    let (events_tx, mut events) = tokio::sync::mpsc::unbounded_channel();
+    let tid = edge_config.trolley_id.clone();
+    let edge = tokio::spawn(glasshouse_edge::run(
+        client().await?,
+        edge_config,
+        edge_shutdown,
+        Some(events_tx),
+        Arc::new(EdgeCounters::default()),
+    ));
+    let mut ctrl_c = tokio::spawn(async move {
+        glasshouse_bus::shutdown_signal().await;
+    });
+
+    println!(
+        "glasshouse demo: scenario {} seed {} views {} method {} (router + 4 Zenoh sessions over {endpoint})",
+        args.scenario, args.seed, args.views, args.method
+    );
+    let mut frames = 0u64;
+    let mut views_done = 0u32;
+    let mut sim_time_s = 0.0;
+    let stall = Duration::from_secs(args.stall_timeout_s.max(5));
+    let mut interrupted = false;
+    loop {
+        let event = tokio::select! {
+            _ = async { while !ctrl_c.is_finished() { tokio::time::sleep(Duration::from_millis(100)).await } } => {
+                interrupted = true;
+                break;
+            }
+            e = tokio::time::timeout(stall, events.recv()) => e,
+        };
+        match event {
+            Err(_) => {
+                edge_trigger.fire();
+                trigger.fire();
+                anyhow::bail!(
+                    "no progress for {} s: is a component stuck?",
+                    stall.as_secs()
+                );
+            }
+            Ok(None) => break,
+            Ok(Some(EdgeEvent::ViewDone {
+                views_done: n,
+                frame_seq,
+                view,
+                sim_time_s: t,
+            })) => {
+                views_done = n;
+                sim_time_s = t;
+                let fruits = state
+                    .lock()
+                    .map(|s| s.trolleys.get(&tid).map_or(0, |t| t.fruits.len()))
+                    .unwrap_or(0);
+                let kind = match view.kind {
+                    ViewKind::Roi => "roi",
+                    ViewKind::Exploration => "exploration",
+                };
+                println!(
+                    "view {n:>3}/{}  frame {frame_seq:>3}  {kind:<11} utility {:>6.3} gain {:>5.3} move {:>4.2} m  fruits {fruits:>3}  sim {t:>6.1} s  wall {:>5.1} s",
+                    args.views,
+                    view.utility,
+                    view.gain,
+                    view.cost_m,
+                    started.elapsed().as_secs_f64()
+                );
+            }
+            Ok(Some(EdgeEvent::Reannounced { frame_seq })) => {
+                println!("frame {frame_seq}: no views yet, re-announced");
+            }
+            Ok(Some(EdgeEvent::Finished {
+                views_done: n,
+                frames: f,
+            })) => {
+                views_done = n;
+                frames = f;
+                break;
+            }
+        }
+    }
+    edge_trigger.fire();
+    edge.await.context("edge task")??;
+    if args.serve && args.linger && !interrupted {
+        println!("run finished; still serving (Ctrl-C to stop)");
+        let _ = (&mut ctrl_c).await;
+    }
+    // The planner answered the last frame before the edge finished; let the dashboard catch up.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    trigger.fire();
+    for (name, task) in [
+        ("planner", planner),
+        ("detector", detector),
+        ("dashboard", dashboard),
+    ] {
+        tokio::time::timeout(Duration::from_secs(20), task)
+            .await
+            .with_context(|| format!("{name} did not stop"))?
+            .with_context(|| format!("{name} task"))??;
+    }
+    ctrl_c.abort();
+    let _ = router.close().await;
+
+    let fruits: Vec<Fruit> = state
+        .lock()
+        .map(|s| {
+            s.trolleys
+                .get(&tid)
+                .map(|t| t.fruits.clone())
+                .unwrap_or_default()
+        })
+        .unwrap_or_default();
+    print_fruit_table(&fruits);
+    let summary = Summary {
+        scenario: args.scenario.clone(),
+        seed: args.seed,
+        views: views_done,
+        frames,
+        wall_time_s: started.elapsed().as_secs_f64(),
+        sim_time_s,
+        fruits: fruits
+            .iter()
+            .map(|f| {
+                let size = f.box_max - f.box_min;
+                FruitSummary {
+                    id: f.id,
+                    centre_m: f.centre_in_world.into(),
+                    size_m: size.into(),
+                    volume_m3: f.volume_m3,
+                    voxel_count: f.voxel_count,
+                    confidence: f.confidence,
+                }
+            })
+            .collect(),
+    };
+    println!(
+        "{} views, {} frames, {} fruits in {:.1} s wall ({:.1} s simulated)",
+        summary.views,
+        summary.frames,
+        summary.fruits.len(),
+        summary.wall_time_s,
+        summary.sim_time_s
+    );
+    if let Some(path) = &args.summary_json {
+        std::fs::write(path, serde_json::to_string_pretty(&summary)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        println!("summary written to {}", path.display());
+    }
+    if let Some(path) = &args.record {
+        println!("recording written to {}", path.display());
+    }
+    if interrupted {
+        anyhow::bail!("interrupted");
+    }
+    Ok(())
+}
+
+fn print_fruit_table(fruits: &[Fruit]) {
+    println!();
+    println!(
+        "{:>4}  {:>24}  {:>20}  {:>10}  {:>6}  {:>5}",
+        "id", "centre (m)", "box size (cm)", "volume cm³", "voxels", "conf"
+    );
+    for f in fruits {
+        let c = f.centre_in_world;
+        let s = (f.box_max - f.box_min) * 100.0;
+        println!(
+            "{:>4}  {:>7.3} {:>7.3} {:>7.3}   {:>5.1} x {:>5.1} x {:>5.1}  {:>10.1}  {:>6}  {:>5.2}",
+            f.id,
+            c.x,
+            c.y,
+            c.z,
+            s.x,
+            s.y,
+            s.z,
+            f.volume_m3 * 1e6,
+            f.voxel_count,
+            f.confidence
+        );
+    }
+    if fruits.is_empty() {
+        println!("(no fruit found)");
+    }
+    println!();
+}

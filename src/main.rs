@@ -1,0 +1,49 @@
+//! The glasshouse command line: demo, router and user-facing tools.
+
+mod dashboard_bench;
+mod demo;
+
+use clap::{Parser, Subcommand};
+use glasshouse_bus::BusArgs;
+
+/// Glasshouse: robot eyes that find every fruit on a row of plants.
+#[derive(Parser, Debug)]
+#[command(name = "glasshouse", version)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run the whole pipeline on the simulated glasshouse in one process: a trolley, a detector,
+    /// a planner and a dashboard, each with its own Zenoh session over loopback TCP.
+    Demo(demo::DemoArgs),
+    /// Measure whether the dashboard keeps up with a fleet of synthetic trolleys, and its memory.
+    DashboardBench(dashboard_bench::DashboardBenchArgs),
+    /// Run a Zenoh router for a deployment (default: listen on tcp/0.0.0.0:7447).
+    Router {
+        #[command(flatten)]
+        bus: BusArgs,
+    },
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    glasshouse_bus::init_tracing();
+    match Cli::parse().command {
+        Command::Demo(args) => demo::run(args).await,
+        Command::DashboardBench(args) => dashboard_bench::run(args).await,
+        Command::Router { mut bus } => {
+            bus.mode = Some(glasshouse_bus::Mode::Router);
+            if bus.listen.is_empty() {
+                bus.listen.push("tcp/0.0.0.0:7447".into());
+            }
+            let session = glasshouse_bus::open(&bus).await?;
+            tracing::info!(zid = %session.zid(), listen = ?bus.listen, "router up");
+            glasshouse_bus::shutdown_signal().await;
+            let _ = session.close().await;
+            Ok(())
+        }
+    }
+}

@@ -1,0 +1,181 @@
+//! End-to-end tests of Glasshouse over real Zenoh sessions.
+//!
+//! Helpers shared by the tests in `tests/`: free loopback ports, an in-process router, the four
+//! services as tasks with their own sessions, and every wait bounded by a timeout.
+
+use std::future::Future;
+use std::net::TcpListener;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use glasshouse_bus::{BusArgs, Shutdown, ShutdownTrigger};
+use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState};
+use glasshouse_detector::{DetectorCounters, DetectorSettings};
+use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
+use glasshouse_planner::{PlannerCounters, PlannerSettings};
+use tokio::task::JoinHandle;
+use zenoh::Session;
+
+/// A free TCP port on 127.0.0.1.
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free loopback port")
+}
+
+/// Awaits `future` or fails the test after `secs` seconds.
+pub async fn within<T>(secs: u64, what: &str, future: impl Future<Output = T>) -> T {
+    match tokio::time::timeout(Duration::from_secs(secs), future).await {
+        Ok(v) => v,
+        Err(_) => panic!("timed out after {secs} s: {what}"),
+    }
+}
+
+/// A client session to `endpoint`.
+pub async fn client(endpoint: &str) -> Session {
+    within(
+        10,
+        "client session",
+        glasshouse_bus::open(&BusArgs::client(endpoint)),
+    )
+    .await
+    .expect("client session opens")
+}
+
+/// Small images keep the debug-build tests quick; the loop is the same.
+pub fn test_edge_config(max_views: u32) -> EdgeConfig {
+    EdgeConfig {
+        width: 160,
+        height: 120,
+        max_views,
+        views_timeout_ms: 2000,
+        ..EdgeConfig::default()
+    }
+}
+
+/// The four services as tasks, each with its own session, around an in-process router.
+pub struct Pipeline {
+    pub endpoint: String,
+    pub router: Session,
+    pub edge_counters: Arc<EdgeCounters>,
+    pub detector_counters: Arc<DetectorCounters>,
+    pub planner_counters: Arc<PlannerCounters>,
+    pub dashboard_counters: Arc<DashboardCounters>,
+    pub fleet: Arc<Mutex<FleetState>>,
+    pub events: tokio::sync::mpsc::UnboundedReceiver<EdgeEvent>,
+    services: Vec<(&'static str, JoinHandle<anyhow::Result<()>>)>,
+    triggers: Vec<ShutdownTrigger>,
+}
+
+impl Pipeline {
+    /// Starts router, dashboard, detector, planner and edge.
+    pub async fn start(edge_config: EdgeConfig) -> Pipeline {
+        Self::start_with(edge_config, DashboardSettings::default()).await
+    }
+
+    /// Like [`Pipeline::start`] with dashboard settings (web page, recording).
+    pub async fn start_with(edge_config: EdgeConfig, dashboard: DashboardSettings) -> Pipeline {
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let router = within(
+            10,
+            "router",
+            glasshouse_bus::open(&BusArgs::router(&endpoint)),
+        )
+        .await
+        .expect("router opens");
+        let mut triggers = Vec::new();
+        let mut shutdown = || {
+            let (trigger, shutdown) = Shutdown::new();
+            triggers.push(trigger);
+            shutdown
+        };
+        let fleet = Arc::new(Mutex::new(FleetState::default()));
+        let dashboard_counters = Arc::new(DashboardCounters::default());
+        let detector_counters = Arc::new(DetectorCounters::default());
+        let planner_counters = Arc::new(PlannerCounters::default());
+        let edge_counters = Arc::new(EdgeCounters::default());
+        let mut services = Vec::new();
+        services.push((
+            "dashboard",
+            tokio::spawn(glasshouse_dashboard::run(
+                client(&endpoint).await,
+                dashboard,
+                shutdown(),
+                fleet.clone(),
+                dashboard_counters.clone(),
+            )),
+        ));
+        services.push((
+            "detector",
+            tokio::spawn(glasshouse_detector::run(
+                client(&endpoint).await,
+                DetectorSettings::default(),
+                shutdown(),
+                detector_counters.clone(),
+            )),
+        ));
+        services.push((
+            "planner",
+            tokio::spawn(glasshouse_planner::run(
+                client(&endpoint).await,
+                PlannerSettings::default(),
+                shutdown(),
+                planner_counters.clone(),
+            )),
+        ));
+        let (tx, events) = tokio::sync::mpsc::unbounded_channel();
+        services.push((
+            "edge",
+            tokio::spawn(glasshouse_edge::run(
+                client(&endpoint).await,
+                edge_config,
+                shutdown(),
+                Some(tx),
+                edge_counters.clone(),
+            )),
+        ));
+        Pipeline {
+            endpoint,
+            router,
+            edge_counters,
+            detector_counters,
+            planner_counters,
+            dashboard_counters,
+            fleet,
+            events,
+            services,
+            triggers,
+        }
+    }
+
+    /// Collects edge events until the edge finishes (or `secs` pass).
+    pub async fn run_to_end(&mut self, secs: u64) -> Vec<EdgeEvent> {
+        let mut events = Vec::new();
+        within(secs, "the edge to finish its views", async {
+            while let Some(event) = self.events.recv().await {
+                let finished = matches!(event, EdgeEvent::Finished { .. });
+                events.push(event);
+                if finished {
+                    break;
+                }
+            }
+        })
+        .await;
+        events
+    }
+
+    /// Stops every service and checks that each one ended cleanly.
+    pub async fn stop(self) {
+        for trigger in &self.triggers {
+            trigger.fire();
+        }
+        for (name, task) in self.services {
+            within(20, name, task)
+                .await
+                .unwrap_or_else(|e| panic!("{name} task panicked: {e}"))
+                .unwrap_or_else(|e| panic!("{name} failed: {e:#}"));
+        }
+        let _ = self.router.close().await;
+    }
+}

@@ -1,0 +1,213 @@
+//! (b) The four real binaries as separate OS processes on free ports, around a `glasshouse router`.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use glasshouse_proto::keys::{self, TrolleyTopic};
+use glasshouse_proto::{Message, TrolleyState};
+use glasshouse_tests::{client, free_port, within};
+
+/// target/<profile>/ of this test binary (it lives in target/<profile>/deps/).
+fn bin_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test binary path");
+    exe.parent()
+        .and_then(Path::parent)
+        .expect("target/<profile>/deps")
+        .to_path_buf()
+}
+
+/// Builds the service binaries (a no-op when cargo already has), so `cargo test` alone works.
+fn build_binaries() {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let release = bin_dir().ends_with("release");
+    let mut cmd = Command::new(cargo);
+    // The test harness sets per-crate variables (CARGO_PKG_*, CARGO_MANIFEST_DIR, ...) that build
+    // scripts watch; passing them on would make this build redo work the outer one already did.
+    for (name, _) in std::env::vars_os() {
+        let name = name.to_string_lossy().into_owned();
+        let keep = ["CARGO_HOME", "CARGO_TARGET_DIR", "CARGO_TERM_COLOR"].contains(&name.as_str())
+            || name.starts_with("CARGO_BUILD_")
+            || name.starts_with("CARGO_PROFILE_");
+        if !keep && (name.starts_with("CARGO_") || name.starts_with("NEXTEST") || name == "OUT_DIR")
+        {
+            cmd.env_remove(&name);
+        }
+    }
+    // The same selection as scripts/test builds, so this is a no-op there.
+    cmd.args(["build", "--workspace", "--bins"]);
+    if release {
+        cmd.arg("--release");
+    }
+    let status = cmd.status().expect("cargo runs");
+    assert!(status.success(), "building the service binaries failed");
+}
+
+struct Proc {
+    name: &'static str,
+    child: Child,
+    log: PathBuf,
+}
+
+impl Proc {
+    fn start(name: &'static str, bin: &str, args: &[&str], logs: &Path) -> Proc {
+        let log = logs.join(format!("{name}.log"));
+        let file = std::fs::File::create(&log).expect("log file");
+        let child = Command::new(bin_dir().join(bin))
+            .args(args)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(file)
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {bin}: {e}"));
+        Proc { name, child, log }
+    }
+
+    fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// SIGTERM, then the process must exit successfully on its own.
+    fn terminate(mut self) {
+        let pid = self.child.id().to_string();
+        let _ = Command::new("kill").args(["-TERM", &pid]).status();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            match self.child.try_wait().expect("wait") {
+                Some(status) => {
+                    assert!(
+                        status.success(),
+                        "{} exited with {status}:\n{}",
+                        self.name,
+                        self.log_text()
+                    );
+                    return;
+                }
+                None if Instant::now() > deadline => {
+                    let _ = self.child.kill();
+                    panic!("{} ignored SIGTERM:\n{}", self.name, self.log_text());
+                }
+                None => std::thread::sleep(Duration::from_millis(50)),
+            }
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn real_binaries_close_the_loop() {
+    let t0 = Instant::now();
+    build_binaries();
+    eprintln!("binaries ready after {:.1} s", t0.elapsed().as_secs_f64());
+    let logs = std::env::temp_dir().join(format!("glasshouse-binaries-{}", std::process::id()));
+    std::fs::create_dir_all(&logs).expect("log dir");
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let rrd = logs.join("run.rrd");
+    let rrd_arg = rrd.to_string_lossy().into_owned();
+    let connect = ["-e", endpoint.as_str(), "--mode", "client"];
+    let with = |extra: &[&str]| -> Vec<String> {
+        connect.iter().chain(extra).map(|s| s.to_string()).collect()
+    };
+    let router = Proc::start("router", "glasshouse", &["router", "-l", &endpoint], &logs);
+    // Clients retry their connection, so the start order does not matter.
+    let args = with(&["--record", &rrd_arg]);
+    let dashboard = Proc::start(
+        "dashboard",
+        "dashboard",
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+        &logs,
+    );
+    let args = with(&[]);
+    let detector = Proc::start(
+        "detector",
+        "detector-service",
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+        &logs,
+    );
+    let planner = Proc::start(
+        "planner",
+        "planner-service",
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+        &logs,
+    );
+
+    let observer = client(&endpoint).await;
+    let status_sub = observer
+        .declare_subscriber(keys::trolley("t1", TrolleyTopic::Status).expect("key"))
+        .await
+        .expect("subscriber");
+    let fruits_sub = observer
+        .declare_subscriber(keys::trolley("t1", TrolleyTopic::Fruits).expect("key"))
+        .await
+        .expect("subscriber");
+    let args = with(&["--max-views", "6", "--width", "160"]);
+    let mut edge = Proc::start(
+        "edge",
+        "edge",
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+        &logs,
+    );
+
+    // The edge exits by itself once its six views are done.
+    let done = within(240, "edge to finish six views", async {
+        loop {
+            match status_sub.recv_async().await {
+                Ok(sample) => {
+                    let bytes = sample.payload().to_bytes();
+                    if let Ok((_, Message::TrolleyStatus(s))) = glasshouse_proto::decode(&bytes) {
+                        if s.state == TrolleyState::Done {
+                            return s;
+                        }
+                    }
+                }
+                Err(e) => panic!("status subscriber closed: {e}"),
+            }
+        }
+    })
+    .await;
+    assert!(
+        done.views_done >= 5,
+        "only {} views: {done:?}",
+        done.views_done
+    );
+    let exit = within(30, "edge exit", async {
+        loop {
+            if let Some(status) = edge.child.try_wait().expect("wait") {
+                return status;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    assert!(
+        exit.success(),
+        "edge exited with {exit}:\n{}",
+        edge.log_text()
+    );
+
+    let mut fruits = 0;
+    while let Ok(Some(sample)) = fruits_sub.try_recv() {
+        if let Ok((_, Message::FruitEstimates(f))) =
+            glasshouse_proto::decode(&sample.payload().to_bytes())
+        {
+            fruits = f.fruits.len();
+        }
+    }
+    assert!(fruits > 0, "no fruit estimates from the planner process");
+    drop(status_sub);
+    drop(fruits_sub);
+    let _ = observer.close().await;
+
+    for p in [planner, detector, dashboard, router] {
+        p.terminate();
+    }
+    let size = std::fs::metadata(&rrd).map(|m| m.len()).unwrap_or(0);
+    assert!(size > 10_000, "dashboard recording is {size} bytes");
+    let _ = std::fs::remove_dir_all(&logs);
+}

@@ -16,8 +16,8 @@ use serde::Serialize;
 
 #[derive(clap::Args, Debug)]
 pub struct DemoArgs {
-    /// Simulated scenario: 1, 2 or row.
-    #[arg(long, default_value = "2")]
+    /// Simulated scenario: 1 (arm on a pole), 2 (arm on a ceiling gantry) or row.
+    #[arg(long, default_value = "1")]
     pub scenario: String,
     /// Scene and planner seed.
     #[arg(long, default_value_t = 1)]

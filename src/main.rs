@@ -1,7 +1,10 @@
 //! The glasshouse command line: demo, router and user-facing tools.
 
+mod bench_map;
 mod dashboard_bench;
 mod demo;
+mod eval;
+mod render;
 
 use clap::{Parser, Subcommand};
 use glasshouse_bus::BusArgs;
@@ -21,6 +24,13 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Measure whether the dashboard keeps up with a fleet of synthetic trolleys, and its memory.
     DashboardBench(dashboard_bench::DashboardBenchArgs),
+    /// Time the ROI map's scan insertion (OctoMap semantics) on your own PLY clouds.
+    BenchMap(bench_map::BenchMapArgs),
+    /// Run the paper's experiments on the simulator: seeded trials per method, Table I, p-values,
+    /// per-trial CSVs and plots.
+    Eval(eval::EvalArgs),
+    /// Render what the simulated camera sees to a colour PNG and a colour-mapped depth PNG.
+    Render(render::RenderArgs),
     /// Run a Zenoh router for a deployment (default: listen on tcp/0.0.0.0:7447).
     Router {
         #[command(flatten)]
@@ -34,6 +44,9 @@ async fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Demo(args) => demo::run(args).await,
         Command::DashboardBench(args) => dashboard_bench::run(args).await,
+        Command::BenchMap(args) => bench_map::run(args),
+        Command::Eval(args) => eval::run(args),
+        Command::Render(args) => render::run(args),
         Command::Router { mut bus } => {
             bus.mode = Some(glasshouse_bus::Mode::Router);
             if bus.listen.is_empty() {

@@ -11,6 +11,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
+use glasshouse_arm::{Interval, Mount, MountState};
 use glasshouse_bus::{
     declare_alive, Delivery, DropCounters, Received, Shutdown, TypedPublisher, TypedSubscriber,
 };
@@ -19,7 +20,7 @@ use glasshouse_proto::{
     ArmModel, ArmState, Fruit, FruitEstimates, Header, Message, MountKind, RankedView, RgbdFrame,
     TrolleyInfo, TrolleyState, TrolleyStatus,
 };
-use glasshouse_sim::{CameraModel, ScenarioKind, Scene};
+use glasshouse_sim::{CameraModel, ScenarioKind, Scene, SimArm};
 use nalgebra::Isometry3;
 use serde::Deserialize;
 use zenoh::Session;
@@ -41,10 +42,9 @@ pub struct EdgeConfig {
     pub max_views: u32,
     /// Re-announce the current frame when no views arrive within this time.
     pub views_timeout_ms: u64,
-    /// Simulated time to capture one view.
+    /// Simulated time to capture one view (the arm's motion time comes from its joint and
+    /// mount speed limits).
     pub capture_time_s: f64,
-    /// Simulated camera speed between views.
-    pub camera_speed_m_per_s: f64,
 }
 
 impl Default for EdgeConfig {
@@ -57,8 +57,7 @@ impl Default for EdgeConfig {
             height: 480,
             max_views: 0,
             views_timeout_ms: 3000,
-            capture_time_s: 0.5,
-            camera_speed_m_per_s: 0.5,
+            capture_time_s: glasshouse_arm::CAPTURE_TIME_S,
         }
     }
 }
@@ -73,8 +72,8 @@ impl EdgeConfig {
             self.height
         );
         anyhow::ensure!(
-            self.capture_time_s >= 0.0 && self.camera_speed_m_per_s > 0.0,
-            "capture time must be >= 0 and camera speed > 0"
+            self.capture_time_s.is_finite() && self.capture_time_s >= 0.0,
+            "capture time must be finite and >= 0"
         );
         self.scenario
             .parse::<ScenarioKind>()
@@ -137,9 +136,11 @@ pub async fn run(
 
     let scene = Arc::new(Scene::generate(scenario, config.seed));
     let camera = Arc::new(CameraModel::with_resolution(config.width, config.height));
-    let info = trolley_info(&scene, &camera, &config);
+    let mut sim_arm =
+        SimArm::new(&scene).context("the arm cannot reach the scene's initial view")?;
+    let info = trolley_info(&scene, &sim_arm, &camera, &config);
     let truth = Message::FruitEstimates(ground_truth(&scene, &tid));
-    let mut pose = scene.initial_camera_pose();
+    let mut pose = sim_arm.world_from_camera();
     let mut sim_time_s = 0.0;
     let mut frame_seq = 0u64;
     let mut status = TrolleyStatus {
@@ -166,12 +167,17 @@ pub async fn run(
         }
     };
 
-    let arm_state = |moving: bool, views_done: u32, pose: &Isometry3<f64>| {
+    let arm_state = |moving: bool, views_done: u32, arm: &SimArm| {
+        let (rail_position_m, lift_height_m) = match arm.pose().mount {
+            MountState::Rail { position_m, lift_m } => (position_m, lift_m),
+            MountState::Gantry { extension_m, .. } => (0.0, extension_m),
+            MountState::Fixed => (0.0, 0.0),
+        };
         Message::ArmState(ArmState {
-            joint_angles_rad: Vec::new(),
-            world_from_camera: *pose,
-            rail_position_m: 0.0,
-            lift_height_m: 0.0,
+            joint_angles_rad: arm.pose().joints.to_vec(),
+            world_from_camera: arm.world_from_camera(),
+            rail_position_m,
+            lift_height_m,
             moving,
             views_done,
         })
@@ -191,7 +197,7 @@ pub async fn run(
         };
         let frame_msg = Message::RgbdFrame(frame);
         let info_msg = Message::TrolleyInfo(info.clone());
-        let arm_msg = arm_state(false, status.views_done, &pose);
+        let arm_msg = arm_state(false, status.views_done, &sim_arm);
         let announce = |seq: u64, t: f64| {
             let h = header(seq, t);
             let (info_pub, arm, rgbd, truth_pub) = (&info_pub, &arm, &rgbd, &truth_pub);
@@ -245,27 +251,25 @@ pub async fn run(
             });
             break;
         }
-        // Execute the first reachable view (Algorithm 1: "moveToPose, else the next view").
-        let reachable = views.views.iter().position(|v| {
-            scene.is_camera_position_free(&v.world_from_camera.translation.vector.into())
-        });
-        status.unreachable_views += reachable.unwrap_or(views.views.len()) as u32;
-        let Some(index) = reachable else {
+        // Execute the first reachable view (Algorithm 1: "moveToPose, else the next view"):
+        // inverse kinematics, then a collision-free joint path.
+        let goals: Vec<Isometry3<f64>> = views.views.iter().map(|v| v.world_from_camera).collect();
+        let executed = sim_arm.execute_first_reachable(&scene, &goals);
+        status.unreachable_views += executed.map_or(goals.len(), |e| e.index) as u32;
+        let Some(executed) = executed else {
             tracing::info!(trolley = %tid, frame_seq, offered = views.views.len(), "no reachable view; capturing again");
             sim_time_s += config.capture_time_s;
             continue;
         };
-        let view = views.views[index].clone();
+        let view = views.views[executed.index].clone();
         status.state = TrolleyState::Moving;
-        let distance_m =
-            (view.world_from_camera.translation.vector - pose.translation.vector).norm();
-        sim_time_s += distance_m / config.camera_speed_m_per_s + config.capture_time_s;
+        sim_time_s += executed.motion_s + config.capture_time_s;
         arm.publish(
             &header(frame_seq, sim_time_s),
-            &arm_state(true, status.views_done, &view.world_from_camera),
+            &arm_state(true, status.views_done, &sim_arm),
         )
         .await?;
-        pose = view.world_from_camera;
+        pose = sim_arm.world_from_camera();
         status.views_done += 1;
         emit(EdgeEvent::ViewDone {
             views_done: status.views_done,
@@ -349,17 +353,40 @@ fn ground_truth(scene: &Scene, tid: &str) -> FruitEstimates {
     }
 }
 
-fn trolley_info(scene: &Scene, camera: &CameraModel, config: &EdgeConfig) -> TrolleyInfo {
+fn trolley_info(
+    scene: &Scene,
+    arm: &SimArm,
+    camera: &CameraModel,
+    config: &EdgeConfig,
+) -> TrolleyInfo {
+    let robot = arm.robot();
+    let (mount, rail, lift) = match &robot.mount {
+        Mount::Fixed { .. } => (MountKind::StaticPole, None, None),
+        Mount::CeilingGantry {
+            max_extension_m, ..
+        } => (
+            MountKind::CeilingGantry,
+            None,
+            Some(Interval::new(0.0, *max_extension_m)),
+        ),
+        Mount::RailLift {
+            position_m, lift_m, ..
+        } => (MountKind::RailLift, Some(*position_m), Some(*lift_m)),
+    };
+    let zero = Interval::new(0.0, 0.0);
+    let (rail, lift) = (rail.unwrap_or(zero), lift.unwrap_or(zero));
     TrolleyInfo {
-        arm_model: ArmModel::None,
-        mount: MountKind::FreeCamera,
-        world_from_base: Isometry3::identity(),
-        joint_min_rad: Vec::new(),
-        joint_max_rad: Vec::new(),
-        rail_min_m: 0.0,
-        rail_max_m: 0.0,
-        lift_min_m: 0.0,
-        lift_max_m: 0.0,
+        arm_model: ArmModel::Ur5e,
+        mount,
+        world_from_base: robot
+            .world_from_base(&arm.pose().mount)
+            .unwrap_or_else(|_| Isometry3::identity()),
+        joint_min_rad: robot.arm.limits.lower.to_vec(),
+        joint_max_rad: robot.arm.limits.upper.to_vec(),
+        rail_min_m: rail.min,
+        rail_max_m: rail.max,
+        lift_min_m: lift.min,
+        lift_max_m: lift.max,
         camera_workspace: scene.camera_workspace(),
         sampling_region: scene.sampling_region(),
         scenario: config.scenario.clone(),

@@ -10,8 +10,8 @@ use glasshouse_edge::{EdgeConfig, EdgeCounters};
 /// Streams RGB-D frames and arm state of one trolley and executes the views planners send.
 ///
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
-/// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
-/// camera_speed_m_per_s), then the flags below.
+/// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s), then
+/// the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
 struct Cli {

@@ -27,6 +27,8 @@
 //! updates. Everything is deterministic for a given seed: randomness comes from `ChaCha8Rng`
 //! streams derived from it.
 
+pub mod fit;
+
 use std::collections::HashMap;
 use std::fmt;
 use std::str::FromStr;

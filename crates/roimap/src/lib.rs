@@ -1,27 +1,49 @@
 //! Probabilistic ROI voxel map with OctoMap insertion semantics.
 //!
 //! The map is a sparse grid of cubic voxels (1 cm by default) in the world frame (z up, metres).
-//! Voxel `i` along an axis covers `[i * res, (i + 1) * res)`, so keys come from `floor`, not
-//! truncation, and negative coordinates get negative keys. Every voxel holds two log-odds values:
+//! Voxel `i` along an axis covers `[i * res, (i + 1) * res)`: its key is
+//! `floor(coordinate * (1 / res))`, exactly OctoMap's `coordToKey`, so negative coordinates get
+//! negative keys. Every voxel holds two log-odds values:
 //!
 //! - **occupancy**, updated exactly like OctoMap's `insertPointCloud(cloud, origin, maxrange)` with
 //!   `discretize = false`: per scan, the voxels crossed by the rays (Amanatides–Woo walk, end voxel
 //!   excluded) form a *free* set, the end-point voxels an *occupied* set, occupied wins over free,
-//!   and each voxel is updated once per scan (hit +0.8473, miss −0.4055, clamped to [−2.0, 3.5110]);
-//! - **ROI** (fruit), updated from the scan's end points only: ROI points' voxels get a hit, the other
-//!   end-point voxels a miss unless some ROI point of the same scan fell in them (ROI wins). A voxel is
-//!   an ROI voxel when its ROI log-odds is at least the threshold (1.0 by default: two observations).
+//!   and each voxel is updated once per scan (hit +0.8473, miss −0.4055, clamped to [−2.0, 3.5110]).
+//!   A point farther than the maximum range frees its ray up to the range and marks nothing. Like
+//!   OctoMap, the origin and points are `f32` and the ray set-up uses OctoMap's float roundings
+//!   (see `walk.rs`), so the map agrees with OctoMap 1.9 voxel for voxel (`scripts/octomap-compare
+//!   --check`).
+//! - **ROI** (fruit), updated from the scan's hit end points only: ROI points' voxels get a hit, the
+//!   other end-point voxels a miss unless some ROI point of the same scan fell in them (ROI wins). A
+//!   voxel is an ROI voxel when its ROI log-odds is at least the threshold (1.0 by default: two
+//!   observations).
 //!
-//! **Free/unknown rule** (the original code had two; we use one everywhere): a voxel that was never
-//! updated is [`Occupancy::Unknown`]; a voxel whose occupancy log-odds is `> 0` is
-//! [`Occupancy::Occupied`]; every other updated voxel (log-odds `<= 0`) is [`Occupancy::Free`]. So a
-//! single miss makes a voxel free.
+//! **Free/unknown rule** (paper-method §6; the original code had two, we use one everywhere): a
+//! voxel that was never updated is [`Occupancy::Unknown`]; a voxel whose occupancy log-odds is
+//! `> 0` is [`Occupancy::Occupied`]; every other updated voxel (log-odds `<= 0`) is
+//! [`Occupancy::Free`]. So a single miss makes a voxel free. Frontiers, gains and clusters all use
+//! this rule.
 //!
 //! Keys are bounded: a coordinate more than `2^20` voxels from the origin (about 10 km at 1 cm) is
-//! outside the map, like OctoMap's `coordToKeyChecked`; such points are skipped and counted.
+//! outside the map (OctoMap's bound is `2^15`); such points are skipped and counted.
 //!
-//! The map records which voxels changed since the last [`RoiMap::take_changes`], so replicas and
-//! dashboards receive deltas rather than whole maps.
+//! Storage is blocked: 8×8×8-voxel blocks with flat arrays, in a hash map keyed by block. The map
+//! maintains, as voxels change, the set of ROI voxels, the ROI-frontier and exploration-frontier
+//! sets (paper-method §3; recomputed only around the voxels a scan changed), and a distance field
+//! to the nearest ROI voxel up to a maximum (for the proximity gain).
+//!
+//! Change tracking: [`RoiMap::take_changes`] returns the voxels changed since its last call;
+//! [`RoiMap::delta_since`] the voxels changed since a sequence number (for replicas). A compact
+//! checksummed snapshot ([`RoiMap::write_snapshot`]) and a PLY export ([`RoiMap::write_ply`])
+//! persist and exchange the map.
+
+mod derived;
+mod grid;
+mod insert;
+pub mod ply;
+pub mod snapshot;
+pub mod testdata;
+mod walk;
 
 use std::collections::{HashMap, HashSet};
 use std::hash::{BuildHasherDefault, Hasher};
@@ -29,12 +51,17 @@ use std::hash::{BuildHasherDefault, Hasher};
 use glasshouse_geom::Aabb;
 use nalgebra::{Point3, Vector3};
 
-/// Largest absolute key value (exclusive) a voxel may have; keeps rays finite and keys far from
-/// `i32` overflow when stepping.
-const KEY_LIMIT: i64 = 1 << 20;
+use crate::grid::{
+    block_of, for_each_bit, key_at, local_of, mask_is_empty, mask_set, mask_test, Mask, Storage,
+    EMPTY,
+};
+use crate::walk::{axis_key, RaySetup, KEY_LIMIT};
+
+pub use crate::derived::RoiDistanceField;
+pub use crate::snapshot::{MapDelta, SnapshotError};
 
 /// Offsets of the 6-neighbourhood (face neighbours).
-const NEIGHBOURS_6: [(i32, i32, i32); 6] = [
+pub const NEIGHBOURS_6: [(i32, i32, i32); 6] = [
     (-1, 0, 0),
     (1, 0, 0),
     (0, -1, 0),
@@ -42,6 +69,57 @@ const NEIGHBOURS_6: [(i32, i32, i32); 6] = [
     (0, 0, -1),
     (0, 0, 1),
 ];
+
+/// Offsets of the 18-neighbourhood (faces and edges).
+pub const NEIGHBOURS_18: [(i32, i32, i32); 18] = neighbour_offsets::<18>(2);
+
+/// Offsets of the 26-neighbourhood (faces, edges and corners).
+pub const NEIGHBOURS_26: [(i32, i32, i32); 26] = neighbour_offsets::<26>(3);
+
+/// The offsets with 1..=`max_nonzero` non-zero components, in x-major order.
+const fn neighbour_offsets<const N: usize>(max_nonzero: i32) -> [(i32, i32, i32); N] {
+    let mut out = [(0, 0, 0); N];
+    let mut n = 0;
+    let mut dx = -1;
+    while dx <= 1 {
+        let mut dy = -1;
+        while dy <= 1 {
+            let mut dz = -1;
+            while dz <= 1 {
+                let nz = (dx != 0) as i32 + (dy != 0) as i32 + (dz != 0) as i32;
+                if nz >= 1 && nz <= max_nonzero {
+                    out[n] = (dx, dy, dz);
+                    n += 1;
+                }
+                dz += 1;
+            }
+            dy += 1;
+        }
+        dx += 1;
+    }
+    out
+}
+
+/// Which neighbourhood [`VoxelKey::neighbours`] gives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Neighbourhood {
+    /// Faces.
+    Six,
+    /// Faces and edges.
+    Eighteen,
+    /// Faces, edges and corners.
+    TwentySix,
+}
+
+impl Neighbourhood {
+    pub fn offsets(self) -> &'static [(i32, i32, i32)] {
+        match self {
+            Neighbourhood::Six => &NEIGHBOURS_6,
+            Neighbourhood::Eighteen => &NEIGHBOURS_18,
+            Neighbourhood::TwentySix => &NEIGHBOURS_26,
+        }
+    }
+}
 
 /// Map parameters. [`Default`] gives the paper's values.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -60,6 +138,10 @@ pub struct MapConfig {
     pub roi_threshold_logodds: f32,
     /// Sensor range in metres; `None` means unlimited (OctoMap's `maxrange < 0`).
     pub max_range_m: Option<f64>,
+    /// The ROI distance field stores distances up to this (the proximity gain's `max_dist`).
+    pub roi_distance_max_m: f64,
+    /// Cell edge of the ROI distance field (the original code used 5 cm cells).
+    pub roi_distance_cell_m: f64,
 }
 
 impl Default for MapConfig {
@@ -72,6 +154,8 @@ impl Default for MapConfig {
             clamp_max_logodds: 3.5110,
             roi_threshold_logodds: 1.0,
             max_range_m: None,
+            roi_distance_max_m: 0.3,
+            roi_distance_cell_m: 0.05,
         }
     }
 }
@@ -120,6 +204,21 @@ impl MapConfig {
                 ));
             }
         }
+        if !(self.roi_distance_max_m.is_finite() && self.roi_distance_max_m >= 0.0) {
+            return bad(format!(
+                "roi_distance_max_m must be finite and >= 0, got {}",
+                self.roi_distance_max_m
+            ));
+        }
+        if !(self.roi_distance_cell_m.is_finite()
+            && self.roi_distance_cell_m > 0.0
+            && self.roi_distance_max_m / self.roi_distance_cell_m <= 1000.0)
+        {
+            return bad(format!(
+                "roi_distance_cell_m must be finite, > 0 and at least max/1000, got {}",
+                self.roi_distance_cell_m
+            ));
+        }
         Ok(())
     }
 }
@@ -142,20 +241,11 @@ impl VoxelKey {
         Self::new(self.x + dx, self.y + dy, self.z + dz)
     }
 
-    fn axis(self, i: usize) -> i32 {
-        match i {
-            0 => self.x,
-            1 => self.y,
-            _ => self.z,
-        }
-    }
-
-    fn axis_mut(&mut self, i: usize) -> &mut i32 {
-        match i {
-            0 => &mut self.x,
-            1 => &mut self.y,
-            _ => &mut self.z,
-        }
+    /// The neighbour keys of the given neighbourhood.
+    pub fn neighbours(self, n: Neighbourhood) -> impl Iterator<Item = VoxelKey> {
+        n.offsets()
+            .iter()
+            .map(move |&(dx, dy, dz)| self.offset(dx, dy, dz))
     }
 }
 
@@ -201,9 +291,9 @@ pub struct ScanStats {
     pub skipped_out_of_bounds: usize,
     /// Points farther than the maximum range: their ray is freed up to the range, nothing occupied.
     pub beyond_range: usize,
-    /// Voxels updated with a miss (once each).
+    /// Voxels updated with a miss (once each): the scan's unique free voxels.
     pub free_updates: usize,
-    /// Voxels updated with a hit (once each).
+    /// Voxels updated with a hit (once each): the scan's unique occupied voxels.
     pub occupied_updates: usize,
     /// Voxels whose ROI log-odds got a hit.
     pub roi_updates: usize,
@@ -222,6 +312,25 @@ pub struct RoiCluster {
     pub min: Point3<f64>,
     /// Max corner of the box over the voxel cubes, world frame.
     pub max: Point3<f64>,
+}
+
+/// Voxel counts of the map, all maintained as voxels change.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MapCounts {
+    /// Voxels ever updated.
+    pub known: usize,
+    /// Known voxels with occupancy log-odds > 0.
+    pub occupied: usize,
+    /// Known voxels that are not occupied.
+    pub free: usize,
+    /// ROI voxels.
+    pub roi: usize,
+    /// ROI-frontier voxels (no region filter).
+    pub roi_frontier: usize,
+    /// Exploration-frontier voxels (no region filter).
+    pub exploration_frontier: usize,
+    /// Allocated 8×8×8 blocks.
+    pub blocks: usize,
 }
 
 /// Errors of the map. On any error the map is left untouched.
@@ -254,6 +363,10 @@ impl Hasher for VoxelKeyHasher {
         self.0 = self.0.rotate_left(21) ^ u64::from(v as u32);
     }
 
+    fn write_u32(&mut self, v: u32) {
+        self.0 = self.0.rotate_left(21) ^ u64::from(v);
+    }
+
     fn finish(&self) -> u64 {
         let mut h = self.0;
         h ^= h >> 33;
@@ -268,121 +381,47 @@ impl Hasher for VoxelKeyHasher {
 pub type KeyBuildHasher = BuildHasherDefault<VoxelKeyHasher>;
 /// Set of voxel keys with the cheap hasher.
 pub type KeySet = HashSet<VoxelKey, KeyBuildHasher>;
-type KeyMap<V> = HashMap<VoxelKey, V, KeyBuildHasher>;
 
-/// Largest key box (in voxels) a scan's dense key set covers: 2^26 bits = 8 MB.
-const MAX_DENSE_VOXELS: u64 = 1 << 26;
-
-/// A set of voxel keys for one scan. Keys inside a box given per scan live in a bitset (rays
-/// revisit the same voxels many times, and a bitset over the scan's extent stays in cache where a
-/// hash set would miss on almost every insert); keys outside it (or every key, when the box is
-/// too large) go to a hash set. Insertion order is kept for deterministic iteration.
-#[derive(Clone, Debug)]
-struct ScanKeySet {
-    lo: VoxelKey,
-    dims: [u64; 3],
-    bits: Vec<u64>,
-    keys: Vec<VoxelKey>,
-    outside: KeySet,
+/// Per block (by index) the voxels whose state (unknown/free/occupied/ROI) changed and those whose
+/// ROI status changed, gathered during one update and consumed by [`RoiMap::refresh_derived`].
+#[derive(Default)]
+pub(crate) struct ChangeLog {
+    blocks: HashMap<u32, (Mask, Mask), KeyBuildHasher>,
 }
 
-impl Default for ScanKeySet {
-    fn default() -> Self {
-        Self {
-            lo: VoxelKey::new(0, 0, 0),
-            dims: [0; 3],
-            bits: Vec::new(),
-            keys: Vec::new(),
-            outside: KeySet::default(),
+impl ChangeLog {
+    pub(crate) fn note(&mut self, block: u32, state: &Mask, roi: &Mask) {
+        if mask_is_empty(state) {
+            return;
+        }
+        let e = self.blocks.entry(block).or_insert((EMPTY, EMPTY));
+        for w in 0..8 {
+            e.0[w] |= state[w];
+            e.1[w] |= roi[w];
         }
     }
-}
-
-impl ScanKeySet {
-    /// Empties the set and makes `lo..=hi` its dense box (when small enough).
-    fn reset(&mut self, lo: VoxelKey, hi: VoxelKey) {
-        self.keys.clear();
-        self.outside.clear();
-        let extent = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1).max(0) as u64;
-        let dims = [extent(lo.x, hi.x), extent(lo.y, hi.y), extent(lo.z, hi.z)];
-        let volume = dims[0].saturating_mul(dims[1]).saturating_mul(dims[2]);
-        if volume == 0 || volume > MAX_DENSE_VOXELS {
-            self.dims = [0; 3];
-            self.bits.clear();
-        } else {
-            self.lo = lo;
-            self.dims = dims;
-            let words = volume.div_ceil(64) as usize;
-            self.bits.clear();
-            self.bits.resize(words, 0);
-        }
-    }
-
-    /// Bit index of `key` in the dense box, if inside.
-    fn index(&self, key: VoxelKey) -> Option<u64> {
-        let dx = u64::try_from(i64::from(key.x) - i64::from(self.lo.x)).ok()?;
-        let dy = u64::try_from(i64::from(key.y) - i64::from(self.lo.y)).ok()?;
-        let dz = u64::try_from(i64::from(key.z) - i64::from(self.lo.z)).ok()?;
-        let [nx, ny, nz] = self.dims;
-        (dx < nx && dy < ny && dz < nz).then_some((dz * ny + dy) * nx + dx)
-    }
-
-    fn insert(&mut self, key: VoxelKey) {
-        let new = match self.index(key) {
-            Some(i) => {
-                let (word, mask) = ((i / 64) as usize, 1u64 << (i % 64));
-                let new = self.bits[word] & mask == 0;
-                self.bits[word] |= mask;
-                new
-            }
-            None => self.outside.insert(key),
-        };
-        if new {
-            self.keys.push(key);
-        }
-    }
-
-    fn contains(&self, key: VoxelKey) -> bool {
-        match self.index(key) {
-            Some(i) => self.bits[(i / 64) as usize] & (1u64 << (i % 64)) != 0,
-            None => self.outside.contains(&key),
-        }
-    }
-
-    fn heap_bytes(&self) -> usize {
-        self.bits.capacity() * 8
-            + self.keys.capacity() * std::mem::size_of::<VoxelKey>()
-            + self.outside.capacity() * (std::mem::size_of::<VoxelKey>() + 1)
-    }
-}
-
-/// Where one point's ray ends and whether its end voxel is hit.
-#[derive(Clone, Copy, Debug)]
-struct RayEnd {
-    end_in_world: Point3<f64>,
-    key_end: VoxelKey,
-    /// False for points beyond the maximum range (ray freed up to the range only).
-    hit: bool,
-    is_roi: bool,
-}
-
-/// Reused per-scan buffers, so insertion allocates only when a scan is larger than any before.
-#[derive(Clone, Debug, Default)]
-struct Scratch {
-    ends: Vec<RayEnd>,
-    free: ScanKeySet,
-    occupied: ScanKeySet,
-    roi: KeySet,
-    non_roi: KeySet,
 }
 
 /// The ROI voxel map. See the crate docs for the update rules.
 #[derive(Clone)]
 pub struct RoiMap {
     config: MapConfig,
-    voxels: KeyMap<Voxel>,
-    changed: KeySet,
-    scratch: Scratch,
+    inv_res: f64,
+    store: Storage,
+    /// Blocks (by index) with voxels changed since the last `take_changes`.
+    dirty_blocks: HashSet<u32, KeyBuildHasher>,
+    roi_set: KeySet,
+    /// Blocks (by coordinate) with frontier voxels.
+    expl_blocks: KeySet,
+    roi_front_blocks: KeySet,
+    known_count: usize,
+    occupied_count: usize,
+    expl_count: usize,
+    roi_front_count: usize,
+    distance: RoiDistanceField,
+    scratch: insert::Scratch,
+    /// Incremented by every update; voxels remember the sequence number of their last change.
+    seq: u64,
     scans_inserted: u64,
 }
 
@@ -391,118 +430,12 @@ impl std::fmt::Debug for RoiMap {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("RoiMap")
             .field("config", &self.config)
-            .field("voxels", &self.voxels.len())
-            .field("pending_changes", &self.changed.len())
+            .field("voxels", &self.known_count)
+            .field("blocks", &self.store.blocks.len())
+            .field("seq", &self.seq)
             .field("scans_inserted", &self.scans_inserted)
             .finish()
     }
-}
-
-/// Key of a coordinate already divided by the resolution, if inside the key range.
-fn checked_axis_key(scaled: f64) -> Option<i32> {
-    let k = scaled.floor();
-    if k.is_finite() && k >= -(KEY_LIMIT as f64) && k < KEY_LIMIT as f64 {
-        Some(k as i32)
-    } else {
-        None
-    }
-}
-
-/// Per-axis geometry of an Amanatides–Woo walk, set up exactly like OctoMap's `computeRayKeys`.
-struct RayWalk {
-    key: VoxelKey,
-    step: [i32; 3],
-    t_max: [f64; 3],
-    t_delta: [f64; 3],
-}
-
-impl RayWalk {
-    /// `direction` must be a unit vector with finite components.
-    fn new(origin: &Point3<f64>, key_origin: VoxelKey, direction: &Vector3<f64>, res: f64) -> Self {
-        let mut step = [0i32; 3];
-        let mut t_max = [f64::INFINITY; 3];
-        let mut t_delta = [f64::INFINITY; 3];
-        for i in 0..3 {
-            let d = direction[i];
-            if d > 0.0 {
-                step[i] = 1;
-            } else if d < 0.0 {
-                step[i] = -1;
-            }
-            if step[i] != 0 {
-                // Border of the origin voxel in the step direction: centre + step * res / 2.
-                let border =
-                    (f64::from(key_origin.axis(i)) + 0.5) * res + f64::from(step[i]) * res * 0.5;
-                t_max[i] = (border - origin[i]) / d;
-                t_delta[i] = res / d.abs();
-            }
-        }
-        Self {
-            key: key_origin,
-            step,
-            t_max,
-            t_delta,
-        }
-    }
-
-    /// Advances one voxel; returns the distance along the ray at which the new voxel is left.
-    fn advance(&mut self) -> f64 {
-        let t = &self.t_max;
-        // OctoMap's tie rule, kept verbatim so the same voxels are chosen.
-        let dim = if t[0] < t[1] {
-            if t[0] < t[2] {
-                0
-            } else {
-                2
-            }
-        } else if t[1] < t[2] {
-            1
-        } else {
-            2
-        };
-        *self.key.axis_mut(dim) += self.step[dim];
-        self.t_max[dim] += self.t_delta[dim];
-        self.t_max[0].min(self.t_max[1]).min(self.t_max[2])
-    }
-}
-
-/// OctoMap's `computeRayKeys` with a callback instead of a key list: calls `add` for the voxels of
-/// the segment origin→end, origin voxel first (unless it equals the end voxel), end voxel excluded.
-/// Both keys must be precomputed with the same resolution. Stops early when `add` returns false.
-fn compute_ray_keys(
-    origin: &Point3<f64>,
-    end: &Point3<f64>,
-    key_origin: VoxelKey,
-    key_end: VoxelKey,
-    res: f64,
-    mut add: impl FnMut(VoxelKey) -> bool,
-) {
-    if key_origin == key_end {
-        return;
-    }
-    if !add(key_origin) {
-        return;
-    }
-    let delta = end - origin;
-    let length = delta.norm();
-    if length.is_nan() || length <= 0.0 {
-        return;
-    }
-    let direction = delta / length;
-    let mut walk = RayWalk::new(origin, key_origin, &direction, res);
-    loop {
-        let exit_distance_m = walk.advance();
-        if walk.key == key_end || exit_distance_m > length {
-            return;
-        }
-        if !add(walk.key) {
-            return;
-        }
-    }
-}
-
-fn clamp_add(value: f32, delta: f32, lo: f32, hi: f32) -> f32 {
-    (value + delta).clamp(lo, hi)
 }
 
 impl RoiMap {
@@ -511,9 +444,19 @@ impl RoiMap {
         config.validate()?;
         Ok(Self {
             config,
-            voxels: KeyMap::default(),
-            changed: KeySet::default(),
-            scratch: Scratch::default(),
+            inv_res: 1.0 / config.resolution_m,
+            store: Storage::default(),
+            dirty_blocks: HashSet::default(),
+            roi_set: KeySet::default(),
+            expl_blocks: KeySet::default(),
+            roi_front_blocks: KeySet::default(),
+            known_count: 0,
+            occupied_count: 0,
+            expl_count: 0,
+            roi_front_count: 0,
+            distance: RoiDistanceField::new(config.roi_distance_cell_m, config.roi_distance_max_m),
+            scratch: insert::Scratch::default(),
+            seq: 0,
             scans_inserted: 0,
         })
     }
@@ -522,24 +465,24 @@ impl RoiMap {
         &self.config
     }
 
-    /// Voxel holding `p`: `floor(p / res)` per axis. Non-finite or huge coordinates saturate; use
-    /// [`RoiMap::try_key_of`] when the input is untrusted.
+    /// Voxel holding `p`: `floor(p * (1 / res))` per axis (OctoMap's `coordToKey`). Non-finite or
+    /// huge coordinates saturate; use [`RoiMap::try_key_of`] when the input is untrusted.
     pub fn key_of(&self, p: &Point3<f64>) -> VoxelKey {
-        let r = self.config.resolution_m;
+        let r = self.inv_res;
         VoxelKey::new(
-            (p.x / r).floor() as i32,
-            (p.y / r).floor() as i32,
-            (p.z / r).floor() as i32,
+            (p.x * r).floor() as i32,
+            (p.y * r).floor() as i32,
+            (p.z * r).floor() as i32,
         )
     }
 
     /// Voxel holding `p`, or `None` when `p` is not finite or outside the map's key range.
     pub fn try_key_of(&self, p: &Point3<f64>) -> Option<VoxelKey> {
-        let r = self.config.resolution_m;
+        let r = self.inv_res;
         Some(VoxelKey::new(
-            checked_axis_key(p.x / r)?,
-            checked_axis_key(p.y / r)?,
-            checked_axis_key(p.z / r)?,
+            axis_key(p.x, r)?,
+            axis_key(p.y, r)?,
+            axis_key(p.z, r)?,
         ))
     }
 
@@ -562,206 +505,238 @@ impl RoiMap {
         points_in_world: &[Point3<f32>],
         roi: &[bool],
     ) -> Result<ScanStats, MapError> {
-        if points_in_world.len() != roi.len() {
-            return Err(MapError::LengthMismatch {
-                points: points_in_world.len(),
-                roi: roi.len(),
-            });
-        }
-        if !sensor_origin.iter().all(|c| c.is_finite()) {
-            return Err(MapError::NonFiniteOrigin);
-        }
-        let key_origin = self
-            .try_key_of(sensor_origin)
-            .ok_or(MapError::OriginOutOfBounds)?;
-
-        let mut stats = ScanStats {
-            points: points_in_world.len(),
-            ..ScanStats::default()
-        };
-        // Take the scratch buffers out so the key helpers can borrow `self`.
-        let mut s = std::mem::take(&mut self.scratch);
-        s.ends.clear();
-        s.roi.clear();
-        s.non_roi.clear();
-
-        let res = self.config.resolution_m;
-        let max_range = self.config.max_range_m;
-        // Pass 1: classify points and find the key box of all rays (they stay between their
-        // origin and end voxels), so the ray sets can use a dense bitset over it.
-        let (mut lo, mut hi) = (key_origin, key_origin);
-        for (p32, &is_roi) in points_in_world.iter().zip(roi) {
-            if !p32.iter().all(|c| c.is_finite()) {
-                stats.skipped_non_finite += 1;
-                continue;
-            }
-            let p: Point3<f64> = p32.cast();
-            let distance_m = (p - sensor_origin).norm();
-            let (end_in_world, hit) = match max_range {
-                Some(range) if distance_m > range => (
-                    sensor_origin + (p - sensor_origin) * (range / distance_m),
-                    false,
-                ),
-                _ => (p, true),
-            };
-            let Some(key_end) = self.try_key_of(&end_in_world) else {
-                stats.skipped_out_of_bounds += 1;
-                continue;
-            };
-            if !hit {
-                stats.beyond_range += 1;
-            }
-            lo = VoxelKey::new(
-                lo.x.min(key_end.x),
-                lo.y.min(key_end.y),
-                lo.z.min(key_end.z),
-            );
-            hi = VoxelKey::new(
-                hi.x.max(key_end.x),
-                hi.y.max(key_end.y),
-                hi.z.max(key_end.z),
-            );
-            s.ends.push(RayEnd {
-                end_in_world,
-                key_end,
-                hit,
-                is_roi,
-            });
-        }
-
-        // Pass 2: OctoMap's key sets. A margin of one voxel absorbs rounding at box faces; keys
-        // beyond it still land in the sets' hash part, so the result is exact either way.
-        s.free.reset(lo.offset(-1, -1, -1), hi.offset(1, 1, 1));
-        s.occupied.reset(lo, hi);
-        for end in &s.ends {
-            let free = &mut s.free;
-            compute_ray_keys(
-                sensor_origin,
-                &end.end_in_world,
-                key_origin,
-                end.key_end,
-                res,
-                |k| {
-                    free.insert(k);
-                    true
-                },
-            );
-            if end.hit {
-                s.occupied.insert(end.key_end);
-                // ROI labels come from the hit end points only; ROI wins is applied below.
-                if end.is_roi {
-                    s.roi.insert(end.key_end);
-                } else {
-                    s.non_roi.insert(end.key_end);
-                }
-            }
-        }
-
-        let cfg = self.config;
-        let (clamp_lo, clamp_hi) = (cfg.clamp_min_logodds, cfg.clamp_max_logodds);
-        for &key in &s.free.keys {
-            if s.occupied.contains(key) {
-                continue; // occupied wins within a scan
-            }
-            stats.free_updates += 1;
-            self.update(key, |v| {
-                v.occupancy_logodds =
-                    clamp_add(v.occupancy_logodds, cfg.miss_logodds, clamp_lo, clamp_hi)
-            });
-        }
-        for &key in &s.occupied.keys {
-            stats.occupied_updates += 1;
-            self.update(key, |v| {
-                v.occupancy_logodds =
-                    clamp_add(v.occupancy_logodds, cfg.hit_logodds, clamp_lo, clamp_hi)
-            });
-        }
-        for &key in &s.roi {
-            stats.roi_updates += 1;
-            self.update(key, |v| {
-                v.roi_logodds = clamp_add(v.roi_logodds, cfg.hit_logodds, clamp_lo, clamp_hi)
-            });
-        }
-        for &key in &s.non_roi {
-            if s.roi.contains(&key) {
-                continue; // ROI wins within a scan
-            }
-            stats.non_roi_updates += 1;
-            self.update(key, |v| {
-                v.roi_logodds = clamp_add(v.roi_logodds, cfg.miss_logodds, clamp_lo, clamp_hi)
-            });
-        }
-        self.scratch = s;
-        self.scans_inserted += 1;
-        Ok(stats)
+        self.insert_scan_threaded(sensor_origin, points_in_world, roi, 1)
     }
 
-    /// Applies `f` to the voxel (created at 0/0 when new) and records a change when it changed.
-    fn update(&mut self, key: VoxelKey, f: impl FnOnce(&mut Voxel)) {
-        let mut created = false;
-        let voxel = self.voxels.entry(key).or_insert_with(|| {
-            created = true;
-            Voxel::NEW
-        });
-        let before = *voxel;
-        f(voxel);
-        if created || *voxel != before {
-            self.changed.insert(key);
+    /// Adds log-odds deltas to one voxel (created at 0/0 when new), clamped; records the change.
+    pub(crate) fn update_voxel(
+        &mut self,
+        key: VoxelKey,
+        occ_delta: Option<f32>,
+        roi_delta: Option<f32>,
+        log: &mut ChangeLog,
+    ) {
+        let (lo, hi) = (self.config.clamp_min_logodds, self.config.clamp_max_logodds);
+        let current = self.get(key).unwrap_or(Voxel::NEW);
+        let mut v = current;
+        if let Some(d) = occ_delta {
+            v.occupancy_logodds = (v.occupancy_logodds + d).clamp(lo, hi);
+        }
+        if let Some(d) = roi_delta {
+            v.roi_logodds = (v.roi_logodds + d).clamp(lo, hi);
+        }
+        self.set_voxel(key, v, log);
+    }
+
+    /// Sets one voxel (making it known); records the change when it is new or differs.
+    pub(crate) fn set_voxel(&mut self, key: VoxelKey, v: Voxel, log: &mut ChangeLog) {
+        let thr = self.config.roi_threshold_logodds;
+        let seq = self.seq as u32;
+        let bi = self.store.get_or_create(block_of(key));
+        let l = local_of(key);
+        let b = &mut self.store.blocks[bi];
+        let was_known = mask_test(&b.known, l);
+        let was_occ = mask_test(&b.occupied, l);
+        let was_roi = mask_test(&b.roi_mask, l);
+        let changed = !was_known || b.occ[l] != v.occupancy_logodds || b.roi[l] != v.roi_logodds;
+        if !changed {
+            return;
+        }
+        b.occ[l] = v.occupancy_logodds;
+        b.roi[l] = v.roi_logodds;
+        let is_occ = v.occupancy_logodds > 0.0;
+        let is_roi = v.roi_logodds >= thr;
+        mask_set(&mut b.known, l, true);
+        mask_set(&mut b.occupied, l, is_occ);
+        mask_set(&mut b.roi_mask, l, is_roi);
+        mask_set(&mut b.dirty, l, true);
+        b.seq[l] = seq;
+        b.max_seq = seq;
+        self.dirty_blocks.insert(bi as u32);
+        if !was_known {
+            self.known_count += 1;
+        }
+        match (was_occ, is_occ) {
+            (false, true) => self.occupied_count += 1,
+            (true, false) => self.occupied_count -= 1,
+            _ => {}
+        }
+        if !was_known || was_occ != is_occ || was_roi != is_roi {
+            let mut state = EMPTY;
+            mask_set(&mut state, l, true);
+            let mut roi = EMPTY;
+            mask_set(&mut roi, l, was_roi != is_roi);
+            log.note(bi as u32, &state, &roi);
         }
     }
 
     pub fn get(&self, key: VoxelKey) -> Option<Voxel> {
-        self.voxels.get(&key).copied()
+        let b = self.store.find(block_of(key))?;
+        let l = local_of(key);
+        mask_test(&b.known, l).then(|| Voxel {
+            occupancy_logodds: b.occ[l],
+            roi_logodds: b.roi[l],
+        })
     }
 
     pub fn occupancy(&self, key: VoxelKey) -> Occupancy {
-        self.voxels
-            .get(&key)
-            .map_or(Occupancy::Unknown, Voxel::occupancy)
+        match self.store.find(block_of(key)) {
+            Some(b) => {
+                let l = local_of(key);
+                if !mask_test(&b.known, l) {
+                    Occupancy::Unknown
+                } else if mask_test(&b.occupied, l) {
+                    Occupancy::Occupied
+                } else {
+                    Occupancy::Free
+                }
+            }
+            None => Occupancy::Unknown,
+        }
+    }
+
+    /// Occupancy log-odds of a known voxel.
+    pub fn occupancy_logodds(&self, key: VoxelKey) -> Option<f32> {
+        self.get(key).map(|v| v.occupancy_logodds)
+    }
+
+    /// ROI log-odds of a known voxel.
+    pub fn roi_logodds(&self, key: VoxelKey) -> Option<f32> {
+        self.get(key).map(|v| v.roi_logodds)
     }
 
     /// True when the voxel's ROI log-odds is at least the ROI threshold.
     pub fn is_roi(&self, key: VoxelKey) -> bool {
-        self.voxels.get(&key).is_some_and(|v| self.voxel_is_roi(v))
-    }
-
-    fn voxel_is_roi(&self, v: &Voxel) -> bool {
-        v.roi_logodds >= self.config.roi_threshold_logodds
+        self.roi_set.contains(&key)
     }
 
     /// Number of known (ever updated) voxels.
     pub fn len(&self) -> usize {
-        self.voxels.len()
+        self.known_count
     }
 
     pub fn is_empty(&self) -> bool {
-        self.voxels.is_empty()
+        self.known_count == 0
     }
 
-    /// Known voxels in arbitrary order.
+    /// Voxel counts, maintained incrementally.
+    pub fn counts(&self) -> MapCounts {
+        MapCounts {
+            known: self.known_count,
+            occupied: self.occupied_count,
+            free: self.known_count - self.occupied_count,
+            roi: self.roi_set.len(),
+            roi_frontier: self.roi_front_count,
+            exploration_frontier: self.expl_count,
+            blocks: self.store.blocks.len(),
+        }
+    }
+
+    /// Known voxels, block by block.
     pub fn iter(&self) -> impl Iterator<Item = (VoxelKey, Voxel)> + '_ {
-        self.voxels.iter().map(|(k, v)| (*k, *v))
+        self.store
+            .blocks
+            .iter()
+            .zip(&self.store.coords)
+            .flat_map(|(b, &bk)| {
+                let mut out = Vec::with_capacity(grid::mask_count(&b.known));
+                for_each_bit(&b.known, |l| {
+                    out.push((
+                        key_at(bk, l),
+                        Voxel {
+                            occupancy_logodds: b.occ[l],
+                            roi_logodds: b.roi[l],
+                        },
+                    ))
+                });
+                out
+            })
+    }
+
+    /// Known voxels with keys in `lo..=hi` (per axis), visiting only the blocks that overlap.
+    pub fn iter_box(
+        &self,
+        lo: VoxelKey,
+        hi: VoxelKey,
+    ) -> impl Iterator<Item = (VoxelKey, Voxel)> + '_ {
+        let (blo, bhi) = (block_of(lo), block_of(hi));
+        let span = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1).max(0) as u64;
+        let box_blocks = span(blo.x, bhi.x) * span(blo.y, bhi.y) * span(blo.z, bhi.z);
+        // Few blocks in the box: look them up; otherwise scan the allocated blocks.
+        let picked: Vec<usize> = if box_blocks <= self.store.blocks.len() as u64 {
+            let mut v = Vec::new();
+            for bz in blo.z..=bhi.z {
+                for by in blo.y..=bhi.y {
+                    for bx in blo.x..=bhi.x {
+                        if let Some(&i) = self.store.index.get(&VoxelKey::new(bx, by, bz)) {
+                            v.push(i as usize);
+                        }
+                    }
+                }
+            }
+            v
+        } else {
+            (0..self.store.blocks.len())
+                .filter(|&i| {
+                    let c = self.store.coords[i];
+                    (blo.x..=bhi.x).contains(&c.x)
+                        && (blo.y..=bhi.y).contains(&c.y)
+                        && (blo.z..=bhi.z).contains(&c.z)
+                })
+                .collect()
+        };
+        picked.into_iter().flat_map(move |i| {
+            let b = &self.store.blocks[i];
+            let bk = self.store.coords[i];
+            let mut out = Vec::new();
+            for_each_bit(&b.known, |l| {
+                let k = key_at(bk, l);
+                if (lo.x..=hi.x).contains(&k.x)
+                    && (lo.y..=hi.y).contains(&k.y)
+                    && (lo.z..=hi.z).contains(&k.z)
+                {
+                    out.push((
+                        k,
+                        Voxel {
+                            occupancy_logodds: b.occ[l],
+                            roi_logodds: b.roi[l],
+                        },
+                    ));
+                }
+            });
+            out
+        })
     }
 
     /// Keys of all ROI voxels, sorted.
     pub fn roi_keys(&self) -> Vec<VoxelKey> {
-        let mut keys: Vec<VoxelKey> = self
-            .voxels
-            .iter()
-            .filter(|(_, v)| self.voxel_is_roi(v))
-            .map(|(k, _)| *k)
-            .collect();
+        let mut keys: Vec<VoxelKey> = self.roi_set.iter().copied().collect();
         keys.sort_unstable();
         keys
     }
 
+    /// The current ROI voxels (maintained as voxels change), in arbitrary order.
+    pub fn roi_voxels(&self) -> &KeySet {
+        &self.roi_set
+    }
+
     /// Voxels changed since the last call (sorted by key, with current values); clears the record.
     pub fn take_changes(&mut self) -> Vec<(VoxelKey, Voxel)> {
-        let mut out: Vec<(VoxelKey, Voxel)> = self
-            .changed
-            .drain()
-            .filter_map(|k| self.voxels.get(&k).map(|v| (k, *v)))
-            .collect();
+        let mut out = Vec::new();
+        for bi in self.dirty_blocks.drain() {
+            let b = &mut self.store.blocks[bi as usize];
+            let bk = self.store.coords[bi as usize];
+            for_each_bit(&b.dirty, |l| {
+                out.push((
+                    key_at(bk, l),
+                    Voxel {
+                        occupancy_logodds: b.occ[l],
+                        roi_logodds: b.roi[l],
+                    },
+                ))
+            });
+            b.dirty = EMPTY;
+        }
         out.sort_unstable_by_key(|(k, _)| *k);
         out
     }
@@ -769,14 +744,68 @@ impl RoiMap {
     /// Overwrites voxel values (for replicas and dashboards) and records them as changes when
     /// they differ. Entries with non-finite log-odds are ignored, so bad input cannot poison the map.
     pub fn apply_voxels(&mut self, voxels: &[(VoxelKey, Voxel)]) {
+        self.seq += 1;
+        let mut log = ChangeLog::default();
         for &(key, value) in voxels {
             if !(value.occupancy_logodds.is_finite() && value.roi_logodds.is_finite()) {
                 continue;
             }
-            if self.voxels.insert(key, value) != Some(value) {
-                self.changed.insert(key);
+            if !(-KEY_LIMIT..KEY_LIMIT).contains(&i64::from(key.x))
+                || !(-KEY_LIMIT..KEY_LIMIT).contains(&i64::from(key.y))
+                || !(-KEY_LIMIT..KEY_LIMIT).contains(&i64::from(key.z))
+            {
+                continue;
             }
+            self.set_voxel(key, value, &mut log);
         }
+        self.refresh_derived(&log);
+    }
+
+    /// Sequence number of the last update (scan or applied voxels); 0 for a new map.
+    pub fn seq(&self) -> u64 {
+        self.seq
+    }
+
+    /// Known voxels changed after sequence number `since` (current values, sorted by key), for a
+    /// replica that has applied everything up to `since`. `delta_since(0)` is the whole map.
+    pub fn delta_since(&self, since: u64) -> MapDelta {
+        let since32 = u32::try_from(since).unwrap_or(u32::MAX);
+        let mut voxels = Vec::new();
+        for (b, &bk) in self.store.blocks.iter().zip(&self.store.coords) {
+            if b.max_seq <= since32 {
+                continue;
+            }
+            for_each_bit(&b.known, |l| {
+                if b.seq[l] > since32 {
+                    voxels.push((
+                        key_at(bk, l),
+                        Voxel {
+                            occupancy_logodds: b.occ[l],
+                            roi_logodds: b.roi[l],
+                        },
+                    ));
+                }
+            });
+        }
+        voxels.sort_unstable_by_key(|(k, _)| *k);
+        MapDelta {
+            resolution_m: self.config.resolution_m,
+            from_seq: since.min(self.seq),
+            to_seq: self.seq,
+            voxels,
+        }
+    }
+
+    /// Applies a delta from [`RoiMap::delta_since`] (of a map with the same resolution).
+    pub fn apply_delta(&mut self, delta: &MapDelta) -> Result<(), MapError> {
+        if delta.resolution_m != self.config.resolution_m {
+            return Err(MapError::InvalidConfig(format!(
+                "delta resolution {} m differs from the map's {} m",
+                delta.resolution_m, self.config.resolution_m
+            )));
+        }
+        self.apply_voxels(&delta.voxels);
+        Ok(())
     }
 
     /// Walks the voxels of the segment `origin + t * direction`, `t` in `[0, max_range_m]`, with the
@@ -810,69 +839,106 @@ impl RoiMap {
         let range_m = max_range_m.min(KEY_LIMIT as f64 * res);
         let end = origin + unit * range_m;
         let key_end = self.key_of(&end);
-        let mut stopped = false;
-        compute_ray_keys(origin, &end, key_origin, key_end, res, |k| {
-            let go_on = visit(k, self.get(k));
-            stopped = !go_on;
-            go_on
-        });
-        if !stopped {
-            visit(key_end, self.get(key_end));
-        }
-    }
-
-    /// Keys of known voxels matching `pred`, e.g. every occupied or every ROI voxel.
-    fn keys_where(&self, pred: impl Fn(&Voxel) -> bool) -> Vec<VoxelKey> {
-        self.voxels
-            .iter()
-            .filter(|(_, v)| pred(v))
-            .map(|(k, _)| *k)
-            .collect()
-    }
-
-    fn has_neighbour_6(&self, key: VoxelKey, state: Occupancy) -> bool {
-        NEIGHBOURS_6
-            .iter()
-            .any(|&(dx, dy, dz)| self.occupancy(key.offset(dx, dy, dz)) == state)
-    }
-
-    /// Free 6-neighbours of `seeds` whose centre lies in `region` and that have an unknown
-    /// 6-neighbour; sorted and unique.
-    fn free_unknown_neighbours_of(&self, seeds: &[VoxelKey], region: &Aabb) -> Vec<VoxelKey> {
-        let mut found = KeySet::default();
-        for &seed in seeds {
-            for &(dx, dy, dz) in &NEIGHBOURS_6 {
-                let n = seed.offset(dx, dy, dz);
-                // Cheapest tests first: the region test needs no map lookup.
-                if !region.contains(&self.centre_of(n))
-                    || found.contains(&n)
-                    || self.occupancy(n) != Occupancy::Free
-                {
-                    continue;
-                }
-                if self.has_neighbour_6(n, Occupancy::Unknown) {
-                    found.insert(n);
-                }
+        // Block cache: the walk stays in one block for several steps.
+        let mut cached: (VoxelKey, Option<&grid::Block>) =
+            (block_of(key_origin), self.store.find(block_of(key_origin)));
+        let mut lookup = |k: VoxelKey| -> Option<Voxel> {
+            let bk = block_of(k);
+            if bk != cached.0 {
+                cached = (bk, self.store.find(bk));
             }
+            let b = cached.1?;
+            let l = local_of(k);
+            mask_test(&b.known, l).then(|| Voxel {
+                occupancy_logodds: b.occ[l],
+                roi_logodds: b.roi[l],
+            })
+        };
+        let go_on = match RaySetup::exact(origin, &unit, range_m, key_origin, key_end, res) {
+            Some(setup) => setup.walk(|c| {
+                let k = VoxelKey::new(c[0], c[1], c[2]);
+                visit(k, lookup(k))
+            }),
+            None => true,
+        };
+        if go_on {
+            visit(key_end, lookup(key_end));
         }
-        let mut out: Vec<VoxelKey> = found.into_iter().collect();
+    }
+
+    /// Walks exactly the voxels [`RoiMap::insert_scan`] frees for a point at `end` seen from
+    /// `origin` (same `f32` inputs, same set-up), then the end voxel. `visit` stops the walk by
+    /// returning false. Nothing is visited when a key is outside the map.
+    pub fn walk_segment(
+        &self,
+        origin: &Point3<f32>,
+        end: &Point3<f32>,
+        mut visit: impl FnMut(VoxelKey, Option<Voxel>) -> bool,
+    ) {
+        let (o, e) = ([origin.x, origin.y, origin.z], [end.x, end.y, end.z]);
+        let (Some(ko), Some(ke)) = (
+            walk::key_of_f32(o, self.inv_res),
+            walk::key_of_f32(e, self.inv_res),
+        ) else {
+            return;
+        };
+        let res = self.config.resolution_m;
+        let go_on = match RaySetup::octomap(o, e, ko, ke, res) {
+            Some(setup) => setup.walk(|c| {
+                let k = VoxelKey::new(c[0], c[1], c[2]);
+                visit(k, self.get(k))
+            }),
+            None => true,
+        };
+        if go_on {
+            visit(ke, self.get(ke));
+        }
+    }
+
+    /// ROI targets (paper-method §3): free voxels 6-adjacent to an ROI voxel that have an unknown
+    /// 6-neighbour, with centre inside `region`; sorted. Maintained incrementally.
+    pub fn roi_frontier(&self, region: &Aabb) -> Vec<VoxelKey> {
+        self.frontier_in(&self.roi_front_blocks, region, |b| &b.roi_frontier)
+    }
+
+    /// Exploration frontier: free voxels with centre in `region` having both an unknown and an
+    /// occupied 6-neighbour; sorted. Maintained incrementally.
+    pub fn exploration_frontier(&self, region: &Aabb) -> Vec<VoxelKey> {
+        self.frontier_in(&self.expl_blocks, region, |b| &b.expl_frontier)
+    }
+
+    fn frontier_in(
+        &self,
+        blocks: &KeySet,
+        region: &Aabb,
+        mask: impl Fn(&grid::Block) -> &Mask,
+    ) -> Vec<VoxelKey> {
+        let mut out = Vec::new();
+        for &bk in blocks {
+            let Some(b) = self.store.find(bk) else {
+                continue;
+            };
+            for_each_bit(mask(b), |l| {
+                let k = key_at(bk, l);
+                if region.contains(&self.centre_of(k)) {
+                    out.push(k);
+                }
+            });
+        }
         out.sort_unstable();
         out
     }
 
-    /// ROI targets (paper-method §3): free voxels 6-adjacent to an ROI voxel that have an unknown
-    /// 6-neighbour, with centre inside `region`; sorted.
-    pub fn roi_frontier(&self, region: &Aabb) -> Vec<VoxelKey> {
-        let roi = self.keys_where(|v| self.voxel_is_roi(v));
-        self.free_unknown_neighbours_of(&roi, region)
+    /// Distance in metres from `p` to the nearest ROI voxel centre, when within
+    /// `roi_distance_max_m`; measured from the centre of `p`'s distance-field cell
+    /// (`roi_distance_cell_m`). Maintained incrementally as ROI voxels appear and disappear.
+    pub fn roi_distance_m(&self, p: &Point3<f64>) -> Option<f64> {
+        self.distance.distance_m(p)
     }
 
-    /// Exploration frontier: free voxels with centre in `region` having both an unknown and an
-    /// occupied 6-neighbour; sorted. Found from the occupied voxels, which are far fewer than the
-    /// free ones.
-    pub fn exploration_frontier(&self, region: &Aabb) -> Vec<VoxelKey> {
-        let occupied = self.keys_where(|v| v.occupancy() == Occupancy::Occupied);
-        self.free_unknown_neighbours_of(&occupied, region)
+    /// The ROI distance field itself.
+    pub fn roi_distance_field(&self) -> &RoiDistanceField {
+        &self.distance
     }
 
     /// ROI voxels grown into 26-connected clusters; clusters with at least `min_voxels` voxels,
@@ -892,15 +958,10 @@ impl RoiMap {
             let mut members = vec![seed];
             stack.push(seed);
             while let Some(k) = stack.pop() {
-                for dx in -1..=1 {
-                    for dy in -1..=1 {
-                        for dz in -1..=1 {
-                            let n = k.offset(dx, dy, dz);
-                            if unvisited.remove(&n) {
-                                members.push(n);
-                                stack.push(n);
-                            }
-                        }
+                for n in k.neighbours(Neighbourhood::TwentySix) {
+                    if unvisited.remove(&n) {
+                        members.push(n);
+                        stack.push(n);
                     }
                 }
             }
@@ -938,17 +999,19 @@ impl RoiMap {
         self.scans_inserted
     }
 
-    /// Approximate heap use in bytes (hash tables at their capacity, one control byte per slot).
+    /// Heap use in bytes: blocks, indexes, derived sets, distance field and scan buffers (hash
+    /// tables at their capacity, one control byte per slot).
     pub fn memory_bytes(&self) -> usize {
-        let entry = std::mem::size_of::<(VoxelKey, Voxel)>() + 1;
         let key = std::mem::size_of::<VoxelKey>() + 1;
-        let s = &self.scratch;
         std::mem::size_of::<Self>()
-            + self.voxels.capacity() * entry
-            + (self.changed.capacity() + s.roi.capacity() + s.non_roi.capacity()) * key
-            + s.ends.capacity() * std::mem::size_of::<RayEnd>()
-            + s.free.heap_bytes()
-            + s.occupied.heap_bytes()
+            + self.store.heap_bytes()
+            + self.dirty_blocks.capacity() * 5
+            + (self.roi_set.capacity()
+                + self.expl_blocks.capacity()
+                + self.roi_front_blocks.capacity())
+                * key
+            + self.distance.heap_bytes()
+            + self.scratch.heap_bytes()
     }
 }
 

@@ -322,23 +322,39 @@ fn negative_coordinates_floor() {
     }
 }
 
-/// Literal transcription of OctoMap's computeRayKeys (f64::MAX sentinels, key list output) plus a
-/// BTree-based update, as the reference for the optimised insertion.
+/// Literal transcription of OctoMap 1.9's computeRayKeys / computeUpdate in its precision
+/// (`point3d` is float, keys and the walk are double) plus a BTree-based update, as the
+/// reference for the optimised insertion.
 struct Reference {
     res: f64,
     cells: BTreeMap<VoxelKey, Voxel>,
 }
 
+type P3 = [f32; 3];
+
+fn sub(a: P3, b: P3) -> P3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn norm(a: P3) -> f64 {
+    f64::from(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
+}
+
 impl Reference {
-    fn key(&self, p: &Point3<f64>) -> VoxelKey {
-        VoxelKey::new(
-            (p.x / self.res).floor() as i32,
-            (p.y / self.res).floor() as i32,
-            (p.z / self.res).floor() as i32,
-        )
+    fn new(res: f64) -> Self {
+        Self {
+            res,
+            cells: BTreeMap::new(),
+        }
     }
 
-    fn ray_keys(&self, origin: &Point3<f64>, end: &Point3<f64>) -> Vec<VoxelKey> {
+    fn key(&self, p: P3) -> VoxelKey {
+        let f = 1.0 / self.res;
+        let k = |c: f32| (f * f64::from(c)).floor() as i32;
+        VoxelKey::new(k(p[0]), k(p[1]), k(p[2]))
+    }
+
+    fn ray_keys(&self, origin: P3, end: P3) -> Vec<VoxelKey> {
         let ko = self.key(origin);
         let ke = self.key(end);
         let mut ray = Vec::new();
@@ -346,8 +362,11 @@ impl Reference {
             return ray;
         }
         ray.push(ko);
-        let length = (end - origin).norm();
-        let direction = (end - origin) / length;
+        let mut direction = sub(end, origin);
+        let length = norm(direction) as f32;
+        for d in &mut direction {
+            *d /= length;
+        }
         let mut step = [0i32; 3];
         let mut t_max = [f64::MAX; 3];
         let mut t_delta = [f64::MAX; 3];
@@ -361,10 +380,10 @@ impl Reference {
                 0
             };
             if step[i] != 0 {
-                let border =
-                    (f64::from(cur[i]) + 0.5) * self.res + f64::from(step[i]) * self.res * 0.5;
-                t_max[i] = (border - origin[i]) / direction[i];
-                t_delta[i] = self.res / direction[i].abs();
+                let mut border = (f64::from(cur[i]) + 0.5) * self.res;
+                border += f64::from((f64::from(step[i]) * self.res * 0.5) as f32);
+                t_max[i] = (border - f64::from(origin[i])) / f64::from(direction[i]);
+                t_delta[i] = self.res / f64::from(direction[i]).abs();
             }
         }
         loop {
@@ -386,7 +405,7 @@ impl Reference {
                 break;
             }
             let dist = t_max[0].min(t_max[1]).min(t_max[2]);
-            if dist > length {
+            if dist > f64::from(length) {
                 break;
             }
             ray.push(key);
@@ -396,27 +415,33 @@ impl Reference {
 
     fn insert(&mut self, origin: &Point3<f64>, pts: &[Point3<f32>], roi: &[bool], max_range: f64) {
         let c = MapConfig::default();
+        let o: P3 = [origin.x as f32, origin.y as f32, origin.z as f32];
         let mut free = BTreeSet::new();
         let mut occ = BTreeSet::new();
         let mut roi_set = BTreeSet::new();
         let mut non_roi = BTreeSet::new();
         for (p, &r) in pts.iter().zip(roi) {
-            let p: Point3<f64> = p.cast();
             if !p.iter().all(|c| c.is_finite()) {
                 continue;
             }
-            let d = (p - origin).norm();
-            if d <= max_range {
-                free.extend(self.ray_keys(origin, &p));
-                occ.insert(self.key(&p));
+            let p: P3 = [p.x, p.y, p.z];
+            let d = norm(sub(p, o));
+            if max_range < 0.0 || d <= max_range {
+                free.extend(self.ray_keys(o, p));
+                occ.insert(self.key(p));
                 if r {
-                    roi_set.insert(self.key(&p));
+                    roi_set.insert(self.key(p));
                 } else {
-                    non_roi.insert(self.key(&p));
+                    non_roi.insert(self.key(p));
                 }
             } else {
-                let end = origin + (p - origin) * (max_range / d);
-                free.extend(self.ray_keys(origin, &end));
+                let mut dir = sub(p, o);
+                for v in &mut dir {
+                    *v /= d as f32;
+                }
+                let m = max_range as f32;
+                let end = [o[0] + dir[0] * m, o[1] + dir[1] * m, o[2] + dir[2] * m];
+                free.extend(self.ray_keys(o, end));
             }
         }
         let upd = |v: f32, d: f32| (v + d).clamp(c.clamp_min_logodds, c.clamp_max_logodds);
@@ -464,10 +489,7 @@ fn random_cloud(rng: &mut TestRng, n: usize) -> (Vec<Point3<f32>>, Vec<bool>) {
 fn matches_brute_force_reference() {
     let mut rng = TestRng(42);
     let mut m = map();
-    let mut reference = Reference {
-        res: 0.01,
-        cells: BTreeMap::new(),
-    };
+    let mut reference = Reference::new(0.01);
     for scan in 0..4 {
         let origin = Point3::new(
             rng.uniform(-0.05, 0.05),
@@ -476,7 +498,7 @@ fn matches_brute_force_reference() {
         );
         let (pts, roi) = random_cloud(&mut rng, 800);
         m.insert_scan(&origin, &pts, &roi).expect("valid scan");
-        reference.insert(&origin, &pts, &roi, f64::INFINITY);
+        reference.insert(&origin, &pts, &roi, -1.0);
         let got: BTreeMap<VoxelKey, Voxel> = m.iter().collect();
         assert_eq!(got.len(), reference.cells.len(), "scan {scan}");
         assert!(got == reference.cells, "scan {scan} differs");
@@ -494,7 +516,7 @@ fn matches_brute_force_reference() {
         .collect();
     let far_roi: Vec<bool> = (0..far.len()).map(|i| i % 2 == 0).collect();
     m.insert_scan(&origin, &far, &far_roi).expect("valid scan");
-    reference.insert(&origin, &far, &far_roi, f64::INFINITY);
+    reference.insert(&origin, &far, &far_roi, -1.0);
     let got: BTreeMap<VoxelKey, Voxel> = m.iter().collect();
     assert!(got == reference.cells, "sparse path differs");
 
@@ -504,10 +526,7 @@ fn matches_brute_force_reference() {
         ..MapConfig::default()
     };
     let mut m = RoiMap::new(config).expect("valid config");
-    let mut reference = Reference {
-        res: 0.01,
-        cells: BTreeMap::new(),
-    };
+    let mut reference = Reference::new(0.01);
     let origin = Point3::new(0.001, -0.003, 0.002);
     let (pts, roi) = random_cloud(&mut rng, 800);
     let stats = m.insert_scan(&origin, &pts, &roi).expect("valid scan");
@@ -571,7 +590,7 @@ fn ray_voxels_lie_on_the_segment_and_are_face_connected() {
 }
 
 #[test]
-fn walk_ray_visits_the_same_voxels_as_insertion() {
+fn walk_segment_visits_the_same_voxels_as_insertion() {
     let mut rng = TestRng(99);
     for _ in 0..50 {
         let origin = Point3::new(
@@ -591,15 +610,10 @@ fn walk_ray_visits_the_same_voxels_as_insertion() {
         m.insert_scan(&origin, &[target32], &[false])
             .expect("valid scan");
         let mut walked = Vec::new();
-        m.walk_ray(
-            &origin,
-            &(target - origin),
-            (target - origin).norm(),
-            |k, _| {
-                walked.push(k);
-                true
-            },
-        );
+        m.walk_segment(&origin.cast::<f32>(), &target32, |k, _| {
+            walked.push(k);
+            true
+        });
         let end_key = m.key_of(&target);
         assert_eq!(walked.last(), Some(&end_key));
         let mut free: Vec<VoxelKey> = m
@@ -719,4 +733,490 @@ fn memory_and_debug_are_cheap() {
     assert!(m.memory_bytes() >= m.len() * std::mem::size_of::<(VoxelKey, Voxel)>());
     let dbg = format!("{m:?}");
     assert!(dbg.len() < 300);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Properties and the incremental state, on seeded random scans.
+
+use crate::testdata::{downsample, Workload};
+
+/// Seeded Fisher-Yates shuffle of points and labels together.
+fn shuffled(rng: &mut TestRng, pts: &[Point3<f32>], roi: &[bool]) -> (Vec<Point3<f32>>, Vec<bool>) {
+    let mut idx: Vec<usize> = (0..pts.len()).collect();
+    for i in (1..idx.len()).rev() {
+        let j = (rng.next_u64() % (i as u64 + 1)) as usize;
+        idx.swap(i, j);
+    }
+    (
+        idx.iter().map(|&i| pts[i]).collect(),
+        idx.iter().map(|&i| roi[i]).collect(),
+    )
+}
+
+fn sorted_voxels(m: &RoiMap) -> Vec<(VoxelKey, Voxel)> {
+    let mut v: Vec<_> = m.iter().collect();
+    v.sort_by_key(|(k, _)| *k);
+    v
+}
+
+#[test]
+fn order_within_a_scan_does_not_matter() {
+    let mut rng = TestRng(5);
+    for _ in 0..5 {
+        let (pts, roi) = random_cloud(&mut rng, 500);
+        let (pts2, roi2) = shuffled(&mut rng, &pts, &roi);
+        let origin = Point3::new(0.01, -0.02, 0.003);
+        let mut a = map();
+        let mut b = map();
+        let sa = a.insert_scan(&origin, &pts, &roi).expect("valid");
+        let sb = b.insert_scan(&origin, &pts2, &roi2).expect("valid");
+        assert_eq!(sa, sb);
+        assert_eq!(sorted_voxels(&a), sorted_voxels(&b));
+    }
+}
+
+#[test]
+fn end_voxels_are_never_freed_by_their_own_scan() {
+    let mut rng = TestRng(11);
+    let (pts, roi) = random_cloud(&mut rng, 400);
+    let mut m = map();
+    let origin = Point3::new(0.0, 0.0, 0.0);
+    m.insert_scan(&origin, &pts, &roi).expect("valid");
+    for p in &pts {
+        let k = m.key_of(&p.cast());
+        // One hit, never a miss in the same scan.
+        assert_eq!(m.get(k).map(|v| v.occupancy_logodds), Some(HIT));
+    }
+}
+
+#[test]
+fn clamps_hold_for_random_scan_sequences() {
+    let mut rng = TestRng(3);
+    let mut m = map();
+    let c = MapConfig::default();
+    for _ in 0..12 {
+        let (pts, roi) = random_cloud(&mut rng, 150);
+        m.insert_scan(&Point3::new(0.0, 0.0, 0.0), &pts, &roi)
+            .expect("valid");
+    }
+    let mut at_max = 0;
+    for (_, v) in m.iter() {
+        assert!(v.occupancy_logodds >= c.clamp_min_logodds);
+        assert!(v.occupancy_logodds <= c.clamp_max_logodds);
+        assert!(v.roi_logodds >= c.clamp_min_logodds && v.roi_logodds <= c.clamp_max_logodds);
+        at_max += usize::from(v.occupancy_logodds == c.clamp_max_logodds);
+    }
+    // The axis-aligned end points are hit every scan: clamped at the top.
+    assert!(at_max >= 2);
+    assert_eq!(
+        m.occupancy_logodds(m.key_of(&Point3::new(0.0, 0.3, 0.0))),
+        Some(c.clamp_max_logodds)
+    );
+}
+
+#[test]
+fn threads_give_the_same_map() {
+    let w = Workload::small(21, 96, 72, 8, 3);
+    let mut one = RoiMap::new(w.map_config()).expect("valid");
+    let mut four = RoiMap::new(w.map_config()).expect("valid");
+    for s in w.raw_scans() {
+        let a = one
+            .insert_scan(&s.origin, &s.points, &s.roi)
+            .expect("valid");
+        let b = four
+            .insert_scan_threaded(&s.origin, &s.points, &s.roi, 4)
+            .expect("valid");
+        assert_eq!(a, b);
+    }
+    assert_eq!(sorted_voxels(&one), sorted_voxels(&four));
+}
+
+#[test]
+fn workload_scans_match_the_reference_with_range_limit() {
+    let w = Workload::small(8, 80, 60, 10, 2);
+    let mut m = RoiMap::new(w.map_config()).expect("valid");
+    let mut reference = Reference::new(0.01);
+    for s in w.raw_scans() {
+        let stats = m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+        assert!(stats.beyond_range > 0, "corner rays pass the range");
+        reference.insert(&s.origin, &s.points, &s.roi, w.max_range_m);
+    }
+    let got: BTreeMap<VoxelKey, Voxel> = m.iter().collect();
+    assert_eq!(got.len(), reference.cells.len());
+    assert!(got == reference.cells);
+}
+
+/// Brute-force frontier definitions (paper-method §3), over all known voxels.
+fn brute_frontiers(m: &RoiMap) -> (Vec<VoxelKey>, Vec<VoxelKey>) {
+    let mut expl = Vec::new();
+    let mut roi = Vec::new();
+    for (k, v) in m.iter() {
+        if v.occupancy() != Occupancy::Free {
+            continue;
+        }
+        let n: Vec<VoxelKey> = k.neighbours(Neighbourhood::Six).collect();
+        let unknown = n.iter().any(|&x| m.occupancy(x) == Occupancy::Unknown);
+        if !unknown {
+            continue;
+        }
+        if n.iter().any(|&x| m.occupancy(x) == Occupancy::Occupied) {
+            expl.push(k);
+        }
+        if n.iter().any(|&x| m.is_roi(x)) {
+            roi.push(k);
+        }
+    }
+    expl.sort();
+    roi.sort();
+    (expl, roi)
+}
+
+#[test]
+fn incremental_frontiers_roi_set_and_counts_match_recomputation() {
+    let w = Workload::small(33, 96, 72, 12, 4);
+    let mut m = RoiMap::new(w.map_config()).expect("valid");
+    let everywhere = Aabb::new(Point3::new(-9.0, -9.0, -9.0), Point3::new(9.0, 9.0, 9.0));
+    for (i, s) in w.filtered_scans().iter().enumerate() {
+        m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+        let (expl, roi) = brute_frontiers(&m);
+        assert!(!expl.is_empty());
+        assert_eq!(m.exploration_frontier(&everywhere), expl, "scan {i}");
+        assert_eq!(m.roi_frontier(&everywhere), roi, "scan {i}");
+        let mut brute_roi: Vec<VoxelKey> = m
+            .iter()
+            .filter(|(_, v)| v.roi_logodds >= 1.0)
+            .map(|(k, _)| k)
+            .collect();
+        brute_roi.sort();
+        assert_eq!(m.roi_keys(), brute_roi);
+        if i >= 1 {
+            assert!(!brute_roi.is_empty(), "two observations make ROI voxels");
+            assert!(!roi.is_empty());
+        }
+        let c = m.counts();
+        assert_eq!(c.known, m.iter().count());
+        assert_eq!(
+            c.occupied,
+            m.iter().filter(|(_, v)| v.occupancy_logodds > 0.0).count()
+        );
+        assert_eq!(c.exploration_frontier, expl.len());
+        assert_eq!(c.roi_frontier, roi.len());
+        assert_eq!(c.roi, brute_roi.len());
+    }
+    // ROI voxels that stop being ROI leave the set and the frontier (via apply_voxels).
+    let roi_now = m.roi_keys();
+    let cleared: Vec<(VoxelKey, Voxel)> = roi_now
+        .iter()
+        .take(roi_now.len() / 2)
+        .map(|&k| {
+            (
+                k,
+                Voxel {
+                    occupancy_logodds: 1.0,
+                    roi_logodds: -1.0,
+                },
+            )
+        })
+        .collect();
+    m.apply_voxels(&cleared);
+    let (expl, roi) = brute_frontiers(&m);
+    assert_eq!(m.exploration_frontier(&everywhere), expl);
+    assert_eq!(m.roi_frontier(&everywhere), roi);
+    assert_eq!(m.roi_keys().len(), roi_now.len() - cleared.len());
+}
+
+fn brute_distance(m: &RoiMap, p: &Point3<f64>) -> Option<f64> {
+    let f = m.roi_distance_field();
+    let cell = |v: f64| ((v / f.cell_m()).floor() + 0.5) * f.cell_m();
+    let c = Point3::new(cell(p.x), cell(p.y), cell(p.z));
+    m.roi_keys()
+        .iter()
+        .map(|&k| (m.centre_of(k) - c).norm())
+        .fold(None, |a: Option<f64>, d| Some(a.map_or(d, |a| a.min(d))))
+        .filter(|&d| d <= f.max_m())
+}
+
+#[test]
+fn roi_distance_field_tracks_added_and_removed_roi_voxels() {
+    let config = MapConfig {
+        roi_distance_max_m: 0.1,
+        roi_distance_cell_m: 0.02,
+        ..MapConfig::default()
+    };
+    let mut m = RoiMap::new(config).expect("valid");
+    let mut rng = TestRng(17);
+    let roi_v = Voxel {
+        occupancy_logodds: 2.0,
+        roi_logodds: 2.0,
+    };
+    let plain = Voxel {
+        occupancy_logodds: 2.0,
+        roi_logodds: -1.0,
+    };
+    let mut keys = Vec::new();
+    for _ in 0..40 {
+        keys.push(k(
+            (rng.next_u64() % 30) as i32,
+            (rng.next_u64() % 30) as i32,
+            (rng.next_u64() % 10) as i32,
+        ));
+    }
+    let check = |m: &RoiMap, rng: &mut TestRng| {
+        let mut exact = 0;
+        let mut within = 0;
+        for _ in 0..400 {
+            let p = Point3::new(
+                rng.uniform(-0.1, 0.4),
+                rng.uniform(-0.1, 0.4),
+                rng.uniform(-0.1, 0.2),
+            );
+            let (got, want) = (m.roi_distance_m(&p), brute_distance(m, &p));
+            match (got, want) {
+                (Some(g), Some(w)) => {
+                    assert!(g + 1e-6 >= w, "never below the true distance");
+                    assert!(g <= w + 0.02 + 1e-6, "{g} vs {w}");
+                    exact += usize::from((g - w).abs() < 1e-6);
+                    within += 1;
+                }
+                (None, None) => {}
+                (None, Some(w)) => assert!(w > 0.1 - 0.02, "missing cell at {w}"),
+                (Some(g), None) => panic!("distance {g} where no ROI voxel is near"),
+            }
+        }
+        assert!(exact * 10 >= within * 9, "{exact} of {within} exact");
+    };
+    let batch: Vec<(VoxelKey, Voxel)> = keys[..20].iter().map(|&k| (k, roi_v)).collect();
+    m.apply_voxels(&batch);
+    check(&m, &mut rng);
+    let batch: Vec<(VoxelKey, Voxel)> = keys[20..].iter().map(|&k| (k, roi_v)).collect();
+    m.apply_voxels(&batch);
+    check(&m, &mut rng);
+    // Remove half of them.
+    let batch: Vec<(VoxelKey, Voxel)> = keys.iter().step_by(2).map(|&k| (k, plain)).collect();
+    m.apply_voxels(&batch);
+    check(&m, &mut rng);
+    // Remove all: the field empties.
+    let batch: Vec<(VoxelKey, Voxel)> = keys.iter().map(|&k| (k, plain)).collect();
+    m.apply_voxels(&batch);
+    assert!(m.roi_distance_field().is_empty());
+}
+
+#[test]
+fn snapshot_round_trip_and_errors() {
+    let w = Workload::small(4, 64, 48, 6, 3);
+    let m = w.filtered_map().expect("valid");
+    let mut bytes = Vec::new();
+    m.write_snapshot(&mut bytes).expect("write");
+    // Compact: about 8 bytes per known voxel plus per-block overhead.
+    assert!(bytes.len() < m.len() * 8 + m.counts().blocks * 80 + 200);
+    let back = RoiMap::read_snapshot(bytes.as_slice()).expect("read");
+    assert_eq!(sorted_voxels(&back), sorted_voxels(&m));
+    assert_eq!(back.config(), m.config());
+    assert_eq!(back.seq(), m.seq());
+    assert_eq!(back.scans_inserted(), m.scans_inserted());
+    assert_eq!(back.counts(), m.counts());
+    assert_eq!(back.roi_keys(), m.roi_keys());
+    let everywhere = Aabb::new(Point3::new(-9.0, -9.0, -9.0), Point3::new(9.0, 9.0, 9.0));
+    assert_eq!(
+        back.exploration_frontier(&everywhere),
+        m.exploration_frontier(&everywhere)
+    );
+
+    // Truncated anywhere: a clear error.
+    for cut in [0, 3, 10, 16, bytes.len() / 2, bytes.len() - 1] {
+        match RoiMap::read_snapshot(&bytes[..cut]) {
+            Err(SnapshotError::Truncated { expected, actual }) => {
+                assert_eq!(actual, cut as u64);
+                assert!(expected > actual);
+            }
+            Err(SnapshotError::BadMagic) if cut == 0 => {}
+            other => panic!("cut at {cut}: {other:?}"),
+        }
+    }
+    // A flipped bit in the body: checksum mismatch.
+    let mut bad = bytes.clone();
+    let at = bad.len() / 3;
+    bad[at] ^= 0x10;
+    assert!(matches!(
+        RoiMap::read_snapshot(bad.as_slice()),
+        Err(SnapshotError::ChecksumMismatch { .. })
+    ));
+    let mut bad = bytes.clone();
+    bad[0] = b'X';
+    assert!(matches!(
+        RoiMap::read_snapshot(bad.as_slice()),
+        Err(SnapshotError::BadMagic)
+    ));
+    let mut bad = bytes.clone();
+    bad[4] = 9;
+    assert!(matches!(
+        RoiMap::read_snapshot(bad.as_slice()),
+        Err(SnapshotError::UnsupportedVersion(9))
+    ));
+    // A delta is not a snapshot.
+    let mut delta = Vec::new();
+    m.delta_since(0).write_to(&mut delta).expect("write");
+    assert!(matches!(
+        RoiMap::read_snapshot(delta.as_slice()),
+        Err(SnapshotError::WrongKind { .. })
+    ));
+    assert_eq!(snapshot::crc32(b"123456789"), 0xCBF4_3926);
+}
+
+#[test]
+fn deltas_keep_a_replica_equal() {
+    let w = Workload::small(9, 64, 48, 6, 4);
+    let mut master = RoiMap::new(w.map_config()).expect("valid");
+    let mut replica = RoiMap::new(w.map_config()).expect("valid");
+    let mut synced = replica.seq();
+    for s in w.filtered_scans() {
+        master
+            .insert_scan(&s.origin, &s.points, &s.roi)
+            .expect("valid");
+        let delta = master.delta_since(synced);
+        assert_eq!(delta.from_seq, synced);
+        // Only voxels changed since then, not the whole map, after the first scan.
+        if synced > 0 {
+            assert!(delta.voxels.len() < master.len());
+        }
+        let mut wire = Vec::new();
+        delta.write_to(&mut wire).expect("write");
+        let got = MapDelta::read_from(wire.as_slice()).expect("read");
+        assert_eq!(got, delta);
+        replica.apply_delta(&got).expect("same resolution");
+        synced = got.to_seq;
+        assert_eq!(sorted_voxels(&replica), sorted_voxels(&master));
+        assert_eq!(replica.roi_keys(), master.roi_keys());
+    }
+    assert!(master.delta_since(master.seq()).voxels.is_empty());
+    let mut wire = Vec::new();
+    master.delta_since(1).write_to(&mut wire).expect("write");
+    wire.truncate(wire.len() - 3);
+    assert!(matches!(
+        MapDelta::read_from(wire.as_slice()),
+        Err(SnapshotError::Truncated { .. })
+    ));
+    let other = RoiMap::new(MapConfig {
+        resolution_m: 0.02,
+        ..MapConfig::default()
+    })
+    .expect("valid");
+    let mut o = other;
+    assert!(o.apply_delta(&master.delta_since(0)).is_err());
+}
+
+#[test]
+fn ply_cloud_round_trip_and_voxel_export() {
+    let w = Workload::small(2, 48, 36, 4, 1);
+    let s = w.filtered_scan(&w.origins[0]);
+    let mut bytes = Vec::new();
+    ply::write_cloud(&mut bytes, &s.points, Some(&Point3::new(0.5, -1.25, 2.0))).expect("write");
+    let back = ply::read_cloud(bytes.as_slice()).expect("read");
+    assert_eq!(back.points, s.points);
+    assert_eq!(back.origin, Some(Point3::new(0.5, -1.25, 2.0)));
+
+    // ASCII with extra properties, another element first and no origin.
+    let ascii = "ply\nformat ascii 1.0\ncomment made by hand\nelement camera 1\nproperty float f\n\
+                 element vertex 2\nproperty uchar red\nproperty double x\nproperty float y\n\
+                 property float z\nproperty int label\nelement face 0\n\
+                 property list uchar int vertex_indices\nend_header\n7.5\n\
+                 255 1.5 2.5 -3.5 4\n0 0.25 0 1e-2 1\n";
+    let back = ply::read_cloud(ascii.as_bytes()).expect("read ascii");
+    assert_eq!(back.points, vec![p32(1.5, 2.5, -3.5), p32(0.25, 0.0, 0.01)]);
+    assert_eq!(back.origin, None);
+    assert!(matches!(
+        ply::read_cloud("ply\nformat binary_big_endian 1.0\nend_header\n".as_bytes()),
+        Err(ply::PlyError::UnsupportedFormat(_))
+    ));
+    assert!(matches!(
+        ply::read_cloud(&bytes[..bytes.len() - 5]),
+        Err(ply::PlyError::Truncated(_))
+    ));
+
+    // Voxel export: parse it back with the reader (x, y, z) and check the header names.
+    let mut m = map();
+    m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+    let mut out = Vec::new();
+    m.write_ply(&mut out).expect("write");
+    let text_end = out
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .expect("header");
+    let header = std::str::from_utf8(&out[..text_end]).expect("ascii header");
+    for prop in [
+        "float x",
+        "float y",
+        "float z",
+        "float occupancy",
+        "float roi",
+    ] {
+        assert!(header.contains(&format!("property {prop}\n")), "{prop}");
+    }
+    assert_eq!(out.len() - text_end - 11, m.len() * 20);
+    let centres = ply::read_cloud(out.as_slice()).expect("readable");
+    assert_eq!(centres.points.len(), m.len());
+    let first = sorted_voxels(&m)[0].0;
+    assert_eq!(centres.points[0], m.centre_of(first).cast::<f32>());
+}
+
+#[test]
+fn neighbourhoods_box_iteration_and_filtered_workload() {
+    assert_eq!(NEIGHBOURS_18.len(), 18);
+    assert_eq!(NEIGHBOURS_26.len(), 26);
+    let all: BTreeSet<(i32, i32, i32)> = NEIGHBOURS_26.iter().copied().collect();
+    assert_eq!(all.len(), 26);
+    assert!(!all.contains(&(0, 0, 0)));
+    for o in NEIGHBOURS_6 {
+        assert!(NEIGHBOURS_18.contains(&o));
+    }
+    assert!(NEIGHBOURS_18
+        .iter()
+        .all(|&(x, y, z)| x.abs() + y.abs() + z.abs() <= 2));
+
+    let w = Workload::small(6, 64, 48, 6, 2);
+    let m = w.filtered_map().expect("valid");
+    let (lo, hi) = (k(10, -20, -5), k(40, 3, 7));
+    let mut got: Vec<VoxelKey> = m.iter_box(lo, hi).map(|(k, _)| k).collect();
+    got.sort();
+    let want: Vec<VoxelKey> = sorted_voxels(&m)
+        .into_iter()
+        .map(|(k, _)| k)
+        .filter(|k| {
+            (lo.x..=hi.x).contains(&k.x)
+                && (lo.y..=hi.y).contains(&k.y)
+                && (lo.z..=hi.z).contains(&k.z)
+        })
+        .collect();
+    assert!(!want.is_empty());
+    assert_eq!(got, want);
+
+    // Downsampling keeps one point per voxel.
+    let raw = w.raw_scan(&w.origins[0]);
+    let f = downsample(&raw, 0.01);
+    let keys: BTreeSet<VoxelKey> = f.points.iter().map(|p| m.key_of(&p.cast())).collect();
+    assert!(f.points.len() < raw.points.len());
+    assert!(
+        keys.len() + 5 >= f.points.len(),
+        "averaged points stay in (or next to) their voxel"
+    );
+}
+
+#[test]
+fn standard_workload_has_the_documented_size() {
+    let w = Workload::standard(1);
+    assert_eq!(w.spheres.len(), 30);
+    assert_eq!(w.origins.len(), 10);
+    for s in &w.spheres {
+        assert!((0.03..0.05).contains(&s.radius_m));
+        assert!((0.4..1.2).contains(&s.centre.x));
+    }
+    let raw = w.raw_scan(&w.origins[0]);
+    assert_eq!(raw.points.len(), 640 * 480);
+    assert!(raw.roi.iter().any(|&r| r));
+    let f = downsample(&raw, 0.01);
+    assert!(
+        (15_000..30_000).contains(&f.points.len()),
+        "{}",
+        f.points.len()
+    );
 }

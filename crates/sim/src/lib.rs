@@ -12,6 +12,7 @@
 
 mod generate;
 mod shapes;
+mod trolley;
 
 use std::fmt;
 use std::str::FromStr;
@@ -21,6 +22,8 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+
+pub use trolley::{Executed, SimArm};
 
 use generate::{Plant, Solid, FLOOR_ALBEDO};
 use shapes::{Bvh, Ray, Shape};
@@ -248,9 +251,26 @@ impl Scene {
         self.plants.iter().map(|p| p.base_in_world).collect()
     }
 
-    /// Where the camera centre may be placed (a box standing in for the arm's reachability).
+    /// Where the camera centre may be placed (a box around the arm's reach, for sampling).
     pub fn camera_workspace(&self) -> Aabb {
         self.camera_workspace
+    }
+
+    /// Clearance the arm keeps from the mount's structure when placed at the initial view.
+    pub const ARM_CLEARANCE_M: f64 = 0.02;
+
+    /// The UR5e on this scenario's mount: the static pole at the origin (1), the ceiling gantry
+    /// over the 2 x 2 m square (2), or the rail trolley along the row, its travel spanning the
+    /// row's workspace (row).
+    pub fn robot(&self) -> glasshouse_arm::Robot {
+        match self.kind {
+            ScenarioKind::One => glasshouse_arm::Robot::scenario_one(),
+            ScenarioKind::Two => glasshouse_arm::Robot::scenario_two(),
+            ScenarioKind::Row => glasshouse_arm::Robot::row(glasshouse_arm::Interval::new(
+                self.camera_workspace.min.x,
+                self.camera_workspace.max.x,
+            )),
+        }
     }
 
     /// The plants' bounding box inflated by 10 cm: where view targets may lie.
@@ -422,6 +442,7 @@ impl Scene {
     /// direction first, and keeps the first free one that sees enough fruit.
     fn choose_initial_pose(&self) -> Isometry3<f64> {
         let probe = CameraModel::with_resolution(160, 120);
+        let robot = self.robot();
         let ws = self.camera_workspace;
         let fallback = look_at(&ws.centre(), &self.sampling_region.centre());
         let Some(plant) = self
@@ -477,6 +498,9 @@ impl Scene {
                     continue;
                 }
                 let pose = look_at(&eye, &target);
+                if robot.pose_at(&pose, &[], Self::ARM_CLEARANCE_M).is_err() {
+                    continue;
+                }
                 let seen: u32 = self.fruit_pixel_counts(&probe, &pose).iter().sum();
                 if seen >= 40 {
                     return pose;

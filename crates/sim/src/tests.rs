@@ -458,3 +458,58 @@ fn bad_camera_inputs_do_not_panic() {
     );
     assert!(empty.depth_m.is_empty() && empty.rgb.is_empty());
 }
+
+#[test]
+fn the_arm_reaches_the_initial_view_of_every_scenario() {
+    for kind in [ScenarioKind::One, ScenarioKind::Two, ScenarioKind::Row] {
+        for seed in 1..=6 {
+            let scene = Scene::generate(kind, seed);
+            let robot = scene.robot();
+            let pose = robot
+                .pose_at(&scene.initial_camera_pose(), &[], Scene::ARM_CLEARANCE_M)
+                .unwrap_or_else(|e| panic!("scenario {kind} seed {seed}: {e}"));
+            let reached = robot
+                .world_from_camera(&pose.joints, &pose.mount)
+                .expect("fk");
+            let goal = scene.initial_camera_pose();
+            assert!((reached.translation.vector - goal.translation.vector).norm() < 1e-6);
+        }
+    }
+}
+
+#[test]
+fn the_simulated_arm_executes_the_first_reachable_view_and_stays_put_otherwise() {
+    let scene = Scene::generate(ScenarioKind::One, 2);
+    let mut arm = SimArm::new(&scene).unwrap();
+    let start = arm.world_from_camera();
+    assert!(
+        (start.translation.vector - scene.initial_camera_pose().translation.vector).norm() < 1e-6
+    );
+    // Out of reach, inside the pole, then a view the arm reaches beside the pole.
+    let far = look_at(&Point3::new(3.0, 0.0, 1.0), &Point3::new(4.0, 0.0, 1.0));
+    let in_pole = look_at(&Point3::new(0.0, 0.0, 0.5), &Point3::new(1.0, 0.0, 0.5));
+    let near_eye = start.translation.vector + Vector3::new(0.0, 0.0, 0.05);
+    let near = look_at(
+        &Point3::from(near_eye),
+        &Point3::from(near_eye + scene_axis(&start)),
+    );
+    let done = arm
+        .execute_first_reachable(&scene, &[far, in_pole, near])
+        .expect("the near view is reachable");
+    assert_eq!(done.index, 2);
+    assert!(
+        done.motion_s > 0.0 && done.motion_s < 10.0,
+        "{}",
+        done.motion_s
+    );
+    assert!((arm.world_from_camera().translation.vector - near_eye).norm() < 1e-6);
+    let before = *arm.pose();
+    assert!(arm
+        .execute_first_reachable(&scene, &[far, in_pole])
+        .is_none());
+    assert_eq!(*arm.pose(), before);
+}
+
+fn scene_axis(pose: &Isometry3<f64>) -> Vector3<f64> {
+    glasshouse_geom::optical_axis(pose)
+}

@@ -1,0 +1,353 @@
+//! Ground-truth matching and the metrics of the paper's Table I (paper-method §5).
+//!
+//! - **Matching**: every estimate-truth centre distance, taken greedily from the smallest (ties:
+//!   lower estimate index, then lower truth index), one to one, up to
+//!   [`MATCH_DISTANCE_M`] inclusive.
+//! - **Detected ROIs**: matched pairs.
+//! - **Centre distance**: mean distance of matched pairs, in centimetres.
+//! - **Volume accuracy**: mean over matched pairs of `1 − |V_det − V_gt| / V_gt` (box volumes);
+//!   also the mean over the pairs whose accuracy is `> 0.5` only (the rule of the published
+//!   plots).
+//! - **Covered ROI volume**: `|voxels of the estimated boxes ∩ voxels of the truth boxes| /
+//!   |voxels of the truth boxes|`, where a box's voxels are those whose centres lie inside it
+//!   (the rule of [`FruitTruth::voxel_keys`]) and both sides are unions over all boxes.
+//!
+//! Means over an empty set are NaN ("no value"), never 0, so they cannot pass for a result.
+
+use std::collections::HashSet;
+
+use glasshouse_sim::FruitTruth;
+use nalgebra::Point3;
+use serde::Serialize;
+
+/// Largest centre distance of a matched pair (paper: 0.20 m).
+pub const MATCH_DISTANCE_M: f64 = 0.20;
+
+/// One fruit estimate as the metrics see it: a centre and an axis-aligned box.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct BoxEstimate {
+    pub centre: Point3<f64>,
+    pub min: Point3<f64>,
+    pub max: Point3<f64>,
+    /// The volume compared with the truth's box volume.
+    pub volume_m3: f64,
+}
+
+/// A matched estimate-truth pair (indices into the inputs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Match {
+    pub estimate: usize,
+    pub truth: usize,
+    pub distance_m: f64,
+}
+
+/// Greedy one-to-one matching of centres, smallest distance first, up to `max_distance_m`
+/// inclusive. Pairs with a non-finite distance never match. The result is sorted by distance.
+pub fn greedy_match(
+    estimates: &[Point3<f64>],
+    truths: &[Point3<f64>],
+    max_distance_m: f64,
+) -> Vec<Match> {
+    let mut pairs: Vec<Match> = Vec::new();
+    for (estimate, e) in estimates.iter().enumerate() {
+        for (truth, t) in truths.iter().enumerate() {
+            let distance_m = (e - t).norm();
+            if distance_m.is_finite() && distance_m <= max_distance_m {
+                pairs.push(Match {
+                    estimate,
+                    truth,
+                    distance_m,
+                });
+            }
+        }
+    }
+    pairs.sort_by(|a, b| {
+        a.distance_m
+            .total_cmp(&b.distance_m)
+            .then(a.estimate.cmp(&b.estimate))
+            .then(a.truth.cmp(&b.truth))
+    });
+    let mut estimate_taken = vec![false; estimates.len()];
+    let mut truth_taken = vec![false; truths.len()];
+    let mut out = Vec::new();
+    for p in pairs {
+        if !estimate_taken[p.estimate] && !truth_taken[p.truth] {
+            estimate_taken[p.estimate] = true;
+            truth_taken[p.truth] = true;
+            out.push(p);
+        }
+    }
+    out
+}
+
+/// `1 − |V_det − V_gt| / V_gt`; NaN when `V_gt` is not positive.
+pub fn volume_accuracy(detected_m3: f64, truth_m3: f64) -> f64 {
+    if truth_m3 > 0.0 {
+        1.0 - (detected_m3 - truth_m3).abs() / truth_m3
+    } else {
+        f64::NAN
+    }
+}
+
+/// Voxel keys whose centres `(k + 0.5)·res` lie inside `[min, max]` (as [`FruitTruth::voxel_keys`]).
+pub fn box_voxel_keys(min: &Point3<f64>, max: &Point3<f64>, resolution_m: f64) -> Vec<[i32; 3]> {
+    if !(resolution_m.is_finite() && resolution_m > 0.0) {
+        return Vec::new();
+    }
+    let range = |i: usize| {
+        let lo = (min[i] / resolution_m - 0.5).ceil();
+        let hi = (max[i] / resolution_m - 0.5).floor();
+        // Non-finite or absurd boxes give no voxels rather than a huge loop.
+        if !(lo.is_finite() && hi.is_finite()) || hi - lo > 10_000.0 {
+            return None;
+        }
+        Some(lo as i32..=hi as i32)
+    };
+    let (Some(xs), Some(ys), Some(zs)) = (range(0), range(1), range(2)) else {
+        return Vec::new();
+    };
+    let mut keys = Vec::new();
+    for x in xs {
+        for y in ys.clone() {
+            for z in zs.clone() {
+                keys.push([x, y, z]);
+            }
+        }
+    }
+    keys
+}
+
+/// Covered ROI volume (see the module docs); NaN when the truth has no voxels.
+pub fn covered_volume(estimates: &[BoxEstimate], truths: &[FruitTruth], resolution_m: f64) -> f64 {
+    let truth: HashSet<[i32; 3]> = truths
+        .iter()
+        .flat_map(|t| t.voxel_keys(resolution_m))
+        .collect();
+    if truth.is_empty() {
+        return f64::NAN;
+    }
+    let detected: HashSet<[i32; 3]> = estimates
+        .iter()
+        .flat_map(|e| box_voxel_keys(&e.min, &e.max, resolution_m))
+        .collect();
+    let covered = detected.iter().filter(|k| truth.contains(*k)).count();
+    covered as f64 / truth.len() as f64
+}
+
+/// Mean of the values; NaN for none.
+pub fn mean(values: &[f64]) -> f64 {
+    if values.is_empty() {
+        f64::NAN
+    } else {
+        values.iter().sum::<f64>() / values.len() as f64
+    }
+}
+
+/// The Table I metrics of one set of estimates at one instant.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Metrics {
+    /// Matched pairs.
+    pub detected: usize,
+    /// Mean centre distance of matched pairs in cm (NaN without pairs).
+    pub center_distance_cm: f64,
+    /// Mean volume accuracy over matched pairs (NaN without pairs).
+    pub volume_accuracy: f64,
+    /// Mean volume accuracy over matched pairs with accuracy > 0.5 (NaN without such pairs).
+    pub volume_accuracy_gt05: f64,
+    /// Covered ROI volume in [0, 1].
+    pub covered_volume: f64,
+}
+
+impl Metrics {
+    /// The metrics of no estimates at all.
+    pub fn empty(truths: &[FruitTruth], resolution_m: f64) -> Self {
+        evaluate(&[], truths, resolution_m)
+    }
+}
+
+/// All metrics of `estimates` against `truths` (voxels of `resolution_m` for the covered volume).
+pub fn evaluate(estimates: &[BoxEstimate], truths: &[FruitTruth], resolution_m: f64) -> Metrics {
+    let centres: Vec<Point3<f64>> = estimates.iter().map(|e| e.centre).collect();
+    let truth_centres: Vec<Point3<f64>> = truths.iter().map(|t| t.centre).collect();
+    let matches = greedy_match(&centres, &truth_centres, MATCH_DISTANCE_M);
+    let distances: Vec<f64> = matches.iter().map(|m| m.distance_m * 100.0).collect();
+    let accuracies: Vec<f64> = matches
+        .iter()
+        .map(|m| volume_accuracy(estimates[m.estimate].volume_m3, truths[m.truth].volume_m3))
+        .collect();
+    let above: Vec<f64> = accuracies.iter().copied().filter(|a| *a > 0.5).collect();
+    Metrics {
+        detected: matches.len(),
+        center_distance_cm: mean(&distances),
+        volume_accuracy: mean(&accuracies),
+        volume_accuracy_gt05: mean(&above),
+        covered_volume: covered_volume(estimates, truths, resolution_m),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use nalgebra::Vector3;
+
+    fn p(x: f64, y: f64, z: f64) -> Point3<f64> {
+        Point3::new(x, y, z)
+    }
+
+    fn truth(id: u32, centre: Point3<f64>, half: f64) -> FruitTruth {
+        FruitTruth {
+            id,
+            centre,
+            half_extents_m: Vector3::repeat(half),
+            volume_m3: 8.0 * half.powi(3),
+        }
+    }
+
+    fn estimate(centre: Point3<f64>, half: f64) -> BoxEstimate {
+        BoxEstimate {
+            centre,
+            min: centre - Vector3::repeat(half),
+            max: centre + Vector3::repeat(half),
+            volume_m3: 8.0 * half.powi(3),
+        }
+    }
+
+    #[test]
+    fn greedy_matching_takes_smallest_distances_first_one_to_one() {
+        // e0 is 0.05 from t0 and 0.06 from t1; e1 is 0.04 from t0 and 0.30 from t1.
+        // Greedy: (e1, t0, 0.04) first; then e0 can only take t1 (0.06).
+        let truths = [p(0.0, 0.0, 0.0), p(0.11, 0.0, 0.0)];
+        let estimates = [p(0.05, 0.0, 0.0), p(-0.04, 0.0, 0.0)];
+        let m = greedy_match(&estimates, &truths, 0.2);
+        assert_eq!(m.len(), 2);
+        assert_eq!((m[0].estimate, m[0].truth), (1, 0));
+        assert!((m[0].distance_m - 0.04).abs() < 1e-12);
+        assert_eq!((m[1].estimate, m[1].truth), (0, 1));
+        assert!((m[1].distance_m - 0.06).abs() < 1e-12);
+    }
+
+    #[test]
+    fn matching_respects_the_distance_limit_inclusively_and_one_to_one() {
+        let truths = [p(0.0, 0.0, 0.0)];
+        // Two estimates for one fruit: only the nearer matches.
+        let m = greedy_match(&[p(0.1, 0.0, 0.0), p(0.0, 0.05, 0.0)], &truths, 0.2);
+        assert_eq!(m.len(), 1);
+        assert_eq!(m[0].estimate, 1);
+        // Exactly at the limit matches, beyond it does not.
+        assert_eq!(greedy_match(&[p(0.25, 0.0, 0.0)], &truths, 0.25).len(), 1);
+        assert!(greedy_match(&[p(0.2000001, 0.0, 0.0)], &truths, 0.2).is_empty());
+        // Non-finite centres never match; empty inputs give nothing.
+        assert!(greedy_match(&[p(f64::NAN, 0.0, 0.0)], &truths, 0.2).is_empty());
+        assert!(greedy_match(&[], &truths, 0.2).is_empty());
+        assert!(greedy_match(&truths, &[], 0.2).is_empty());
+        // Equal distances: the lower estimate index wins.
+        let m = greedy_match(&[p(0.1, 0.0, 0.0), p(-0.1, 0.0, 0.0)], &truths, 0.2);
+        assert_eq!(m[0].estimate, 0);
+    }
+
+    #[test]
+    fn volume_accuracy_is_one_minus_relative_error() {
+        assert_eq!(volume_accuracy(1.0, 1.0), 1.0);
+        assert!((volume_accuracy(0.5, 1.0) - 0.5).abs() < 1e-12);
+        assert!((volume_accuracy(1.25, 1.0) - 0.75).abs() < 1e-12);
+        // More than twice the truth goes negative.
+        assert!((volume_accuracy(3.0, 1.0) + 1.0).abs() < 1e-12);
+        assert!(volume_accuracy(1.0, 0.0).is_nan());
+    }
+
+    #[test]
+    fn box_voxels_follow_the_truth_rule() {
+        let t = truth(0, p(0.1, 0.2, 0.3), 0.02);
+        let mut a = t.voxel_keys(0.01);
+        let mut b = box_voxel_keys(&t.aabb().min, &t.aabb().max, 0.01);
+        a.sort_unstable();
+        b.sort_unstable();
+        assert_eq!(a, b);
+        assert_eq!(a.len(), 4 * 4 * 4);
+        assert!(box_voxel_keys(&p(0.0, 0.0, 0.0), &p(f64::NAN, 1.0, 1.0), 0.01).is_empty());
+        assert!(box_voxel_keys(&p(0.0, 0.0, 0.0), &p(1.0, 1.0, 1.0), 0.0).is_empty());
+        // An inverted box has no voxels.
+        assert!(box_voxel_keys(&p(0.1, 0.0, 0.0), &p(0.0, 1.0, 1.0), 0.01).is_empty());
+    }
+
+    #[test]
+    fn covered_volume_counts_the_union_intersection() {
+        // Truth: a 4x4x4-voxel box (64 voxels) at the origin corner.
+        let truths = [truth(0, p(0.02, 0.02, 0.02), 0.02)];
+        // An estimate covering the lower half in x (32 voxels) and one overlapping it entirely
+        // (counted once) plus an estimate far away (no overlap).
+        let half = BoxEstimate {
+            centre: p(0.01, 0.02, 0.02),
+            min: p(0.0, 0.0, 0.0),
+            max: p(0.02, 0.04, 0.04),
+            volume_m3: 0.0,
+        };
+        let inner = BoxEstimate {
+            min: p(0.0, 0.0, 0.0),
+            max: p(0.02, 0.02, 0.04),
+            ..half
+        };
+        let far = estimate(p(1.0, 1.0, 1.0), 0.02);
+        let c = covered_volume(&[half, inner, far], &truths, 0.01);
+        assert!((c - 0.5).abs() < 1e-12, "{c}");
+        assert_eq!(covered_volume(&[], &truths, 0.01), 0.0);
+        assert!(covered_volume(&[half], &[], 0.01).is_nan());
+        // A box larger than the truth covers it all, never more than 1.
+        let big = estimate(p(0.02, 0.02, 0.02), 0.1);
+        assert_eq!(covered_volume(&[big], &truths, 0.01), 1.0);
+    }
+
+    #[test]
+    fn evaluate_computes_every_metric() {
+        let truths = [
+            truth(0, p(0.0, 0.0, 1.0), 0.02),
+            truth(1, p(0.5, 0.0, 1.0), 0.02),
+            truth(2, p(1.0, 0.0, 1.0), 0.02),
+        ];
+        let v = 8.0 * 0.02f64.powi(3);
+        let estimates = [
+            // 1 cm off, exact volume: accuracy 1.
+            BoxEstimate {
+                volume_m3: v,
+                ..estimate(p(0.01, 0.0, 1.0), 0.02)
+            },
+            // 3 cm off, 40 % of the volume: accuracy 0.4 (dropped by the > 0.5 rule).
+            BoxEstimate {
+                volume_m3: 0.4 * v,
+                ..estimate(p(0.5, 0.03, 1.0), 0.02)
+            },
+            // 30 cm from everything: unmatched.
+            estimate(p(1.0, 0.3, 1.0), 0.02),
+        ];
+        let m = evaluate(&estimates, &truths, 0.01);
+        assert_eq!(m.detected, 2);
+        assert!((m.center_distance_cm - 2.0).abs() < 1e-9, "{m:?}");
+        assert!((m.volume_accuracy - 0.7).abs() < 1e-9, "{m:?}");
+        assert!((m.volume_accuracy_gt05 - 1.0).abs() < 1e-9, "{m:?}");
+        assert!(m.covered_volume > 0.0 && m.covered_volume < 1.0, "{m:?}");
+        let empty = Metrics::empty(&truths, 0.01);
+        assert_eq!(empty.detected, 0);
+        assert!(empty.center_distance_cm.is_nan() && empty.volume_accuracy.is_nan());
+        assert!(empty.volume_accuracy_gt05.is_nan());
+        assert_eq!(empty.covered_volume, 0.0);
+    }
+
+    #[test]
+    fn evaluate_covered_volume_of_exact_boxes_is_one() {
+        let truths = [
+            truth(0, p(0.105, 0.0, 1.0), 0.03),
+            truth(1, p(0.5, 0.0, 1.0), 0.025),
+        ];
+        let estimates: Vec<BoxEstimate> = truths
+            .iter()
+            .map(|t| estimate(t.centre, t.half_extents_m.x))
+            .collect();
+        let m = evaluate(&estimates, &truths, 0.01);
+        assert_eq!(m.detected, 2);
+        assert_eq!(m.covered_volume, 1.0);
+        assert!(m.center_distance_cm.abs() < 1e-12);
+        assert!((m.volume_accuracy - 1.0).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,481 @@
+//! What an experiment writes: per-trial CSV, Table I in markdown, p-values, `summary.json`, and
+//! the mean curves the plots draw. Pure functions from trial results to strings and values.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+use glasshouse_nbv::Method;
+use serde_json::{json, Map, Value};
+
+use crate::stats::{mann_whitney_u, mean_std, Alternative};
+use crate::trial::{Sample, TrialResult};
+
+/// One reported metric: its key, its Table I label and which direction is better.
+#[derive(Clone, Copy, Debug)]
+pub struct MetricDef {
+    pub key: &'static str,
+    pub label: &'static str,
+    pub higher_is_better: bool,
+    /// Decimals in the table.
+    pub decimals: usize,
+    pub value: fn(&Sample) -> f64,
+}
+
+/// The metrics reported at the end of the budget, in table order. `volume_accuracy` keeps every
+/// matched pair; the `_gt05` variants keep pairs with accuracy > 0.5 only (the published plots'
+/// rule). `_fitted` variants use the fitted ellipsoid estimates (centre; box around it; its box
+/// volume `8·a·b·c`, comparable with the truth's box volume).
+pub const METRICS: [MetricDef; 10] = [
+    MetricDef {
+        key: "detected",
+        label: "detected ROIs",
+        higher_is_better: true,
+        decimals: 1,
+        value: |s| s.boxes.detected as f64,
+    },
+    MetricDef {
+        key: "covered_volume",
+        label: "covered ROI volume",
+        higher_is_better: true,
+        decimals: 2,
+        value: |s| s.boxes.covered_volume,
+    },
+    MetricDef {
+        key: "center_distance_cm",
+        label: "centre distance (cm)",
+        higher_is_better: false,
+        decimals: 2,
+        value: |s| s.boxes.center_distance_cm,
+    },
+    MetricDef {
+        key: "volume_accuracy",
+        label: "volume accuracy",
+        higher_is_better: true,
+        decimals: 2,
+        value: |s| s.boxes.volume_accuracy,
+    },
+    MetricDef {
+        key: "volume_accuracy_gt05",
+        label: "volume accuracy (pairs > 0.5)",
+        higher_is_better: true,
+        decimals: 2,
+        value: |s| s.boxes.volume_accuracy_gt05,
+    },
+    MetricDef {
+        key: "volume_accuracy_fitted",
+        label: "volume accuracy, fitted",
+        higher_is_better: true,
+        decimals: 2,
+        value: |s| s.fitted.volume_accuracy,
+    },
+    MetricDef {
+        key: "volume_accuracy_fitted_gt05",
+        label: "volume accuracy, fitted (pairs > 0.5)",
+        higher_is_better: true,
+        decimals: 2,
+        value: |s| s.fitted.volume_accuracy_gt05,
+    },
+    MetricDef {
+        key: "detected_fitted",
+        label: "detected ROIs, fitted",
+        higher_is_better: true,
+        decimals: 1,
+        value: |s| s.fitted.detected as f64,
+    },
+    MetricDef {
+        key: "covered_volume_fitted",
+        label: "covered ROI volume, fitted",
+        higher_is_better: true,
+        decimals: 2,
+        value: |s| s.fitted.covered_volume,
+    },
+    MetricDef {
+        key: "center_distance_cm_fitted",
+        label: "centre distance (cm), fitted",
+        higher_is_better: false,
+        decimals: 2,
+        value: |s| s.fitted.center_distance_cm,
+    },
+];
+
+/// The trials of one method, in trial order.
+#[derive(Clone, Debug)]
+pub struct MethodRuns {
+    pub method: Method,
+    pub trials: Vec<TrialResult>,
+}
+
+impl MethodRuns {
+    /// The metric at the end of the budget, one value per trial (NaN = no value).
+    pub fn final_values(&self, metric: &MetricDef) -> Vec<f64> {
+        self.trials
+            .iter()
+            .map(|t| t.last().map_or(f64::NAN, metric.value))
+            .collect()
+    }
+}
+
+/// The paper's label of a method, e.g. `Ours-U_P`.
+pub fn method_label(method: Method) -> &'static str {
+    match method {
+        Method::OursUu => "Ours-U_U",
+        Method::OursUp => "Ours-U_P",
+        Method::ExploUu => "Explo-U_U",
+        Method::ExploUp => "Explo-U_P",
+    }
+}
+
+/// Header of the per-trial CSV.
+pub const CSV_HEADER: &str = "time_s,views,frames,estimates,mean_confidence,\
+detected,center_distance_cm,volume_accuracy,volume_accuracy_gt05,covered_volume,\
+fitted_detected,fitted_center_distance_cm,fitted_volume_accuracy,fitted_volume_accuracy_gt05,fitted_covered_volume";
+
+/// A number for CSV: empty for NaN, otherwise fixed 6 decimals (bit-stable across runs).
+fn csv_num(v: f64) -> String {
+    if v.is_nan() {
+        String::new()
+    } else {
+        format!("{v:.6}")
+    }
+}
+
+/// The per-second samples of one trial as CSV.
+pub fn trial_csv(result: &TrialResult) -> String {
+    let mut out = String::from(CSV_HEADER);
+    out.push('\n');
+    for s in &result.samples {
+        let _ = writeln!(
+            out,
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            s.time_s,
+            s.views,
+            s.frames,
+            s.estimates,
+            csv_num(s.mean_confidence),
+            s.boxes.detected,
+            csv_num(s.boxes.center_distance_cm),
+            csv_num(s.boxes.volume_accuracy),
+            csv_num(s.boxes.volume_accuracy_gt05),
+            csv_num(s.boxes.covered_volume),
+            s.fitted.detected,
+            csv_num(s.fitted.center_distance_cm),
+            csv_num(s.fitted.volume_accuracy),
+            csv_num(s.fitted.volume_accuracy_gt05),
+            csv_num(s.fitted.covered_volume),
+        );
+    }
+    out
+}
+
+/// `"ours-uu > explo-uu"` (or `<` for lower-is-better metrics) → one-sided p-value that the Ours
+/// method is better, per metric. Pairs without values on either side are left out.
+pub fn p_values(runs: &[MethodRuns]) -> BTreeMap<&'static str, BTreeMap<String, f64>> {
+    let mut out = BTreeMap::new();
+    for metric in &METRICS {
+        let mut per_pair = BTreeMap::new();
+        for ours in runs.iter().filter(|r| r.method.uses_roi_sampling()) {
+            for explo in runs.iter().filter(|r| !r.method.uses_roi_sampling()) {
+                let (alternative, sign) = if metric.higher_is_better {
+                    (Alternative::Greater, ">")
+                } else {
+                    (Alternative::Less, "<")
+                };
+                if let Some(test) = mann_whitney_u(
+                    &ours.final_values(metric),
+                    &explo.final_values(metric),
+                    alternative,
+                ) {
+                    per_pair.insert(
+                        format!("{} {sign} {}", ours.method, explo.method),
+                        test.p_value,
+                    );
+                }
+            }
+        }
+        out.insert(metric.key, per_pair);
+    }
+    out
+}
+
+fn number(v: f64) -> Value {
+    serde_json::Number::from_f64(v).map_or(Value::Null, Value::Number)
+}
+
+/// `summary.json`: per method and metric the mean and sample std over trials at the end of the
+/// budget (`null` without values), `fruits_total` (fruits per scene, the mean over trials when
+/// scenes differ), `p_values` (see [`p_values`]) and the run's settings under `settings`.
+pub fn summary_json(runs: &[MethodRuns], settings: Value) -> Value {
+    let mut root = Map::new();
+    let mut fruit_counts = Vec::new();
+    for run in runs {
+        let mut metrics = Map::new();
+        for metric in &METRICS {
+            let entry = match mean_std(&run.final_values(metric)) {
+                Some(m) => json!({"mean": number(m.mean), "std": number(m.std), "n": m.n}),
+                None => json!({"mean": null, "std": null, "n": 0}),
+            };
+            metrics.insert(metric.key.to_string(), entry);
+        }
+        let views: Vec<f64> = run.trials.iter().map(|t| f64::from(t.views)).collect();
+        if let Some(m) = mean_std(&views) {
+            metrics.insert(
+                "views".into(),
+                json!({"mean": number(m.mean), "std": number(m.std), "n": m.n}),
+            );
+        }
+        fruit_counts.extend(run.trials.iter().map(|t| t.fruits_total as f64));
+        root.insert(run.method.to_string(), Value::Object(metrics));
+    }
+    let fruits_total = match mean_std(&fruit_counts) {
+        Some(m) if m.std == 0.0 => json!(m.mean as u64),
+        Some(m) => number(m.mean),
+        None => json!(0),
+    };
+    root.insert("fruits_total".into(), fruits_total);
+    let p = p_values(runs);
+    let p_json: Map<String, Value> = p
+        .into_iter()
+        .map(|(metric, pairs)| {
+            let pairs: Map<String, Value> =
+                pairs.into_iter().map(|(k, v)| (k, number(v))).collect();
+            (metric.to_string(), Value::Object(pairs))
+        })
+        .collect();
+    root.insert("p_values".into(), Value::Object(p_json));
+    root.insert("settings".into(), settings);
+    Value::Object(root)
+}
+
+fn cell(values: &[f64], decimals: usize) -> String {
+    match mean_std(values) {
+        Some(m) => format!("{:.*} ± {:.*}", decimals, m.mean, decimals, m.std),
+        None => "–".to_string(),
+    }
+}
+
+/// Table I in markdown (mean ± std over trials at the end of the budget), then the p-values.
+pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> String {
+    let mut out = String::new();
+    let trials = runs.first().map_or(0, |r| r.trials.len());
+    let _ = writeln!(
+        out,
+        "# Table I: scenario {scenario}, {trials} trials per method, {budget_s} s budget\n"
+    );
+    let _ = writeln!(
+        out,
+        "Mean ± sample standard deviation over trials of the metrics at the end of the budget \
+         (paper-method §5). The first four rows are the paper's Table I; the others add the \
+         > 0.5 rule of the published plots and the fitted ellipsoid estimates.\n"
+    );
+    let _ = write!(out, "| scenario | metric |");
+    for r in runs {
+        let _ = write!(out, " {} |", method_label(r.method));
+    }
+    let _ = write!(out, "\n|---|---|");
+    for _ in runs {
+        let _ = write!(out, "---|");
+    }
+    out.push('\n');
+    for metric in &METRICS {
+        let _ = write!(out, "| {scenario} | {} |", metric.label);
+        for r in runs {
+            let _ = write!(out, " {} |", cell(&r.final_values(metric), metric.decimals));
+        }
+        out.push('\n');
+    }
+    let _ = write!(out, "| {scenario} | views executed |");
+    for r in runs {
+        let views: Vec<f64> = r.trials.iter().map(|t| f64::from(t.views)).collect();
+        let _ = write!(out, " {} |", cell(&views, 1));
+    }
+    out.push('\n');
+
+    let p = p_values(runs);
+    let pairs: Vec<(Method, Method)> = runs
+        .iter()
+        .filter(|o| o.method.uses_roi_sampling())
+        .flat_map(|o| {
+            runs.iter()
+                .filter(|e| !e.method.uses_roi_sampling())
+                .map(move |e| (o.method, e.method))
+        })
+        .collect();
+    if !pairs.is_empty() {
+        let _ = writeln!(
+            out,
+            "\n## One-sided Mann-Whitney U p-values (Ours better than Explo)\n\n\
+             Alternative: the Ours method's values are larger (smaller for centre distance).\n"
+        );
+        let _ = write!(out, "| metric |");
+        for (ours, explo) in &pairs {
+            let _ = write!(out, " {ours} vs {explo} |");
+        }
+        let _ = write!(out, "\n|---|");
+        for _ in &pairs {
+            let _ = write!(out, "---|");
+        }
+        out.push('\n');
+        for metric in &METRICS {
+            let _ = write!(out, "| {} |", metric.label);
+            let sign = if metric.higher_is_better { ">" } else { "<" };
+            for (ours, explo) in &pairs {
+                let key = format!("{ours} {sign} {explo}");
+                match p.get(metric.key).and_then(|r| r.get(&key)) {
+                    Some(v) => {
+                        let _ = write!(out, " {v:.4} |");
+                    }
+                    None => {
+                        let _ = write!(out, " – |");
+                    }
+                }
+            }
+            out.push('\n');
+        }
+    }
+    out
+}
+
+/// Mean over trials of a per-second value (NaN values skipped; NaN when none), index = second.
+pub fn mean_curve(trials: &[TrialResult], value: fn(&Sample) -> f64) -> Vec<f64> {
+    let len = trials.iter().map(|t| t.samples.len()).max().unwrap_or(0);
+    (0..len)
+        .map(|i| {
+            let values: Vec<f64> = trials
+                .iter()
+                .filter_map(|t| t.samples.get(i).map(value))
+                .collect();
+            mean_std(&values).map_or(f64::NAN, |m| m.mean)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use crate::metrics::Metrics;
+    use crate::trial::{ComputeTime, TrialConfig};
+    use glasshouse_sim::ScenarioKind;
+
+    fn metrics(detected: usize, cov: f64) -> Metrics {
+        Metrics {
+            detected,
+            center_distance_cm: if detected > 0 { 2.0 } else { f64::NAN },
+            volume_accuracy: 0.5,
+            volume_accuracy_gt05: f64::NAN,
+            covered_volume: cov,
+        }
+    }
+
+    fn result(method: Method, detected: usize) -> TrialResult {
+        let sample = |t: u32, d: usize| Sample {
+            time_s: t,
+            views: t,
+            frames: u64::from(t),
+            estimates: d,
+            mean_confidence: 0.5,
+            boxes: metrics(d, 0.1 * d as f64),
+            fitted: metrics(d, 0.2 * d as f64),
+        };
+        TrialResult {
+            config: TrialConfig {
+                compute_time: ComputeTime::Fixed { ms: 1.0 },
+                ..TrialConfig::new(ScenarioKind::Two, method, 1)
+            },
+            samples: vec![sample(0, 0), sample(1, detected)],
+            fruits_total: 28,
+            views: 1,
+            frames: 2,
+            unreachable_views: 0,
+            compute_time_s: 0.002,
+            fruits: Vec::new(),
+        }
+    }
+
+    fn runs() -> Vec<MethodRuns> {
+        vec![
+            MethodRuns {
+                method: Method::OursUu,
+                trials: (0..5).map(|i| result(Method::OursUu, 5 + i)).collect(),
+            },
+            MethodRuns {
+                method: Method::ExploUu,
+                trials: (0..5).map(|i| result(Method::ExploUu, i)).collect(),
+            },
+        ]
+    }
+
+    #[test]
+    fn csv_has_a_row_per_second_and_empty_cells_for_no_value() {
+        let csv = trial_csv(&result(Method::OursUu, 3));
+        let lines: Vec<&str> = csv.lines().collect();
+        assert_eq!(lines.len(), 3);
+        assert_eq!(lines[0], CSV_HEADER);
+        let cols = CSV_HEADER.split(',').count();
+        assert!(lines.iter().all(|l| l.split(',').count() == cols));
+        assert!(lines[1].starts_with("0,0,0,0,0.500000,0,,0.500000,,0.000000,"));
+        assert!(lines[2].starts_with("1,1,1,3,0.500000,3,2.000000,"));
+    }
+
+    #[test]
+    fn summary_has_the_required_shape() {
+        let s = summary_json(&runs(), json!({"seed": 1}));
+        for m in ["ours-uu", "explo-uu"] {
+            for k in [
+                "detected",
+                "covered_volume",
+                "center_distance_cm",
+                "volume_accuracy",
+                "volume_accuracy_fitted",
+            ] {
+                assert!(
+                    s[m][k]["mean"].is_number() || s[m][k]["mean"].is_null(),
+                    "{m} {k}"
+                );
+                assert!(s[m][k].get("std").is_some());
+            }
+        }
+        assert_eq!(s["ours-uu"]["detected"]["mean"], 7.0);
+        assert_eq!(s["explo-uu"]["detected"]["mean"], 2.0);
+        assert!((s["ours-uu"]["detected"]["std"].as_f64().unwrap() - 2.5f64.sqrt()).abs() < 1e-12);
+        // No pair passed the > 0.5 rule: no value.
+        assert!(s["ours-uu"]["volume_accuracy_gt05"]["mean"].is_null());
+        assert_eq!(s["fruits_total"], 28);
+        // Ours 5..9 vs Explo 0..4: complete separation, exact p = 1 / C(10, 5).
+        let p = s["p_values"]["detected"]["ours-uu > explo-uu"]
+            .as_f64()
+            .unwrap();
+        assert!((p - 1.0 / 252.0).abs() < 1e-12, "{p}");
+        assert!(s["p_values"]["center_distance_cm"]
+            .get("ours-uu < explo-uu")
+            .is_some());
+        assert_eq!(s["settings"]["seed"], 1);
+    }
+
+    #[test]
+    fn table_lists_every_metric_and_method() {
+        let t = table_markdown("2", &runs(), 1.0);
+        assert!(t.contains("| scenario | metric | Ours-U_U | Explo-U_U |"));
+        assert!(
+            t.contains("| 2 | detected ROIs | 7.0 ± 1.6 | 2.0 ± 1.6 |"),
+            "{t}"
+        );
+        for m in &METRICS {
+            assert!(t.contains(m.label), "{}", m.label);
+        }
+        assert!(t.contains("ours-uu vs explo-uu"));
+        assert!(t.contains("| detected ROIs | 0.0040 |"), "{t}");
+    }
+
+    #[test]
+    fn mean_curves_average_per_second() {
+        let r = runs();
+        let c = mean_curve(&r[0].trials, |s| s.boxes.detected as f64);
+        assert_eq!(c, vec![0.0, 7.0]);
+        let c = mean_curve(&r[0].trials, |s| s.boxes.center_distance_cm);
+        assert!(c[0].is_nan());
+        assert_eq!(c[1], 2.0);
+        assert!(mean_curve(&[], |s| s.boxes.covered_volume).is_empty());
+    }
+}

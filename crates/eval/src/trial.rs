@@ -1,0 +1,649 @@
+//! One seeded trial: the services' loop (edge → detector → planner → edge) in one thread, with the
+//! simulated clock.
+//!
+//! Each step mirrors the services exactly:
+//!
+//! 1. **Edge**: render the simulator at the current pose with noise seed
+//!    `seed · 1 000 003 + frame_seq` and pack depth as millimetres ([`glasshouse_sim`]).
+//! 2. **Detector**: [`glasshouse_detect::detect`] with [`DetectorConfig::default`] (1 cm).
+//! 3. **Planner**: insert the cloud into a [`RoiMap`] (1 cm, range 2 m, the planner-service's
+//!    [`MapConfig`]), clusters of ≥ 10 voxels, [`FruitTracker`] ids, then [`plan_views`] seeded
+//!    with `seed · 0x9E37_79B9_7F4A_7C15 + frame_seq` as the planner-service does; then the
+//!    fitted shape of every cluster ([`glasshouse_nbv::fit`], outside the measured compute time).
+//! 4. **Edge**: execute the first view [`Motion`] can reach; none reachable costs a capture.
+//!
+//! The clock: frame 1 is captured at 0 s; the estimates of a frame are available once the
+//! planner's compute time has passed ([`ComputeTime`]); the next frame is captured after the
+//! motion and the capture time. Metrics are sampled at every whole simulated second from 0 to the
+//! budget, each holding the latest estimates available at that instant (carried across motions).
+
+use std::time::Instant;
+
+use glasshouse_detect::{detect, DepthFrame, DetectorConfig};
+use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, FittedShape};
+use glasshouse_nbv::{
+    plan_views, FruitEstimate, FruitTracker, Method, PlanError, PlannerConfig, PlanningContext,
+};
+use glasshouse_roimap::{MapConfig, MapError, RoiCluster, RoiMap};
+use glasshouse_sim::{CameraModel, ScenarioKind, Scene};
+use nalgebra::{Isometry3, Point3};
+use serde::Serialize;
+
+use crate::metrics::{evaluate, BoxEstimate, Metrics};
+
+/// Depth travels as millimetres between the edge and the detector.
+pub const DEPTH_SCALE_M: f32 = 0.001;
+
+/// Errors of a trial; configuration errors are found before anything runs.
+#[derive(thiserror::Error, Debug, Clone, PartialEq)]
+pub enum EvalError {
+    #[error("invalid trial configuration: {0}")]
+    InvalidConfig(String),
+    #[error(transparent)]
+    Map(#[from] MapError),
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    #[error("detection failed: {0}")]
+    Detect(#[from] glasshouse_detect::DetectError),
+}
+
+/// Which views the arm can execute and how long the motion takes. The free-camera rule of the edge
+/// today ([`FreeCameraMotion`]); an arm model can be swapped in.
+pub trait Motion {
+    /// Simulated seconds to move the camera from `from` to `to`, or `None` when `to` cannot be
+    /// reached.
+    fn motion_time_s(
+        &self,
+        scene: &Scene,
+        from: &Isometry3<f64>,
+        to: &Isometry3<f64>,
+    ) -> Option<f64>;
+}
+
+/// The edge's rule: a view is reachable when its camera position is free
+/// ([`Scene::is_camera_position_free`]: inside the camera workspace box and clear of every solid);
+/// the camera moves in a straight line at a constant speed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FreeCameraMotion {
+    pub camera_speed_m_per_s: f64,
+}
+
+impl Default for FreeCameraMotion {
+    /// The edge's default speed, 0.5 m/s.
+    fn default() -> Self {
+        Self {
+            camera_speed_m_per_s: 0.5,
+        }
+    }
+}
+
+impl Motion for FreeCameraMotion {
+    fn motion_time_s(
+        &self,
+        scene: &Scene,
+        from: &Isometry3<f64>,
+        to: &Isometry3<f64>,
+    ) -> Option<f64> {
+        let target = Point3::from(to.translation.vector);
+        if !(scene.camera_workspace().contains(&target) && scene.is_camera_position_free(&target)) {
+            return None;
+        }
+        let distance_m = (to.translation.vector - from.translation.vector).norm();
+        Some(distance_m / self.camera_speed_m_per_s)
+    }
+}
+
+/// How the planner's compute time enters the simulated clock.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub enum ComputeTime {
+    /// A fixed time per planning call: runs replay bit for bit.
+    Fixed { ms: f64 },
+    /// The wall time of the planner's work on a cloud (map insertion, clusters, ids and
+    /// planning; not the shape fits), measured by the runner; runs depend on the machine.
+    Measured,
+}
+
+/// Everything that defines a trial.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TrialConfig {
+    pub scenario: ScenarioKind,
+    pub method: Method,
+    /// Scene, camera-noise and planner seed (as `glasshouse demo --seed`).
+    pub seed: u64,
+    pub width: u32,
+    pub height: u32,
+    /// Simulated seconds of the trial.
+    pub budget_s: f64,
+    pub compute_time: ComputeTime,
+    /// Simulated seconds to capture one view (the edge's default, 0.5 s).
+    pub capture_time_s: f64,
+    pub resolution_m: f64,
+    /// Rays are integrated up to this range (the planner-service's default, 2 m).
+    pub max_range_m: f64,
+    pub min_cluster_voxels: usize,
+    pub fit: FitConfig,
+}
+
+impl TrialConfig {
+    /// The services' defaults for everything but the experiment's choices.
+    pub fn new(scenario: ScenarioKind, method: Method, seed: u64) -> Self {
+        Self {
+            scenario,
+            method,
+            seed,
+            width: 640,
+            height: 480,
+            budget_s: 180.0,
+            compute_time: ComputeTime::Measured,
+            capture_time_s: 0.5,
+            resolution_m: 0.01,
+            max_range_m: 2.0,
+            min_cluster_voxels: 10,
+            fit: FitConfig::default(),
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), EvalError> {
+        let bad = |m: &str| Err(EvalError::InvalidConfig(m.to_string()));
+        if !((16..=1280).contains(&self.width) && (12..=960).contains(&self.height)) {
+            return bad("image size outside 16x12..1280x960");
+        }
+        if !(self.budget_s.is_finite() && self.budget_s >= 0.0 && self.budget_s <= 86_400.0) {
+            return bad("budget must be within 0..=86400 s");
+        }
+        if !(self.capture_time_s.is_finite() && self.capture_time_s >= 0.0) {
+            return bad("capture time must be finite and >= 0");
+        }
+        if let ComputeTime::Fixed { ms } = self.compute_time {
+            if !(ms.is_finite() && ms >= 0.0) {
+                return bad("fixed compute time must be finite and >= 0");
+            }
+        }
+        // A trial must make progress: some simulated time per frame.
+        let fixed_zero = matches!(self.compute_time, ComputeTime::Fixed { ms } if ms <= 0.0);
+        if self.capture_time_s <= 0.0 && fixed_zero {
+            return bad("capture time and compute time cannot both be 0");
+        }
+        self.map_config().validate()?;
+        Ok(())
+    }
+
+    fn map_config(&self) -> MapConfig {
+        MapConfig {
+            resolution_m: self.resolution_m,
+            max_range_m: Some(self.max_range_m),
+            ..MapConfig::default()
+        }
+    }
+}
+
+/// The metrics at one whole simulated second.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Sample {
+    pub time_s: u32,
+    /// Views executed so far (motions started).
+    pub views: u32,
+    /// Frames whose estimates are available.
+    pub frames: u64,
+    /// Fruit estimates (clusters).
+    pub estimates: usize,
+    /// Mean confidence of the fitted estimates (NaN without estimates).
+    pub mean_confidence: f64,
+    /// Metrics of the box estimates (the paper's).
+    pub boxes: Metrics,
+    /// Metrics of the fitted estimates (their boxes and box volumes).
+    pub fitted: Metrics,
+}
+
+/// One fruit estimate with both shapes.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct FruitRecord {
+    pub estimate: FruitEstimate,
+    pub fitted: FittedShape,
+}
+
+impl FruitRecord {
+    pub fn box_estimate(&self) -> BoxEstimate {
+        BoxEstimate {
+            centre: self.estimate.centre,
+            min: self.estimate.min,
+            max: self.estimate.max,
+            volume_m3: self.estimate.volume_m3,
+        }
+    }
+
+    pub fn fitted_estimate(&self) -> BoxEstimate {
+        BoxEstimate {
+            centre: self.fitted.centre,
+            min: self.fitted.box_min,
+            max: self.fitted.box_max,
+            volume_m3: self.fitted.box_volume_m3,
+        }
+    }
+}
+
+/// What a finished trial reports.
+#[derive(Clone, Debug, Serialize)]
+pub struct TrialResult {
+    pub config: TrialConfig,
+    /// One per whole second from 0 to the budget.
+    pub samples: Vec<Sample>,
+    pub fruits_total: usize,
+    pub views: u32,
+    pub frames: u64,
+    pub unreachable_views: u64,
+    /// Sum of the compute times that entered the clock.
+    pub compute_time_s: f64,
+    /// The estimates at the end of the budget.
+    pub fruits: Vec<FruitRecord>,
+}
+
+impl TrialResult {
+    /// The sample at the end of the budget.
+    pub fn last(&self) -> Option<&Sample> {
+        self.samples.last()
+    }
+}
+
+/// The state the metrics see between two planning calls.
+#[derive(Clone, Debug)]
+struct Published {
+    frames: u64,
+    fruits: Vec<FruitRecord>,
+    boxes: Metrics,
+    fitted: Metrics,
+}
+
+/// A trial in progress (see the module docs).
+pub struct Trial<M: Motion> {
+    config: TrialConfig,
+    planner: PlannerConfig,
+    detector: DetectorConfig,
+    scene: Scene,
+    camera: CameraModel,
+    map: RoiMap,
+    tracker: FruitTracker,
+    motion: M,
+    pose: Isometry3<f64>,
+    /// Capture time of the next frame.
+    clock_s: f64,
+    frame_seq: u64,
+    views: u32,
+    unreachable_views: u64,
+    compute_time_s: f64,
+    published: Published,
+    samples: Vec<Sample>,
+    /// Whole seconds 0..=last_second are sampled.
+    last_second: u32,
+}
+
+impl<M: Motion> Trial<M> {
+    pub fn new(config: TrialConfig, motion: M) -> Result<Self, EvalError> {
+        config.validate()?;
+        let planner = PlannerConfig {
+            method: config.method,
+            ..PlannerConfig::default()
+        };
+        planner.validate()?;
+        let scene = Scene::generate(config.scenario, config.seed);
+        let camera = CameraModel::with_resolution(config.width, config.height);
+        let map = RoiMap::new(config.map_config())?;
+        let empty_boxes = Metrics::empty(scene.fruits(), config.resolution_m);
+        Ok(Self {
+            planner,
+            detector: DetectorConfig {
+                voxel_size_m: config.resolution_m,
+                ..DetectorConfig::default()
+            },
+            pose: scene.initial_camera_pose(),
+            scene,
+            camera,
+            map,
+            tracker: FruitTracker::default(),
+            motion,
+            clock_s: 0.0,
+            frame_seq: 0,
+            views: 0,
+            unreachable_views: 0,
+            compute_time_s: 0.0,
+            published: Published {
+                frames: 0,
+                fruits: Vec::new(),
+                boxes: empty_boxes,
+                fitted: empty_boxes,
+            },
+            samples: Vec::new(),
+            last_second: config.budget_s.floor() as u32,
+            config,
+        })
+    }
+
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    pub fn map(&self) -> &RoiMap {
+        &self.map
+    }
+
+    /// Capture time of the next frame (simulated seconds).
+    pub fn clock_s(&self) -> f64 {
+        self.clock_s
+    }
+
+    pub fn is_done(&self) -> bool {
+        self.clock_s > self.config.budget_s
+    }
+
+    /// Samples whole seconds before `until_s` (and not past the budget) with the published state.
+    fn sample_until(&mut self, until_s: f64) {
+        while let Some(next) = self.next_sample_second() {
+            if f64::from(next) >= until_s {
+                break;
+            }
+            let fruits = &self.published.fruits;
+            let confidences: Vec<f64> = fruits.iter().map(|f| f.fitted.confidence).collect();
+            self.samples.push(Sample {
+                time_s: next,
+                views: self.views,
+                frames: self.published.frames,
+                estimates: fruits.len(),
+                mean_confidence: crate::metrics::mean(&confidences),
+                boxes: self.published.boxes,
+                fitted: self.published.fitted,
+            });
+        }
+    }
+
+    fn next_sample_second(&self) -> Option<u32> {
+        let next = self.samples.len() as u32;
+        (next <= self.last_second).then_some(next)
+    }
+
+    /// The planner-service's work on one cloud: insert, clusters, ids, fits; then the plan.
+    fn plan_on(
+        &mut self,
+        cloud: &glasshouse_detect::LabelledCloud,
+    ) -> Result<(Vec<RoiCluster>, Vec<FruitEstimate>, glasshouse_nbv::Plan), EvalError> {
+        self.map.insert_scan(
+            &cloud.sensor_origin_in_world,
+            &cloud.points_in_world,
+            &cloud.roi,
+        )?;
+        let clusters = self.map.clusters(self.config.min_cluster_voxels);
+        let estimates = self.tracker.update(&clusters);
+        let ctx = PlanningContext {
+            map: &self.map,
+            world_from_camera: self.pose,
+            camera_workspace: self.scene.camera_workspace(),
+            sampling_region: self.scene.sampling_region(),
+        };
+        let plan_seed = self
+            .config
+            .seed
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            .wrapping_add(self.frame_seq);
+        let plan = plan_views(&ctx, &self.planner, plan_seed)?;
+        Ok((clusters, estimates, plan))
+    }
+
+    /// Both shapes of every fruit (the fits are not part of the planner's compute time: the
+    /// planner-service does not fit yet, and planning does not depend on them).
+    fn fruit_records(
+        &self,
+        clusters: &[RoiCluster],
+        estimates: Vec<FruitEstimate>,
+    ) -> Vec<FruitRecord> {
+        clusters
+            .iter()
+            .zip(estimates)
+            .map(|(cluster, estimate)| FruitRecord {
+                fitted: fit_ellipsoid(&self.map, cluster, &self.config.fit),
+                estimate,
+            })
+            .collect()
+    }
+
+    /// One capture → detect → plan → move cycle. Returns false once the budget is spent (the
+    /// remaining seconds are then sampled).
+    pub fn step(&mut self) -> Result<bool, EvalError> {
+        if self.is_done() {
+            self.sample_until(f64::INFINITY);
+            return Ok(false);
+        }
+        self.frame_seq += 1;
+        let noise_seed = self
+            .config
+            .seed
+            .wrapping_mul(1_000_003)
+            .wrapping_add(self.frame_seq);
+        let image = self.scene.render(&self.camera, &self.pose, noise_seed);
+        let depth = depth_as_millimetres(&image.depth_m);
+        let frame = DepthFrame {
+            intrinsics: image.intrinsics,
+            depth: &depth,
+            depth_scale_m: f64::from(DEPTH_SCALE_M),
+            rgb: &image.rgb,
+        };
+        let cloud = detect(&frame, &self.pose, &self.detector)?;
+
+        let started = Instant::now();
+        let (clusters, estimates, plan) = self.plan_on(&cloud)?;
+        let compute_s = match self.config.compute_time {
+            ComputeTime::Fixed { ms } => ms / 1e3,
+            ComputeTime::Measured => started.elapsed().as_secs_f64(),
+        };
+        let fruits = self.fruit_records(&clusters, estimates);
+        self.compute_time_s += compute_s;
+        let available_s = self.clock_s + compute_s;
+        // Seconds before the new estimates exist hold the previous ones.
+        self.sample_until(available_s);
+        if available_s > self.config.budget_s {
+            self.clock_s = available_s;
+            self.sample_until(f64::INFINITY);
+            return Ok(false);
+        }
+        let truths = self.scene.fruits();
+        let res = self.config.resolution_m;
+        let boxes: Vec<BoxEstimate> = fruits.iter().map(FruitRecord::box_estimate).collect();
+        let fitted: Vec<BoxEstimate> = fruits.iter().map(FruitRecord::fitted_estimate).collect();
+        self.published = Published {
+            frames: self.frame_seq,
+            boxes: evaluate(&boxes, truths, res),
+            fitted: evaluate(&fitted, truths, res),
+            fruits,
+        };
+
+        // Execute the first reachable view (the edge's Algorithm 1 step).
+        let mut next_clock = available_s + self.config.capture_time_s;
+        let mut skipped = plan.views.len();
+        for (index, view) in plan.views.iter().enumerate() {
+            if let Some(motion_s) =
+                self.motion
+                    .motion_time_s(&self.scene, &self.pose, &view.world_from_camera)
+            {
+                skipped = index;
+                next_clock += motion_s.max(0.0);
+                self.pose = view.world_from_camera;
+                self.views += 1;
+                break;
+            }
+        }
+        self.unreachable_views += skipped as u64;
+        self.clock_s = next_clock;
+        Ok(true)
+    }
+
+    /// Runs to the end of the budget; `progress` gets the simulated clock after every step.
+    pub fn run(mut self, mut progress: impl FnMut(f64)) -> Result<TrialResult, EvalError> {
+        while self.step()? {
+            progress(self.clock_s.min(self.config.budget_s));
+        }
+        progress(self.config.budget_s);
+        Ok(TrialResult {
+            config: self.config,
+            fruits_total: self.scene.fruits().len(),
+            samples: self.samples,
+            views: self.views,
+            frames: self.published.frames,
+            unreachable_views: self.unreachable_views,
+            compute_time_s: self.compute_time_s,
+            fruits: self.published.fruits,
+        })
+    }
+}
+
+/// The edge's packing of depth: millimetres, 0 = invalid.
+pub fn depth_as_millimetres(depth_m: &[f32]) -> Vec<u16> {
+    depth_m
+        .iter()
+        .map(|&d| {
+            if d.is_finite() && d > 0.0 {
+                (d / DEPTH_SCALE_M).round().clamp(1.0, u16::MAX as f32) as u16
+            } else {
+                0
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    fn small(method: Method, budget_s: f64) -> TrialConfig {
+        TrialConfig {
+            width: 96,
+            height: 72,
+            budget_s,
+            compute_time: ComputeTime::Fixed { ms: 50.0 },
+            ..TrialConfig::new(ScenarioKind::Two, method, 3)
+        }
+    }
+
+    #[test]
+    fn a_trial_samples_every_second_and_finds_fruit() {
+        let result = Trial::new(small(Method::OursUu, 20.0), FreeCameraMotion::default())
+            .unwrap()
+            .run(|_| {})
+            .unwrap();
+        assert_eq!(result.samples.len(), 21);
+        for (i, s) in result.samples.iter().enumerate() {
+            assert_eq!(s.time_s, i as u32);
+            assert!(s.boxes.detected <= result.fruits_total);
+            assert!((0.0..=1.0).contains(&s.boxes.covered_volume));
+        }
+        // Nothing is known at 0 s; metrics never decrease in views or frames.
+        assert_eq!(result.samples[0].frames, 0);
+        assert_eq!(result.samples[0].boxes.detected, 0);
+        assert!(result
+            .samples
+            .windows(2)
+            .all(|w| w[0].views <= w[1].views && w[0].frames <= w[1].frames));
+        let last = result.last().unwrap();
+        assert!(last.boxes.detected > 0, "{last:?}");
+        assert!(result.views > 3, "{}", result.views);
+        // 50 ms per planning call entered the clock.
+        assert!((result.compute_time_s - 0.05 * result.frames as f64).abs() < 1e-9);
+    }
+
+    #[test]
+    fn fixed_compute_time_replays_exactly() {
+        let run = || {
+            Trial::new(small(Method::ExploUp, 8.0), FreeCameraMotion::default())
+                .unwrap()
+                .run(|_| {})
+                .unwrap()
+        };
+        let (a, b) = (run(), run());
+        assert_eq!(
+            serde_json::to_string(&a.samples).unwrap(),
+            serde_json::to_string(&b.samples).unwrap()
+        );
+        assert_eq!(a.views, b.views);
+    }
+
+    /// Nothing is reachable: every frame costs a capture and the camera never moves.
+    struct Stuck;
+
+    impl Motion for Stuck {
+        fn motion_time_s(&self, _: &Scene, _: &Isometry3<f64>, _: &Isometry3<f64>) -> Option<f64> {
+            None
+        }
+    }
+
+    #[test]
+    fn unreachable_views_cost_a_capture_each() {
+        let config = TrialConfig {
+            capture_time_s: 1.0,
+            compute_time: ComputeTime::Fixed { ms: 0.0 },
+            ..small(Method::OursUu, 4.5)
+        };
+        let result = Trial::new(config, Stuck).unwrap().run(|_| {}).unwrap();
+        assert_eq!(result.views, 0);
+        // Frames at 0, 1, 2, 3, 4 s.
+        assert_eq!(result.frames, 5);
+        assert!(result.unreachable_views > 0);
+        assert_eq!(result.samples.len(), 5);
+        // A frame captured at t is available at t (0 ms compute): sample t sees frame t + 1.
+        for (t, s) in result.samples.iter().enumerate() {
+            assert_eq!(s.frames, t as u64 + 1);
+        }
+    }
+
+    #[test]
+    fn bad_configurations_are_rejected() {
+        let bad = [
+            TrialConfig {
+                width: 0,
+                ..small(Method::OursUu, 5.0)
+            },
+            TrialConfig {
+                budget_s: f64::NAN,
+                ..small(Method::OursUu, 5.0)
+            },
+            TrialConfig {
+                compute_time: ComputeTime::Fixed { ms: -1.0 },
+                ..small(Method::OursUu, 5.0)
+            },
+            TrialConfig {
+                capture_time_s: 0.0,
+                compute_time: ComputeTime::Fixed { ms: 0.0 },
+                ..small(Method::OursUu, 5.0)
+            },
+            TrialConfig {
+                resolution_m: 0.0,
+                ..small(Method::OursUu, 5.0)
+            },
+        ];
+        for config in bad {
+            assert!(matches!(
+                Trial::new(config, FreeCameraMotion::default()),
+                Err(EvalError::InvalidConfig(_)) | Err(EvalError::Map(_))
+            ));
+        }
+    }
+
+    #[test]
+    fn free_camera_motion_follows_the_edge_rule() {
+        let scene = Scene::generate(ScenarioKind::Two, 3);
+        let motion = FreeCameraMotion {
+            camera_speed_m_per_s: 0.5,
+        };
+        let from = scene.initial_camera_pose();
+        let mut to = from;
+        to.translation.vector.z += 0.1;
+        let free = scene.is_camera_position_free(&Point3::from(to.translation.vector));
+        let t = motion.motion_time_s(&scene, &from, &to);
+        if free {
+            assert!((t.unwrap() - 0.2).abs() < 1e-9);
+        } else {
+            assert!(t.is_none());
+        }
+        let mut outside = from;
+        outside.translation.vector.z = 100.0;
+        assert!(motion.motion_time_s(&scene, &from, &outside).is_none());
+    }
+}

@@ -1,0 +1,156 @@
+//! Criterion benches of the ROI map on the shared workload (`glasshouse_roimap::testdata`).
+//!
+//! `cargo bench -p glasshouse-roimap -- --warm-up-time 1 --measurement-time 3`
+//!
+//! Rows: one filtered scan and one raw scan inserted into the map of the other nine scans (1 and
+//! 2 threads), the unobserved-voxel gain over a 200×150-ray fan, the frontier queries (incremental)
+//! next to a from-scratch recomputation, clustering, and snapshot writing. The memory of the
+//! 10-scan map is printed once.
+
+use std::hint::black_box;
+
+use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
+use glasshouse_geom::Aabb;
+use glasshouse_roimap::testdata::{ray_fan, unobserved_gain, Scan, Workload};
+use glasshouse_roimap::{Neighbourhood, Occupancy, RoiMap, VoxelKey};
+use nalgebra::Point3;
+
+const SEED: u64 = 1;
+
+fn map_of(w: &Workload, scans: &[Scan]) -> RoiMap {
+    let mut m = RoiMap::new(w.map_config()).expect("valid config");
+    for s in scans {
+        m.insert_scan(&s.origin, &s.points, &s.roi)
+            .expect("valid scan");
+    }
+    m
+}
+
+fn insertion(c: &mut Criterion) {
+    let w = Workload::standard(SEED);
+    let filtered = w.filtered_scans();
+    let raw_last = w.raw_scan(&w.origins[9]);
+    let nine = map_of(&w, &filtered[..9]);
+    let ten = map_of(&w, &filtered);
+    eprintln!(
+        "workload: filtered scan {} points, raw scan {} points; 10-scan map: {} known voxels, \
+         {} blocks, memory {:.1} MB",
+        filtered[9].points.len(),
+        raw_last.points.len(),
+        ten.len(),
+        ten.counts().blocks,
+        ten.memory_bytes() as f64 / 1e6
+    );
+    let mut g = c.benchmark_group("insert");
+    g.sample_size(20);
+    for threads in [1usize, 2] {
+        let s = &filtered[9];
+        g.bench_function(format!("filtered_scan/{threads}_thread"), |b| {
+            b.iter_batched_ref(
+                || nine.clone(),
+                |m| {
+                    m.insert_scan_threaded(&s.origin, &s.points, &s.roi, threads)
+                        .expect("valid")
+                },
+                BatchSize::LargeInput,
+            )
+        });
+        let s = &raw_last;
+        g.bench_function(format!("raw_scan/{threads}_thread"), |b| {
+            b.iter_batched_ref(
+                || nine.clone(),
+                |m| {
+                    m.insert_scan_threaded(&s.origin, &s.points, &s.roi, threads)
+                        .expect("valid")
+                },
+                BatchSize::LargeInput,
+            )
+        });
+    }
+    g.finish();
+}
+
+fn queries(c: &mut Criterion) {
+    let w = Workload::standard(SEED);
+    let m = w.filtered_map().expect("valid");
+    let (origin, target) = w.gain_view();
+    let fan = ray_fan(
+        &origin,
+        &target,
+        200,
+        150,
+        60f64.to_radians(),
+        45f64.to_radians(),
+    );
+    let mut g = c.benchmark_group("query");
+    g.sample_size(20);
+    g.bench_function("gain_fan_200x150", |b| {
+        b.iter(|| unobserved_gain(&m, black_box(&origin), &fan, 1.5))
+    });
+    let region = Aabb::new(Point3::new(0.3, -1.0, -1.0), Point3::new(1.6, 1.0, 1.0));
+    g.bench_function("frontiers/incremental_query", |b| {
+        b.iter(|| {
+            (
+                m.exploration_frontier(black_box(&region)).len(),
+                m.roi_frontier(&region).len(),
+            )
+        })
+    });
+    g.bench_function("frontiers/from_scratch", |b| {
+        b.iter(|| brute_frontiers(&m, &region))
+    });
+    g.bench_function("clusters_min10", |b| {
+        b.iter(|| m.clusters(black_box(10)).len())
+    });
+    g.bench_function("snapshot_write", |b| {
+        b.iter(|| {
+            let mut out = Vec::new();
+            m.write_snapshot(&mut out).expect("write");
+            out.len()
+        })
+    });
+    g.finish();
+
+    // Frontier upkeep per scan: a scan inserted with and without (apply_voxels of the same
+    // changes) is not separable, so report the share: insert time is measured above.
+    let mut g = c.benchmark_group("frontier_update");
+    g.sample_size(20);
+    let filtered = w.filtered_scans();
+    let mut nine = map_of(&w, &filtered[..9]);
+    nine.take_changes();
+    let mut after = nine.clone();
+    let s = &filtered[9];
+    after
+        .insert_scan(&s.origin, &s.points, &s.roi)
+        .expect("valid");
+    let changes = after.take_changes();
+    eprintln!("scan 10 changes {} voxels", changes.len());
+    g.bench_function("apply_one_scan_of_changes", |b| {
+        b.iter_batched_ref(
+            || nine.clone(),
+            |m| m.apply_voxels(&changes),
+            BatchSize::LargeInput,
+        )
+    });
+    g.finish();
+}
+
+/// The original's per-iteration recomputation: scan every known voxel.
+fn brute_frontiers(m: &RoiMap, region: &Aabb) -> (usize, usize) {
+    let (mut expl, mut roi) = (0, 0);
+    for (k, v) in m.iter() {
+        if v.occupancy() != Occupancy::Free || !region.contains(&m.centre_of(k)) {
+            continue;
+        }
+        let n: Vec<VoxelKey> = k.neighbours(Neighbourhood::Six).collect();
+        if !n.iter().any(|&x| m.occupancy(x) == Occupancy::Unknown) {
+            continue;
+        }
+        expl += usize::from(n.iter().any(|&x| m.occupancy(x) == Occupancy::Occupied));
+        roi += usize::from(n.iter().any(|&x| m.is_roi(x)));
+    }
+    (expl, roi)
+}
+
+criterion_group!(benches, insertion, queries);
+criterion_main!(benches);

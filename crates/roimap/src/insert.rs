@@ -1,0 +1,494 @@
+//! Scan insertion: OctoMap's `insertPointCloud` on a dense per-scan bit grid.
+//!
+//! 1. Every point becomes a ray end in OctoMap's float precision (range-limited when beyond the
+//!    maximum range); their keys give the scan's key box.
+//! 2. Rays are walked into a *free* bit plane over that box (one plane per thread; a ray revisits
+//!    the same voxels as its neighbours, and a bit plane over the scan's extent stays in cache where
+//!    a hash set would miss on almost every insert). The planes are laid out block by block with
+//!    the storage's 8×8×8 layout, so step 3 is word operations. Keys outside the box (rounding
+//!    overshoot by more than the margin, or a box too large for a dense grid) go to hash sets.
+//! 3. End points mark *occupied*, *ROI* and *non-ROI* planes; then block by block: occupied wins
+//!    over free, ROI over non-ROI, and each marked voxel is updated once, with one hash lookup per
+//!    block. Planes are zeroed block by block as they are consumed, ready for the next scan.
+
+use nalgebra::Point3;
+
+use crate::grid::{Mask, BLOCK_EDGE, BLOCK_SHIFT, EMPTY};
+use crate::walk::{key_of_f32, norm_f32, walk_interleaved, RaySetup};
+use crate::{ChangeLog, KeySet, MapError, RoiMap, ScanStats, VoxelKey};
+
+/// Largest dense grid in blocks (2^17 blocks = 64M voxels, 8 MB per bit plane).
+const MAX_GRID_BLOCKS: usize = 1 << 17;
+/// Margin in voxels around the key box: absorbs the walk's rounding overshoot.
+const MARGIN: i32 = 2;
+
+/// Where one point's ray ends and whether its end voxel is hit.
+#[derive(Clone, Copy, Debug)]
+struct RayEnd {
+    end: [f32; 3],
+    key_end: VoxelKey,
+    /// False for points beyond the maximum range (ray freed up to the range only).
+    hit: bool,
+    is_roi: bool,
+}
+
+/// One thread's free marks.
+#[derive(Clone, Default)]
+struct Worker {
+    free: Vec<u64>,
+    overflow: KeySet,
+}
+
+/// Dense bit grid over a block-aligned key box.
+#[derive(Clone, Default)]
+struct ScanGrid {
+    /// Voxel key of the box's low corner (multiple of the block edge).
+    lo: [i32; 3],
+    /// Box size in blocks.
+    nb: [usize; 3],
+    /// Per axis: bit-index contribution of each local coordinate, so that the bit index of a
+    /// voxel is `tables[0][x] + tables[1][y] + tables[2][z]`.
+    tables: [Vec<u64>; 3],
+    occ: Vec<u64>,
+    roi: Vec<u64>,
+    non_roi: Vec<u64>,
+    overflow_occ: KeySet,
+    overflow_roi: KeySet,
+    overflow_non_roi: KeySet,
+}
+
+impl ScanGrid {
+    fn blocks(&self) -> usize {
+        self.nb[0] * self.nb[1] * self.nb[2]
+    }
+
+    /// Makes the grid cover `lo..=hi` (empty when too large). Planes must be all zero.
+    fn reset(&mut self, lo: VoxelKey, hi: VoxelKey, workers: &mut [Worker]) {
+        let lo_k = [lo.x, lo.y, lo.z].map(|v| (v - MARGIN) >> BLOCK_SHIFT);
+        let hi_k = [hi.x, hi.y, hi.z].map(|v| (v + MARGIN) >> BLOCK_SHIFT);
+        let nb = [0, 1, 2].map(|i| (i64::from(hi_k[i]) - i64::from(lo_k[i]) + 1) as usize);
+        let total = nb[0].saturating_mul(nb[1]).saturating_mul(nb[2]);
+        let nb = if total > MAX_GRID_BLOCKS { [0; 3] } else { nb };
+        self.lo = lo_k.map(|b| b << BLOCK_SHIFT);
+        self.nb = nb;
+        let per_block = [1u64, nb[0] as u64, (nb[0] * nb[1]) as u64];
+        let edge = BLOCK_EDGE as usize;
+        for (axis, table) in self.tables.iter_mut().enumerate() {
+            table.clear();
+            // Within-block bit offset of the axis: x -> 1, y -> 8, z -> 64 (the word).
+            let unit = 1u64 << (3 * axis);
+            for u in 0..nb[axis] * edge {
+                let (block, local) = ((u / edge) as u64, (u % edge) as u64);
+                table.push(block * per_block[axis] * 512 + local * unit);
+            }
+        }
+        let words = self.blocks() * 8;
+        for plane in [&mut self.occ, &mut self.roi, &mut self.non_roi] {
+            plane.resize(words, 0);
+        }
+        for w in workers {
+            w.free.resize(words, 0);
+            w.overflow.clear();
+        }
+        self.overflow_occ.clear();
+        self.overflow_roi.clear();
+        self.overflow_non_roi.clear();
+    }
+
+    /// Bit index of a voxel, if inside the grid.
+    #[inline(always)]
+    fn bit(&self, c: [i32; 3]) -> Option<usize> {
+        let u = |i: usize| c[i].wrapping_sub(self.lo[i]) as u32 as usize;
+        let (a, b, d) = (
+            self.tables[0].get(u(0))?,
+            self.tables[1].get(u(1))?,
+            self.tables[2].get(u(2))?,
+        );
+        Some((a + b + d) as usize)
+    }
+
+    fn set(&self, plane: &mut [u64], overflow: &mut KeySet, key: VoxelKey) {
+        match self.bit([key.x, key.y, key.z]) {
+            Some(i) => plane[i >> 6] |= 1 << (i & 63),
+            None => {
+                overflow.insert(key);
+            }
+        }
+    }
+
+    /// Walks the free voxels of `ends` into `worker`.
+    fn walk_rays(
+        &self,
+        origin: [f32; 3],
+        key_origin: VoxelKey,
+        res: f64,
+        ends: &[RayEnd],
+        worker: &mut Worker,
+    ) {
+        let Worker { free, overflow } = worker;
+        let rays = ends
+            .iter()
+            .filter_map(|e| RaySetup::octomap(origin, e.end, key_origin, e.key_end, res));
+        walk_interleaved(rays, |c| match self.bit(c) {
+            Some(i) => {
+                if let Some(w) = free.get_mut(i >> 6) {
+                    *w |= 1 << (i & 63);
+                }
+            }
+            None => {
+                overflow.insert(VoxelKey::new(c[0], c[1], c[2]));
+            }
+        });
+    }
+}
+
+/// Reused per-scan buffers, so insertion allocates only when a scan is larger than any before.
+#[derive(Clone, Default)]
+pub(crate) struct Scratch {
+    ends: Vec<RayEnd>,
+    grid: ScanGrid,
+    workers: Vec<Worker>,
+}
+
+impl Scratch {
+    pub(crate) fn heap_bytes(&self) -> usize {
+        let g = &self.grid;
+        let set = |s: &KeySet| s.capacity() * (std::mem::size_of::<VoxelKey>() + 1);
+        self.ends.capacity() * std::mem::size_of::<RayEnd>()
+            + g.tables.iter().map(|t| t.capacity() * 8).sum::<usize>()
+            + (g.occ.capacity() + g.roi.capacity() + g.non_roi.capacity()) * 8
+            + set(&g.overflow_occ)
+            + set(&g.overflow_roi)
+            + set(&g.overflow_non_roi)
+            + self
+                .workers
+                .iter()
+                .map(|w| w.free.capacity() * 8 + set(&w.overflow))
+                .sum::<usize>()
+    }
+}
+
+fn or_words(a: &[u64]) -> Mask {
+    let mut m = EMPTY;
+    m.copy_from_slice(&a[..8]);
+    m
+}
+
+impl RoiMap {
+    /// Integrates one scan with up to `threads` threads casting rays (1 = the calling thread
+    /// only). Same result as [`RoiMap::insert_scan`] for any thread count.
+    pub fn insert_scan_threaded(
+        &mut self,
+        sensor_origin: &Point3<f64>,
+        points_in_world: &[Point3<f32>],
+        roi: &[bool],
+        threads: usize,
+    ) -> Result<ScanStats, MapError> {
+        if points_in_world.len() != roi.len() {
+            return Err(MapError::LengthMismatch {
+                points: points_in_world.len(),
+                roi: roi.len(),
+            });
+        }
+        if !sensor_origin.iter().all(|c| c.is_finite()) {
+            return Err(MapError::NonFiniteOrigin);
+        }
+        // OctoMap's origin is a float point3d.
+        let origin = [
+            sensor_origin.x as f32,
+            sensor_origin.y as f32,
+            sensor_origin.z as f32,
+        ];
+        let inv_res = self.inv_res;
+        let res = self.config.resolution_m;
+        let key_origin = key_of_f32(origin, inv_res)
+            .filter(|_| origin.iter().all(|c| c.is_finite()))
+            .ok_or(MapError::OriginOutOfBounds)?;
+
+        let mut stats = ScanStats {
+            points: points_in_world.len(),
+            ..ScanStats::default()
+        };
+        let mut s = std::mem::take(&mut self.scratch);
+        s.ends.clear();
+        let max_range = self.config.max_range_m;
+
+        // Pass 1: ray ends in OctoMap's precision and the key box.
+        let (mut lo, mut hi) = (key_origin, key_origin);
+        for (p, &is_roi) in points_in_world.iter().zip(roi) {
+            if !p.iter().all(|c| c.is_finite()) {
+                stats.skipped_non_finite += 1;
+                continue;
+            }
+            let p = [p.x, p.y, p.z];
+            let diff = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
+            let (end, hit) = match max_range {
+                Some(range) if norm_f32(diff) > range => {
+                    // point3d direction = (p - origin).normalized(); origin + direction * (float) maxrange
+                    let len = norm_f32(diff);
+                    let mut d = diff;
+                    if len > 0.0 {
+                        for v in &mut d {
+                            *v /= len as f32;
+                        }
+                    }
+                    let r = range as f32;
+                    (
+                        [
+                            origin[0] + d[0] * r,
+                            origin[1] + d[1] * r,
+                            origin[2] + d[2] * r,
+                        ],
+                        false,
+                    )
+                }
+                _ => (p, true),
+            };
+            let Some(key_end) = key_of_f32(end, inv_res) else {
+                stats.skipped_out_of_bounds += 1;
+                continue;
+            };
+            if !hit {
+                stats.beyond_range += 1;
+            }
+            lo = VoxelKey::new(
+                lo.x.min(key_end.x),
+                lo.y.min(key_end.y),
+                lo.z.min(key_end.z),
+            );
+            hi = VoxelKey::new(
+                hi.x.max(key_end.x),
+                hi.y.max(key_end.y),
+                hi.z.max(key_end.z),
+            );
+            s.ends.push(RayEnd {
+                end,
+                key_end,
+                hit,
+                is_roi,
+            });
+        }
+
+        // Pass 2: free marks, in parallel over contiguous chunks of rays.
+        let threads = threads.clamp(1, 64).min(s.ends.len().max(1));
+        if s.workers.len() < threads {
+            s.workers.resize_with(threads, Worker::default);
+        }
+        s.grid.reset(lo, hi, &mut s.workers[..threads]);
+        {
+            let grid = &s.grid;
+            let ends = &s.ends;
+            let chunk = ends.len().div_ceil(threads).max(1);
+            let (first, rest) = s.workers[..threads].split_at_mut(1);
+            std::thread::scope(|scope| {
+                for (w, part) in rest.iter_mut().zip(ends.chunks(chunk).skip(1)) {
+                    scope.spawn(move || grid.walk_rays(origin, key_origin, res, part, w));
+                }
+                let part = ends.chunks(chunk).next().unwrap_or(&[]);
+                grid.walk_rays(origin, key_origin, res, part, &mut first[0]);
+            });
+        }
+
+        // Pass 3: end-point marks.
+        {
+            let g = &mut s.grid;
+            let mut occ = std::mem::take(&mut g.occ);
+            let mut roi_p = std::mem::take(&mut g.roi);
+            let mut non_roi = std::mem::take(&mut g.non_roi);
+            let (mut o_occ, mut o_roi, mut o_non) = (
+                std::mem::take(&mut g.overflow_occ),
+                std::mem::take(&mut g.overflow_roi),
+                std::mem::take(&mut g.overflow_non_roi),
+            );
+            for end in s.ends.iter().filter(|e| e.hit) {
+                g.set(&mut occ, &mut o_occ, end.key_end);
+                if end.is_roi {
+                    g.set(&mut roi_p, &mut o_roi, end.key_end);
+                } else {
+                    g.set(&mut non_roi, &mut o_non, end.key_end);
+                }
+            }
+            g.occ = occ;
+            g.roi = roi_p;
+            g.non_roi = non_roi;
+            g.overflow_occ = o_occ;
+            g.overflow_roi = o_roi;
+            g.overflow_non_roi = o_non;
+        }
+
+        // Pass 4: apply block by block.
+        self.seq += 1;
+        let mut log = ChangeLog::default();
+        let nb = s.grid.nb;
+        let lo_block = [0, 1, 2].map(|i| s.grid.lo[i] >> BLOCK_SHIFT);
+        let mut b = 0usize;
+        for bz in 0..nb[2] {
+            for by in 0..nb[1] {
+                for bx in 0..nb[0] {
+                    let words = b * 8..b * 8 + 8;
+                    b += 1;
+                    let mut free = EMPTY;
+                    for w in &mut s.workers[..threads] {
+                        let part = &mut w.free[words.clone()];
+                        for (f, p) in free.iter_mut().zip(part.iter_mut()) {
+                            *f |= *p;
+                            *p = 0;
+                        }
+                    }
+                    let g = &mut s.grid;
+                    let occ = or_words(&g.occ[words.clone()]);
+                    if occ == EMPTY && free == EMPTY {
+                        continue;
+                    }
+                    let roi_m = or_words(&g.roi[words.clone()]);
+                    let non_roi = or_words(&g.non_roi[words.clone()]);
+                    g.occ[words.clone()].fill(0);
+                    g.roi[words.clone()].fill(0);
+                    g.non_roi[words].fill(0);
+                    let key = VoxelKey::new(
+                        lo_block[0] + bx as i32,
+                        lo_block[1] + by as i32,
+                        lo_block[2] + bz as i32,
+                    );
+                    self.apply_block(key, &free, &occ, &roi_m, &non_roi, &mut stats, &mut log);
+                }
+            }
+        }
+        // Keys outside the dense grid, one by one.
+        let mut free_keys: Vec<VoxelKey> = Vec::new();
+        for w in &mut s.workers[..threads] {
+            free_keys.extend(w.overflow.drain());
+        }
+        free_keys.sort_unstable();
+        free_keys.dedup();
+        let g = &mut s.grid;
+        let cfg = self.config;
+        for key in free_keys {
+            if g.overflow_occ.contains(&key) {
+                continue; // occupied wins within a scan
+            }
+            stats.free_updates += 1;
+            self.update_voxel(key, Some(cfg.miss_logodds), None, &mut log);
+        }
+        for key in g.overflow_occ.drain() {
+            stats.occupied_updates += 1;
+            self.update_voxel(key, Some(cfg.hit_logodds), None, &mut log);
+        }
+        for &key in &g.overflow_roi {
+            stats.roi_updates += 1;
+            self.update_voxel(key, None, Some(cfg.hit_logodds), &mut log);
+        }
+        for key in g.overflow_non_roi.drain() {
+            if g.overflow_roi.contains(&key) {
+                continue; // ROI wins within a scan
+            }
+            stats.non_roi_updates += 1;
+            self.update_voxel(key, None, Some(cfg.miss_logodds), &mut log);
+        }
+        g.overflow_roi.clear();
+
+        self.scratch = s;
+        self.refresh_derived(&log);
+        self.scans_inserted += 1;
+        Ok(stats)
+    }
+
+    /// Applies one block's marks: each marked voxel updated once, occupied over free and ROI over
+    /// non-ROI.
+    #[allow(clippy::too_many_arguments)]
+    fn apply_block(
+        &mut self,
+        key: VoxelKey,
+        free: &Mask,
+        occ: &Mask,
+        roi: &Mask,
+        non_roi: &Mask,
+        stats: &mut ScanStats,
+        log: &mut ChangeLog,
+    ) {
+        let cfg = self.config;
+        let (lo, hi) = (cfg.clamp_min_logodds, cfg.clamp_max_logodds);
+        let (hit, miss) = (cfg.hit_logodds, cfg.miss_logodds);
+        let thr = cfg.roi_threshold_logodds;
+        let seq = self.seq as u32;
+        let bi = self.store.get_or_create(key);
+        let block = &mut self.store.blocks[bi];
+        let mut state_changed = EMPTY;
+        let mut roi_changed = EMPTY;
+        let mut any_changed = false;
+        let (mut d_known, mut d_occ) = (0isize, 0isize);
+        for w in 0..8 {
+            let o = occ[w];
+            let f = free[w] & !o;
+            let r = roi[w];
+            let n = non_roi[w] & !r;
+            let touched = f | o;
+            if touched == 0 {
+                continue;
+            }
+            stats.free_updates += f.count_ones() as usize;
+            stats.occupied_updates += o.count_ones() as usize;
+            stats.roi_updates += r.count_ones() as usize;
+            stats.non_roi_updates += n.count_ones() as usize;
+            let base = w * 64;
+            let mut changed = touched & !block.known[w];
+            let mut occupied_bits = 0u64;
+            let mut bits = touched;
+            while bits != 0 {
+                let b = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let l = base + b;
+                let v = block.occ[l];
+                let delta = if o >> b & 1 != 0 { hit } else { miss };
+                let nv = (v + delta).clamp(lo, hi);
+                block.occ[l] = nv;
+                changed |= u64::from(nv != v) << b;
+                occupied_bits |= u64::from(nv > 0.0) << b;
+            }
+            let mut roi_bits_now = 0u64;
+            let mut bits = r | n;
+            while bits != 0 {
+                let b = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let l = base + b;
+                let v = block.roi[l];
+                let delta = if r >> b & 1 != 0 { hit } else { miss };
+                let nv = (v + delta).clamp(lo, hi);
+                block.roi[l] = nv;
+                changed |= u64::from(nv != v) << b;
+                roi_bits_now |= u64::from(nv >= thr) << b;
+            }
+            let known_before = block.known[w];
+            let occ_before = block.occupied[w];
+            let roi_before = block.roi_mask[w];
+            block.known[w] |= touched;
+            block.occupied[w] = (occ_before & !touched) | occupied_bits;
+            block.roi_mask[w] = (roi_before & !(r | n)) | roi_bits_now;
+            d_known +=
+                (block.known[w].count_ones() as isize) - (known_before.count_ones() as isize);
+            d_occ += (block.occupied[w].count_ones() as isize) - (occ_before.count_ones() as isize);
+            roi_changed[w] = roi_before ^ block.roi_mask[w];
+            state_changed[w] =
+                (known_before ^ block.known[w]) | (occ_before ^ block.occupied[w]) | roi_changed[w];
+            if changed != 0 {
+                any_changed = true;
+                let mut bits = changed;
+                while bits != 0 {
+                    let b = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    block.seq[base + b] = seq;
+                }
+                block.dirty[w] |= changed;
+            }
+        }
+        if any_changed {
+            block.max_seq = seq;
+        }
+        self.known_count = self.known_count.wrapping_add_signed(d_known);
+        self.occupied_count = self.occupied_count.wrapping_add_signed(d_occ);
+        if any_changed {
+            self.dirty_blocks.insert(bi as u32);
+        }
+        log.note(bi as u32, &state_changed, &roi_changed);
+    }
+}

@@ -1,0 +1,335 @@
+//! PLY input (point clouds) and output (known voxels).
+//!
+//! Reading accepts `binary_little_endian` and `ascii` files whose `vertex` element has `x`, `y`,
+//! `z` properties of any scalar type (extra scalar properties are skipped; list properties only in
+//! other elements, which are skipped). A header line `comment origin X Y Z` gives the sensor origin.
+//!
+//! Writing produces `binary_little_endian` with one vertex per known voxel: float `x`, `y`, `z`
+//! (voxel centre), float `occupancy` and `roi` (log-odds).
+
+use std::io::{BufRead, BufReader, Read, Write};
+
+use nalgebra::Point3;
+
+use crate::RoiMap;
+
+/// Errors reading a PLY cloud.
+#[derive(thiserror::Error, Debug)]
+pub enum PlyError {
+    #[error("I/O error: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("not a PLY file")]
+    NotPly,
+    #[error("unsupported PLY format `{0}` (binary_little_endian and ascii are read)")]
+    UnsupportedFormat(String),
+    #[error("bad PLY header: {0}")]
+    BadHeader(String),
+    #[error("PLY has no vertex element with float x, y, z")]
+    NoXyz,
+    #[error("PLY data ends early: {0}")]
+    Truncated(String),
+    #[error("bad PLY value: {0}")]
+    BadValue(String),
+}
+
+/// A point cloud read from PLY.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PlyCloud {
+    pub points: Vec<Point3<f32>>,
+    /// From a `comment origin X Y Z` header line.
+    pub origin: Option<Point3<f64>>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Scalar {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl Scalar {
+    fn parse(s: &str) -> Option<Self> {
+        Some(match s {
+            "char" | "int8" => Scalar::I8,
+            "uchar" | "uint8" => Scalar::U8,
+            "short" | "int16" => Scalar::I16,
+            "ushort" | "uint16" => Scalar::U16,
+            "int" | "int32" => Scalar::I32,
+            "uint" | "uint32" => Scalar::U32,
+            "float" | "float32" => Scalar::F32,
+            "double" | "float64" => Scalar::F64,
+            _ => return None,
+        })
+    }
+
+    fn size(self) -> usize {
+        match self {
+            Scalar::I8 | Scalar::U8 => 1,
+            Scalar::I16 | Scalar::U16 => 2,
+            Scalar::I32 | Scalar::U32 | Scalar::F32 => 4,
+            Scalar::F64 => 8,
+        }
+    }
+
+    fn read_le(self, b: &[u8]) -> f64 {
+        match self {
+            Scalar::I8 => f64::from(b[0] as i8),
+            Scalar::U8 => f64::from(b[0]),
+            Scalar::I16 => f64::from(i16::from_le_bytes([b[0], b[1]])),
+            Scalar::U16 => f64::from(u16::from_le_bytes([b[0], b[1]])),
+            Scalar::I32 => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+            Scalar::U32 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+            Scalar::F32 => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+            Scalar::F64 => f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]),
+        }
+    }
+}
+
+#[derive(Debug)]
+enum Property {
+    Scalar(String, Scalar),
+    List(Scalar),
+}
+
+#[derive(Debug)]
+struct Element {
+    name: String,
+    count: usize,
+    props: Vec<Property>,
+}
+
+fn next_line(r: &mut impl BufRead, line: &mut String) -> Result<(), PlyError> {
+    line.clear();
+    if r.read_line(line)? == 0 {
+        return Err(PlyError::BadHeader("ends before end_header".into()));
+    }
+    Ok(())
+}
+
+/// Reads a PLY point cloud (see the module docs).
+pub fn read_cloud(r: impl Read) -> Result<PlyCloud, PlyError> {
+    let mut r = BufReader::new(r);
+    let mut line = String::new();
+    next_line(&mut r, &mut line)?;
+    if line.trim_end() != "ply" {
+        return Err(PlyError::NotPly);
+    }
+    let mut binary = None;
+    let mut origin = None;
+    let mut elements: Vec<Element> = Vec::new();
+    loop {
+        next_line(&mut r, &mut line)?;
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            ["end_header"] => break,
+            ["format", fmt, _version] => {
+                binary = Some(match *fmt {
+                    "binary_little_endian" => true,
+                    "ascii" => false,
+                    other => return Err(PlyError::UnsupportedFormat(other.to_string())),
+                })
+            }
+            ["comment", "origin", x, y, z] => {
+                let p = |s: &str| {
+                    s.parse::<f64>()
+                        .map_err(|_| PlyError::BadHeader(format!("bad origin value `{s}`")))
+                };
+                origin = Some(Point3::new(p(x)?, p(y)?, p(z)?));
+            }
+            ["comment", ..] | ["obj_info", ..] | [] => {}
+            ["element", name, count] => elements.push(Element {
+                name: name.to_string(),
+                count: count
+                    .parse()
+                    .map_err(|_| PlyError::BadHeader(format!("bad count `{count}`")))?,
+                props: Vec::new(),
+            }),
+            ["property", "list", ct, vt, _name] => {
+                let (Some(ct), Some(_)) = (Scalar::parse(ct), Scalar::parse(vt)) else {
+                    return Err(PlyError::BadHeader(format!(
+                        "bad list types in `{}`",
+                        line.trim()
+                    )));
+                };
+                elements
+                    .last_mut()
+                    .ok_or_else(|| PlyError::BadHeader("property before element".into()))?
+                    .props
+                    .push(Property::List(ct));
+            }
+            ["property", ty, name] => {
+                let ty = Scalar::parse(ty)
+                    .ok_or_else(|| PlyError::BadHeader(format!("unknown type `{ty}`")))?;
+                elements
+                    .last_mut()
+                    .ok_or_else(|| PlyError::BadHeader("property before element".into()))?
+                    .props
+                    .push(Property::Scalar(name.to_string(), ty));
+            }
+            _ => {
+                return Err(PlyError::BadHeader(format!(
+                    "unexpected line `{}`",
+                    line.trim()
+                )))
+            }
+        }
+    }
+    let binary = binary.ok_or_else(|| PlyError::BadHeader("no format line".into()))?;
+    let vertex_at = elements
+        .iter()
+        .position(|e| e.name == "vertex")
+        .ok_or(PlyError::NoXyz)?;
+    let vertex = &elements[vertex_at];
+    let find = |n: &str| {
+        vertex
+            .props
+            .iter()
+            .position(|p| matches!(p, Property::Scalar(name, _) if name == n))
+    };
+    let (Some(ix), Some(iy), Some(iz)) = (find("x"), find("y"), find("z")) else {
+        return Err(PlyError::NoXyz);
+    };
+    if vertex.props.iter().any(|p| matches!(p, Property::List(..))) {
+        return Err(PlyError::BadHeader(
+            "list property in the vertex element".into(),
+        ));
+    }
+    let mut points = Vec::with_capacity(vertex.count.min(1 << 24));
+    if binary {
+        // Skip earlier elements (fixed-size only).
+        for e in &elements[..vertex_at] {
+            let mut size = 0usize;
+            for p in &e.props {
+                match p {
+                    Property::Scalar(_, t) => size += t.size(),
+                    Property::List(..) => {
+                        return Err(PlyError::BadHeader(format!(
+                            "list property in element `{}` before vertex",
+                            e.name
+                        )))
+                    }
+                }
+            }
+            let mut skip = vec![0u8; size];
+            for _ in 0..e.count {
+                r.read_exact(&mut skip)
+                    .map_err(|_| PlyError::Truncated(format!("element `{}`", e.name)))?;
+            }
+        }
+        let offsets: Vec<(usize, Scalar)> = {
+            let mut at = 0;
+            vertex
+                .props
+                .iter()
+                .map(|p| {
+                    let t = match p {
+                        Property::Scalar(_, t) => *t,
+                        Property::List(ct) => *ct,
+                    };
+                    let o = (at, t);
+                    at += t.size();
+                    o
+                })
+                .collect()
+        };
+        let stride: usize = offsets.iter().map(|(_, t)| t.size()).sum();
+        let mut buf = vec![0u8; stride];
+        for i in 0..vertex.count {
+            r.read_exact(&mut buf)
+                .map_err(|_| PlyError::Truncated(format!("vertex {i} of {}", vertex.count)))?;
+            let v = |idx: usize| {
+                let (o, t) = offsets[idx];
+                t.read_le(&buf[o..]) as f32
+            };
+            points.push(Point3::new(v(ix), v(iy), v(iz)));
+        }
+    } else {
+        let mut lines = r.lines();
+        for e in &elements[..vertex_at] {
+            for _ in 0..e.count {
+                lines
+                    .next()
+                    .ok_or_else(|| PlyError::Truncated(format!("element `{}`", e.name)))??;
+            }
+        }
+        for i in 0..vertex.count {
+            let l = lines
+                .next()
+                .ok_or_else(|| PlyError::Truncated(format!("vertex {i} of {}", vertex.count)))??;
+            let words: Vec<&str> = l.split_whitespace().collect();
+            let v = |idx: usize| -> Result<f32, PlyError> {
+                let w = words
+                    .get(idx)
+                    .ok_or_else(|| PlyError::Truncated(format!("vertex {i} has too few values")))?;
+                w.parse::<f32>()
+                    .map_err(|_| PlyError::BadValue(format!("`{w}` in vertex {i}")))
+            };
+            points.push(Point3::new(v(ix)?, v(iy)?, v(iz)?));
+        }
+    }
+    Ok(PlyCloud { points, origin })
+}
+
+/// Writes a cloud as binary little-endian PLY with float x, y, z and a `comment origin` line.
+pub fn write_cloud(
+    mut w: impl Write,
+    points: &[Point3<f32>],
+    origin: Option<&Point3<f64>>,
+) -> std::io::Result<()> {
+    let mut out = Vec::with_capacity(200 + points.len() * 12);
+    out.extend_from_slice(b"ply\nformat binary_little_endian 1.0\n");
+    if let Some(o) = origin {
+        out.extend_from_slice(format!("comment origin {} {} {}\n", o.x, o.y, o.z).as_bytes());
+    }
+    out.extend_from_slice(
+        format!(
+            "element vertex {}\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+            points.len()
+        )
+        .as_bytes(),
+    );
+    for p in points {
+        for c in [p.x, p.y, p.z] {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    w.write_all(&out)
+}
+
+impl RoiMap {
+    /// Writes every known voxel as binary little-endian PLY: float `x`, `y`, `z` (voxel centre),
+    /// float `occupancy` and `roi` (log-odds). Voxels sorted by key.
+    pub fn write_ply(&self, mut w: impl Write) -> std::io::Result<()> {
+        let mut voxels: Vec<_> = self.iter().collect();
+        voxels.sort_unstable_by_key(|(k, _)| *k);
+        let mut out = Vec::with_capacity(300 + voxels.len() * 20);
+        out.extend_from_slice(
+            format!(
+                "ply\nformat binary_little_endian 1.0\ncomment glasshouse roimap, resolution {} m\n\
+                 element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
+                 property float occupancy\nproperty float roi\nend_header\n",
+                self.config.resolution_m,
+                voxels.len()
+            )
+            .as_bytes(),
+        );
+        for (k, v) in voxels {
+            let c = self.centre_of(k);
+            for f in [
+                c.x as f32,
+                c.y as f32,
+                c.z as f32,
+                v.occupancy_logodds,
+                v.roi_logodds,
+            ] {
+                out.extend_from_slice(&f.to_le_bytes());
+            }
+        }
+        w.write_all(&out)
+    }
+}

@@ -1,0 +1,418 @@
+//! Compact versioned binary snapshot of a map, and deltas for replicas.
+//!
+//! Layout (little endian):
+//!
+//! | bytes | field |
+//! |---|---|
+//! | 4 | magic `GHRM` |
+//! | 2 | format version (1) |
+//! | 2 | kind: 0 snapshot, 1 delta |
+//! | 8 | body length in bytes |
+//! | body | see below |
+//! | 4 | CRC-32 (IEEE) of everything before it |
+//!
+//! Snapshot body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI
+//! threshold as f32, `max_range_m` f64 with −1 for none, ROI distance max and cell f64), `seq` u64,
+//! `scans_inserted` u64, the block count u32, then per block its coordinate (3 × i32), its known
+//! mask (8 × u64, bit `z*64 + y*8 + x`) and, for each known voxel in bit order, occupancy and ROI
+//! log-odds (2 × f32). About 8 bytes per known voxel.
+//!
+//! Delta body: `resolution_m` f64, `from_seq` u64, `to_seq` u64, voxel count u32, then per voxel
+//! its key (3 × i32) and log-odds (2 × f32).
+//!
+//! A short file is [`SnapshotError::Truncated`]; any flipped bit is
+//! [`SnapshotError::ChecksumMismatch`]; content that passes the checksum but is inconsistent is
+//! [`SnapshotError::Corrupt`].
+
+use std::io::{Read, Write};
+
+use crate::grid::{for_each_bit, key_at, mask_count, Mask};
+use crate::{ChangeLog, MapConfig, MapError, RoiMap, Voxel, VoxelKey};
+
+const MAGIC: &[u8; 4] = b"GHRM";
+/// Current format version.
+pub const FORMAT_VERSION: u16 = 1;
+const KIND_SNAPSHOT: u16 = 0;
+const KIND_DELTA: u16 = 1;
+const HEADER_BYTES: usize = 16;
+
+/// Errors reading or writing snapshots and deltas.
+#[derive(thiserror::Error, Debug)]
+pub enum SnapshotError {
+    #[error("I/O error: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("not a Glasshouse map file (bad magic)")]
+    BadMagic,
+    #[error("unsupported map file version {0} (this build reads version {FORMAT_VERSION})")]
+    UnsupportedVersion(u16),
+    #[error("expected a map {expected}, found a {found}")]
+    WrongKind {
+        expected: &'static str,
+        found: &'static str,
+    },
+    #[error("map file truncated: {expected} bytes expected, {actual} present")]
+    Truncated { expected: u64, actual: u64 },
+    #[error("map file corrupt: checksum {stored:#010x} stored, {computed:#010x} computed")]
+    ChecksumMismatch { stored: u32, computed: u32 },
+    #[error("map file corrupt: {0}")]
+    Corrupt(String),
+    #[error("map file has an invalid configuration: {0}")]
+    Config(#[from] MapError),
+}
+
+/// Voxels changed between two sequence numbers of a map ([`RoiMap::delta_since`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MapDelta {
+    pub resolution_m: f64,
+    /// The replica must have applied everything up to this sequence number.
+    pub from_seq: u64,
+    /// Sequence number of the map after applying the delta.
+    pub to_seq: u64,
+    /// Current values of the changed voxels, sorted by key.
+    pub voxels: Vec<(VoxelKey, Voxel)>,
+}
+
+const fn crc_table() -> [u32; 256] {
+    let mut table = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            k += 1;
+        }
+        table[i] = c;
+        i += 1;
+    }
+    table
+}
+
+static CRC_TABLE: [u32; 256] = crc_table();
+
+/// CRC-32 (IEEE 802.3, as zlib and PNG).
+pub fn crc32(bytes: &[u8]) -> u32 {
+    let mut c = u32::MAX;
+    for &b in bytes {
+        c = CRC_TABLE[((c ^ u32::from(b)) & 0xFF) as usize] ^ (c >> 8);
+    }
+    !c
+}
+
+fn kind_name(kind: u16) -> &'static str {
+    match kind {
+        KIND_SNAPSHOT => "snapshot",
+        KIND_DELTA => "delta",
+        _ => "unknown kind",
+    }
+}
+
+fn frame(kind: u16, body: &[u8], w: &mut impl Write) -> Result<(), SnapshotError> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + body.len() + 4);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    out.extend_from_slice(&kind.to_le_bytes());
+    out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    out.extend_from_slice(body);
+    let crc = crc32(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    w.write_all(&out)?;
+    Ok(())
+}
+
+/// Reads a whole framed file and returns its verified body.
+fn unframe(expected_kind: u16, r: &mut impl Read) -> Result<Vec<u8>, SnapshotError> {
+    let mut bytes = Vec::new();
+    r.read_to_end(&mut bytes)?;
+    if bytes.len() < 4 || &bytes[..4] != MAGIC {
+        if bytes.len() < 4 && MAGIC.starts_with(&bytes) {
+            return Err(SnapshotError::Truncated {
+                expected: HEADER_BYTES as u64 + 4,
+                actual: bytes.len() as u64,
+            });
+        }
+        return Err(SnapshotError::BadMagic);
+    }
+    if bytes.len() < HEADER_BYTES {
+        return Err(SnapshotError::Truncated {
+            expected: HEADER_BYTES as u64 + 4,
+            actual: bytes.len() as u64,
+        });
+    }
+    let mut c = Cursor::new(&bytes[4..HEADER_BYTES]);
+    let version = c.u16()?;
+    if version != FORMAT_VERSION {
+        return Err(SnapshotError::UnsupportedVersion(version));
+    }
+    let kind = c.u16()?;
+    if kind != expected_kind {
+        return Err(SnapshotError::WrongKind {
+            expected: kind_name(expected_kind),
+            found: kind_name(kind),
+        });
+    }
+    let body_len = c.u64()?;
+    let expected = (HEADER_BYTES as u64)
+        .checked_add(body_len)
+        .and_then(|v| v.checked_add(4))
+        .ok_or_else(|| SnapshotError::Corrupt("body length overflows".into()))?;
+    let actual = bytes.len() as u64;
+    if actual < expected {
+        return Err(SnapshotError::Truncated { expected, actual });
+    }
+    if actual > expected {
+        return Err(SnapshotError::Corrupt(format!(
+            "{} bytes after the checksum",
+            actual - expected
+        )));
+    }
+    let crc_at = bytes.len() - 4;
+    let stored = u32::from_le_bytes([
+        bytes[crc_at],
+        bytes[crc_at + 1],
+        bytes[crc_at + 2],
+        bytes[crc_at + 3],
+    ]);
+    let computed = crc32(&bytes[..crc_at]);
+    if stored != computed {
+        return Err(SnapshotError::ChecksumMismatch { stored, computed });
+    }
+    bytes.truncate(crc_at);
+    bytes.drain(..HEADER_BYTES);
+    Ok(bytes)
+}
+
+/// Little-endian reader over a verified body.
+struct Cursor<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Cursor<'a> {
+    fn new(bytes: &'a [u8]) -> Self {
+        Self { bytes, at: 0 }
+    }
+
+    fn take<const N: usize>(&mut self) -> Result<[u8; N], SnapshotError> {
+        let end = self.at + N;
+        let slice = self
+            .bytes
+            .get(self.at..end)
+            .ok_or_else(|| SnapshotError::Corrupt("body ends early".into()))?;
+        self.at = end;
+        let mut out = [0u8; N];
+        out.copy_from_slice(slice);
+        Ok(out)
+    }
+
+    fn u16(&mut self) -> Result<u16, SnapshotError> {
+        Ok(u16::from_le_bytes(self.take()?))
+    }
+    fn u32(&mut self) -> Result<u32, SnapshotError> {
+        Ok(u32::from_le_bytes(self.take()?))
+    }
+    fn u64(&mut self) -> Result<u64, SnapshotError> {
+        Ok(u64::from_le_bytes(self.take()?))
+    }
+    fn i32(&mut self) -> Result<i32, SnapshotError> {
+        Ok(i32::from_le_bytes(self.take()?))
+    }
+    fn f32(&mut self) -> Result<f32, SnapshotError> {
+        Ok(f32::from_le_bytes(self.take()?))
+    }
+    fn f64(&mut self) -> Result<f64, SnapshotError> {
+        Ok(f64::from_le_bytes(self.take()?))
+    }
+    fn finished(&self) -> Result<(), SnapshotError> {
+        if self.at == self.bytes.len() {
+            Ok(())
+        } else {
+            Err(SnapshotError::Corrupt(format!(
+                "{} unread bytes in the body",
+                self.bytes.len() - self.at
+            )))
+        }
+    }
+}
+
+fn finite_voxel(occ: f32, roi: f32) -> Result<Voxel, SnapshotError> {
+    if occ.is_finite() && roi.is_finite() {
+        Ok(Voxel {
+            occupancy_logodds: occ,
+            roi_logodds: roi,
+        })
+    } else {
+        Err(SnapshotError::Corrupt("non-finite log-odds".into()))
+    }
+}
+
+impl RoiMap {
+    /// Writes the whole map (configuration, voxels, sequence number) as a snapshot.
+    pub fn write_snapshot(&self, mut w: impl Write) -> Result<(), SnapshotError> {
+        let c = &self.config;
+        let mut body = Vec::with_capacity(64 + self.known_count * 8 + self.store.blocks.len() * 80);
+        body.extend_from_slice(&c.resolution_m.to_le_bytes());
+        for v in [
+            c.hit_logodds,
+            c.miss_logodds,
+            c.clamp_min_logodds,
+            c.clamp_max_logodds,
+            c.roi_threshold_logodds,
+        ] {
+            body.extend_from_slice(&v.to_le_bytes());
+        }
+        body.extend_from_slice(&c.max_range_m.unwrap_or(-1.0).to_le_bytes());
+        body.extend_from_slice(&c.roi_distance_max_m.to_le_bytes());
+        body.extend_from_slice(&c.roi_distance_cell_m.to_le_bytes());
+        body.extend_from_slice(&self.seq.to_le_bytes());
+        body.extend_from_slice(&self.scans_inserted.to_le_bytes());
+        let blocks: Vec<usize> = (0..self.store.blocks.len())
+            .filter(|&i| mask_count(&self.store.blocks[i].known) > 0)
+            .collect();
+        body.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
+        for i in blocks {
+            let b = &self.store.blocks[i];
+            let bk = self.store.coords[i];
+            for v in [bk.x, bk.y, bk.z] {
+                body.extend_from_slice(&v.to_le_bytes());
+            }
+            for w in b.known {
+                body.extend_from_slice(&w.to_le_bytes());
+            }
+            for_each_bit(&b.known, |l| {
+                body.extend_from_slice(&b.occ[l].to_le_bytes());
+                body.extend_from_slice(&b.roi[l].to_le_bytes());
+            });
+        }
+        frame(KIND_SNAPSHOT, &body, &mut w)
+    }
+
+    /// Reads a snapshot written by [`RoiMap::write_snapshot`]. The restored map has no pending
+    /// changes; its sequence number continues from the snapshot's.
+    pub fn read_snapshot(mut r: impl Read) -> Result<RoiMap, SnapshotError> {
+        let body = unframe(KIND_SNAPSHOT, &mut r)?;
+        let mut c = Cursor::new(&body);
+        let resolution_m = c.f64()?;
+        let hit_logodds = c.f32()?;
+        let miss_logodds = c.f32()?;
+        let clamp_min_logodds = c.f32()?;
+        let clamp_max_logodds = c.f32()?;
+        let roi_threshold_logodds = c.f32()?;
+        let max_range = c.f64()?;
+        let roi_distance_max_m = c.f64()?;
+        let roi_distance_cell_m = c.f64()?;
+        let config = MapConfig {
+            resolution_m,
+            hit_logodds,
+            miss_logodds,
+            clamp_min_logodds,
+            clamp_max_logodds,
+            roi_threshold_logodds,
+            max_range_m: (max_range >= 0.0).then_some(max_range),
+            roi_distance_max_m,
+            roi_distance_cell_m,
+        };
+        let mut map = RoiMap::new(config)?;
+        let seq = c.u64()?;
+        let scans_inserted = c.u64()?;
+        let n_blocks = c.u32()?;
+        map.seq = seq;
+        let mut log = ChangeLog::default();
+        let mut seen = crate::KeySet::default();
+        for _ in 0..n_blocks {
+            let bk = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
+            if !seen.insert(bk) {
+                return Err(SnapshotError::Corrupt(format!("block {bk:?} twice")));
+            }
+            let mut known: Mask = [0; 8];
+            for w in &mut known {
+                *w = c.u64()?;
+            }
+            let mut voxels = Vec::with_capacity(mask_count(&known));
+            let mut err = None;
+            for_each_bit(&known, |l| {
+                let v = c
+                    .f32()
+                    .and_then(|o| c.f32().and_then(|r| finite_voxel(o, r)));
+                match v {
+                    Ok(v) => voxels.push((key_at(bk, l), v)),
+                    Err(e) => {
+                        if err.is_none() {
+                            err = Some(e);
+                        }
+                    }
+                }
+            });
+            if let Some(e) = err {
+                return Err(e);
+            }
+            let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
+            if !(key_ok(bk.x) && key_ok(bk.y) && key_ok(bk.z)) {
+                return Err(SnapshotError::Corrupt(format!("block {bk:?} out of range")));
+            }
+            for (k, v) in voxels {
+                map.set_voxel(k, v, &mut log);
+            }
+        }
+        c.finished()?;
+        map.refresh_derived(&log);
+        map.scans_inserted = scans_inserted;
+        // Nothing pending: the snapshot is the baseline.
+        for bi in map.dirty_blocks.drain() {
+            map.store.blocks[bi as usize].dirty = [0; 8];
+        }
+        Ok(map)
+    }
+}
+
+impl MapDelta {
+    /// Writes the delta in the framed format (kind 1).
+    pub fn write_to(&self, mut w: impl Write) -> Result<(), SnapshotError> {
+        let mut body = Vec::with_capacity(28 + self.voxels.len() * 20);
+        body.extend_from_slice(&self.resolution_m.to_le_bytes());
+        body.extend_from_slice(&self.from_seq.to_le_bytes());
+        body.extend_from_slice(&self.to_seq.to_le_bytes());
+        body.extend_from_slice(&(self.voxels.len() as u32).to_le_bytes());
+        for (k, v) in &self.voxels {
+            for c in [k.x, k.y, k.z] {
+                body.extend_from_slice(&c.to_le_bytes());
+            }
+            body.extend_from_slice(&v.occupancy_logodds.to_le_bytes());
+            body.extend_from_slice(&v.roi_logodds.to_le_bytes());
+        }
+        frame(KIND_DELTA, &body, &mut w)
+    }
+
+    /// Reads a delta written by [`MapDelta::write_to`].
+    pub fn read_from(mut r: impl Read) -> Result<MapDelta, SnapshotError> {
+        let body = unframe(KIND_DELTA, &mut r)?;
+        let mut c = Cursor::new(&body);
+        let resolution_m = c.f64()?;
+        let from_seq = c.u64()?;
+        let to_seq = c.u64()?;
+        let n = c.u32()? as usize;
+        if n.saturating_mul(20) != body.len().saturating_sub(28) {
+            return Err(SnapshotError::Corrupt(format!(
+                "{n} voxels do not fit a body of {} bytes",
+                body.len()
+            )));
+        }
+        let mut voxels = Vec::with_capacity(n);
+        for _ in 0..n {
+            let k = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
+            let v = finite_voxel(c.f32()?, c.f32()?)?;
+            voxels.push((k, v));
+        }
+        c.finished()?;
+        Ok(MapDelta {
+            resolution_m,
+            from_seq,
+            to_seq,
+            voxels,
+        })
+    }
+}

@@ -1,0 +1,452 @@
+//! `glasshouse eval`: the paper's experiments (Table I, Fig. 5 and 6) on the simulator.
+//!
+//! Runs `--trials` seeded trials per method through [`glasshouse_eval::Trial`] (the services'
+//! detector and planner code on the simulated clock), in parallel on `--jobs` threads, and writes
+//! into `--out`:
+//!
+//! - `trials/<method>-<trial>.csv`: the metrics at every simulated second;
+//! - `table.md`: Table I (mean ± std at the end of the budget) and the Mann-Whitney p-values;
+//! - `summary.json`: `{"<method>": {"<metric>": {"mean", "std", "n"}}, "fruits_total", "p_values",
+//!   "settings"}`;
+//! - `covered_volume.png`, `volume_accuracy.png`: mean curves over time per method.
+//!
+//! Trial `t` (from 0) uses seed `--seed + t` for the scene, the camera noise and the planner, the
+//! same for every method, so methods are compared on the same scenes; `glasshouse demo --seed`
+//! with that seed shows the same scene.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, ensure, Context};
+use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
+use glasshouse_eval::report::{self, method_label, MethodRuns};
+use glasshouse_eval::{ComputeTime, FreeCameraMotion, Trial, TrialConfig, TrialResult};
+use glasshouse_nbv::Method;
+use glasshouse_sim::ScenarioKind;
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Simulated scenario: 1, 2 or row.
+    #[arg(long, default_value = "2")]
+    pub scenario: String,
+    /// Comma-separated methods: ours-uu, ours-up, explo-uu, explo-up.
+    #[arg(long, default_value = "ours-uu,ours-up,explo-uu,explo-up")]
+    pub methods: String,
+    /// Trials per method.
+    #[arg(long, default_value_t = 20)]
+    pub trials: u32,
+    /// Simulated seconds per trial.
+    #[arg(long, default_value_t = 180.0)]
+    pub budget_s: f64,
+    /// Seed of trial 0; trial t uses seed + t.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output directory (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Charge this fixed planner compute time per view instead of the measured one, so that a
+    /// run replays bit for bit.
+    #[arg(long, value_name = "MS")]
+    pub compute_ms: Option<f64>,
+    /// Image width in pixels (height is 3/4 of it); smaller runs faster.
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    /// Trials run in parallel (default: the number of cores).
+    #[arg(long)]
+    pub jobs: Option<usize>,
+}
+
+/// Parsed and checked arguments.
+struct Plan {
+    scenario: ScenarioKind,
+    methods: Vec<Method>,
+    compute_time: ComputeTime,
+    jobs: usize,
+}
+
+fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
+    let scenario: ScenarioKind = args
+        .scenario
+        .parse()
+        .map_err(|e| anyhow::anyhow!("--scenario: {e}"))?;
+    let mut methods = Vec::new();
+    for name in args.methods.split(',').filter(|s| !s.trim().is_empty()) {
+        let method: Method = name
+            .parse()
+            .map_err(|e| anyhow::anyhow!("--methods: {e}"))?;
+        ensure!(
+            !methods.contains(&method),
+            "--methods: {method} given twice"
+        );
+        methods.push(method);
+    }
+    ensure!(!methods.is_empty(), "--methods: no method given");
+    ensure!(args.trials > 0, "--trials must be at least 1");
+    ensure!(
+        args.budget_s.is_finite() && args.budget_s > 0.0 && args.budget_s <= 86_400.0,
+        "--budget-s must be in (0, 86400]"
+    );
+    let compute_time = match args.compute_ms {
+        Some(ms) => {
+            ensure!(
+                ms.is_finite() && ms >= 0.0,
+                "--compute-ms must be finite and >= 0"
+            );
+            ComputeTime::Fixed { ms }
+        }
+        None => ComputeTime::Measured,
+    };
+    ensure!(
+        (16..=1280).contains(&args.width),
+        "--width must be within 16..=1280"
+    );
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let jobs = args.jobs.unwrap_or(cores);
+    ensure!(jobs > 0, "--jobs must be at least 1");
+    Ok(Plan {
+        scenario,
+        methods,
+        compute_time,
+        jobs,
+    })
+}
+
+fn write(path: &Path, bytes: impl AsRef<[u8]>) -> anyhow::Result<()> {
+    std::fs::write(path, bytes).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Runs the experiment; see the module docs.
+pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    let plan = check(&args)?;
+    // Fail on an unusable output directory before hours of simulation.
+    let trials_dir = args.out.join("trials");
+    std::fs::create_dir_all(&trials_dir)
+        .with_context(|| format!("cannot create {}", trials_dir.display()))?;
+    let probe = args.out.join(".write-test");
+    write(&probe, b"")?;
+    let _ = std::fs::remove_file(&probe);
+
+    let height = args.width * 3 / 4;
+    let configs: Vec<TrialConfig> = plan
+        .methods
+        .iter()
+        .flat_map(|&method| {
+            (0..args.trials).map(move |t| TrialConfig {
+                width: args.width,
+                height,
+                budget_s: args.budget_s,
+                compute_time: plan.compute_time,
+                ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
+            })
+        })
+        .collect();
+    for config in &configs {
+        config.validate()?;
+    }
+
+    // Progress in simulated seconds over all trials; the message counts finished trials.
+    let total_s = args.budget_s * configs.len() as f64;
+    let bar = ProgressBar::new((total_s * 10.0).round() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{bar:40} {msg} trials done, {elapsed_precise} elapsed, {eta_precise} left",
+        )
+        .context("progress bar template")?,
+    );
+    bar.set_message(format!("0/{}", configs.len()));
+    bar.enable_steady_tick(Duration::from_millis(500));
+    let started = Instant::now();
+    let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    let results: Mutex<Vec<Option<(TrialResult, f64)>>> =
+        Mutex::new((0..configs.len()).map(|_| None).collect());
+    let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
+    std::thread::scope(|scope| {
+        for _ in 0..plan.jobs.min(configs.len()) {
+            scope.spawn(|| loop {
+                let index = next.fetch_add(1, Ordering::Relaxed);
+                let Some(config) = configs.get(index) else {
+                    break;
+                };
+                if first_error.lock().map(|e| e.is_some()).unwrap_or(true) {
+                    break;
+                }
+                let trial_started = Instant::now();
+                let mut reported = 0.0;
+                let outcome = Trial::new(*config, FreeCameraMotion::default()).and_then(|t| {
+                    t.run(|clock_s| {
+                        let step = ((clock_s - reported) * 10.0).max(0.0);
+                        bar.inc(step.round() as u64);
+                        reported += step.round() / 10.0;
+                    })
+                });
+                match outcome {
+                    Ok(result) => {
+                        let wall_s = trial_started.elapsed().as_secs_f64();
+                        if let Ok(mut r) = results.lock() {
+                            r[index] = Some((result, wall_s));
+                        }
+                        let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+                        bar.set_message(format!("{n}/{}", configs.len()));
+                    }
+                    Err(e) => {
+                        if let Ok(mut slot) = first_error.lock() {
+                            slot.get_or_insert(anyhow::Error::new(e).context(format!(
+                                "trial {} seed {} failed",
+                                config.method, config.seed
+                            )));
+                        }
+                        break;
+                    }
+                }
+            });
+        }
+    });
+    bar.finish_and_clear();
+    if let Some(e) = first_error
+        .into_inner()
+        .map_err(|_| anyhow::anyhow!("a trial thread panicked"))?
+    {
+        return Err(e);
+    }
+    let results = results
+        .into_inner()
+        .map_err(|_| anyhow::anyhow!("a trial thread panicked"))?;
+    let mut runs: Vec<MethodRuns> = plan
+        .methods
+        .iter()
+        .map(|&method| MethodRuns {
+            method,
+            trials: Vec::new(),
+        })
+        .collect();
+    let mut wall_times = Vec::new();
+    for (config, result) in configs.iter().zip(results) {
+        let Some((result, wall_s)) = result else {
+            bail!(
+                "trial {} seed {} did not finish",
+                config.method,
+                config.seed
+            );
+        };
+        wall_times.push(wall_s);
+        if let Some(run) = runs.iter_mut().find(|r| r.method == config.method) {
+            run.trials.push(result);
+        }
+    }
+    let wall_s = started.elapsed().as_secs_f64();
+
+    // Outputs.
+    for run in &runs {
+        for (t, result) in run.trials.iter().enumerate() {
+            let path = trials_dir.join(format!("{}-{t}.csv", run.method));
+            write(&path, report::trial_csv(result))?;
+        }
+    }
+    let mut table = report::table_markdown(&plan.scenario.to_string(), &runs, args.budget_s);
+    table.push_str(&plot_notes(&runs));
+    write(&args.out.join("table.md"), &table)?;
+    let settings = serde_json::json!({
+        "scenario": plan.scenario.to_string(),
+        "methods": plan.methods.iter().map(|m| m.to_string()).collect::<Vec<_>>(),
+        "trials": args.trials,
+        "budget_s": args.budget_s,
+        "seed": args.seed,
+        "compute_ms": args.compute_ms,
+        "width": args.width,
+        "height": height,
+    });
+    let summary = report::summary_json(&runs, settings);
+    write(
+        &args.out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
+    write_plots(&args.out, &runs, args.budget_s)?;
+
+    let mean_trial_s = wall_times.iter().sum::<f64>() / wall_times.len().max(1) as f64;
+    println!(
+        "glasshouse eval: {} trials in {:.1} s wall ({:.1} s per trial on average, {} jobs); \
+         results in {}",
+        configs.len(),
+        wall_s,
+        mean_trial_s,
+        plan.jobs,
+        args.out.display()
+    );
+    print!("{table}");
+    Ok(())
+}
+
+/// The legend of the plots in words (the PNGs carry it in colour).
+fn plot_notes(runs: &[MethodRuns]) -> String {
+    let mut out = String::from(
+        "\n## Plots\n\n`covered_volume.png` (paper Fig. 5) and `volume_accuracy.png` (Fig. 6): \
+         x = simulated time in s, y = the mean over trials at each second. Solid lines: box \
+         estimates (the paper's); dashed: fitted ellipsoid estimates. Volume accuracy keeps \
+         pairs with accuracy > 0.5 (the published plots' rule).\n\n",
+    );
+    for (i, run) in runs.iter().enumerate() {
+        let [r, g, b] = PALETTE[i % PALETTE.len()];
+        out.push_str(&format!(
+            "- {} ({}): colour #{r:02x}{g:02x}{b:02x}\n",
+            method_label(run.method),
+            run.method
+        ));
+    }
+    out
+}
+
+fn write_plots(out: &Path, runs: &[MethodRuns], budget_s: f64) -> anyhow::Result<()> {
+    type Value = fn(&glasshouse_eval::Sample) -> f64;
+    let plots: [(&str, &str, &str, Value, Value); 2] = [
+        (
+            "covered_volume.png",
+            "covered roi volume",
+            "covered share",
+            |s| s.boxes.covered_volume,
+            |s| s.fitted.covered_volume,
+        ),
+        (
+            "volume_accuracy.png",
+            "volume accuracy (pairs > 0.5)",
+            "volume accuracy",
+            |s| s.boxes.volume_accuracy_gt05,
+            |s| s.fitted.volume_accuracy_gt05,
+        ),
+    ];
+    for (file, title, y_label, boxes, fitted) in plots {
+        let mut series = Vec::new();
+        for (i, run) in runs.iter().enumerate() {
+            let color = PALETTE[i % PALETTE.len()];
+            for (value, dashed, suffix) in [(boxes, false, ""), (fitted, true, " fit")] {
+                let curve = report::mean_curve(&run.trials, value);
+                series.push(Series {
+                    label: format!("{}{suffix}", run.method),
+                    color,
+                    dashed,
+                    points: curve
+                        .iter()
+                        .enumerate()
+                        .map(|(t, v)| (t as f64, *v))
+                        .collect(),
+                });
+            }
+        }
+        let spec = PlotSpec {
+            title: title.to_string(),
+            x_label: "time (s)".to_string(),
+            y_label: y_label.to_string(),
+            x_max: budget_s,
+            y_min: 0.0,
+            y_max: 1.0,
+            width: 900,
+            height: 560,
+        };
+        let png = render_png(&spec, &series)?;
+        write(&out.join(file), png)?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    fn args(out: PathBuf) -> EvalArgs {
+        EvalArgs {
+            scenario: "2".into(),
+            methods: "ours-uu,explo-uu".into(),
+            trials: 1,
+            budget_s: 4.0,
+            seed: 1,
+            out,
+            compute_ms: Some(50.0),
+            width: 64,
+            jobs: Some(2),
+        }
+    }
+
+    #[test]
+    fn bad_input_is_an_error_not_a_panic() {
+        let out = std::env::temp_dir().join(format!("gh-eval-bad-{}", std::process::id()));
+        let bad = [
+            EvalArgs {
+                methods: "ours-uu,nope".into(),
+                ..args(out.clone())
+            },
+            EvalArgs {
+                methods: "".into(),
+                ..args(out.clone())
+            },
+            EvalArgs {
+                methods: "ours-uu,ours-uu".into(),
+                ..args(out.clone())
+            },
+            EvalArgs {
+                trials: 0,
+                ..args(out.clone())
+            },
+            EvalArgs {
+                scenario: "3".into(),
+                ..args(out.clone())
+            },
+            EvalArgs {
+                budget_s: -1.0,
+                ..args(out.clone())
+            },
+            EvalArgs {
+                compute_ms: Some(f64::NAN),
+                ..args(out.clone())
+            },
+            EvalArgs {
+                jobs: Some(0),
+                ..args(out.clone())
+            },
+        ];
+        for a in bad {
+            let msg = format!("{:#}", run(a).unwrap_err());
+            assert!(msg.starts_with("--"), "{msg}");
+        }
+        // An output path below a regular file cannot be created.
+        let file = std::env::temp_dir().join(format!("gh-eval-file-{}", std::process::id()));
+        std::fs::write(&file, b"x").unwrap();
+        let msg = format!("{:#}", run(args(file.join("out"))).unwrap_err());
+        assert!(msg.contains("cannot create"), "{msg}");
+        let _ = std::fs::remove_file(&file);
+    }
+
+    #[test]
+    fn a_small_run_writes_every_output_and_replays() {
+        let base = std::env::temp_dir().join(format!("gh-eval-run-{}", std::process::id()));
+        let (a, b) = (base.join("a"), base.join("b"));
+        run(args(a.clone())).unwrap();
+        run(args(b.clone())).unwrap();
+        for name in [
+            "table.md",
+            "summary.json",
+            "covered_volume.png",
+            "volume_accuracy.png",
+            "trials/ours-uu-0.csv",
+            "trials/explo-uu-0.csv",
+        ] {
+            assert!(a.join(name).is_file(), "{name}");
+        }
+        for name in ["trials/ours-uu-0.csv", "trials/explo-uu-0.csv"] {
+            let x = std::fs::read_to_string(a.join(name)).unwrap();
+            assert_eq!(x, std::fs::read_to_string(b.join(name)).unwrap());
+            // 0..=4 s and the header.
+            assert_eq!(x.lines().count(), 6);
+        }
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(a.join("summary.json")).unwrap())
+                .unwrap();
+        assert!(summary["ours-uu"]["detected"]["mean"].is_number());
+        assert!(summary["fruits_total"].as_u64().unwrap() > 0);
+        let _ = std::fs::remove_dir_all(&base);
+    }
+}

@@ -205,6 +205,14 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
             Ok(Some(EdgeEvent::Reannounced { frame_seq })) => {
                 println!("frame {frame_seq}: no views yet, re-announced");
             }
+            Ok(Some(EdgeEvent::SegmentDone {
+                segments_done,
+                sim_time_s,
+            })) => {
+                println!(
+                    "segment {segments_done} done: moving along the row  sim {sim_time_s:6.1} s"
+                );
+            }
             Ok(Some(EdgeEvent::Finished {
                 views_done: n,
                 frames: f,

@@ -6,23 +6,25 @@
 //! The source is the simulated glasshouse ([`glasshouse_sim`]); the clock is simulated: each view
 //! costs its motion time plus a capture time.
 
+pub mod source;
+
+use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use glasshouse_arm::{Interval, Mount, MountState};
 use glasshouse_bus::{
     declare_alive, Delivery, DropCounters, Received, Shutdown, TypedPublisher, TypedSubscriber,
 };
 use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
 use glasshouse_proto::{
-    ArmModel, ArmState, Fruit, FruitEstimates, Header, Message, MountKind, RankedView, RgbdFrame,
-    TrolleyInfo, TrolleyState, TrolleyStatus,
+    FruitEstimates, Header, Message, RankedView, RgbdFrame, TrolleyState, TrolleyStatus,
 };
-use glasshouse_sim::{CameraModel, ScenarioKind, Scene, SimArm};
+use glasshouse_sim::{CameraModel, ScenarioKind, Scene};
 use nalgebra::Isometry3;
 use serde::Deserialize;
+use source::{FrameRecorder, ReplaySource, SimSource, TrolleySource};
 use zenoh::Session;
 
 /// Depth is sent in millimetres.
@@ -45,19 +47,32 @@ pub struct EdgeConfig {
     /// Simulated time to capture one view (the arm's motion time comes from its joint and
     /// mount speed limits).
     pub capture_time_s: f64,
+    /// Length along the row of the part the trolley works on at a time (row scenario).
+    pub segment_length_m: f64,
+    /// The trolley moves on to the next segment when the best view it is sent has a utility no
+    /// higher than this (the planner's switching threshold): nothing worth a look is left here.
+    pub segment_done_utility: f64,
+    /// Play back frames recorded with `record_frames_dir` instead of simulating.
+    pub replay_dir: Option<PathBuf>,
+    /// Record every captured frame (and the trolley info) to this folder.
+    pub record_frames_dir: Option<PathBuf>,
 }
 
 impl Default for EdgeConfig {
     fn default() -> Self {
         Self {
             trolley_id: "t1".into(),
-            scenario: "2".into(),
+            scenario: "1".into(),
             seed: 1,
             width: 640,
             height: 480,
             max_views: 0,
             views_timeout_ms: 3000,
             capture_time_s: glasshouse_arm::CAPTURE_TIME_S,
+            segment_length_m: 1.0,
+            segment_done_utility: 0.2,
+            replay_dir: None,
+            record_frames_dir: None,
         }
     }
 }
@@ -75,6 +90,10 @@ impl EdgeConfig {
             self.capture_time_s.is_finite() && self.capture_time_s >= 0.0,
             "capture time must be finite and >= 0"
         );
+        anyhow::ensure!(
+            self.segment_length_m.is_finite() && self.segment_length_m > 0.0,
+            "segment length must be finite and > 0"
+        );
         self.scenario
             .parse::<ScenarioKind>()
             .map_err(|e| anyhow::anyhow!("{e}"))
@@ -91,6 +110,8 @@ pub enum EdgeEvent {
         view: RankedView,
         sim_time_s: f64,
     },
+    /// Nothing above the threshold was left in a segment; the trolley moved to the next one.
+    SegmentDone { segments_done: u32, sim_time_s: f64 },
     /// No planner answered frame `frame_seq` in time; it was published again.
     Reannounced { frame_seq: u64 },
     /// The view budget is spent and the last frame was answered.
@@ -134,15 +155,25 @@ pub async fn run(
     .await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
 
-    let scene = Arc::new(Scene::generate(scenario, config.seed));
-    let camera = Arc::new(CameraModel::with_resolution(config.width, config.height));
-    let mut sim_arm =
-        SimArm::new(&scene).context("the arm cannot reach the scene's initial view")?;
-    let info = trolley_info(&scene, &sim_arm, &camera, &config);
-    let truth = Message::FruitEstimates(ground_truth(&scene, &tid));
-    let mut pose = sim_arm.world_from_camera();
+    let mut source: Box<dyn TrolleySource> = match &config.replay_dir {
+        Some(dir) => Box::new(ReplaySource::open(dir)?),
+        None => Box::new(SimSource::new(&config)?),
+    };
+    let recorder = config
+        .record_frames_dir
+        .as_deref()
+        .map(FrameRecorder::create)
+        .transpose()?;
+    let truth = source.ground_truth().map(|fruits| {
+        Message::FruitEstimates(FruitEstimates {
+            fruits,
+            based_on_seq: 0,
+            planner_id: format!("truth-{tid}"),
+        })
+    });
     let mut sim_time_s = 0.0;
     let mut frame_seq = 0u64;
+    let mut segments_done = 0u32;
     let mut status = TrolleyStatus {
         state: TrolleyState::Starting,
         views_done: 0,
@@ -167,44 +198,44 @@ pub async fn run(
         }
     };
 
-    let arm_state = |moving: bool, views_done: u32, arm: &SimArm| {
-        let (rail_position_m, lift_height_m) = match arm.pose().mount {
-            MountState::Rail { position_m, lift_m } => (position_m, lift_m),
-            MountState::Gantry { extension_m, .. } => (0.0, extension_m),
-            MountState::Fixed => (0.0, 0.0),
-        };
-        Message::ArmState(ArmState {
-            joint_angles_rad: arm.pose().joints.to_vec(),
-            world_from_camera: arm.world_from_camera(),
-            rail_position_m,
-            lift_height_m,
-            moving,
-            views_done,
-        })
-    };
     'capture: loop {
         if shutdown.is_set() {
             break;
         }
         frame_seq += 1;
         status.state = TrolleyState::Capturing;
-        let frame = {
-            let (scene, camera) = (scene.clone(), camera.clone());
-            let noise_seed = config.seed.wrapping_mul(1_000_003).wrapping_add(frame_seq);
-            tokio::task::spawn_blocking(move || render_frame(&scene, &camera, &pose, noise_seed))
-                .await
-                .context("render task failed")?
+        let (returned, frame) = tokio::task::spawn_blocking(move || {
+            let frame = source.capture(frame_seq);
+            (source, frame)
+        })
+        .await
+        .context("capture task failed")?;
+        source = returned;
+        let Some(frame) = frame? else {
+            tracing::info!(trolley = %tid, "the source has no more frames");
+            emit(EdgeEvent::Finished {
+                views_done: status.views_done,
+                frames: status.frames_published,
+            });
+            break;
         };
+        let info_msg = Message::TrolleyInfo(source.info());
         let frame_msg = Message::RgbdFrame(frame);
-        let info_msg = Message::TrolleyInfo(info.clone());
-        let arm_msg = arm_state(false, status.views_done, &sim_arm);
+        if let Some(recorder) = &recorder {
+            let h = header(frame_seq, sim_time_s);
+            recorder.write(&h, &info_msg)?;
+            recorder.write(&h, &frame_msg)?;
+        }
+        let arm_msg = Message::ArmState(source.arm_state(false, status.views_done));
         let announce = |seq: u64, t: f64| {
             let h = header(seq, t);
             let (info_pub, arm, rgbd, truth_pub) = (&info_pub, &arm, &rgbd, &truth_pub);
             let (info_msg, arm_msg, frame_msg, truth) = (&info_msg, &arm_msg, &frame_msg, &truth);
             async move {
                 info_pub.publish(&h, info_msg).await?;
-                truth_pub.publish(&h, truth).await?;
+                if let Some(truth) = truth {
+                    truth_pub.publish(&h, truth).await?;
+                }
                 arm.publish(&h, arm_msg).await?;
                 rgbd.publish(&h, frame_msg).await
             }
@@ -251,10 +282,35 @@ pub async fn run(
             });
             break;
         }
+        // Nothing worth a look is left in this segment: move on along the row.
+        let best_utility = views.views.first().map_or(f32::NEG_INFINITY, |v| v.utility);
+        if f64::from(best_utility) <= config.segment_done_utility {
+            match source.next_segment() {
+                Some(motion_s) => {
+                    segments_done += 1;
+                    sim_time_s += motion_s + config.capture_time_s;
+                    tracing::info!(trolley = %tid, frame_seq, best_utility, segment = segments_done, "segment done; moving along the row");
+                    emit(EdgeEvent::SegmentDone {
+                        segments_done,
+                        sim_time_s,
+                    });
+                    continue;
+                }
+                None if !views.views.is_empty() => {}
+                None => {
+                    tracing::info!(trolley = %tid, frame_seq, "row done: no view left above the threshold");
+                    emit(EdgeEvent::Finished {
+                        views_done: status.views_done,
+                        frames: status.frames_published,
+                    });
+                    break;
+                }
+            }
+        }
         // Execute the first reachable view (Algorithm 1: "moveToPose, else the next view"):
         // inverse kinematics, then a collision-free joint path.
         let goals: Vec<Isometry3<f64>> = views.views.iter().map(|v| v.world_from_camera).collect();
-        let executed = sim_arm.execute_first_reachable(&scene, &goals);
+        let executed = source.execute(&goals);
         status.unreachable_views += executed.map_or(goals.len(), |e| e.index) as u32;
         let Some(executed) = executed else {
             tracing::info!(trolley = %tid, frame_seq, offered = views.views.len(), "no reachable view; capturing again");
@@ -266,10 +322,9 @@ pub async fn run(
         sim_time_s += executed.motion_s + config.capture_time_s;
         arm.publish(
             &header(frame_seq, sim_time_s),
-            &arm_state(true, status.views_done, &sim_arm),
+            &Message::ArmState(source.arm_state(true, status.views_done)),
         )
         .await?;
-        pose = sim_arm.world_from_camera();
         status.views_done += 1;
         emit(EdgeEvent::ViewDone {
             views_done: status.views_done,
@@ -326,71 +381,5 @@ pub fn render_frame(
         max_range_m: camera.max_range_m as f32,
         depth,
         rgb: image.rgb,
-    }
-}
-
-/// The simulator's fruits as FruitEstimates (box centre, extent and volume; confidence 1).
-fn ground_truth(scene: &Scene, tid: &str) -> FruitEstimates {
-    FruitEstimates {
-        fruits: scene
-            .fruits()
-            .iter()
-            .map(|f| {
-                let aabb = f.aabb();
-                Fruit {
-                    id: f.id,
-                    centre_in_world: f.centre.cast(),
-                    box_min: aabb.min.cast(),
-                    box_max: aabb.max.cast(),
-                    volume_m3: f.volume_m3 as f32,
-                    voxel_count: f.voxel_keys(0.01).len().min(u32::MAX as usize) as u32,
-                    confidence: 1.0,
-                }
-            })
-            .collect(),
-        based_on_seq: 0,
-        planner_id: format!("truth-{tid}"),
-    }
-}
-
-fn trolley_info(
-    scene: &Scene,
-    arm: &SimArm,
-    camera: &CameraModel,
-    config: &EdgeConfig,
-) -> TrolleyInfo {
-    let robot = arm.robot();
-    let (mount, rail, lift) = match &robot.mount {
-        Mount::Fixed { .. } => (MountKind::StaticPole, None, None),
-        Mount::CeilingGantry {
-            max_extension_m, ..
-        } => (
-            MountKind::CeilingGantry,
-            None,
-            Some(Interval::new(0.0, *max_extension_m)),
-        ),
-        Mount::RailLift {
-            position_m, lift_m, ..
-        } => (MountKind::RailLift, Some(*position_m), Some(*lift_m)),
-    };
-    let zero = Interval::new(0.0, 0.0);
-    let (rail, lift) = (rail.unwrap_or(zero), lift.unwrap_or(zero));
-    TrolleyInfo {
-        arm_model: ArmModel::Ur5e,
-        mount,
-        world_from_base: robot
-            .world_from_base(&arm.pose().mount)
-            .unwrap_or_else(|_| Isometry3::identity()),
-        joint_min_rad: robot.arm.limits.lower.to_vec(),
-        joint_max_rad: robot.arm.limits.upper.to_vec(),
-        rail_min_m: rail.min,
-        rail_max_m: rail.max,
-        lift_min_m: lift.min,
-        lift_max_m: lift.max,
-        camera_workspace: scene.camera_workspace(),
-        sampling_region: scene.sampling_region(),
-        scenario: config.scenario.clone(),
-        scene_seed: config.seed,
-        intrinsics: camera.intrinsics,
     }
 }

@@ -10,8 +10,8 @@ use glasshouse_edge::{EdgeConfig, EdgeCounters};
 /// Streams RGB-D frames and arm state of one trolley and executes the views planners send.
 ///
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
-/// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s), then
-/// the flags below.
+/// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
+/// segment_length_m, segment_done_utility, replay_dir, record_frames_dir), then the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
 struct Cli {
@@ -36,6 +36,12 @@ struct Cli {
     /// Image height in pixels.
     #[arg(long)]
     height: Option<u32>,
+    /// Play back the frames recorded in this folder instead of simulating.
+    #[arg(long, value_name = "DIR")]
+    replay: Option<PathBuf>,
+    /// Record every captured frame to this folder (for --replay).
+    #[arg(long, value_name = "DIR")]
+    record_frames: Option<PathBuf>,
     #[command(flatten)]
     bus: BusArgs,
 }
@@ -62,6 +68,12 @@ async fn main() -> anyhow::Result<()> {
         config.height = cli.height.unwrap_or(w * 3 / 4);
     } else if let Some(h) = cli.height {
         config.height = h;
+    }
+    if cli.replay.is_some() {
+        config.replay_dir = cli.replay;
+    }
+    if cli.record_frames.is_some() {
+        config.record_frames_dir = cli.record_frames;
     }
     config.validate()?;
     let session = glasshouse_bus::open(&cli.bus).await?;

@@ -77,6 +77,13 @@ impl fmt::Display for ScenarioKind {
     }
 }
 
+/// One part of a scene a trolley works on at a time (see [`Scene::segments`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Segment {
+    pub camera_workspace: Aabb,
+    pub sampling_region: Aabb,
+}
+
 /// Ground truth of one fruit: its axis-aligned box in the world frame.
 #[derive(Clone, Debug, Serialize)]
 pub struct FruitTruth {
@@ -276,6 +283,41 @@ impl Scene {
     /// The plants' bounding box inflated by 10 cm: where view targets may lie.
     pub fn sampling_region(&self) -> Aabb {
         self.sampling_region
+    }
+
+    /// The parts of the scene a trolley works through one after the other: in the row, slices
+    /// of `segment_length_m` along the row (x), each a (camera workspace, sampling region) pair
+    /// clipped to its slice (the sampling region reaches 10 cm past it, so fruit on a boundary
+    /// is seen from both sides); elsewhere one segment, the whole scene. Empty for a length that
+    /// is not finite and positive.
+    pub fn segments(&self, segment_length_m: f64) -> Vec<Segment> {
+        if !(segment_length_m.is_finite() && segment_length_m > 0.0) {
+            return Vec::new();
+        }
+        if self.kind != ScenarioKind::Row {
+            return vec![Segment {
+                camera_workspace: self.camera_workspace,
+                sampling_region: self.sampling_region,
+            }];
+        }
+        let (x0, x1) = (self.sampling_region.min.x, self.sampling_region.max.x);
+        let count = ((x1 - x0) / segment_length_m).ceil().max(1.0) as usize;
+        (0..count)
+            .map(|i| {
+                let lo = x0 + i as f64 * segment_length_m;
+                let hi = (lo + segment_length_m).min(x1);
+                let clip = |b: &Aabb, margin_m: f64| {
+                    let mut c = *b;
+                    c.min.x = (lo - margin_m).max(b.min.x);
+                    c.max.x = (hi + margin_m).min(b.max.x);
+                    c
+                };
+                Segment {
+                    camera_workspace: clip(&self.camera_workspace, 0.0),
+                    sampling_region: clip(&self.sampling_region, 0.1),
+                }
+            })
+            .collect()
     }
 
     /// A free pose inside the workspace looking at a fruit-bearing plant and seeing some fruit.

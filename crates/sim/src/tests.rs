@@ -513,3 +513,36 @@ fn the_simulated_arm_executes_the_first_reachable_view_and_stays_put_otherwise()
 fn scene_axis(pose: &Isometry3<f64>) -> Vector3<f64> {
     glasshouse_geom::optical_axis(pose)
 }
+
+#[test]
+fn the_row_splits_into_segments_that_cover_it_and_other_scenarios_are_one() {
+    let row = Scene::generate(ScenarioKind::Row, 2);
+    let segments = row.segments(1.0);
+    let (x0, x1) = (row.sampling_region().min.x, row.sampling_region().max.x);
+    assert_eq!(segments.len(), ((x1 - x0) / 1.0).ceil() as usize);
+    assert!(segments.len() >= 3, "{}", segments.len());
+    for pair in segments.windows(2) {
+        // Consecutive segments overlap by the margin and move along +x.
+        assert!(pair[1].sampling_region.min.x < pair[0].sampling_region.max.x);
+        assert!(pair[1].camera_workspace.min.x > pair[0].camera_workspace.min.x);
+    }
+    let first = segments.first().unwrap();
+    let last = segments.last().unwrap();
+    assert_eq!(first.sampling_region.min.x, x0);
+    assert_eq!(last.sampling_region.max.x, x1);
+    for fruit in row.fruits() {
+        assert!(segments
+            .iter()
+            .any(|s| s.sampling_region.contains(&fruit.centre)));
+    }
+    let one = Scene::generate(ScenarioKind::One, 2);
+    assert_eq!(
+        one.segments(1.0),
+        vec![Segment {
+            camera_workspace: one.camera_workspace(),
+            sampling_region: one.sampling_region()
+        }]
+    );
+    assert!(row.segments(0.0).is_empty());
+    assert!(row.segments(f64::NAN).is_empty());
+}

@@ -22,7 +22,8 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, ensure, Context};
 use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
 use glasshouse_eval::report::{self, method_label, MethodRuns};
-use glasshouse_eval::{ComputeTime, FreeCameraMotion, Trial, TrialConfig, TrialResult};
+use glasshouse_eval::trial::{run_trial, MotionKind};
+use glasshouse_eval::{ComputeTime, TrialConfig, TrialResult};
 use glasshouse_nbv::Method;
 use glasshouse_sim::ScenarioKind;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -54,6 +55,10 @@ pub struct EvalArgs {
     /// Image width in pixels (height is 3/4 of it); smaller runs faster.
     #[arg(long, default_value_t = 640)]
     pub width: u32,
+    /// Who executes the views: `arm` (the scene's UR5e on its mount, as the edge) or
+    /// `free-camera` (a camera flying at 0.5 m/s anywhere free in the workspace).
+    #[arg(long, default_value = "arm")]
+    pub motion: String,
     /// Trials run in parallel (default: the number of cores).
     #[arg(long)]
     pub jobs: Option<usize>,
@@ -62,6 +67,7 @@ pub struct EvalArgs {
 /// Parsed and checked arguments.
 struct Plan {
     scenario: ScenarioKind,
+    motion: MotionKind,
     methods: Vec<Method>,
     compute_time: ComputeTime,
     jobs: usize,
@@ -103,11 +109,16 @@ fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
         (16..=1280).contains(&args.width),
         "--width must be within 16..=1280"
     );
+    let motion: MotionKind = args
+        .motion
+        .parse()
+        .map_err(|e| anyhow::anyhow!("--motion: {e}"))?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let jobs = args.jobs.unwrap_or(cores);
     ensure!(jobs > 0, "--jobs must be at least 1");
     Ok(Plan {
         scenario,
+        motion,
         methods,
         compute_time,
         jobs,
@@ -139,6 +150,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 height,
                 budget_s: args.budget_s,
                 compute_time: plan.compute_time,
+                motion: plan.motion,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -176,12 +188,10 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 }
                 let trial_started = Instant::now();
                 let mut reported = 0.0;
-                let outcome = Trial::new(*config, FreeCameraMotion::default()).and_then(|t| {
-                    t.run(|clock_s| {
-                        let step = ((clock_s - reported) * 10.0).max(0.0);
-                        bar.inc(step.round() as u64);
-                        reported += step.round() / 10.0;
-                    })
+                let outcome = run_trial(*config, |clock_s| {
+                    let step = ((clock_s - reported) * 10.0).max(0.0);
+                    bar.inc(step.round() as u64);
+                    reported += step.round() / 10.0;
                 });
                 match outcome {
                     Ok(result) => {
@@ -256,6 +266,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "budget_s": args.budget_s,
         "seed": args.seed,
         "compute_ms": args.compute_ms,
+        "motion": plan.motion.to_string(),
         "width": args.width,
         "height": height,
     });
@@ -367,6 +378,7 @@ mod tests {
             out,
             compute_ms: Some(50.0),
             width: 64,
+            motion: "arm".into(),
             jobs: Some(2),
         }
     }
@@ -405,6 +417,10 @@ mod tests {
             },
             EvalArgs {
                 jobs: Some(0),
+                ..args(out.clone())
+            },
+            EvalArgs {
+                motion: "teleport".into(),
                 ..args(out.clone())
             },
         ];

@@ -7,7 +7,8 @@
 //!
 //! Publishing never awaits the network on the caller's path: [`TypedPublisher::publish`] encodes and
 //! queues, and a task per publisher drains the queue into Zenoh. Streams (frames, arm state) use a
-//! small queue that drops the oldest entry under load and Zenoh's `CongestionControl::Drop`;
+//! small queue that drops the oldest entry under load and Zenoh's `CongestionControl::Drop` at
+//! priority `DataLow`;
 //! results (clouds, views, fruits, maps, status) use a bounded queue the producer waits on and
 //! `CongestionControl::Block`. Subscribers decode every payload through the verified codec of
 //! `glasshouse-proto`; a payload that fails is counted in [`DropCounters`] and skipped.
@@ -207,9 +208,11 @@ impl TypedPublisher {
         counters: Arc<DropCounters>,
     ) -> Result<Self> {
         let (congestion, priority, capacity, overflow) = match delivery {
+            // Streams go below results: a link that cannot keep up drops frames, while views,
+            // fruits and map updates, queued at a higher priority, are never stuck behind them.
             Delivery::Stream => (
                 CongestionControl::Drop,
-                Priority::Data,
+                Priority::DataLow,
                 2,
                 Overflow::DropOldest,
             ),

@@ -20,5 +20,6 @@ pub use metrics::{evaluate, greedy_match, BoxEstimate, Match, Metrics, MATCH_DIS
 pub use report::{MethodRuns, METRICS};
 pub use stats::{mann_whitney_u, mean_std, Alternative, MannWhitney, MeanStd};
 pub use trial::{
-    ComputeTime, EvalError, FreeCameraMotion, Motion, Sample, Trial, TrialConfig, TrialResult,
+    run_trial, ArmMotion, ComputeTime, EvalError, Executed, FreeCameraMotion, Motion, MotionKind,
+    Sample, Trial, TrialConfig, TrialResult,
 };

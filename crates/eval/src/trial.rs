@@ -10,7 +10,9 @@
 //!    [`MapConfig`]), clusters of ≥ 10 voxels, [`FruitTracker`] ids, then [`plan_views`] seeded
 //!    with `seed · 0x9E37_79B9_7F4A_7C15 + frame_seq` as the planner-service does; then the
 //!    fitted shape of every cluster ([`glasshouse_nbv::fit`], outside the measured compute time).
-//! 4. **Edge**: execute the first view [`Motion`] can reach; none reachable costs a capture.
+//! 4. **Edge**: execute the first view [`Motion`] can reach ([`ArmMotion`]: the scene's UR5e, as
+//!    the edge does); none reachable costs a capture. The row's segments (the edge moving its rail
+//!    on when a segment is done) are not modelled: a `row` trial plans over the whole row.
 //!
 //! The clock: frame 1 is captured at 0 s; the estimates of a frame are available once the
 //! planner's compute time has passed ([`ComputeTime`]); the next frame is captured after the
@@ -25,7 +27,7 @@ use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, PlanError, PlannerConfig, PlanningContext,
 };
 use glasshouse_roimap::{MapConfig, MapError, RoiCluster, RoiMap};
-use glasshouse_sim::{CameraModel, ScenarioKind, Scene};
+use glasshouse_sim::{CameraModel, ScenarioKind, Scene, SimArm};
 use nalgebra::{Isometry3, Point3};
 use serde::Serialize;
 
@@ -47,49 +49,164 @@ pub enum EvalError {
     Detect(#[from] glasshouse_detect::DetectError),
 }
 
-/// Which views the arm can execute and how long the motion takes. The free-camera rule of the edge
-/// today ([`FreeCameraMotion`]); an arm model can be swapped in.
-pub trait Motion {
-    /// Simulated seconds to move the camera from `from` to `to`, or `None` when `to` cannot be
-    /// reached.
-    fn motion_time_s(
-        &self,
-        scene: &Scene,
-        from: &Isometry3<f64>,
-        to: &Isometry3<f64>,
-    ) -> Option<f64>;
+/// A view the [`Motion`] executed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Executed {
+    /// Index of the executed goal in the ranked list.
+    pub index: usize,
+    /// Motion time, without capture time.
+    pub motion_s: f64,
+    /// The camera pose reached.
+    pub world_from_camera: Isometry3<f64>,
 }
 
-/// The edge's rule: a view is reachable when its camera position is free
+/// Which views the robot can execute and how long the motion takes (the edge's "moveToPose,
+/// else the next view"). [`ArmMotion`] is the edge's rule today (the scene's UR5e on its mount);
+/// [`FreeCameraMotion`] the earlier free-flying camera.
+pub trait Motion {
+    /// The camera pose now.
+    fn world_from_camera(&self) -> Isometry3<f64>;
+    /// Moves to the first of `goals` (best first) that can be reached; `None`, and no motion,
+    /// when none can.
+    fn execute_first_reachable(
+        &mut self,
+        scene: &Scene,
+        goals: &[Isometry3<f64>],
+    ) -> Option<Executed>;
+}
+
+/// A free-flying camera: a goal is reachable when its position is free
 /// ([`Scene::is_camera_position_free`]: inside the camera workspace box and clear of every solid);
-/// the camera moves in a straight line at a constant speed.
+/// the camera moves in a straight line at a constant speed. Starts at the scene's initial view.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FreeCameraMotion {
     pub camera_speed_m_per_s: f64,
+    pub pose: Isometry3<f64>,
 }
 
-impl Default for FreeCameraMotion {
-    /// The edge's default speed, 0.5 m/s.
-    fn default() -> Self {
+impl FreeCameraMotion {
+    /// At the scene's initial view, moving at the former edge's default speed, 0.5 m/s.
+    pub fn new(scene: &Scene) -> Self {
         Self {
             camera_speed_m_per_s: 0.5,
+            pose: scene.initial_camera_pose(),
         }
     }
 }
 
 impl Motion for FreeCameraMotion {
-    fn motion_time_s(
-        &self,
+    fn world_from_camera(&self) -> Isometry3<f64> {
+        self.pose
+    }
+
+    fn execute_first_reachable(
+        &mut self,
         scene: &Scene,
-        from: &Isometry3<f64>,
-        to: &Isometry3<f64>,
-    ) -> Option<f64> {
-        let target = Point3::from(to.translation.vector);
-        if !(scene.camera_workspace().contains(&target) && scene.is_camera_position_free(&target)) {
-            return None;
+        goals: &[Isometry3<f64>],
+    ) -> Option<Executed> {
+        let (index, goal) = goals.iter().enumerate().find(|(_, goal)| {
+            let target = Point3::from(goal.translation.vector);
+            scene.camera_workspace().contains(&target) && scene.is_camera_position_free(&target)
+        })?;
+        let distance_m = (goal.translation.vector - self.pose.translation.vector).norm();
+        self.pose = *goal;
+        Some(Executed {
+            index,
+            motion_s: distance_m / self.camera_speed_m_per_s,
+            world_from_camera: *goal,
+        })
+    }
+}
+
+/// The edge's rule: the scene's UR5e on its mount ([`SimArm`]): a goal is reachable when its
+/// camera position is free and the arm reaches it (inverse kinematics, then a collision-free
+/// joint path); the motion time is the path's duration.
+#[derive(Clone, Debug)]
+pub struct ArmMotion {
+    pub arm: SimArm,
+}
+
+impl ArmMotion {
+    /// The arm placed with its camera at the scene's initial view.
+    pub fn new(scene: &Scene) -> Result<Self, EvalError> {
+        let arm = SimArm::new(scene).map_err(|e| {
+            EvalError::InvalidConfig(format!("the arm cannot reach the initial view: {e}"))
+        })?;
+        Ok(Self { arm })
+    }
+}
+
+impl Motion for ArmMotion {
+    fn world_from_camera(&self) -> Isometry3<f64> {
+        self.arm.world_from_camera()
+    }
+
+    fn execute_first_reachable(
+        &mut self,
+        scene: &Scene,
+        goals: &[Isometry3<f64>],
+    ) -> Option<Executed> {
+        let e = self.arm.execute_first_reachable(scene, goals)?;
+        Some(Executed {
+            index: e.index,
+            motion_s: e.motion_s,
+            world_from_camera: self.arm.world_from_camera(),
+        })
+    }
+}
+
+/// Which [`Motion`] a trial uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MotionKind {
+    /// [`ArmMotion`], the edge's rule.
+    Arm,
+    /// [`FreeCameraMotion`].
+    FreeCamera,
+}
+
+impl std::str::FromStr for MotionKind {
+    type Err = EvalError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "arm" | "ur5e" => Ok(MotionKind::Arm),
+            "free-camera" | "free" => Ok(MotionKind::FreeCamera),
+            _ => Err(EvalError::InvalidConfig(format!(
+                "unknown motion {s:?}; valid: arm (ur5e), free-camera"
+            ))),
         }
-        let distance_m = (to.translation.vector - from.translation.vector).norm();
-        Some(distance_m / self.camera_speed_m_per_s)
+    }
+}
+
+impl std::fmt::Display for MotionKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            MotionKind::Arm => "arm",
+            MotionKind::FreeCamera => "free-camera",
+        })
+    }
+}
+
+/// The motion of `kind` for a scene, boxed.
+pub fn motion_for(kind: MotionKind, scene: &Scene) -> Result<Box<dyn Motion + Send>, EvalError> {
+    Ok(match kind {
+        MotionKind::Arm => Box::new(ArmMotion::new(scene)?),
+        MotionKind::FreeCamera => Box::new(FreeCameraMotion::new(scene)),
+    })
+}
+
+impl<T: Motion + ?Sized> Motion for Box<T> {
+    fn world_from_camera(&self) -> Isometry3<f64> {
+        (**self).world_from_camera()
+    }
+
+    fn execute_first_reachable(
+        &mut self,
+        scene: &Scene,
+        goals: &[Isometry3<f64>],
+    ) -> Option<Executed> {
+        (**self).execute_first_reachable(scene, goals)
     }
 }
 
@@ -115,6 +232,8 @@ pub struct TrialConfig {
     /// Simulated seconds of the trial.
     pub budget_s: f64,
     pub compute_time: ComputeTime,
+    /// Which robot executes the views (used by [`run_trial`]).
+    pub motion: MotionKind,
     /// Simulated seconds to capture one view (the edge's default, 0.5 s).
     pub capture_time_s: f64,
     pub resolution_m: f64,
@@ -135,6 +254,7 @@ impl TrialConfig {
             height: 480,
             budget_s: 180.0,
             compute_time: ComputeTime::Measured,
+            motion: MotionKind::Arm,
             capture_time_s: 0.5,
             resolution_m: 0.01,
             max_range_m: 2.0,
@@ -278,7 +398,11 @@ pub struct Trial<M: Motion> {
 }
 
 impl<M: Motion> Trial<M> {
-    pub fn new(config: TrialConfig, motion: M) -> Result<Self, EvalError> {
+    /// A trial whose motion `make_motion` builds for the generated scene.
+    pub fn new(
+        config: TrialConfig,
+        make_motion: impl FnOnce(&Scene) -> Result<M, EvalError>,
+    ) -> Result<Self, EvalError> {
         config.validate()?;
         let planner = PlannerConfig {
             method: config.method,
@@ -286,6 +410,7 @@ impl<M: Motion> Trial<M> {
         };
         planner.validate()?;
         let scene = Scene::generate(config.scenario, config.seed);
+        let motion = make_motion(&scene)?;
         let camera = CameraModel::with_resolution(config.width, config.height);
         let map = RoiMap::new(config.map_config())?;
         let empty_boxes = Metrics::empty(scene.fruits(), config.resolution_m);
@@ -295,7 +420,7 @@ impl<M: Motion> Trial<M> {
                 voxel_size_m: config.resolution_m,
                 ..DetectorConfig::default()
             },
-            pose: scene.initial_camera_pose(),
+            pose: motion.world_from_camera(),
             scene,
             camera,
             map,
@@ -455,21 +580,17 @@ impl<M: Motion> Trial<M> {
         };
 
         // Execute the first reachable view (the edge's Algorithm 1 step).
+        let goals: Vec<Isometry3<f64>> = plan.views.iter().map(|v| v.world_from_camera).collect();
         let mut next_clock = available_s + self.config.capture_time_s;
-        let mut skipped = plan.views.len();
-        for (index, view) in plan.views.iter().enumerate() {
-            if let Some(motion_s) =
-                self.motion
-                    .motion_time_s(&self.scene, &self.pose, &view.world_from_camera)
-            {
-                skipped = index;
-                next_clock += motion_s.max(0.0);
-                self.pose = view.world_from_camera;
+        match self.motion.execute_first_reachable(&self.scene, &goals) {
+            Some(executed) => {
+                self.unreachable_views += executed.index as u64;
+                next_clock += executed.motion_s.max(0.0);
+                self.pose = executed.world_from_camera;
                 self.views += 1;
-                break;
             }
+            None => self.unreachable_views += goals.len() as u64,
         }
-        self.unreachable_views += skipped as u64;
         self.clock_s = next_clock;
         Ok(true)
     }
@@ -491,6 +612,11 @@ impl<M: Motion> Trial<M> {
             fruits: self.published.fruits,
         })
     }
+}
+
+/// Runs one trial with the motion of `config.motion`; `progress` as in [`Trial::run`].
+pub fn run_trial(config: TrialConfig, progress: impl FnMut(f64)) -> Result<TrialResult, EvalError> {
+    Trial::new(config, |scene| motion_for(config.motion, scene))?.run(progress)
 }
 
 /// The edge's packing of depth: millimetres, 0 = invalid.
@@ -523,53 +649,67 @@ mod tests {
         }
     }
 
+    fn free(scene: &Scene) -> Result<FreeCameraMotion, EvalError> {
+        Ok(FreeCameraMotion::new(scene))
+    }
+
     #[test]
     fn a_trial_samples_every_second_and_finds_fruit() {
-        let result = Trial::new(small(Method::OursUu, 20.0), FreeCameraMotion::default())
-            .unwrap()
-            .run(|_| {})
-            .unwrap();
-        assert_eq!(result.samples.len(), 21);
-        for (i, s) in result.samples.iter().enumerate() {
-            assert_eq!(s.time_s, i as u32);
-            assert!(s.boxes.detected <= result.fruits_total);
-            assert!((0.0..=1.0).contains(&s.boxes.covered_volume));
+        for motion in [MotionKind::FreeCamera, MotionKind::Arm] {
+            let config = TrialConfig {
+                motion,
+                ..small(Method::OursUu, 20.0)
+            };
+            let result = run_trial(config, |_| {}).unwrap();
+            assert_eq!(result.samples.len(), 21);
+            for (i, s) in result.samples.iter().enumerate() {
+                assert_eq!(s.time_s, i as u32);
+                assert!(s.boxes.detected <= result.fruits_total);
+                assert!((0.0..=1.0).contains(&s.boxes.covered_volume));
+            }
+            // Nothing is known at 0 s; views and frames never decrease.
+            assert_eq!(result.samples[0].frames, 0);
+            assert_eq!(result.samples[0].boxes.detected, 0);
+            assert!(result
+                .samples
+                .windows(2)
+                .all(|w| w[0].views <= w[1].views && w[0].frames <= w[1].frames));
+            let last = result.last().unwrap();
+            assert!(last.boxes.detected > 0, "{motion}: {last:?}");
+            assert!(result.views > 3, "{motion}: {}", result.views);
+            // 50 ms per planning call entered the clock.
+            assert!((result.compute_time_s - 0.05 * result.frames as f64).abs() < 1e-9);
         }
-        // Nothing is known at 0 s; metrics never decrease in views or frames.
-        assert_eq!(result.samples[0].frames, 0);
-        assert_eq!(result.samples[0].boxes.detected, 0);
-        assert!(result
-            .samples
-            .windows(2)
-            .all(|w| w[0].views <= w[1].views && w[0].frames <= w[1].frames));
-        let last = result.last().unwrap();
-        assert!(last.boxes.detected > 0, "{last:?}");
-        assert!(result.views > 3, "{}", result.views);
-        // 50 ms per planning call entered the clock.
-        assert!((result.compute_time_s - 0.05 * result.frames as f64).abs() < 1e-9);
     }
 
     #[test]
     fn fixed_compute_time_replays_exactly() {
-        let run = || {
-            Trial::new(small(Method::ExploUp, 8.0), FreeCameraMotion::default())
-                .unwrap()
-                .run(|_| {})
-                .unwrap()
-        };
-        let (a, b) = (run(), run());
-        assert_eq!(
-            serde_json::to_string(&a.samples).unwrap(),
-            serde_json::to_string(&b.samples).unwrap()
-        );
-        assert_eq!(a.views, b.views);
+        for motion in [MotionKind::FreeCamera, MotionKind::Arm] {
+            let config = TrialConfig {
+                motion,
+                ..small(Method::ExploUp, 8.0)
+            };
+            let (a, b) = (
+                run_trial(config, |_| {}).unwrap(),
+                run_trial(config, |_| {}).unwrap(),
+            );
+            assert_eq!(
+                serde_json::to_string(&a.samples).unwrap(),
+                serde_json::to_string(&b.samples).unwrap()
+            );
+            assert_eq!(a.views, b.views);
+        }
     }
 
     /// Nothing is reachable: every frame costs a capture and the camera never moves.
-    struct Stuck;
+    struct Stuck(Isometry3<f64>);
 
     impl Motion for Stuck {
-        fn motion_time_s(&self, _: &Scene, _: &Isometry3<f64>, _: &Isometry3<f64>) -> Option<f64> {
+        fn world_from_camera(&self) -> Isometry3<f64> {
+            self.0
+        }
+
+        fn execute_first_reachable(&mut self, _: &Scene, _: &[Isometry3<f64>]) -> Option<Executed> {
             None
         }
     }
@@ -581,7 +721,10 @@ mod tests {
             compute_time: ComputeTime::Fixed { ms: 0.0 },
             ..small(Method::OursUu, 4.5)
         };
-        let result = Trial::new(config, Stuck).unwrap().run(|_| {}).unwrap();
+        let result = Trial::new(config, |scene| Ok(Stuck(scene.initial_camera_pose())))
+            .unwrap()
+            .run(|_| {})
+            .unwrap();
         assert_eq!(result.views, 0);
         // Frames at 0, 1, 2, 3, 4 s.
         assert_eq!(result.frames, 5);
@@ -620,30 +763,33 @@ mod tests {
         ];
         for config in bad {
             assert!(matches!(
-                Trial::new(config, FreeCameraMotion::default()),
+                Trial::new(config, free),
                 Err(EvalError::InvalidConfig(_)) | Err(EvalError::Map(_))
             ));
         }
+        assert!("ur5e".parse::<MotionKind>().is_ok());
+        assert!("teleport".parse::<MotionKind>().is_err());
     }
 
     #[test]
-    fn free_camera_motion_follows_the_edge_rule() {
+    fn free_camera_motion_takes_the_first_free_goal() {
         let scene = Scene::generate(ScenarioKind::Two, 3);
-        let motion = FreeCameraMotion {
-            camera_speed_m_per_s: 0.5,
-        };
-        let from = scene.initial_camera_pose();
-        let mut to = from;
-        to.translation.vector.z += 0.1;
-        let free = scene.is_camera_position_free(&Point3::from(to.translation.vector));
-        let t = motion.motion_time_s(&scene, &from, &to);
-        if free {
-            assert!((t.unwrap() - 0.2).abs() < 1e-9);
-        } else {
-            assert!(t.is_none());
-        }
+        let mut motion = FreeCameraMotion::new(&scene);
+        let from = motion.world_from_camera();
         let mut outside = from;
         outside.translation.vector.z = 100.0;
-        assert!(motion.motion_time_s(&scene, &from, &outside).is_none());
+        let mut up = from;
+        up.translation.vector.z += 0.1;
+        let free = scene.is_camera_position_free(&Point3::from(up.translation.vector));
+        match motion.execute_first_reachable(&scene, &[outside, up]) {
+            Some(e) => {
+                assert!(free);
+                assert_eq!(e.index, 1);
+                assert!((e.motion_s - 0.2).abs() < 1e-9);
+                assert_eq!(motion.world_from_camera(), up);
+            }
+            None => assert!(!free),
+        }
+        assert!(motion.execute_first_reachable(&scene, &[outside]).is_none());
     }
 }

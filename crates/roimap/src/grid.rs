@@ -127,7 +127,8 @@ pub(crate) const FACE_OFFSETS: [(i32, i32, i32); 6] = [
 #[derive(Clone)]
 pub(crate) struct Block {
     pub occ: [f32; BLOCK_VOXELS],
-    pub roi: [f32; BLOCK_VOXELS],
+    /// ROI log-odds, allocated at the first ROI update (most blocks are free space).
+    pub roi: Option<Box<[f32; BLOCK_VOXELS]>>,
     /// Map sequence number of each voxel's last change (0 = never).
     pub seq: [u32; BLOCK_VOXELS],
     /// Voxels ever updated.
@@ -150,7 +151,7 @@ impl Block {
     pub(crate) fn new() -> Box<Self> {
         Box::new(Self {
             occ: [0.0; BLOCK_VOXELS],
-            roi: [0.0; BLOCK_VOXELS],
+            roi: None,
             seq: [0; BLOCK_VOXELS],
             known: EMPTY,
             occupied: EMPTY,
@@ -160,6 +161,19 @@ impl Block {
             dirty: EMPTY,
             max_seq: 0,
         })
+    }
+}
+
+impl Block {
+    /// ROI log-odds of local voxel `l` (0 when the block has none).
+    pub(crate) fn roi_at(&self, l: usize) -> f32 {
+        self.roi.as_ref().map_or(0.0, |r| r[l])
+    }
+
+    /// The ROI log-odds, allocated (all 0) on first use.
+    pub(crate) fn roi_mut(&mut self) -> &mut [f32; BLOCK_VOXELS] {
+        self.roi
+            .get_or_insert_with(|| Box::new([0.0; BLOCK_VOXELS]))
     }
 }
 
@@ -195,6 +209,8 @@ impl Storage {
 
     pub(crate) fn heap_bytes(&self) -> usize {
         self.blocks.len() * std::mem::size_of::<Block>()
+            + self.blocks.iter().filter(|b| b.roi.is_some()).count()
+                * std::mem::size_of::<[f32; BLOCK_VOXELS]>()
             + self.blocks.capacity() * std::mem::size_of::<Box<Block>>()
             + self.coords.capacity() * std::mem::size_of::<VoxelKey>()
             + self.index.capacity() * (std::mem::size_of::<(VoxelKey, u32)>() + 1)

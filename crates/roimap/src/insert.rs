@@ -447,16 +447,19 @@ impl RoiMap {
             }
             let mut roi_bits_now = 0u64;
             let mut bits = r | n;
-            while bits != 0 {
-                let b = bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                let l = base + b;
-                let v = block.roi[l];
-                let delta = if r >> b & 1 != 0 { hit } else { miss };
-                let nv = (v + delta).clamp(lo, hi);
-                block.roi[l] = nv;
-                changed |= u64::from(nv != v) << b;
-                roi_bits_now |= u64::from(nv >= thr) << b;
+            if bits != 0 {
+                let values = block.roi_mut();
+                while bits != 0 {
+                    let b = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    let l = base + b;
+                    let v = values[l];
+                    let delta = if r >> b & 1 != 0 { hit } else { miss };
+                    let nv = (v + delta).clamp(lo, hi);
+                    values[l] = nv;
+                    changed |= u64::from(nv != v) << b;
+                    roi_bits_now |= u64::from(nv >= thr) << b;
+                }
             }
             let known_before = block.known[w];
             let occ_before = block.occupied[w];

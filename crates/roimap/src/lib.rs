@@ -538,12 +538,14 @@ impl RoiMap {
         let was_known = mask_test(&b.known, l);
         let was_occ = mask_test(&b.occupied, l);
         let was_roi = mask_test(&b.roi_mask, l);
-        let changed = !was_known || b.occ[l] != v.occupancy_logodds || b.roi[l] != v.roi_logodds;
+        let changed = !was_known || b.occ[l] != v.occupancy_logodds || b.roi_at(l) != v.roi_logodds;
         if !changed {
             return;
         }
         b.occ[l] = v.occupancy_logodds;
-        b.roi[l] = v.roi_logodds;
+        if v.roi_logodds != 0.0 || b.roi.is_some() {
+            b.roi_mut()[l] = v.roi_logodds;
+        }
         let is_occ = v.occupancy_logodds > 0.0;
         let is_roi = v.roi_logodds >= thr;
         mask_set(&mut b.known, l, true);
@@ -575,7 +577,7 @@ impl RoiMap {
         let l = local_of(key);
         mask_test(&b.known, l).then(|| Voxel {
             occupancy_logodds: b.occ[l],
-            roi_logodds: b.roi[l],
+            roi_logodds: b.roi_at(l),
         })
     }
 
@@ -645,7 +647,7 @@ impl RoiMap {
                         key_at(bk, l),
                         Voxel {
                             occupancy_logodds: b.occ[l],
-                            roi_logodds: b.roi[l],
+                            roi_logodds: b.roi_at(l),
                         },
                     ))
                 });
@@ -699,7 +701,7 @@ impl RoiMap {
                         k,
                         Voxel {
                             occupancy_logodds: b.occ[l],
-                            roi_logodds: b.roi[l],
+                            roi_logodds: b.roi_at(l),
                         },
                     ));
                 }
@@ -731,7 +733,7 @@ impl RoiMap {
                     key_at(bk, l),
                     Voxel {
                         occupancy_logodds: b.occ[l],
-                        roi_logodds: b.roi[l],
+                        roi_logodds: b.roi_at(l),
                     },
                 ))
             });
@@ -781,7 +783,7 @@ impl RoiMap {
                         key_at(bk, l),
                         Voxel {
                             occupancy_logodds: b.occ[l],
-                            roi_logodds: b.roi[l],
+                            roi_logodds: b.roi_at(l),
                         },
                     ));
                 }
@@ -851,7 +853,7 @@ impl RoiMap {
             let l = local_of(k);
             mask_test(&b.known, l).then(|| Voxel {
                 occupancy_logodds: b.occ[l],
-                roi_logodds: b.roi[l],
+                roi_logodds: b.roi_at(l),
             })
         };
         let go_on = match RaySetup::exact(origin, &unit, range_m, key_origin, key_end, res) {

@@ -285,7 +285,7 @@ impl RoiMap {
             }
             for_each_bit(&b.known, |l| {
                 body.extend_from_slice(&b.occ[l].to_le_bytes());
-                body.extend_from_slice(&b.roi[l].to_le_bytes());
+                body.extend_from_slice(&b.roi_at(l).to_le_bytes());
             });
         }
         frame(KIND_SNAPSHOT, &body, &mut w)

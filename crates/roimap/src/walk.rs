@@ -239,6 +239,7 @@ impl Lane {
         if self.left == 0 && self.c == self.e {
             return None;
         }
+        // min(t) as OctoMap's std::min chain (no NaN handling needed: t is never NaN).
         let m01 = if self.t[0] < self.t[1] {
             self.t[0]
         } else {

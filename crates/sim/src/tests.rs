@@ -546,3 +546,27 @@ fn the_row_splits_into_segments_that_cover_it_and_other_scenarios_are_one() {
     assert!(row.segments(0.0).is_empty());
     assert!(row.segments(f64::NAN).is_empty());
 }
+
+#[test]
+fn ground_truth_volumes_and_voxel_sets_match_the_analytic_boxes() {
+    let resolution_m = 0.01;
+    for kind in [ScenarioKind::One, ScenarioKind::Two, ScenarioKind::Row] {
+        let scene = Scene::generate(kind, 4);
+        for f in scene.fruits() {
+            let size = f.aabb().size();
+            let analytic_m3 = size.x * size.y * size.z;
+            assert!((f.volume_m3 - analytic_m3).abs() < 1e-12);
+            // The voxels whose centres lie in the box: between the whole voxels that fit along
+            // each axis and one more per axis.
+            let count = f.voxel_keys(resolution_m).len();
+            let fit = |s: f64| (s / resolution_m).floor() as usize;
+            let lo = fit(size.x) * fit(size.y) * fit(size.z);
+            let hi = (fit(size.x) + 1) * (fit(size.y) + 1) * (fit(size.z) + 1);
+            assert!(
+                (lo..=hi).contains(&count),
+                "{kind} fruit {}: {count} not in {lo}..={hi}",
+                f.id
+            );
+        }
+    }
+}

@@ -40,6 +40,7 @@ enum Command {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
+    glasshouse_bus::use_in_process_runtime_pools();
     glasshouse_bus::init_tracing();
     match Cli::parse().command {
         Command::Demo(args) => demo::run(args).await,

@@ -113,15 +113,8 @@ pub(crate) fn faces_touched(m: &Mask) -> [bool; 6] {
     ]
 }
 
-/// Face neighbour offsets in the order of [`has_neighbour_in`].
-pub(crate) const FACE_OFFSETS: [(i32, i32, i32); 6] = [
-    (-1, 0, 0),
-    (1, 0, 0),
-    (0, -1, 0),
-    (0, 1, 0),
-    (0, 0, -1),
-    (0, 0, 1),
-];
+/// Face neighbour offsets in the order of [`has_neighbour_in`]: the map's 6-neighbourhood.
+pub(crate) const FACE_OFFSETS: [(i32, i32, i32); 6] = crate::NEIGHBOURS_6;
 
 /// One block of voxels.
 #[derive(Clone)]

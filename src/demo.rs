@@ -60,6 +60,18 @@ struct FruitSummary {
     volume_m3: f32,
     voxel_count: u32,
     confidence: f32,
+    /// The whole-fruit ellipsoid fit (absent when the planner sent none).
+    fitted: Option<FittedSummary>,
+}
+
+#[derive(Serialize)]
+struct FittedSummary {
+    centre_m: [f32; 3],
+    semi_axes_m: [f32; 3],
+    volume_m3: f32,
+    box_volume_m3: f32,
+    confidence: f32,
+    is_fit: bool,
 }
 
 #[derive(Serialize)]
@@ -273,6 +285,14 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
                     volume_m3: f.volume_m3,
                     voxel_count: f.voxel_count,
                     confidence: f.confidence,
+                    fitted: f.fitted.as_ref().map(|e| FittedSummary {
+                        centre_m: e.centre_in_world.into(),
+                        semi_axes_m: e.semi_axes_m.into(),
+                        volume_m3: e.volume_m3,
+                        box_volume_m3: e.box_volume_m3,
+                        confidence: e.confidence,
+                        is_fit: e.is_fit,
+                    }),
                 }
             })
             .collect(),
@@ -302,14 +322,45 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
 fn print_fruit_table(fruits: &[Fruit]) {
     println!();
     println!(
-        "{:>4}  {:>24}  {:>20}  {:>10}  {:>6}  {:>5}",
-        "id", "centre (m)", "box size (cm)", "volume cm³", "voxels", "conf"
+        "{:>4}  {:-^56}  {:-^50}",
+        "", " box estimate ", " fitted ellipsoid "
+    );
+    println!(
+        "{:>4}  {:>23}  {:>19}  {:>6}  {:>4}  {:>23}  {:>15}  {:>6}  {:>4}",
+        "id",
+        "centre (m)",
+        "size (cm)",
+        "cm³",
+        "conf",
+        "centre (m)",
+        "diameters (cm)",
+        "cm³",
+        "conf"
     );
     for f in fruits {
         let c = f.centre_in_world;
         let s = (f.box_max - f.box_min) * 100.0;
+        let fitted = match &f.fitted {
+            Some(e) => {
+                let fc = e.centre_in_world;
+                let d = e.semi_axes_m * 200.0;
+                format!(
+                    "{:>7.3} {:>7.3} {:>7.3}  {:>4.1} x{:>4.1} x{:>4.1}  {:>6.1}  {:>4.2}{}",
+                    fc.x,
+                    fc.y,
+                    fc.z,
+                    d.x,
+                    d.y,
+                    d.z,
+                    e.volume_m3 * 1e6,
+                    e.confidence,
+                    if e.is_fit { "" } else { " (box)" }
+                )
+            }
+            None => "(no fit)".to_owned(),
+        };
         println!(
-            "{:>4}  {:>7.3} {:>7.3} {:>7.3}   {:>5.1} x {:>5.1} x {:>5.1}  {:>10.1}  {:>6}  {:>5.2}",
+            "{:>4}  {:>7.3} {:>7.3} {:>7.3}  {:>5.1} x{:>5.1} x{:>5.1}  {:>6.1}  {:>4.2}  {}",
             f.id,
             c.x,
             c.y,
@@ -318,8 +369,8 @@ fn print_fruit_table(fruits: &[Fruit]) {
             s.y,
             s.z,
             f.volume_m3 * 1e6,
-            f.voxel_count,
-            f.confidence
+            f.confidence,
+            fitted
         );
     }
     if fruits.is_empty() {

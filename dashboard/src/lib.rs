@@ -19,7 +19,8 @@ use std::time::Instant;
 use glasshouse_bus::{Delivery, DropCounters, Received, Shutdown, TypedSubscriber};
 use glasshouse_proto::keys::{self, ParsedKey, TrolleyTopic};
 use glasshouse_proto::{
-    DetectorStatus, Fruit, Header, Message, PlannerStatus, RankedViews, TrolleyInfo, TrolleyStatus,
+    DetectorStatus, FleetFruits, Fruit, Header, Message, PlannerStatus, RankedViews, TrolleyInfo,
+    TrolleyStatus,
 };
 use serde::Deserialize;
 use zenoh::Session;
@@ -116,6 +117,10 @@ pub struct TrolleyView {
 pub struct FleetState {
     pub trolleys: BTreeMap<String, TrolleyView>,
     pub planners: BTreeMap<String, PlannerStatus>,
+    /// When each planner's status last arrived (a lost planner's row ages).
+    pub planner_seen_at: BTreeMap<String, Instant>,
+    /// The latest merged fleet fruit map.
+    pub fleet_fruits: Option<FleetFruits>,
     pub detectors: BTreeMap<String, DetectorStatus>,
     pub messages: u64,
 }
@@ -195,6 +200,10 @@ impl FleetState {
             }
             (ParsedKey::PlannerStatus { pid }, Message::PlannerStatus(s)) => {
                 self.planners.insert(pid.clone(), s.clone());
+                self.planner_seen_at.insert(pid.clone(), now);
+            }
+            (ParsedKey::FleetFruits, Message::FleetFruits(f)) => {
+                self.fleet_fruits = Some(f.clone());
             }
             (ParsedKey::DetectorStatus { did }, Message::DetectorStatus(s)) => {
                 self.detectors.insert(did.clone(), s.clone());

@@ -55,6 +55,8 @@ pub struct PlannerRow {
     pub mean_planning_time_ms: f32,
     pub map_voxels: u64,
     pub dropped: u64,
+    /// Seconds since its last status (a lost planner's grows).
+    pub last_status_age_s: Option<f64>,
 }
 
 #[derive(Serialize, Debug, Clone, PartialEq)]
@@ -74,6 +76,9 @@ pub struct FleetDoc {
     pub messages: u64,
     pub dashboard_drops: u64,
     pub rerun_viewer_url: Option<String>,
+    /// Fruits in the merged fleet map (`gh/fleet/fruits`), and the planner that merged them.
+    pub fleet_fruits: usize,
+    pub fleet_map_planner: Option<String>,
 }
 
 /// One fruit of `/api/trolleys/{id}/fruits`.
@@ -85,6 +90,10 @@ pub struct FruitDoc {
     pub volume_m3: f32,
     pub voxel_count: u32,
     pub confidence: f32,
+    /// Volume of the fitted whole-fruit ellipsoid, when the planner sent one.
+    pub fitted_volume_m3: Option<f32>,
+    /// Share of the fitted surface observed.
+    pub fitted_confidence: Option<f32>,
 }
 
 /// Builds the fleet document from the state at `now`.
@@ -130,6 +139,10 @@ pub fn fleet_doc(
                 mean_planning_time_ms: p.mean_planning_time_ms,
                 map_voxels: p.map_voxels,
                 dropped: p.dropped_messages,
+                last_status_age_s: fleet
+                    .planner_seen_at
+                    .get(id)
+                    .map(|t| now.saturating_duration_since(*t).as_secs_f64()),
             })
             .collect(),
         detectors: fleet
@@ -145,6 +158,8 @@ pub fn fleet_doc(
         messages: fleet.messages,
         dashboard_drops,
         rerun_viewer_url: viewer,
+        fleet_fruits: fleet.fleet_fruits.as_ref().map_or(0, |f| f.fruits.len()),
+        fleet_map_planner: fleet.fleet_fruits.as_ref().map(|f| f.planner_id.clone()),
     }
 }
 
@@ -161,6 +176,8 @@ pub fn fruit_docs(fleet: &FleetState, tid: &str) -> Option<Vec<FruitDoc>> {
                 volume_m3: f.volume_m3,
                 voxel_count: f.voxel_count,
                 confidence: f.confidence,
+                fitted_volume_m3: f.fitted.as_ref().map(|e| e.volume_m3),
+                fitted_confidence: f.fitted.as_ref().map(|e| e.confidence),
             })
             .collect(),
     )
@@ -169,11 +186,11 @@ pub fn fruit_docs(fleet: &FleetState, tid: &str) -> Option<Vec<FruitDoc>> {
 /// CSV of fruit estimates with a header line.
 pub fn fruits_csv(fruits: &[FruitDoc]) -> String {
     let mut out = String::from(
-        "id,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_m3,voxel_count,confidence\n",
+        "id,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_m3,voxel_count,confidence,fitted_volume_m3,fitted_confidence\n",
     );
     for f in fruits {
         out.push_str(&format!(
-            "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.8},{},{:.3}\n",
+            "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.8},{},{:.3},{},{}\n",
             f.id,
             f.centre_m[0],
             f.centre_m[1],
@@ -183,7 +200,11 @@ pub fn fruits_csv(fruits: &[FruitDoc]) -> String {
             f.size_m[2],
             f.volume_m3,
             f.voxel_count,
-            f.confidence
+            f.confidence,
+            f.fitted_volume_m3
+                .map_or_else(String::new, |v| format!("{v:.8}")),
+            f.fitted_confidence
+                .map_or_else(String::new, |c| format!("{c:.3}")),
         ));
     }
     out

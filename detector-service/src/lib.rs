@@ -1,18 +1,26 @@
 //! The detector process: RGB-D frames in, ROI point clouds out.
 //!
-//! Stateless: it subscribes to the frames of every trolley, runs the detection of
-//! [`glasshouse_detect`] (the paper's HSI rule after 1 cm down-sampling, back-projected with the
-//! frame's intrinsics and pose) and publishes a RoiCloud on the trolley's `roi` key. Any number of
-//! detectors can run; frames are a stream, so a busy detector skips stale frames.
+//! Stateless: it runs the detection of [`glasshouse_detect`] (the paper's HSI rule after 1 cm
+//! down-sampling, back-projected with the frame's intrinsics and pose) on trolley frames and
+//! publishes a RoiCloud on the trolley's `roi` key. Frames are a stream, so a busy detector skips
+//! stale frames.
+//!
+//! Any number of detectors share the fleet by splitting the keys: from the liveliness tokens of
+//! detectors and trolleys each detector computes the rendezvous ranking of the live detectors per
+//! trolley ([`glasshouse_fleet::rank_planners`]) and subscribes only to the frames of the trolleys
+//! it ranks first for. Every frame is thus processed once, by one detector, and frames of other
+//! detectors' trolleys never reach it. When a detector leaves, its trolleys move to the next
+//! ranked one within the liveliness lease.
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use glasshouse_bus::{
-    declare_alive, Delivery, DropCounters, Received, Shutdown, TypedPublisher, TypedSubscriber,
+    declare_alive, Delivery, DropCounters, MemberEvent, MemberWatch, Received, Shutdown,
+    TypedPublisher, TypedSubscriber,
 };
 use glasshouse_detect::{detect, DepthFrame, DetectorConfig};
 use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
@@ -59,6 +67,22 @@ pub struct DetectorCounters {
     pub frames_processed: std::sync::atomic::AtomicU64,
     /// Frames that decoded but could not be processed (inconsistent content).
     pub frames_rejected: std::sync::atomic::AtomicU64,
+    /// Trolleys whose frames this detector takes now.
+    pub trolleys_served: std::sync::atomic::AtomicU64,
+}
+
+/// The trolleys `did` serves: those for which it ranks first among the live detectors.
+pub fn served_trolleys<'a>(
+    did: &str,
+    detectors: &BTreeSet<String>,
+    trolleys: &'a BTreeSet<String>,
+) -> BTreeSet<&'a str> {
+    let detectors: Vec<String> = detectors.iter().cloned().collect();
+    trolleys
+        .iter()
+        .filter(|tid| glasshouse_fleet::rank_planners(tid, &detectors).first() == Some(&did))
+        .map(String::as_str)
+        .collect()
 }
 
 /// Turns one frame into an ROI cloud.
@@ -85,6 +109,9 @@ pub fn frame_to_cloud(
     })
 }
 
+/// Frames waiting for detection, over all served trolleys.
+const FRAME_QUEUE: usize = 4;
+
 /// Runs the detector until `shutdown` fires.
 pub async fn run(
     session: Session,
@@ -98,13 +125,13 @@ pub async fn run(
         voxel_size_m: settings.voxel_size_m,
         ..DetectorConfig::default()
     });
-    let frames = TypedSubscriber::declare(
-        &session,
-        &keys::all_trolleys(TrolleyTopic::Rgbd),
-        Delivery::Stream,
-        counters.drops.clone(),
-    )
-    .await?;
+    // Frames of the served trolleys, one subscriber (and forwarding task) per trolley.
+    let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel::<Received>(FRAME_QUEUE);
+    let mut frame_tasks: HashMap<String, tokio::task::JoinHandle<()>> = HashMap::new();
+    let detector_watch = MemberWatch::declare(&session, MemberKind::Detector).await?;
+    let trolley_watch = MemberWatch::declare(&session, MemberKind::Trolley).await?;
+    let mut live_detectors: BTreeSet<String> = BTreeSet::from([did.clone()]);
+    let mut live_trolleys: BTreeSet<String> = BTreeSet::new();
     let status_pub = TypedPublisher::declare(
         &session,
         keys::detector_status(&did)?,
@@ -120,8 +147,24 @@ pub async fn run(
     let mut status_seq = 0u64;
     tracing::info!(detector = %did, "detector started");
     loop {
+        let mut membership_changed = false;
         tokio::select! {
             _ = shutdown.wait() => break,
+            event = detector_watch.recv() => {
+                match event {
+                    Some(MemberEvent::Joined(id)) => membership_changed = live_detectors.insert(id),
+                    Some(MemberEvent::Left(id)) if id != did => membership_changed = live_detectors.remove(&id),
+                    Some(MemberEvent::Left(_)) => {}
+                    None => break,
+                }
+            }
+            event = trolley_watch.recv() => {
+                match event {
+                    Some(MemberEvent::Joined(id)) => membership_changed = live_trolleys.insert(id),
+                    Some(MemberEvent::Left(id)) => membership_changed = live_trolleys.remove(&id),
+                    None => break,
+                }
+            }
             _ = status_tick.tick() => {
                 status_seq += 1;
                 let processed = counters.frames_processed.load(Ordering::Relaxed);
@@ -134,9 +177,8 @@ pub async fn run(
                 let header = Header { seq: status_seq, source_id: did.clone(), frame_id: "world".into(), ..Header::default() };
                 status_pub.publish(&header, &Message::DetectorStatus(status)).await?;
             }
-            received = frames.recv() => {
+            received = frame_rx.recv() => {
                 let Some(Received { header, message: Message::RgbdFrame(frame), .. }) = received else {
-                    if received.is_none() { break; }
                     continue;
                 };
                 let tid = header.trolley_id.clone();
@@ -173,6 +215,46 @@ pub async fn run(
                 publisher.publish(&out, &Message::RoiCloud(cloud)).await?;
             }
         }
+        if membership_changed {
+            let served = served_trolleys(&did, &live_detectors, &live_trolleys);
+            frame_tasks.retain(|tid, task| {
+                let keep = served.contains(tid.as_str());
+                if !keep {
+                    task.abort();
+                    tracing::info!(detector = %did, trolley = %tid, "trolley handed to another detector");
+                }
+                keep
+            });
+            for tid in served {
+                if frame_tasks.contains_key(tid) {
+                    continue;
+                }
+                let frames = TypedSubscriber::declare(
+                    &session,
+                    &keys::trolley(tid, TrolleyTopic::Rgbd)?,
+                    Delivery::Stream,
+                    counters.drops.clone(),
+                )
+                .await?;
+                let (tx, drops) = (frame_tx.clone(), counters.drops.clone());
+                let task = tokio::spawn(async move {
+                    while let Some(received) = frames.recv().await {
+                        // A full queue means this detector is behind: the frame is stale anyway.
+                        if tx.try_send(received).is_err() {
+                            drops.overflow.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                });
+                tracing::info!(detector = %did, trolley = %tid, "serving trolley");
+                frame_tasks.insert(tid.to_owned(), task);
+            }
+            counters
+                .trolleys_served
+                .store(frame_tasks.len() as u64, Ordering::Relaxed);
+        }
+    }
+    for (_, task) in frame_tasks.drain() {
+        task.abort();
     }
     for (_, p) in clouds.drain() {
         p.close().await;

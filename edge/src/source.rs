@@ -138,6 +138,7 @@ impl TrolleySource for SimSource {
                         volume_m3: f.volume_m3 as f32,
                         voxel_count: f.voxel_keys(0.01).len().min(u32::MAX as usize) as u32,
                         confidence: 1.0,
+                        fitted: None,
                     }
                 })
                 .collect(),

@@ -3,6 +3,8 @@
 //! Helpers shared by the tests in `tests/`: free loopback ports, an in-process router, the four
 //! services as tasks with their own sessions, and every wait bounded by a timeout.
 
+pub mod procs;
+
 use std::future::Future;
 use std::net::TcpListener;
 use std::sync::{Arc, Mutex};

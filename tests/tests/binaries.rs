@@ -1,104 +1,11 @@
 //! (b) The four real binaries as separate OS processes on free ports, around a `glasshouse router`.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use glasshouse_proto::keys::{self, TrolleyTopic};
 use glasshouse_proto::{Message, TrolleyState};
+use glasshouse_tests::procs::{build_binaries, Proc};
 use glasshouse_tests::{client, free_port, within};
-
-/// target/<profile>/ of this test binary (it lives in target/<profile>/deps/).
-fn bin_dir() -> PathBuf {
-    let exe = std::env::current_exe().expect("test binary path");
-    exe.parent()
-        .and_then(Path::parent)
-        .expect("target/<profile>/deps")
-        .to_path_buf()
-}
-
-/// Builds the service binaries (a no-op when cargo already has), so `cargo test` alone works.
-fn build_binaries() {
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let release = bin_dir().ends_with("release");
-    let mut cmd = Command::new(cargo);
-    // The test harness sets per-crate variables (CARGO_PKG_*, CARGO_MANIFEST_DIR, ...) that build
-    // scripts watch; passing them on would make this build redo work the outer one already did.
-    for (name, _) in std::env::vars_os() {
-        let name = name.to_string_lossy().into_owned();
-        let keep = ["CARGO_HOME", "CARGO_TARGET_DIR", "CARGO_TERM_COLOR"].contains(&name.as_str())
-            || name.starts_with("CARGO_BUILD_")
-            || name.starts_with("CARGO_PROFILE_");
-        if !keep && (name.starts_with("CARGO_") || name.starts_with("NEXTEST") || name == "OUT_DIR")
-        {
-            cmd.env_remove(&name);
-        }
-    }
-    // The same selection as scripts/test builds, so this is a no-op there.
-    cmd.args(["build", "--workspace", "--bins"]);
-    if release {
-        cmd.arg("--release");
-    }
-    let status = cmd.status().expect("cargo runs");
-    assert!(status.success(), "building the service binaries failed");
-}
-
-struct Proc {
-    name: &'static str,
-    child: Child,
-    log: PathBuf,
-}
-
-impl Proc {
-    fn start(name: &'static str, bin: &str, args: &[&str], logs: &Path) -> Proc {
-        let log = logs.join(format!("{name}.log"));
-        let file = std::fs::File::create(&log).expect("log file");
-        let child = Command::new(bin_dir().join(bin))
-            .args(args)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(file)
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {bin}: {e}"));
-        Proc { name, child, log }
-    }
-
-    fn log_text(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    /// SIGTERM, then the process must exit successfully on its own.
-    fn terminate(mut self) {
-        let pid = self.child.id().to_string();
-        let _ = Command::new("kill").args(["-TERM", &pid]).status();
-        let deadline = Instant::now() + Duration::from_secs(20);
-        loop {
-            match self.child.try_wait().expect("wait") {
-                Some(status) => {
-                    assert!(
-                        status.success(),
-                        "{} exited with {status}:\n{}",
-                        self.name,
-                        self.log_text()
-                    );
-                    return;
-                }
-                None if Instant::now() > deadline => {
-                    let _ = self.child.kill();
-                    panic!("{} ignored SIGTERM:\n{}", self.name, self.log_text());
-                }
-                None => std::thread::sleep(Duration::from_millis(50)),
-            }
-        }
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn real_binaries_close_the_loop() {

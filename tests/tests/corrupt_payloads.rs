@@ -52,7 +52,7 @@ async fn bad_payloads_on_every_key_are_dropped_and_the_loop_goes_on() {
         keys::detector_status("d9").expect("key"),
         MessageKind::DetectorStatus,
     ));
-    targets.push((keys::FLEET_FRUITS.to_owned(), MessageKind::FruitEstimates));
+    targets.push((keys::FLEET_FRUITS.to_owned(), MessageKind::FleetFruits));
     let mut publishers = Vec::new();
     for (key, kind) in &targets {
         let p =

@@ -85,6 +85,11 @@ pub struct BusArgs {
     /// Zenoh mode [default: peer, or the config file's].
     #[arg(long, value_enum)]
     pub mode: Option<Mode>,
+    /// Link lease in milliseconds: a peer that goes silent this long is dropped and its
+    /// liveliness tokens with it (how fast a planner cluster notices a lost member) [default:
+    /// Zenoh's 10000, or the config file's].
+    #[arg(long = "lease-ms", value_name = "MS", value_parser = clap::value_parser!(u64).range(100..=3_600_000))]
+    pub lease_ms: Option<u64>,
 }
 
 impl BusArgs {
@@ -153,6 +158,15 @@ pub fn zenoh_config(args: &BusArgs) -> Result<zenoh::Config> {
     }
     if !args.listen.is_empty() {
         insert(&mut config, "listen/endpoints", &json_list(&args.listen))?;
+    }
+    if let Some(lease_ms) = args.lease_ms {
+        insert(
+            &mut config,
+            "transport/link/tx/lease",
+            &lease_ms.to_string(),
+        )?;
+        // Four keep-alives per lease, as Zenoh's default.
+        insert(&mut config, "transport/link/tx/keep_alive", "4")?;
     }
     Ok(config)
 }
@@ -371,6 +385,134 @@ pub async fn declare_alive(
             key,
             reason: e.to_string(),
         })
+}
+
+/// A member joining or leaving, from its liveliness token.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum MemberEvent {
+    Joined(String),
+    /// Token undeclared, session closed, or link lease expired.
+    Left(String),
+}
+
+/// Follows the liveliness tokens of one kind of member: the ones alive when it starts come first
+/// as [`MemberEvent::Joined`], then every change.
+pub struct MemberWatch {
+    subscriber:
+        zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+}
+
+impl MemberWatch {
+    pub async fn declare(session: &Session, kind: keys::MemberKind) -> Result<Self> {
+        let key = keys::alive_all(kind);
+        let subscriber = session
+            .liveliness()
+            .declare_subscriber(key.clone())
+            .history(true)
+            .await
+            .map_err(|e| BusError::Declare {
+                what: "liveliness subscriber",
+                key,
+                reason: e.to_string(),
+            })?;
+        Ok(Self { subscriber })
+    }
+
+    /// The next join or leave; `None` once the session is closed.
+    pub async fn recv(&self) -> Option<MemberEvent> {
+        loop {
+            let sample = self.subscriber.recv_async().await.ok()?;
+            let Some(keys::ParsedKey::Alive { id, .. }) = keys::parse(sample.key_expr().as_str())
+            else {
+                continue;
+            };
+            return Some(match sample.kind() {
+                zenoh::sample::SampleKind::Put => MemberEvent::Joined(id),
+                zenoh::sample::SampleKind::Delete => MemberEvent::Left(id),
+            });
+        }
+    }
+}
+
+/// Answers queries on a key expression with encoded messages (a planner's map snapshots).
+pub struct Responder {
+    queryable: zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>,
+}
+
+impl Responder {
+    pub async fn declare(session: &Session, key_expr: String) -> Result<Self> {
+        let queryable = session
+            .declare_queryable(key_expr.clone())
+            .await
+            .map_err(|e| BusError::Declare {
+                what: "queryable",
+                key: key_expr,
+                reason: e.to_string(),
+            })?;
+        Ok(Self { queryable })
+    }
+
+    /// The next query; `None` once the session is closed.
+    pub async fn recv(&self) -> Option<zenoh::query::Query> {
+        self.queryable.recv_async().await.ok()
+    }
+}
+
+/// Replies to `query` with one encoded message, or with an error text the asker can log.
+pub async fn reply(query: &zenoh::query::Query, answer: Result<(Header, Message), String>) {
+    let key = query.key_expr().clone();
+    let outcome = match answer {
+        Ok((header, message)) => query.reply(key, encode(&header, &message)).await,
+        Err(reason) => query.reply_err(reason).await,
+    };
+    if let Err(e) = outcome {
+        tracing::warn!(key = %query.key_expr(), error = %e, "reply failed");
+    }
+}
+
+/// Why [`ask`] got no message.
+#[derive(thiserror::Error, Debug)]
+pub enum AskError {
+    #[error("no reply within {0:?}")]
+    NoReply(Duration),
+    #[error("the responder declined: {0}")]
+    Declined(String),
+    #[error("the reply did not decode: {0}")]
+    Corrupt(String),
+    #[error("query failed: {0}")]
+    Query(String),
+}
+
+/// Queries `key` (a concrete key of the tree) and returns the first reply, verified as the kind
+/// the key carries.
+pub async fn ask(
+    session: &Session,
+    key: &str,
+    timeout: Duration,
+) -> Result<(Header, Message), AskError> {
+    let expected = keys::parse(key).and_then(|k| k.message_kind());
+    let replies = session
+        .get(key.to_owned())
+        .timeout(timeout)
+        .await
+        .map_err(|e| AskError::Query(e.to_string()))?;
+    let reply = replies
+        .recv_async()
+        .await
+        .map_err(|_| AskError::NoReply(timeout))?;
+    match reply.result() {
+        Ok(sample) => {
+            let bytes = sample.payload().to_bytes();
+            let decoded = match expected {
+                Some(kind) => decode_as(&bytes, kind),
+                None => decode(&bytes),
+            };
+            decoded.map_err(|e| AskError::Corrupt(e.to_string()))
+        }
+        Err(err) => Err(AskError::Declined(
+            String::from_utf8_lossy(&err.payload().to_bytes()).into_owned(),
+        )),
+    }
 }
 
 /// The ids of the live members of a kind right now.

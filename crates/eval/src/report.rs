@@ -113,6 +113,27 @@ impl MethodRuns {
             .map(|t| t.last().map_or(f64::NAN, metric.value))
             .collect()
     }
+
+    /// The metric at simulated second `time_s`, one value per trial (NaN where a trial has no
+    /// sample that late).
+    pub fn values_at(&self, metric: &MetricDef, time_s: u32) -> Vec<f64> {
+        self.trials
+            .iter()
+            .map(|t| {
+                t.samples
+                    .get(time_s as usize)
+                    .map_or(f64::NAN, metric.value)
+            })
+            .collect()
+    }
+}
+
+/// Seconds at which the over-time tables and p-values are given: every 30 s before the budget.
+pub fn checkpoints(budget_s: f64) -> Vec<u32> {
+    (1..)
+        .map(|k| 30 * k)
+        .take_while(|&t| f64::from(t) < budget_s)
+        .collect()
 }
 
 /// The paper's label of a method, e.g. `Ours-U_P`.
@@ -124,6 +145,9 @@ pub fn method_label(method: Method) -> &'static str {
         Method::ExploUp => "Explo-U_P",
     }
 }
+
+/// The metrics the over-time tables follow: the paper's finding is about these two.
+pub const OVER_TIME_METRICS: [MetricDef; 2] = [METRICS[0], METRICS[1]];
 
 /// Header of the per-trial CSV.
 pub const CSV_HEADER: &str = "time_s,views,frames,estimates,mean_confidence,\
@@ -170,8 +194,25 @@ pub fn trial_csv(result: &TrialResult) -> String {
 /// `"ours-uu > explo-uu"` (or `<` for lower-is-better metrics) → one-sided p-value that the Ours
 /// method is better, per metric. Pairs without values on either side are left out.
 pub fn p_values(runs: &[MethodRuns]) -> BTreeMap<&'static str, BTreeMap<String, f64>> {
+    p_values_of(runs, &METRICS, |run, metric| run.final_values(metric))
+}
+
+/// [`p_values`] of `metrics` at simulated second `time_s`.
+pub fn p_values_at(
+    runs: &[MethodRuns],
+    metrics: &[MetricDef],
+    time_s: u32,
+) -> BTreeMap<&'static str, BTreeMap<String, f64>> {
+    p_values_of(runs, metrics, |run, metric| run.values_at(metric, time_s))
+}
+
+fn p_values_of(
+    runs: &[MethodRuns],
+    metrics: &[MetricDef],
+    values: impl Fn(&MethodRuns, &MetricDef) -> Vec<f64>,
+) -> BTreeMap<&'static str, BTreeMap<String, f64>> {
     let mut out = BTreeMap::new();
-    for metric in &METRICS {
+    for metric in metrics {
         let mut per_pair = BTreeMap::new();
         for ours in runs.iter().filter(|r| r.method.uses_roi_sampling()) {
             for explo in runs.iter().filter(|r| !r.method.uses_roi_sampling()) {
@@ -180,11 +221,9 @@ pub fn p_values(runs: &[MethodRuns]) -> BTreeMap<&'static str, BTreeMap<String, 
                 } else {
                     (Alternative::Less, "<")
                 };
-                if let Some(test) = mann_whitney_u(
-                    &ours.final_values(metric),
-                    &explo.final_values(metric),
-                    alternative,
-                ) {
+                if let Some(test) =
+                    mann_whitney_u(&values(ours, metric), &values(explo, metric), alternative)
+                {
                     per_pair.insert(
                         format!("{} {sign} {}", ours.method, explo.method),
                         test.p_value,
@@ -242,6 +281,26 @@ pub fn summary_json(runs: &[MethodRuns], settings: Value) -> Value {
         })
         .collect();
     root.insert("p_values".into(), Value::Object(p_json));
+    let budget_s = runs
+        .iter()
+        .flat_map(|r| &r.trials)
+        .map(|t| t.config.budget_s)
+        .fold(0.0, f64::max);
+    let over_time: Map<String, Value> = checkpoints(budget_s)
+        .into_iter()
+        .map(|t| {
+            let per_metric: Map<String, Value> = p_values_at(runs, &OVER_TIME_METRICS, t)
+                .into_iter()
+                .map(|(metric, pairs)| {
+                    let pairs: Map<String, Value> =
+                        pairs.into_iter().map(|(k, v)| (k, number(v))).collect();
+                    (metric.to_string(), Value::Object(pairs))
+                })
+                .collect();
+            (t.to_string(), Value::Object(per_metric))
+        })
+        .collect();
+    root.insert("p_values_at_s".into(), Value::Object(over_time));
     root.insert("settings".into(), settings);
     Value::Object(root)
 }
@@ -289,6 +348,17 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         let _ = write!(out, " {} |", cell(&views, 1));
     }
     out.push('\n');
+    let _ = write!(out, "| {scenario} | planner compute per frame (ms) |");
+    for r in runs {
+        let per_frame_ms: Vec<f64> = r
+            .trials
+            .iter()
+            .filter(|t| t.frames > 0)
+            .map(|t| 1e3 * t.compute_time_s / t.frames as f64)
+            .collect();
+        let _ = write!(out, " {} |", cell(&per_frame_ms, 1));
+    }
+    out.push('\n');
 
     let p = p_values(runs);
     let pairs: Vec<(Method, Method)> = runs
@@ -330,6 +400,46 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
                 }
             }
             out.push('\n');
+        }
+        for metric in &OVER_TIME_METRICS {
+            let _ = writeln!(
+                out,
+                "\n## {} over time: mean per method, then the one-sided p-values\n",
+                metric.label
+            );
+            let _ = write!(out, "| time (s) |");
+            for r in runs {
+                let _ = write!(out, " {} |", method_label(r.method));
+            }
+            for (ours, explo) in &pairs {
+                let _ = write!(out, " p {ours} vs {explo} |");
+            }
+            let _ = write!(out, "\n|---|");
+            for _ in 0..runs.len() + pairs.len() {
+                let _ = write!(out, "---|");
+            }
+            out.push('\n');
+            let sign = if metric.higher_is_better { ">" } else { "<" };
+            for t in checkpoints(budget_s) {
+                let _ = write!(out, "| {t} |");
+                for r in runs {
+                    let mean = mean_std(&r.values_at(metric, t)).map_or(f64::NAN, |m| m.mean);
+                    let _ = write!(out, " {:.*} |", metric.decimals, mean);
+                }
+                let p = p_values_at(runs, std::slice::from_ref(metric), t);
+                for (ours, explo) in &pairs {
+                    let key = format!("{ours} {sign} {explo}");
+                    match p.get(metric.key).and_then(|r| r.get(&key)) {
+                        Some(v) => {
+                            let _ = write!(out, " {v:.4} |");
+                        }
+                        None => {
+                            let _ = write!(out, " – |");
+                        }
+                    }
+                }
+                out.push('\n');
+            }
         }
     }
     out

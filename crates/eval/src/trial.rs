@@ -406,6 +406,8 @@ impl<M: Motion> Trial<M> {
         config.validate()?;
         let planner = PlannerConfig {
             method: config.method,
+            // Trials run in parallel, one per core, so each plans on its own thread.
+            scoring_threads: 1,
             ..PlannerConfig::default()
         };
         planner.validate()?;
@@ -449,6 +451,29 @@ impl<M: Motion> Trial<M> {
 
     pub fn map(&self) -> &RoiMap {
         &self.map
+    }
+
+    /// What the next planning call looks at: the map, the current pose and the scene's regions.
+    pub fn planning_context(&self) -> PlanningContext<'_> {
+        PlanningContext {
+            map: &self.map,
+            world_from_camera: self.pose,
+            camera_workspace: self.scene.camera_workspace(),
+            sampling_region: self.scene.sampling_region(),
+        }
+    }
+
+    /// The planner's configuration for this trial.
+    pub fn planner_config(&self) -> &PlannerConfig {
+        &self.planner
+    }
+
+    /// Seed of the planning call on the latest frame.
+    pub fn plan_seed(&self) -> u64 {
+        self.config
+            .seed
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            .wrapping_add(self.frame_seq)
     }
 
     /// Capture time of the next frame (simulated seconds).
@@ -497,18 +522,7 @@ impl<M: Motion> Trial<M> {
         )?;
         let clusters = self.map.clusters(self.config.min_cluster_voxels);
         let estimates = self.tracker.update(&clusters);
-        let ctx = PlanningContext {
-            map: &self.map,
-            world_from_camera: self.pose,
-            camera_workspace: self.scene.camera_workspace(),
-            sampling_region: self.scene.sampling_region(),
-        };
-        let plan_seed = self
-            .config
-            .seed
-            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
-            .wrapping_add(self.frame_seq);
-        let plan = plan_views(&ctx, &self.planner, plan_seed)?;
+        let plan = plan_views(&self.planning_context(), &self.planner, self.plan_seed())?;
         Ok((clusters, estimates, plan))
     }
 

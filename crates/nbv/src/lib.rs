@@ -158,6 +158,8 @@ pub struct PlannerConfig {
     pub occlusion_occupancy_logodds: f32,
     /// Length of the ranked list.
     pub max_ranked_views: usize,
+    /// Threads that score candidates; 0 means one per core. Any value gives the same plan.
+    pub scoring_threads: usize,
 }
 
 impl Default for PlannerConfig {
@@ -179,6 +181,7 @@ impl Default for PlannerConfig {
             proximity_max_dist_m: 0.3,
             occlusion_occupancy_logodds: (0.6f32 / 0.4).ln(),
             max_ranked_views: 20,
+            scoring_threads: 0,
         }
     }
 }
@@ -220,6 +223,9 @@ impl PlannerConfig {
         }
         if self.max_ranked_views == 0 {
             return bad("max_ranked_views must be >= 1");
+        }
+        if self.scoring_threads > 256 {
+            return bad("scoring_threads must be <= 256 (0 = one per core)");
         }
         Ok(())
     }
@@ -553,24 +559,49 @@ fn score(
     camera_in_world: &Point3<f64>,
     config: &PlannerConfig,
 ) -> Vec<ScoredView> {
-    let mut views: Vec<ScoredView> = poses
-        .into_iter()
-        .map(|pose| {
-            let gain = evaluator.gain(&pose);
-            let cost_m = (Point3::from(pose.translation.vector) - camera_in_world).norm();
-            ScoredView {
-                world_from_camera: pose,
-                utility: gain - config.cost_weight_per_m * cost_m,
-                gain,
-                cost_m,
-                kind,
-            }
+    let score_one = |pose: &Isometry3<f64>| {
+        let gain = evaluator.gain(pose);
+        let cost_m = (Point3::from(pose.translation.vector) - camera_in_world).norm();
+        ScoredView {
+            world_from_camera: *pose,
+            utility: gain - config.cost_weight_per_m * cost_m,
+            gain,
+            cost_m,
+            kind,
+        }
+    };
+    let threads = match config.scoring_threads {
+        0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        n => n,
+    }
+    .min(poses.len().div_ceil(MIN_CANDIDATES_PER_THREAD))
+    .max(1);
+    let mut views: Vec<ScoredView> = if threads == 1 {
+        poses.iter().map(score_one).collect()
+    } else {
+        // Contiguous chunks joined in order: the same list as the serial loop.
+        let chunk = poses.len().div_ceil(threads);
+        std::thread::scope(|scope| {
+            let workers: Vec<_> = poses
+                .chunks(chunk)
+                .map(|part| scope.spawn(move || part.iter().map(score_one).collect::<Vec<_>>()))
+                .collect();
+            workers
+                .into_iter()
+                .flat_map(|w| {
+                    w.join()
+                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+                })
+                .collect()
         })
-        .collect();
+    };
     // Stable sort: equal utilities keep their (seeded) generation order.
     views.sort_by(|a, b| b.utility.total_cmp(&a.utility));
     views
 }
+
+/// Below this many candidates per thread, spawning costs more than it saves.
+const MIN_CANDIDATES_PER_THREAD: usize = 16;
 
 /// Views above the threshold, or, when there are none, the best views anyway.
 fn rank(views: &[ScoredView], config: &PlannerConfig) -> Vec<ScoredView> {
@@ -719,6 +750,24 @@ pub fn fruit_confidence(cluster: &RoiCluster) -> f64 {
 pub struct FruitTracker {
     previous: Vec<(u32, Point3<f64>)>,
     next_id: u32,
+}
+
+impl FruitTracker {
+    /// The tracked fruits (id, centre) and the next free id: what another planner needs to carry
+    /// on with the same ids ([`FruitTracker::from_state`]).
+    pub fn state(&self) -> (Vec<(u32, Point3<f64>)>, u32) {
+        (self.previous.clone(), self.next_id)
+    }
+
+    /// A tracker that continues from [`FruitTracker::state`]. The next id is kept above every
+    /// tracked id, so ids are never reused.
+    pub fn from_state(tracked: Vec<(u32, Point3<f64>)>, next_id: u32) -> Self {
+        let above_tracked = tracked.iter().map(|(id, _)| id.saturating_add(1)).max();
+        Self {
+            next_id: next_id.max(above_tracked.unwrap_or(1)).max(1),
+            previous: tracked,
+        }
+    }
 }
 
 impl Default for FruitTracker {

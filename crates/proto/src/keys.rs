@@ -4,6 +4,8 @@
 //! - `gh/trolley/{tid}/{rgbd|arm|info|roi|views|fruits|map|status|truth}`: one trolley's data and
 //!   results (`truth`: the simulator's ground truth);
 //! - `gh/planner/{pid}/status`, `gh/detector/{did}/status`: service health;
+//! - `gh/planner/{pid}/snapshot/{tid}`: the queryable through which planner `pid` hands out its
+//!   copy of trolley `tid`'s map (MapSnapshot replies);
 //! - `gh/fleet/fruits`: the merged fruit map;
 //! - `gh/alive/{trolley|planner|detector}/{id}`: liveliness tokens (membership), outside the data tree.
 
@@ -125,6 +127,19 @@ pub fn planner_status(pid: &str) -> Result<String, KeyError> {
     Ok(format!("{ROOT}/planner/{pid}/status"))
 }
 
+/// `gh/planner/{pid}/snapshot/{tid}`: planner `pid`'s MapSnapshot of trolley `tid` (a query).
+pub fn planner_snapshot(pid: &str, tid: &str) -> Result<String, KeyError> {
+    validate_id(pid)?;
+    validate_id(tid)?;
+    Ok(format!("{ROOT}/planner/{pid}/snapshot/{tid}"))
+}
+
+/// `gh/planner/{pid}/snapshot/*`: what planner `pid`'s snapshot queryable answers.
+pub fn planner_snapshots(pid: &str) -> Result<String, KeyError> {
+    validate_id(pid)?;
+    Ok(format!("{ROOT}/planner/{pid}/snapshot/*"))
+}
+
 /// `gh/detector/{did}/status`: DetectorStatus.
 pub fn detector_status(did: &str) -> Result<String, KeyError> {
     validate_id(did)?;
@@ -165,6 +180,7 @@ pub fn alive_all(kind: MemberKind) -> String {
 pub enum ParsedKey {
     Trolley { tid: String, topic: TrolleyTopic },
     PlannerStatus { pid: String },
+    PlannerSnapshot { pid: String, tid: String },
     DetectorStatus { did: String },
     FleetFruits,
     Alive { kind: MemberKind, id: String },
@@ -176,8 +192,9 @@ impl ParsedKey {
         match self {
             ParsedKey::Trolley { topic, .. } => Some(topic.message_kind()),
             ParsedKey::PlannerStatus { .. } => Some(MessageKind::PlannerStatus),
+            ParsedKey::PlannerSnapshot { .. } => Some(MessageKind::MapSnapshot),
             ParsedKey::DetectorStatus { .. } => Some(MessageKind::DetectorStatus),
-            ParsedKey::FleetFruits => Some(MessageKind::FruitEstimates),
+            ParsedKey::FleetFruits => Some(MessageKind::FleetFruits),
             ParsedKey::Alive { .. } => None,
         }
     }
@@ -196,6 +213,12 @@ pub fn parse(key: &str) -> Option<ParsedKey> {
         ["planner", pid, "status"] if valid(pid) => Some(ParsedKey::PlannerStatus {
             pid: (*pid).to_owned(),
         }),
+        ["planner", pid, "snapshot", tid] if valid(pid) && valid(tid) => {
+            Some(ParsedKey::PlannerSnapshot {
+                pid: (*pid).to_owned(),
+                tid: (*tid).to_owned(),
+            })
+        }
         ["detector", did, "status"] if valid(did) => Some(ParsedKey::DetectorStatus {
             did: (*did).to_owned(),
         }),
@@ -245,6 +268,14 @@ mod tests {
             })
         );
         assert_eq!(parse(FLEET_FRUITS), Some(ParsedKey::FleetFruits));
+        assert_eq!(
+            parse(&planner_snapshot("p1", "t2").expect("valid")),
+            Some(ParsedKey::PlannerSnapshot {
+                pid: "p1".into(),
+                tid: "t2".into()
+            })
+        );
+        assert!(planner_snapshot("p1", "a/b").is_err());
         assert_eq!(parse("gh/trolley/t1/bogus"), None);
         assert_eq!(parse("other/trolley/t1/rgbd"), None);
     }

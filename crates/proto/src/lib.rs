@@ -70,10 +70,12 @@ pub enum MessageKind {
     PlannerStatus,
     TrolleyStatus,
     DetectorStatus,
+    MapSnapshot,
+    FleetFruits,
 }
 
 impl MessageKind {
-    pub const ALL: [MessageKind; 10] = [
+    pub const ALL: [MessageKind; 12] = [
         MessageKind::RgbdFrame,
         MessageKind::ArmState,
         MessageKind::TrolleyInfo,
@@ -84,6 +86,8 @@ impl MessageKind {
         MessageKind::PlannerStatus,
         MessageKind::TrolleyStatus,
         MessageKind::DetectorStatus,
+        MessageKind::MapSnapshot,
+        MessageKind::FleetFruits,
     ];
 
     /// Largest accepted payload in bytes. Frames allow a 1280x960 RGB-D image; point clouds and
@@ -94,7 +98,10 @@ impl MessageKind {
             MessageKind::RgbdFrame => 8 * MIB,
             MessageKind::RoiCloud => 16 * MIB,
             MessageKind::MapUpdate => 64 * MIB,
+            // A whole row segment's map.
+            MessageKind::MapSnapshot => 512 * MIB,
             MessageKind::FruitEstimates => 2 * MIB,
+            MessageKind::FleetFruits => 16 * MIB,
             MessageKind::RankedViews | MessageKind::TrolleyInfo => 256 * 1024,
             MessageKind::ArmState
             | MessageKind::PlannerStatus
@@ -115,6 +122,8 @@ impl MessageKind {
             MessageKind::PlannerStatus => "PlannerStatus",
             MessageKind::TrolleyStatus => "TrolleyStatus",
             MessageKind::DetectorStatus => "DetectorStatus",
+            MessageKind::MapSnapshot => "MapSnapshot",
+            MessageKind::FleetFruits => "FleetFruits",
         }
     }
 
@@ -130,6 +139,8 @@ impl MessageKind {
             fb::Payload::PlannerStatus => MessageKind::PlannerStatus,
             fb::Payload::TrolleyStatus => MessageKind::TrolleyStatus,
             fb::Payload::DetectorStatus => MessageKind::DetectorStatus,
+            fb::Payload::MapSnapshot => MessageKind::MapSnapshot,
+            fb::Payload::FleetFruits => MessageKind::FleetFruits,
             _ => return None,
         })
     }

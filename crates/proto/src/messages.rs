@@ -2,7 +2,7 @@
 
 use flatbuffers::{FlatBufferBuilder, WIPOffset};
 use glasshouse_geom::{Aabb, CameraIntrinsics};
-use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
 use crate::{fb, Header, MessageKind, ProtoError, Result, PROTOCOL_VERSION};
 
@@ -107,6 +107,59 @@ pub struct Fruit {
     pub volume_m3: f32,
     pub voxel_count: u32,
     pub confidence: f32,
+    /// The fitted whole-fruit estimate; `None` when the planner made no fit.
+    pub fitted: Option<FittedEllipsoid>,
+}
+
+/// Axis-aligned ellipsoid estimate of one fruit, world frame, metres.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FittedEllipsoid {
+    pub centre_in_world: Point3<f32>,
+    pub semi_axes_m: Vector3<f32>,
+    /// `4/3·π·a·b·c`.
+    pub volume_m3: f32,
+    /// `8·a·b·c`, comparable with the box estimate's volume.
+    pub box_volume_m3: f32,
+    /// Share of the fitted surface the map has observed, 0..1.
+    pub confidence: f32,
+    /// False when the fit was degenerate and this is the ellipsoid inscribed in the cluster's box.
+    pub is_fit: bool,
+}
+
+/// A fruit the tracker follows (id and centre), carried in [`MapSnapshot`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackedFruit {
+    pub id: u32,
+    pub centre_in_world: Point3<f32>,
+}
+
+/// One planner's copy of a trolley's state (reply to a snapshot query).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MapSnapshot {
+    pub trolley_id: String,
+    pub planner_id: String,
+    /// The last RoiCloud frame seq integrated into the map.
+    pub based_on_seq: u64,
+    /// `glasshouse_roimap` snapshot bytes.
+    pub map: Vec<u8>,
+    pub tracked_fruits: Vec<TrackedFruit>,
+    pub next_fruit_id: u32,
+}
+
+/// One fruit of the fleet map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FleetFruit {
+    pub fleet_id: String,
+    pub fruit: Fruit,
+    pub sources: Vec<String>,
+}
+
+/// Every trolley's fruits merged into one map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FleetFruits {
+    pub fruits: Vec<FleetFruit>,
+    pub planner_id: String,
+    pub trolleys: u32,
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -197,6 +250,8 @@ pub enum Message {
     PlannerStatus(PlannerStatus),
     TrolleyStatus(TrolleyStatus),
     DetectorStatus(DetectorStatus),
+    MapSnapshot(MapSnapshot),
+    FleetFruits(FleetFruits),
 }
 
 impl Message {
@@ -212,6 +267,8 @@ impl Message {
             Message::PlannerStatus(_) => MessageKind::PlannerStatus,
             Message::TrolleyStatus(_) => MessageKind::TrolleyStatus,
             Message::DetectorStatus(_) => MessageKind::DetectorStatus,
+            Message::MapSnapshot(_) => MessageKind::MapSnapshot,
+            Message::FleetFruits(_) => MessageKind::FleetFruits,
         }
     }
 }
@@ -399,25 +456,7 @@ fn write_payload(
             (fb::Payload::RankedViews, t.as_union_value())
         }
         Message::FruitEstimates(m) => {
-            let fruits: Vec<_> = m
-                .fruits
-                .iter()
-                .map(|f| {
-                    let centre = vec3f(&f.centre_in_world);
-                    let bbox = fb::Box3::new(&vec3f(&f.box_min), &vec3f(&f.box_max));
-                    fb::Fruit::create(
-                        fbb,
-                        &fb::FruitArgs {
-                            id: f.id,
-                            centre: Some(&centre),
-                            box_: Some(&bbox),
-                            volume_m3: f.volume_m3,
-                            voxel_count: f.voxel_count,
-                            confidence: f.confidence,
-                        },
-                    )
-                })
-                .collect();
+            let fruits: Vec<_> = m.fruits.iter().map(|f| write_fruit(fbb, f)).collect();
             let fruits = fbb.create_vector(&fruits);
             let planner = fbb.create_string(&m.planner_id);
             let t = fb::FruitEstimates::create(
@@ -497,6 +536,60 @@ fn write_payload(
             );
             (fb::Payload::TrolleyStatus, t.as_union_value())
         }
+        Message::MapSnapshot(m) => {
+            let trolley = fbb.create_string(&m.trolley_id);
+            let planner = fbb.create_string(&m.planner_id);
+            let map = fbb.create_vector(&m.map);
+            let tracked: Vec<fb::TrackedFruit> = m
+                .tracked_fruits
+                .iter()
+                .map(|f| fb::TrackedFruit::new(f.id, &vec3f(&f.centre_in_world)))
+                .collect();
+            let tracked = fbb.create_vector(&tracked);
+            let t = fb::MapSnapshot::create(
+                fbb,
+                &fb::MapSnapshotArgs {
+                    trolley_id: Some(trolley),
+                    planner_id: Some(planner),
+                    based_on_seq: m.based_on_seq,
+                    map: Some(map),
+                    tracked_fruits: Some(tracked),
+                    next_fruit_id: m.next_fruit_id,
+                },
+            );
+            (fb::Payload::MapSnapshot, t.as_union_value())
+        }
+        Message::FleetFruits(m) => {
+            let fruits: Vec<_> = m
+                .fruits
+                .iter()
+                .map(|f| {
+                    let fleet_id = fbb.create_string(&f.fleet_id);
+                    let fruit = write_fruit(fbb, &f.fruit);
+                    let sources: Vec<_> = f.sources.iter().map(|s| fbb.create_string(s)).collect();
+                    let sources = fbb.create_vector(&sources);
+                    fb::FleetFruit::create(
+                        fbb,
+                        &fb::FleetFruitArgs {
+                            fleet_id: Some(fleet_id),
+                            fruit: Some(fruit),
+                            sources: Some(sources),
+                        },
+                    )
+                })
+                .collect();
+            let fruits = fbb.create_vector(&fruits);
+            let planner = fbb.create_string(&m.planner_id);
+            let t = fb::FleetFruits::create(
+                fbb,
+                &fb::FleetFruitsArgs {
+                    fruits: Some(fruits),
+                    planner_id: Some(planner),
+                    trolleys: m.trolleys,
+                },
+            );
+            (fb::Payload::FleetFruits, t.as_union_value())
+        }
         Message::DetectorStatus(m) => {
             let did = fbb.create_string(&m.detector_id);
             let t = fb::DetectorStatus::create(
@@ -511,6 +604,76 @@ fn write_payload(
             (fb::Payload::DetectorStatus, t.as_union_value())
         }
     }
+}
+
+fn write_fruit<'a>(fbb: &mut FlatBufferBuilder<'a>, f: &Fruit) -> WIPOffset<fb::Fruit<'a>> {
+    let centre = vec3f(&f.centre_in_world);
+    let bbox = fb::Box3::new(&vec3f(&f.box_min), &vec3f(&f.box_max));
+    let fitted = f.fitted.as_ref().map(|e| {
+        let centre = vec3f(&e.centre_in_world);
+        let semi_axes = fb::Vec3::new(e.semi_axes_m.x, e.semi_axes_m.y, e.semi_axes_m.z);
+        fb::FittedEllipsoid::create(
+            fbb,
+            &fb::FittedEllipsoidArgs {
+                centre: Some(&centre),
+                semi_axes: Some(&semi_axes),
+                volume_m3: e.volume_m3,
+                box_volume_m3: e.box_volume_m3,
+                confidence: e.confidence,
+                is_fit: e.is_fit,
+            },
+        )
+    });
+    fb::Fruit::create(
+        fbb,
+        &fb::FruitArgs {
+            id: f.id,
+            centre: Some(&centre),
+            box_: Some(&bbox),
+            volume_m3: f.volume_m3,
+            voxel_count: f.voxel_count,
+            confidence: f.confidence,
+            fitted,
+        },
+    )
+}
+
+fn read_fruit(kind: MessageKind, f: fb::Fruit<'_>) -> Result<Fruit> {
+    let centre = f
+        .centre()
+        .ok_or_else(|| content(kind, "fruit centre is missing"))?;
+    let bbox = f
+        .box_()
+        .ok_or_else(|| content(kind, "fruit box is missing"))?;
+    let fitted = f
+        .fitted()
+        .map(|e| -> Result<FittedEllipsoid> {
+            let centre = e
+                .centre()
+                .ok_or_else(|| content(kind, "fitted ellipsoid centre is missing"))?;
+            let axes = e
+                .semi_axes()
+                .ok_or_else(|| content(kind, "fitted ellipsoid semi-axes are missing"))?;
+            Ok(FittedEllipsoid {
+                centre_in_world: point3f(centre),
+                semi_axes_m: Vector3::new(axes.x(), axes.y(), axes.z()),
+                volume_m3: e.volume_m3(),
+                box_volume_m3: e.box_volume_m3(),
+                confidence: e.confidence(),
+                is_fit: e.is_fit(),
+            })
+        })
+        .transpose()?;
+    Ok(Fruit {
+        id: f.id(),
+        centre_in_world: point3f(centre),
+        box_min: point3f(bbox.min()),
+        box_max: point3f(bbox.max()),
+        volume_m3: f.volume_m3(),
+        voxel_count: f.voxel_count(),
+        confidence: f.confidence(),
+        fitted,
+    })
 }
 
 pub(crate) fn write_envelope(header: &Header, message: &Message) -> Vec<u8> {
@@ -792,23 +955,7 @@ fn read_message(envelope: &fb::Envelope<'_>, kind: MessageKind) -> Result<Messag
                 .fruits()
                 .map(|fs| {
                     fs.iter()
-                        .map(|f| {
-                            let centre = f
-                                .centre()
-                                .ok_or_else(|| content(kind, "fruit centre is missing"))?;
-                            let bbox = f
-                                .box_()
-                                .ok_or_else(|| content(kind, "fruit box is missing"))?;
-                            Ok(Fruit {
-                                id: f.id(),
-                                centre_in_world: point3f(centre),
-                                box_min: point3f(bbox.min()),
-                                box_max: point3f(bbox.max()),
-                                volume_m3: f.volume_m3(),
-                                voxel_count: f.voxel_count(),
-                                confidence: f.confidence(),
-                            })
-                        })
+                        .map(|f| read_fruit(kind, f))
                         .collect::<Result<Vec<_>>>()
                 })
                 .transpose()?
@@ -892,6 +1039,56 @@ fn read_message(envelope: &fb::Envelope<'_>, kind: MessageKind) -> Result<Messag
                 dropped_messages: m.dropped_messages(),
                 last_views_seq: m.last_views_seq(),
                 message: string_or_empty(m.message()),
+            })
+        }
+        MessageKind::MapSnapshot => {
+            let m = envelope.payload_as_map_snapshot().ok_or_else(missing)?;
+            Message::MapSnapshot(MapSnapshot {
+                trolley_id: string_or_empty(m.trolley_id()),
+                planner_id: string_or_empty(m.planner_id()),
+                based_on_seq: m.based_on_seq(),
+                map: m.map().map(|b| b.bytes().to_vec()).unwrap_or_default(),
+                tracked_fruits: m
+                    .tracked_fruits()
+                    .map(|fs| {
+                        fs.iter()
+                            .map(|f| TrackedFruit {
+                                id: f.id(),
+                                centre_in_world: point3f(f.centre()),
+                            })
+                            .collect()
+                    })
+                    .unwrap_or_default(),
+                next_fruit_id: m.next_fruit_id(),
+            })
+        }
+        MessageKind::FleetFruits => {
+            let m = envelope.payload_as_fleet_fruits().ok_or_else(missing)?;
+            let fruits = m
+                .fruits()
+                .map(|fs| {
+                    fs.iter()
+                        .map(|f| {
+                            let fruit = f
+                                .fruit()
+                                .ok_or_else(|| content(kind, "fleet fruit without its estimate"))?;
+                            Ok(FleetFruit {
+                                fleet_id: string_or_empty(f.fleet_id()),
+                                fruit: read_fruit(kind, fruit)?,
+                                sources: f
+                                    .sources()
+                                    .map(|ss| ss.iter().map(str::to_owned).collect())
+                                    .unwrap_or_default(),
+                            })
+                        })
+                        .collect::<Result<Vec<_>>>()
+                })
+                .transpose()?
+                .unwrap_or_default();
+            Message::FleetFruits(FleetFruits {
+                fruits,
+                planner_id: string_or_empty(m.planner_id()),
+                trolleys: m.trolleys(),
             })
         }
         MessageKind::DetectorStatus => {

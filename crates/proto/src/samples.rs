@@ -95,15 +95,7 @@ pub fn message(kind: MessageKind) -> Message {
             planner_id: "p1".into(),
         }),
         MessageKind::FruitEstimates => Message::FruitEstimates(FruitEstimates {
-            fruits: vec![Fruit {
-                id: 3,
-                centre_in_world: Point3::new(0.1, 0.2, 0.9),
-                box_min: Point3::new(0.07, 0.17, 0.86),
-                box_max: Point3::new(0.13, 0.23, 0.94),
-                volume_m3: 0.06 * 0.06 * 0.08,
-                voxel_count: 120,
-                confidence: 0.6,
-            }],
+            fruits: vec![sample_fruit()],
             based_on_seq: 42,
             planner_id: "p1".into(),
         }),
@@ -154,6 +146,46 @@ pub fn message(kind: MessageKind) -> Message {
             frames_processed: 7,
             dropped_messages: 0,
             mean_detect_time_ms: 8.0,
+        }),
+        MessageKind::MapSnapshot => Message::MapSnapshot(MapSnapshot {
+            trolley_id: "t1".into(),
+            planner_id: "p2".into(),
+            based_on_seq: 42,
+            map: vec![1, 2, 3, 4, 5],
+            tracked_fruits: vec![TrackedFruit {
+                id: 3,
+                centre_in_world: Point3::new(0.1, 0.2, 0.9),
+            }],
+            next_fruit_id: 4,
+        }),
+        MessageKind::FleetFruits => Message::FleetFruits(FleetFruits {
+            fruits: vec![FleetFruit {
+                fleet_id: "t1/3".into(),
+                fruit: sample_fruit(),
+                sources: vec!["t1/3".into(), "t2/8".into()],
+            }],
+            planner_id: "p1".into(),
+            trolleys: 2,
+        }),
+    }
+}
+
+fn sample_fruit() -> Fruit {
+    Fruit {
+        id: 3,
+        centre_in_world: Point3::new(0.1, 0.2, 0.9),
+        box_min: Point3::new(0.07, 0.17, 0.86),
+        box_max: Point3::new(0.13, 0.23, 0.94),
+        volume_m3: 0.06 * 0.06 * 0.08,
+        voxel_count: 120,
+        confidence: 0.6,
+        fitted: Some(FittedEllipsoid {
+            centre_in_world: Point3::new(0.1, 0.2, 0.91),
+            semi_axes_m: nalgebra::Vector3::new(0.03, 0.03, 0.04),
+            volume_m3: 4.0 / 3.0 * std::f32::consts::PI * 0.03 * 0.03 * 0.04,
+            box_volume_m3: 8.0 * 0.03 * 0.03 * 0.04,
+            confidence: 0.75,
+            is_fit: true,
         }),
     }
 }

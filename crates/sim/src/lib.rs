@@ -26,7 +26,7 @@ use serde::{Deserialize, Serialize};
 pub use trolley::{Executed, SimArm};
 
 use generate::{Plant, Solid, FLOOR_ALBEDO};
-use shapes::{Bvh, Ray, Shape};
+use shapes::{Bvh, Packet, Ray, Shape, NO_HIT, PACKET, PACKET_HEIGHT, PACKET_WIDTH};
 
 /// Minimum distance from the camera centre to any solid for a position to count as free.
 pub const CAMERA_CLEARANCE_M: f64 = 0.05;
@@ -204,7 +204,6 @@ struct RayHit {
     t: f64,
     shape: Option<usize>,
     normal: Vector3<f64>,
-    albedo: [f32; 3],
 }
 
 impl Scene {
@@ -222,14 +221,16 @@ impl Scene {
             None => built.camera_workspace,
         };
         let bounds: Vec<_> = built.solids.iter().map(|s| s.shape.bounds()).collect();
-        let (bvh, order) = Bvh::build(&bounds);
+        let (mut bvh, order) = Bvh::build(&bounds);
         let ordered: Vec<&Solid> = order.iter().filter_map(|&i| built.solids.get(i)).collect();
+        let ordered_shapes: Vec<Shape> = ordered.iter().map(|s| s.shape.clone()).collect();
+        bvh.set_shapes(&ordered_shapes);
         let mut scene = Scene {
             kind,
             seed,
             fruits: built.fruits,
             plants: built.plants,
-            shapes: ordered.iter().map(|s| s.shape.clone()).collect(),
+            shapes: ordered_shapes,
             albedo: ordered.iter().map(|s| s.albedo).collect(),
             fruit_index: ordered.iter().map(|s| s.fruit_index).collect(),
             bvh,
@@ -359,28 +360,22 @@ impl Scene {
     }
 
     /// First surface along a world ray (floor included), or None for the sky.
-    fn trace(&self, ray: &Ray, stack: &mut Vec<(u32, f32)>) -> Option<RayHit> {
-        // The floor is the infinite plane z = 0, seen from above only.
-        let floor_t = if ray.dir.z < -1e-12 && ray.origin.z > 0.0 {
-            Some(-ray.origin.z / ray.dir.z)
-        } else {
-            None
-        };
+    /// Closest hit of a ray (shapes, then the floor); `hint` as in [`Bvh::closest_hit`].
+    fn trace(&self, ray: &Ray, hint: Option<usize>, stack: &mut Vec<(u32, f32)>) -> Option<RayHit> {
+        let floor_t = floor_hit(ray);
         let t_limit = floor_t.unwrap_or(f64::INFINITY);
-        if let Some((t, i)) = self.bvh.closest_hit(&self.shapes, ray, t_limit, stack) {
+        if let Some((t, i)) = self.bvh.closest_hit(ray, t_limit, hint, stack) {
             let shape = self.shapes.get(i)?;
             return Some(RayHit {
                 t,
                 shape: Some(i),
                 normal: shape.normal_at(&ray.at(t)),
-                albedo: self.albedo.get(i).copied().unwrap_or(FLOOR_ALBEDO),
             });
         }
         floor_t.map(|t| RayHit {
             t,
             shape: None,
             normal: Vector3::z(),
-            albedo: FLOOR_ALBEDO,
         })
     }
 
@@ -400,39 +395,80 @@ impl Scene {
         let mut spare_normal: Option<f64> = None;
         let light = light_direction();
         let rotation = world_from_camera.rotation.to_rotation_matrix();
-        let mut stack = Vec::with_capacity(64);
         let origin = world_from_camera.translation.vector;
-        for v in 0..k.height as usize {
-            for u in 0..k.width as usize {
-                let pixel = v * k.width as usize + u;
-                let dir_in_camera = k.ray_direction(u as f64, v as f64);
-                let ray = Ray::new(origin, rotation * dir_in_camera);
-                let Some(hit) = self.trace(&ray, &mut stack) else {
-                    rgb[3 * pixel..3 * pixel + 3].copy_from_slice(&SKY_RGB);
-                    continue;
-                };
-                // Two-sided shading: turn the normal towards the camera.
-                let mut normal = hit.normal;
-                let cos_incidence = ray.dir.dot(&normal);
-                if cos_incidence > 0.0 {
-                    normal = -normal;
+        let (width, height) = (k.width as usize, k.height as usize);
+        // Rays are traced in packets, a band of PACKET_HEIGHT rows at a time, then shaded row by row so
+        // that the noise is drawn in row-major order.
+        let mut band_t = vec![0f64; PACKET_HEIGHT * width];
+        let mut band_hit = vec![NO_HIT; PACKET_HEIGHT * width];
+        let mut band_dir = vec![Vector3::zeros(); PACKET_HEIGHT * width];
+        let mut stack = Vec::with_capacity(64);
+        let mut packet = Packet::new(origin);
+        for band_v in (0..height).step_by(PACKET_HEIGHT) {
+            for tile_u in (0..width).step_by(PACKET_WIDTH) {
+                packet.switch_off();
+                for lane in 0..PACKET {
+                    let (du, dv) = (lane % PACKET_WIDTH, lane / PACKET_WIDTH);
+                    let (u, v) = (tile_u + du, band_v + dv);
+                    if u >= width || v >= height {
+                        continue;
+                    }
+                    let dir_in_camera = k.ray_direction(u as f64, v as f64);
+                    let ray = Ray::new(origin, rotation * dir_in_camera);
+                    packet.t[lane] = floor_hit(&ray).unwrap_or(f64::INFINITY);
+                    packet.rays[lane] = ray;
+                    band_dir[dv * width + u] = dir_in_camera;
                 }
-                rgb[3 * pixel..3 * pixel + 3]
-                    .copy_from_slice(&shade(hit.albedo, normal.dot(&light)));
-                let depth = hit.t * dir_in_camera.z;
-                if cos_incidence.abs() < camera.grazing_cos_min
-                    || !(camera.min_range_m..=camera.max_range_m).contains(&depth)
-                {
-                    continue;
+                self.bvh.closest_hits(&mut packet, &mut stack);
+                for lane in 0..PACKET {
+                    let (u, dv) = (tile_u + lane % PACKET_WIDTH, lane / PACKET_WIDTH);
+                    if u < width && band_v + dv < height {
+                        band_t[dv * width + u] = packet.t[lane];
+                        band_hit[dv * width + u] = packet.hit[lane];
+                    }
                 }
-                let std_m = camera.depth_noise_std_at_1m_m * depth * depth;
-                let noisy = if std_m > 0.0 {
-                    depth + std_m * standard_normal(&mut rng, &mut spare_normal)
-                } else {
-                    depth
-                };
-                if (camera.min_range_m..=camera.max_range_m).contains(&noisy) {
-                    depth_m[pixel] = noisy as f32;
+            }
+            for dv in 0..PACKET_HEIGHT.min(height - band_v) {
+                for u in 0..width {
+                    let pixel = (band_v + dv) * width + u;
+                    let slot = dv * width + u;
+                    let t = band_t[slot];
+                    let dir_in_camera = band_dir[slot];
+                    let dir_in_world = rotation * dir_in_camera;
+                    let (normal, albedo) = match self.shapes.get(band_hit[slot] as usize) {
+                        Some(shape) => (
+                            shape.normal_at(&(origin + dir_in_world * t)),
+                            self.albedo
+                                .get(band_hit[slot] as usize)
+                                .copied()
+                                .unwrap_or(FLOOR_ALBEDO),
+                        ),
+                        None if t.is_finite() => (Vector3::z(), FLOOR_ALBEDO),
+                        None => {
+                            rgb[3 * pixel..3 * pixel + 3].copy_from_slice(&SKY_RGB);
+                            continue;
+                        }
+                    };
+                    // Two-sided shading: turn the normal towards the camera.
+                    let cos_incidence = dir_in_world.dot(&normal);
+                    let facing = if cos_incidence > 0.0 { -normal } else { normal };
+                    rgb[3 * pixel..3 * pixel + 3]
+                        .copy_from_slice(&shade(albedo, facing.dot(&light)));
+                    let depth = t * dir_in_camera.z;
+                    if cos_incidence.abs() < camera.grazing_cos_min
+                        || !(camera.min_range_m..=camera.max_range_m).contains(&depth)
+                    {
+                        continue;
+                    }
+                    let std_m = camera.depth_noise_std_at_1m_m * depth * depth;
+                    let noisy = if std_m > 0.0 {
+                        depth + std_m * standard_normal(&mut rng, &mut spare_normal)
+                    } else {
+                        depth
+                    };
+                    if (camera.min_range_m..=camera.max_range_m).contains(&noisy) {
+                        depth_m[pixel] = noisy as f32;
+                    }
                 }
             }
         }
@@ -455,11 +491,14 @@ impl Scene {
         let rotation = world_from_camera.rotation.to_rotation_matrix();
         let mut stack = Vec::with_capacity(64);
         let origin = world_from_camera.translation.vector;
+        let mut hint = None;
         for v in 0..k.height {
             for u in 0..k.width {
                 let dir_in_camera = k.ray_direction(u as f64, v as f64);
                 let ray = Ray::new(origin, rotation * dir_in_camera);
-                let Some(hit) = self.trace(&ray, &mut stack) else {
+                let traced = self.trace(&ray, hint, &mut stack);
+                hint = traced.as_ref().and_then(|h| h.shape);
+                let Some(hit) = traced else {
                     continue;
                 };
                 let depth = hit.t * dir_in_camera.z;
@@ -557,6 +596,11 @@ impl Scene {
 }
 
 /// Fixed light from above, slightly oblique so upright surfaces are not all equally lit.
+/// Where a ray meets the floor, the infinite plane z = 0 seen from above only.
+fn floor_hit(ray: &Ray) -> Option<f64> {
+    (ray.dir.z < -1e-12 && ray.origin.z > 0.0).then(|| -ray.origin.z / ray.dir.z)
+}
+
 fn light_direction() -> Vector3<f64> {
     Vector3::new(0.3, 0.2, 1.0).normalize()
 }
@@ -564,21 +608,27 @@ fn light_direction() -> Vector3<f64> {
 /// Lambert shading with ambient, rounded to RGB8.
 pub fn shade(albedo: [f32; 3], n_dot_l: f64) -> [u8; 3] {
     let factor = AMBIENT + DIFFUSE * (n_dot_l.max(0.0) as f32);
-    albedo.map(|a| (a * factor).round().clamp(0.0, 255.0) as u8)
+    // Albedo and factor are non-negative: adding 0.5 and truncating rounds like `round`, and the
+    // cast saturates at 255.
+    albedo.map(|a| (a * factor + 0.5) as u8)
 }
 
-/// Box-Muller standard normal, caching the second value of each pair.
+/// Standard normal by Marsaglia's polar method (no trigonometry), caching the second value of
+/// each pair.
 fn standard_normal(rng: &mut ChaCha8Rng, spare: &mut Option<f64>) -> f64 {
     if let Some(z) = spare.take() {
         return z;
     }
-    // 1 - gen() lies in (0, 1], so the logarithm is finite.
-    let u1 = 1.0 - rng.gen::<f64>();
-    let u2 = rng.gen::<f64>();
-    let radius = (-2.0 * u1.ln()).sqrt();
-    let (s, c) = (std::f64::consts::TAU * u2).sin_cos();
-    *spare = Some(radius * s);
-    radius * c
+    loop {
+        let x = 2.0 * rng.gen::<f64>() - 1.0;
+        let y = 2.0 * rng.gen::<f64>() - 1.0;
+        let r2 = x * x + y * y;
+        if r2 > 0.0 && r2 < 1.0 {
+            let scale = (-2.0 * r2.ln() / r2).sqrt();
+            *spare = Some(y * scale);
+            return x * scale;
+        }
+    }
 }
 
 #[cfg(test)]

@@ -150,93 +150,6 @@ impl Shape {
         }
     }
 
-    /// Smallest ray parameter in (epsilon, t_max) where the ray meets the shape.
-    #[inline]
-    pub fn intersect(&self, ray: &Ray, t_max: f64) -> Option<f64> {
-        match self {
-            Shape::Ellipsoid { centre, radii } => {
-                let oc = (ray.origin - centre).component_div(radii);
-                let d = ray.dir.component_div(radii);
-                let a = d.dot(&d);
-                let b = oc.dot(&d);
-                let c = oc.dot(&oc) - 1.0;
-                let disc = b * b - a * c;
-                if disc < 0.0 || a <= 0.0 {
-                    return None;
-                }
-                let sq = disc.sqrt();
-                let t0 = (-b - sq) / a;
-                let t1 = (-b + sq) / a;
-                [t0, t1].into_iter().find(|&t| t > T_EPSILON && t < t_max)
-            }
-            Shape::Disc {
-                centre,
-                normal,
-                u,
-                v,
-                half_u_m,
-                half_v_m,
-            } => {
-                let denom = ray.dir.dot(normal);
-                if denom.abs() < 1e-12 {
-                    return None;
-                }
-                let t = (centre - ray.origin).dot(normal) / denom;
-                if !(t > T_EPSILON && t < t_max) {
-                    return None;
-                }
-                let p = ray.at(t) - centre;
-                let s = p.dot(u) / half_u_m;
-                let w = p.dot(v) / half_v_m;
-                (s * s + w * w <= 1.0).then_some(t)
-            }
-            Shape::Cylinder {
-                base,
-                axis,
-                length_m,
-                radius_m,
-            } => {
-                let oc = ray.origin - base;
-                let d_axial = ray.dir.dot(axis);
-                let o_axial = oc.dot(axis);
-                let d_perp = ray.dir - axis * d_axial;
-                let o_perp = oc - axis * o_axial;
-                let mut best = t_max;
-                let mut found = false;
-                let a = d_perp.dot(&d_perp);
-                if a > 1e-14 {
-                    let b = o_perp.dot(&d_perp);
-                    let c = o_perp.dot(&o_perp) - radius_m * radius_m;
-                    let disc = b * b - a * c;
-                    if disc >= 0.0 {
-                        let sq = disc.sqrt();
-                        for t in [(-b - sq) / a, (-b + sq) / a] {
-                            let h = o_axial + t * d_axial;
-                            if t > T_EPSILON && t < best && (0.0..=*length_m).contains(&h) {
-                                best = t;
-                                found = true;
-                                break;
-                            }
-                        }
-                    }
-                }
-                if d_axial.abs() > 1e-12 {
-                    for cap_h in [0.0, *length_m] {
-                        let t = (cap_h - o_axial) / d_axial;
-                        if t > T_EPSILON && t < best {
-                            let q = o_perp + d_perp * t;
-                            if q.dot(&q) <= radius_m * radius_m {
-                                best = t;
-                                found = true;
-                            }
-                        }
-                    }
-                }
-                found.then_some(best)
-            }
-        }
-    }
-
     /// Unit surface normal at a point on the surface (outward for solids; either side for discs).
     pub fn normal_at(&self, p: &Vector3<f64>) -> Vector3<f64> {
         match self {
@@ -318,6 +231,262 @@ impl Shape {
     }
 }
 
+/// Smallest ray parameter in (epsilon, t_max) where the ray meets a capped cylinder.
+#[inline]
+fn intersect_cylinder(
+    ray: &Ray,
+    t_max: f64,
+    base: &Vector3<f64>,
+    axis: &Vector3<f64>,
+    length_m: f64,
+    radius_m: f64,
+) -> Option<f64> {
+    let oc = ray.origin - base;
+    let d_axial = ray.dir.dot(axis);
+    let o_axial = oc.dot(axis);
+    let d_perp = ray.dir - axis * d_axial;
+    let o_perp = oc - axis * o_axial;
+    let mut best = t_max;
+    let mut found = false;
+    let a = d_perp.dot(&d_perp);
+    if a > 1e-14 {
+        let b = o_perp.dot(&d_perp);
+        let c = o_perp.dot(&o_perp) - radius_m * radius_m;
+        let disc = b * b - a * c;
+        if disc >= 0.0 {
+            let sq = disc.sqrt();
+            for t in [(-b - sq) / a, (-b + sq) / a] {
+                let h = o_axial + t * d_axial;
+                if t > T_EPSILON && t < best && (0.0..=length_m).contains(&h) {
+                    best = t;
+                    found = true;
+                    break;
+                }
+            }
+        }
+    }
+    if d_axial.abs() > 1e-12 {
+        for cap_h in [0.0, length_m] {
+            let t = (cap_h - o_axial) / d_axial;
+            if t > T_EPSILON && t < best {
+                let q = o_perp + d_perp * t;
+                if q.dot(&q) <= radius_m * radius_m {
+                    best = t;
+                    found = true;
+                }
+            }
+        }
+    }
+    found.then_some(best)
+}
+
+/// Disc test with the in-plane axes pre-scaled by the half-sizes (see [`Prim::Disc`]).
+#[inline(always)]
+fn intersect_disc(
+    ray: &Ray,
+    t_max: f64,
+    centre: &Vector3<f64>,
+    normal: &Vector3<f64>,
+    u_scaled: &Vector3<f64>,
+    v_scaled: &Vector3<f64>,
+) -> Option<f64> {
+    let denom = ray.dir.dot(normal);
+    if denom.abs() < 1e-12 {
+        return None;
+    }
+    let to_centre = centre - ray.origin;
+    let t = to_centre.dot(normal) / denom;
+    if !(t > T_EPSILON && t < t_max) {
+        return None;
+    }
+    let p = ray.dir * t - to_centre;
+    let s = p.dot(u_scaled);
+    let w = p.dot(v_scaled);
+    (s * s + w * w <= 1.0).then_some(t)
+}
+
+/// Ellipsoid test with pre-inverted radii (see [`Prim::Ellipsoid`]).
+#[inline(always)]
+fn intersect_ellipsoid(
+    ray: &Ray,
+    t_max: f64,
+    centre: &Vector3<f64>,
+    inv_radii: &Vector3<f64>,
+) -> Option<f64> {
+    let oc = (ray.origin - centre).component_mul(inv_radii);
+    let d = ray.dir.component_mul(inv_radii);
+    let a = d.dot(&d);
+    let b = oc.dot(&d);
+    let c = oc.dot(&oc) - 1.0;
+    let disc = b * b - a * c;
+    if disc < 0.0 || a <= 0.0 {
+        return None;
+    }
+    let sq = disc.sqrt();
+    let t0 = (-b - sq) / a;
+    if t0 > T_EPSILON {
+        return (t0 < t_max).then_some(t0);
+    }
+    let t1 = (-b + sq) / a;
+    (t1 > T_EPSILON && t1 < t_max).then_some(t1)
+}
+
+/// A shape in the form the closest-hit loop tests fastest: divisions and per-test products that
+/// depend only on the shape are done once, when the scene is built.
+#[derive(Clone, Copy, Debug)]
+enum Prim {
+    Ellipsoid {
+        centre: Vector3<f64>,
+        inv_radii: Vector3<f64>,
+    },
+    Disc {
+        centre: Vector3<f64>,
+        normal: Vector3<f64>,
+        /// `u / half_u`, `v / half_v`: in-plane coordinates scaled so the rim is at 1.
+        u_scaled: Vector3<f64>,
+        v_scaled: Vector3<f64>,
+    },
+    Cylinder {
+        base: Vector3<f64>,
+        axis: Vector3<f64>,
+        length_m: f64,
+        radius_m: f64,
+    },
+}
+
+impl Prim {
+    fn of(shape: &Shape) -> Self {
+        match shape {
+            Shape::Ellipsoid { centre, radii } => Prim::Ellipsoid {
+                centre: *centre,
+                inv_radii: radii.map(|r| 1.0 / r),
+            },
+            Shape::Disc {
+                centre,
+                normal,
+                u,
+                v,
+                half_u_m,
+                half_v_m,
+            } => Prim::Disc {
+                centre: *centre,
+                normal: *normal,
+                u_scaled: u / *half_u_m,
+                v_scaled: v / *half_v_m,
+            },
+            Shape::Cylinder {
+                base,
+                axis,
+                length_m,
+                radius_m,
+            } => Prim::Cylinder {
+                base: *base,
+                axis: *axis,
+                length_m: *length_m,
+                radius_m: *radius_m,
+            },
+        }
+    }
+
+    /// Same contract as [`Shape::intersect`].
+    #[inline(always)]
+    fn intersect(&self, ray: &Ray, t_max: f64) -> Option<f64> {
+        match self {
+            Prim::Disc {
+                centre,
+                normal,
+                u_scaled,
+                v_scaled,
+            } => intersect_disc(ray, t_max, centre, normal, u_scaled, v_scaled),
+            Prim::Ellipsoid { centre, inv_radii } => {
+                intersect_ellipsoid(ray, t_max, centre, inv_radii)
+            }
+            Prim::Cylinder {
+                base,
+                axis,
+                length_m,
+                radius_m,
+            } => intersect_cylinder(ray, t_max, base, axis, *length_m, *radius_m),
+        }
+    }
+}
+
+#[inline(always)]
+fn fmin(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+#[inline(always)]
+fn fmax(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
+/// Rays traced together by [`Bvh::closest_hits`]: a block of `PACKET_WIDTH` × `PACKET_HEIGHT`
+/// pixels.
+pub(crate) const PACKET_WIDTH: usize = 8;
+pub(crate) const PACKET_HEIGHT: usize = 8;
+pub(crate) const PACKET: usize = PACKET_WIDTH * PACKET_HEIGHT;
+
+/// Lane value of [`Packet::hit`] when the lane hit no shape.
+pub(crate) const NO_HIT: u32 = u32::MAX;
+
+/// A packet of rays from one origin. Before tracing, `t[l]` is lane `l`'s search limit (a
+/// negative limit switches the lane off); after, it is the closest hit's parameter and `hit[l]`
+/// the shape's index (or [`NO_HIT`], leaving `t[l]` as it was).
+#[derive(Clone, Debug)]
+pub(crate) struct Packet {
+    pub origin: Vector3<f64>,
+    pub rays: [Ray; PACKET],
+    pub t: [f64; PACKET],
+    pub hit: [u32; PACKET],
+}
+
+impl Packet {
+    /// A packet whose lanes are all off, with rays along +z.
+    pub fn new(origin: Vector3<f64>) -> Self {
+        Self {
+            origin,
+            rays: [Ray::new(origin, Vector3::z()); PACKET],
+            t: [-1.0; PACKET],
+            hit: [NO_HIT; PACKET],
+        }
+    }
+
+    /// Runs `intersect` on every lane `hits` marks and keeps the closer hits, as shape `index`.
+    #[inline(always)]
+    fn each_lane(
+        &mut self,
+        hits: &[bool; PACKET],
+        best_f32: &mut [f32; PACKET],
+        index: u32,
+        intersect: impl Fn(&Ray, f64) -> Option<f64>,
+    ) {
+        for l in 0..PACKET {
+            if hits[l] {
+                if let Some(t) = intersect(&self.rays[l], self.t[l]) {
+                    self.t[l] = t;
+                    best_f32[l] = t as f32;
+                    self.hit[l] = index;
+                }
+            }
+        }
+    }
+
+    /// Switches every lane off and forgets the hits, keeping the rays (valid, if stale).
+    pub fn switch_off(&mut self) {
+        self.t = [-1.0; PACKET];
+        self.hit = [NO_HIT; PACKET];
+    }
+}
+
 /// Node box in single precision, rounded outwards, for a compact and fast traversal.
 #[derive(Clone, Copy, Debug)]
 struct NodeBox {
@@ -373,6 +542,8 @@ struct Node {
     first_or_right: u32,
     /// Number of primitives in a leaf; 0 marks an interior node.
     count: u32,
+    /// Interior: the axis the children were split along (the left child holds the lower part).
+    split_axis: u8,
 }
 
 const MAX_LEAF_SIZE: usize = 4;
@@ -394,7 +565,11 @@ fn half_area(b: &Bounds) -> f64 {
 
 /// Binned surface-area-heuristic split. Reorders `order` so the left part comes first and returns
 /// its length, or None when keeping a leaf is cheaper (or nothing separates the centroids).
-fn sah_split(order: &mut [usize], bounds: &[Bounds], centroids: &[[f64; 3]]) -> Option<usize> {
+fn sah_split(
+    order: &mut [usize],
+    bounds: &[Bounds],
+    centroids: &[[f64; 3]],
+) -> Option<(usize, u8)> {
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
     for &i in order.iter() {
@@ -463,7 +638,7 @@ fn sah_split(order: &mut [usize], bounds: &[Bounds], centroids: &[[f64; 3]]) -> 
         .iter()
         .take_while(|&&i| bin_of(centroids[i][axis], axis) < split_bin)
         .count();
-    (mid > 0 && mid < order.len()).then_some(mid)
+    (mid > 0 && mid < order.len()).then_some((mid, axis as u8))
 }
 const STACK_DEPTH: usize = 128;
 
@@ -471,6 +646,8 @@ const STACK_DEPTH: usize = 128;
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Bvh {
     nodes: Vec<Node>,
+    /// The shapes in hierarchy order, prepared for ray tests ([`Bvh::set_shapes`]).
+    prims: Vec<Prim>,
 }
 
 impl Bvh {
@@ -484,6 +661,11 @@ impl Bvh {
             bvh.build_node(&mut order, 0, bounds, &centroids);
         }
         (bvh, order)
+    }
+
+    /// Stores the shapes, already in the order [`Bvh::build`] returned, for [`Bvh::closest_hit`].
+    pub fn set_shapes(&mut self, ordered: &[Shape]) {
+        self.prims = ordered.iter().map(Prim::of).collect();
     }
 
     fn build_node(
@@ -501,11 +683,12 @@ impl Bvh {
             bounds: NodeBox::from_bounds(&node_bounds),
             first_or_right: start as u32,
             count: order.len() as u32,
+            split_axis: 0,
         });
         if order.len() <= MAX_LEAF_SIZE {
             return;
         }
-        let Some(mid) = sah_split(order, bounds, centroids) else {
+        let Some((mid, axis)) = sah_split(order, bounds, centroids) else {
             return;
         };
         let (left, right) = order.split_at_mut(mid);
@@ -514,21 +697,30 @@ impl Bvh {
         self.build_node(right, start + mid, bounds, centroids);
         self.nodes[index].first_or_right = right_index;
         self.nodes[index].count = 0;
+        self.nodes[index].split_axis = axis;
     }
 
-    /// Closest shape hit before `t_max`: (t, index into the ordered shapes). `stack` is scratch
-    /// space reused across rays to avoid per-ray allocation.
+    /// Closest shape hit before `t_max`: (t, index into the ordered shapes). `hint` is a shape to
+    /// test first (the neighbouring pixel's): a hit there bounds the traversal from the start so
+    /// that everything behind it is skipped; the answer is the same with or without it. `stack`
+    /// is scratch space reused across rays to avoid per-ray allocation.
     pub fn closest_hit(
         &self,
-        shapes: &[Shape],
         ray: &Ray,
         t_max: f64,
+        hint: Option<usize>,
         stack: &mut Vec<(u32, f32)>,
     ) -> Option<(f64, usize)> {
         let root = self.nodes.first()?;
         let mut best_t = t_max;
-        let mut best_t_f32 = t_max as f32;
         let mut best = None;
+        if let Some(h) = hint {
+            if let Some(t) = self.prims.get(h).and_then(|p| p.intersect(ray, best_t)) {
+                best_t = t;
+                best = Some(h);
+            }
+        }
+        let mut best_t_f32 = best_t as f32;
         stack.clear();
         if let Some(t) = root.bounds.hit(ray, best_t_f32) {
             stack.push((0, t));
@@ -543,8 +735,8 @@ impl Bvh {
             if node.count > 0 {
                 let first = node.first_or_right as usize;
                 let end = first + node.count as usize;
-                for (k, shape) in shapes.get(first..end).unwrap_or(&[]).iter().enumerate() {
-                    if let Some(t) = shape.intersect(ray, best_t) {
+                for (k, prim) in self.prims.get(first..end).unwrap_or(&[]).iter().enumerate() {
+                    if let Some(t) = prim.intersect(ray, best_t) {
                         best_t = t;
                         best_t_f32 = t as f32;
                         best = Some(first + k);
@@ -576,6 +768,89 @@ impl Bvh {
             }
         }
         best.map(|i| (best_t, i))
+    }
+
+    /// Closest hits of a packet of rays that share one origin (see [`Packet`]). Nodes are tested
+    /// for all lanes at once, against each lane's own closest hit so far, so a lane never tests a
+    /// shape its single-ray traversal would have skipped by distance; the answer per lane is the
+    /// closest hit, as [`Bvh::closest_hit`] gives.
+    pub fn closest_hits(&self, packet: &mut Packet, stack: &mut Vec<u32>) {
+        if self.nodes.is_empty() {
+            return;
+        }
+        let o = packet.origin.map(|v| v as f32);
+        let mut inv = [[0f32; PACKET]; 3];
+        let mut best_f32 = [0f32; PACKET];
+        for l in 0..PACKET {
+            for (a, lanes) in inv.iter_mut().enumerate() {
+                lanes[l] = packet.rays[l].inv_dir_f32[a];
+            }
+            best_f32[l] = packet.t[l] as f32;
+        }
+        // Children are visited nearer first along their split axis, judged by the first lane.
+        let dir_positive = [0, 1, 2].map(|a| packet.rays[0].dir[a] >= 0.0);
+        stack.clear();
+        stack.push(0);
+        while let Some(node_index) = stack.pop() {
+            let Some(node) = self.nodes.get(node_index as usize) else {
+                continue;
+            };
+            let b = &node.bounds;
+            let lo = [b.min[0] - o[0], b.min[1] - o[1], b.min[2] - o[2]];
+            let hi = [b.max[0] - o[0], b.max[1] - o[1], b.max[2] - o[2]];
+            let mut hits = [false; PACKET];
+            for l in 0..PACKET {
+                let (x0, x1) = (lo[0] * inv[0][l], hi[0] * inv[0][l]);
+                let (y0, y1) = (lo[1] * inv[1][l], hi[1] * inv[1][l]);
+                let (z0, z1) = (lo[2] * inv[2][l], hi[2] * inv[2][l]);
+                let t_near = fmax(fmax(fmin(x0, x1), fmin(y0, y1)), fmax(fmin(z0, z1), 0.0));
+                let t_far = fmin(
+                    fmin(fmax(x0, x1), fmax(y0, y1)),
+                    fmin(fmax(z0, z1), best_f32[l]),
+                );
+                hits[l] = t_near <= t_far;
+            }
+            if !hits.iter().any(|&h| h) {
+                continue;
+            }
+            if node.count > 0 {
+                let first = node.first_or_right as usize;
+                let end = first + node.count as usize;
+                for (k, prim) in self.prims.get(first..end).unwrap_or(&[]).iter().enumerate() {
+                    let index = (first + k) as u32;
+                    // One match per shape, not per lane.
+                    match prim {
+                        Prim::Disc {
+                            centre,
+                            normal,
+                            u_scaled,
+                            v_scaled,
+                        } => packet.each_lane(&hits, &mut best_f32, index, |ray, t_max| {
+                            intersect_disc(ray, t_max, centre, normal, u_scaled, v_scaled)
+                        }),
+                        Prim::Ellipsoid { centre, inv_radii } => {
+                            packet.each_lane(&hits, &mut best_f32, index, |ray, t_max| {
+                                intersect_ellipsoid(ray, t_max, centre, inv_radii)
+                            })
+                        }
+                        Prim::Cylinder { .. } => {
+                            packet.each_lane(&hits, &mut best_f32, index, |ray, t_max| {
+                                prim.intersect(ray, t_max)
+                            })
+                        }
+                    }
+                }
+                continue;
+            }
+            let (left, right) = (node_index + 1, node.first_or_right);
+            if dir_positive[usize::from(node.split_axis.min(2))] {
+                stack.push(right);
+                stack.push(left);
+            } else {
+                stack.push(left);
+                stack.push(right);
+            }
+        }
     }
 
     /// True when any shape lies within `clearance_m` of `p`.

@@ -249,7 +249,7 @@ fn clear_view_of(scene: &Scene, fruit: &FruitTruth) -> Option<Isometry3<f64>> {
             continue;
         }
         let ray = Ray::new(eye.coords, -dir);
-        let Some(hit) = scene.trace(&ray, &mut stack) else {
+        let Some(hit) = scene.trace(&ray, None, &mut stack) else {
             continue;
         };
         let fruit_hit = hit.shape.and_then(|s| scene.fruit_index[s]);
@@ -402,6 +402,8 @@ fn leaves_occlude_a_good_share_of_fruit_surface() {
             }
         }
     }
+    let shrunk = bare.shapes.clone();
+    bare.bvh.set_shapes(&shrunk);
     let camera = CameraModel::with_resolution(160, 120);
     let (mut with_leaves, mut without) = (0u64, 0u64);
     for base in scene.plant_bases() {
@@ -569,4 +571,55 @@ fn ground_truth_volumes_and_voxel_sets_match_the_analytic_boxes() {
             );
         }
     }
+}
+
+/// The packet tracer of `render` finds, for every pixel, the hit a lone ray finds (with and without
+/// a hint), on an image size that leaves partial packets at the right and bottom edges.
+#[test]
+fn packet_render_matches_single_ray_tracing() {
+    let scene = Scene::generate(ScenarioKind::Two, 3);
+    let mut camera = CameraModel::with_resolution(203, 150);
+    camera.depth_noise_std_at_1m_m = 0.0;
+    let pose = scene.initial_camera_pose();
+    let image = scene.render(&camera, &pose, 0);
+    let k = camera.intrinsics;
+    let rotation = pose.rotation.to_rotation_matrix();
+    let mut stack = Vec::new();
+    let (mut valid, mut sky) = (0, 0);
+    let mut hint = None;
+    for v in 0..k.height as usize {
+        for u in 0..k.width as usize {
+            let pixel = v * k.width as usize + u;
+            let dir_in_camera = k.ray_direction(u as f64, v as f64);
+            let ray = Ray::new(pose.translation.vector, rotation * dir_in_camera);
+            let lone = scene.trace(&ray, None, &mut stack);
+            let hinted = scene.trace(&ray, hint, &mut stack);
+            hint = lone.as_ref().and_then(|h| h.shape);
+            assert_eq!(
+                lone.as_ref().map(|h| h.t),
+                hinted.as_ref().map(|h| h.t),
+                "hint changed pixel {u},{v}"
+            );
+            let rgb = &image.rgb[3 * pixel..3 * pixel + 3];
+            match lone {
+                None => {
+                    sky += 1;
+                    assert_eq!(rgb, SKY_RGB, "pixel {u},{v}");
+                    assert!(image.depth_m[pixel].is_nan(), "pixel {u},{v}");
+                }
+                Some(hit) => {
+                    assert_ne!(rgb, SKY_RGB, "pixel {u},{v}");
+                    let depth = image.depth_m[pixel];
+                    if depth.is_finite() {
+                        valid += 1;
+                        let expected = (hit.t * dir_in_camera.z) as f32;
+                        assert_eq!(depth, expected, "pixel {u},{v}");
+                    }
+                }
+            }
+        }
+    }
+    // The view sees plants, and sky above them.
+    assert!(valid > 10_000, "{valid} valid pixels");
+    assert!(sky > 0, "no sky pixel");
 }

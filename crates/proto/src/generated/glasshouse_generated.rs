@@ -457,10 +457,10 @@ impl ::flatbuffers::SimpleToVerifyInSlice for VoxelState {}
 #[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
 pub const ENUM_MIN_PAYLOAD: u8 = 0;
 #[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
-pub const ENUM_MAX_PAYLOAD: u8 = 10;
+pub const ENUM_MAX_PAYLOAD: u8 = 12;
 #[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
 #[allow(non_camel_case_types)]
-pub const ENUM_VALUES_PAYLOAD: [Payload; 11] = [
+pub const ENUM_VALUES_PAYLOAD: [Payload; 13] = [
   Payload::NONE,
   Payload::RgbdFrame,
   Payload::ArmState,
@@ -472,6 +472,8 @@ pub const ENUM_VALUES_PAYLOAD: [Payload; 11] = [
   Payload::PlannerStatus,
   Payload::TrolleyStatus,
   Payload::DetectorStatus,
+  Payload::MapSnapshot,
+  Payload::FleetFruits,
 ];
 
 #[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
@@ -490,9 +492,11 @@ impl Payload {
   pub const PlannerStatus: Self = Self(8);
   pub const TrolleyStatus: Self = Self(9);
   pub const DetectorStatus: Self = Self(10);
+  pub const MapSnapshot: Self = Self(11);
+  pub const FleetFruits: Self = Self(12);
 
   pub const ENUM_MIN: u8 = 0;
-  pub const ENUM_MAX: u8 = 10;
+  pub const ENUM_MAX: u8 = 12;
   pub const ENUM_VALUES: &'static [Self] = &[
     Self::NONE,
     Self::RgbdFrame,
@@ -505,6 +509,8 @@ impl Payload {
     Self::PlannerStatus,
     Self::TrolleyStatus,
     Self::DetectorStatus,
+    Self::MapSnapshot,
+    Self::FleetFruits,
   ];
   /// Returns the variant's name or "" if unknown.
   pub fn variant_name(self) -> Option<&'static str> {
@@ -520,6 +526,8 @@ impl Payload {
       Self::PlannerStatus => Some("PlannerStatus"),
       Self::TrolleyStatus => Some("TrolleyStatus"),
       Self::DetectorStatus => Some("DetectorStatus"),
+      Self::MapSnapshot => Some("MapSnapshot"),
+      Self::FleetFruits => Some("FleetFruits"),
       _ => None,
     }
   }
@@ -1991,6 +1999,117 @@ impl<'a> VoxelChange {
 
 }
 
+/// A fruit the tracker follows, so fruit ids survive a planner takeover.
+// struct TrackedFruit, aligned to 4
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct TrackedFruit(pub [u8; 16]);
+impl Default for TrackedFruit { 
+  fn default() -> Self { 
+    Self([0; 16])
+  }
+}
+impl ::core::fmt::Debug for TrackedFruit {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("TrackedFruit")
+      .field("id", &self.id())
+      .field("centre", &self.centre())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for TrackedFruit {}
+impl<'a> ::flatbuffers::Follow<'a> for TrackedFruit {
+  type Inner = &'a TrackedFruit;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a TrackedFruit>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a TrackedFruit {
+  type Inner = &'a TrackedFruit;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<TrackedFruit>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for TrackedFruit {
+    type Output = TrackedFruit;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const TrackedFruit as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(4)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for TrackedFruit {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> TrackedFruit {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    id: u32,
+    centre: &Vec3,
+  ) -> Self {
+    let mut s = Self([0; 16]);
+    s.set_id(id);
+    s.set_centre(centre);
+    s
+  }
+
+  pub fn id(&self) -> u32 {
+    let mut mem = ::core::mem::MaybeUninit::<<u32 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u32 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_id(&mut self, x: u32) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<u32 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn centre(&self) -> &Vec3 {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[4..].as_ptr() as *const Vec3) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_centre(&mut self, x: &Vec3) {
+    self.0[4..4 + 12].copy_from_slice(&x.0)
+  }
+
+}
+
 pub enum RgbdFrameOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
@@ -3018,6 +3137,192 @@ impl ::core::fmt::Debug for RankedViews<'_> {
       ds.finish()
   }
 }
+pub enum FittedEllipsoidOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// Axis-aligned ellipsoid estimate of one fruit, world frame, metres.
+pub struct FittedEllipsoid<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for FittedEllipsoid<'a> {
+  type Inner = FittedEllipsoid<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> FittedEllipsoid<'a> {
+  pub const VT_CENTRE: ::flatbuffers::VOffsetT = 4;
+  pub const VT_SEMI_AXES: ::flatbuffers::VOffsetT = 6;
+  pub const VT_VOLUME_M3: ::flatbuffers::VOffsetT = 8;
+  pub const VT_BOX_VOLUME_M3: ::flatbuffers::VOffsetT = 10;
+  pub const VT_CONFIDENCE: ::flatbuffers::VOffsetT = 12;
+  pub const VT_IS_FIT: ::flatbuffers::VOffsetT = 14;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    FittedEllipsoid { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args FittedEllipsoidArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<FittedEllipsoid<'bldr>> {
+    let mut builder = FittedEllipsoidBuilder::new(_fbb);
+    builder.add_confidence(args.confidence);
+    builder.add_box_volume_m3(args.box_volume_m3);
+    builder.add_volume_m3(args.volume_m3);
+    if let Some(x) = args.semi_axes { builder.add_semi_axes(x); }
+    if let Some(x) = args.centre { builder.add_centre(x); }
+    builder.add_is_fit(args.is_fit);
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn centre(&self) -> Option<&'a Vec3> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Vec3>(FittedEllipsoid::VT_CENTRE, None)}
+  }
+  #[inline]
+  pub fn semi_axes(&self) -> Option<&'a Vec3> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Vec3>(FittedEllipsoid::VT_SEMI_AXES, None)}
+  }
+  /// 4/3·π·a·b·c.
+  #[inline]
+  pub fn volume_m3(&self) -> f32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_VOLUME_M3, Some(0.0)).unwrap()}
+  }
+  /// 8·a·b·c: the volume of the box around it, comparable with the box estimate.
+  #[inline]
+  pub fn box_volume_m3(&self) -> f32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_BOX_VOLUME_M3, Some(0.0)).unwrap()}
+  }
+  /// Share of the fitted surface the map has observed, 0..1.
+  #[inline]
+  pub fn confidence(&self) -> f32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_CONFIDENCE, Some(0.0)).unwrap()}
+  }
+  /// False when the fit was degenerate and this is the ellipsoid inscribed in the cluster's box.
+  #[inline]
+  pub fn is_fit(&self) -> bool {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<bool>(FittedEllipsoid::VT_IS_FIT, Some(false)).unwrap()}
+  }
+}
+
+impl ::flatbuffers::Verifiable for FittedEllipsoid<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<Vec3>("centre", Self::VT_CENTRE, false)?
+     .visit_field::<Vec3>("semi_axes", Self::VT_SEMI_AXES, false)?
+     .visit_field::<f32>("volume_m3", Self::VT_VOLUME_M3, false)?
+     .visit_field::<f32>("box_volume_m3", Self::VT_BOX_VOLUME_M3, false)?
+     .visit_field::<f32>("confidence", Self::VT_CONFIDENCE, false)?
+     .visit_field::<bool>("is_fit", Self::VT_IS_FIT, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct FittedEllipsoidArgs<'a> {
+    pub centre: Option<&'a Vec3>,
+    pub semi_axes: Option<&'a Vec3>,
+    pub volume_m3: f32,
+    pub box_volume_m3: f32,
+    pub confidence: f32,
+    pub is_fit: bool,
+}
+impl<'a> Default for FittedEllipsoidArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    FittedEllipsoidArgs {
+      centre: None,
+      semi_axes: None,
+      volume_m3: 0.0,
+      box_volume_m3: 0.0,
+      confidence: 0.0,
+      is_fit: false,
+    }
+  }
+}
+
+pub struct FittedEllipsoidBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FittedEllipsoidBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_centre(&mut self, centre: &Vec3) {
+    self.fbb_.push_slot_always::<&Vec3>(FittedEllipsoid::VT_CENTRE, centre);
+  }
+  #[inline]
+  pub fn add_semi_axes(&mut self, semi_axes: &Vec3) {
+    self.fbb_.push_slot_always::<&Vec3>(FittedEllipsoid::VT_SEMI_AXES, semi_axes);
+  }
+  #[inline]
+  pub fn add_volume_m3(&mut self, volume_m3: f32) {
+    self.fbb_.push_slot::<f32>(FittedEllipsoid::VT_VOLUME_M3, volume_m3, 0.0);
+  }
+  #[inline]
+  pub fn add_box_volume_m3(&mut self, box_volume_m3: f32) {
+    self.fbb_.push_slot::<f32>(FittedEllipsoid::VT_BOX_VOLUME_M3, box_volume_m3, 0.0);
+  }
+  #[inline]
+  pub fn add_confidence(&mut self, confidence: f32) {
+    self.fbb_.push_slot::<f32>(FittedEllipsoid::VT_CONFIDENCE, confidence, 0.0);
+  }
+  #[inline]
+  pub fn add_is_fit(&mut self, is_fit: bool) {
+    self.fbb_.push_slot::<bool>(FittedEllipsoid::VT_IS_FIT, is_fit, false);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FittedEllipsoidBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    FittedEllipsoidBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<FittedEllipsoid<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for FittedEllipsoid<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("FittedEllipsoid");
+      ds.field("centre", &self.centre());
+      ds.field("semi_axes", &self.semi_axes());
+      ds.field("volume_m3", &self.volume_m3());
+      ds.field("box_volume_m3", &self.box_volume_m3());
+      ds.field("confidence", &self.confidence());
+      ds.field("is_fit", &self.is_fit());
+      ds.finish()
+  }
+}
 pub enum FruitOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
@@ -3040,6 +3345,7 @@ impl<'a> Fruit<'a> {
   pub const VT_VOLUME_M3: ::flatbuffers::VOffsetT = 10;
   pub const VT_VOXEL_COUNT: ::flatbuffers::VOffsetT = 12;
   pub const VT_CONFIDENCE: ::flatbuffers::VOffsetT = 14;
+  pub const VT_FITTED: ::flatbuffers::VOffsetT = 16;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3051,6 +3357,7 @@ impl<'a> Fruit<'a> {
     args: &'args FruitArgs<'args>
   ) -> ::flatbuffers::WIPOffset<Fruit<'bldr>> {
     let mut builder = FruitBuilder::new(_fbb);
+    if let Some(x) = args.fitted { builder.add_fitted(x); }
     builder.add_confidence(args.confidence);
     builder.add_voxel_count(args.voxel_count);
     builder.add_volume_m3(args.volume_m3);
@@ -3103,6 +3410,15 @@ impl<'a> Fruit<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<f32>(Fruit::VT_CONFIDENCE, Some(0.0)).unwrap()}
   }
+  /// Ellipsoid fitted to the cluster's surface voxels, kept out of observed free space (the
+  /// estimate of the whole fruit, not only its seen part); absent when no fit was made.
+  #[inline]
+  pub fn fitted(&self) -> Option<FittedEllipsoid<'a>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<FittedEllipsoid>>(Fruit::VT_FITTED, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for Fruit<'_> {
@@ -3117,6 +3433,7 @@ impl ::flatbuffers::Verifiable for Fruit<'_> {
      .visit_field::<f32>("volume_m3", Self::VT_VOLUME_M3, false)?
      .visit_field::<u32>("voxel_count", Self::VT_VOXEL_COUNT, false)?
      .visit_field::<f32>("confidence", Self::VT_CONFIDENCE, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<FittedEllipsoid>>("fitted", Self::VT_FITTED, false)?
      .finish();
     Ok(())
   }
@@ -3128,6 +3445,7 @@ pub struct FruitArgs<'a> {
     pub volume_m3: f32,
     pub voxel_count: u32,
     pub confidence: f32,
+    pub fitted: Option<::flatbuffers::WIPOffset<FittedEllipsoid<'a>>>,
 }
 impl<'a> Default for FruitArgs<'a> {
   #[inline]
@@ -3139,6 +3457,7 @@ impl<'a> Default for FruitArgs<'a> {
       volume_m3: 0.0,
       voxel_count: 0,
       confidence: 0.0,
+      fitted: None,
     }
   }
 }
@@ -3173,6 +3492,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitBuilder<'a, 'b, A> {
     self.fbb_.push_slot::<f32>(Fruit::VT_CONFIDENCE, confidence, 0.0);
   }
   #[inline]
+  pub fn add_fitted(&mut self, fitted: ::flatbuffers::WIPOffset<FittedEllipsoid<'b >>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<FittedEllipsoid>>(Fruit::VT_FITTED, fitted);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FruitBuilder {
@@ -3196,6 +3519,7 @@ impl ::core::fmt::Debug for Fruit<'_> {
       ds.field("volume_m3", &self.volume_m3());
       ds.field("voxel_count", &self.voxel_count());
       ds.field("confidence", &self.confidence());
+      ds.field("fitted", &self.fitted());
       ds.finish()
   }
 }
@@ -4106,6 +4430,458 @@ impl ::core::fmt::Debug for DetectorStatus<'_> {
       ds.finish()
   }
 }
+pub enum MapSnapshotOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// One planner's copy of a trolley's state, the reply to a snapshot query: a planner that
+/// becomes the trolley's replica (or owner without a map) loads it and follows the RoiCloud
+/// stream after based_on_seq.
+pub struct MapSnapshot<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for MapSnapshot<'a> {
+  type Inner = MapSnapshot<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> MapSnapshot<'a> {
+  pub const VT_TROLLEY_ID: ::flatbuffers::VOffsetT = 4;
+  pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 6;
+  pub const VT_BASED_ON_SEQ: ::flatbuffers::VOffsetT = 8;
+  pub const VT_MAP: ::flatbuffers::VOffsetT = 10;
+  pub const VT_TRACKED_FRUITS: ::flatbuffers::VOffsetT = 12;
+  pub const VT_NEXT_FRUIT_ID: ::flatbuffers::VOffsetT = 14;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    MapSnapshot { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args MapSnapshotArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<MapSnapshot<'bldr>> {
+    let mut builder = MapSnapshotBuilder::new(_fbb);
+    builder.add_based_on_seq(args.based_on_seq);
+    builder.add_next_fruit_id(args.next_fruit_id);
+    if let Some(x) = args.tracked_fruits { builder.add_tracked_fruits(x); }
+    if let Some(x) = args.map { builder.add_map(x); }
+    if let Some(x) = args.planner_id { builder.add_planner_id(x); }
+    if let Some(x) = args.trolley_id { builder.add_trolley_id(x); }
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn trolley_id(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(MapSnapshot::VT_TROLLEY_ID, None)}
+  }
+  #[inline]
+  pub fn planner_id(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(MapSnapshot::VT_PLANNER_ID, None)}
+  }
+  /// The last RoiCloud frame seq integrated into the map.
+  #[inline]
+  pub fn based_on_seq(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(MapSnapshot::VT_BASED_ON_SEQ, Some(0)).unwrap()}
+  }
+  /// glasshouse_roimap's versioned, CRC-checked snapshot bytes.
+  #[inline]
+  pub fn map(&self) -> Option<::flatbuffers::Vector<'a, u8>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(MapSnapshot::VT_MAP, None)}
+  }
+  #[inline]
+  pub fn tracked_fruits(&self) -> Option<::flatbuffers::Vector<'a, TrackedFruit>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, TrackedFruit>>>(MapSnapshot::VT_TRACKED_FRUITS, None)}
+  }
+  #[inline]
+  pub fn next_fruit_id(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(MapSnapshot::VT_NEXT_FRUIT_ID, Some(0)).unwrap()}
+  }
+}
+
+impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("trolley_id", Self::VT_TROLLEY_ID, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
+     .visit_field::<u64>("based_on_seq", Self::VT_BASED_ON_SEQ, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("map", Self::VT_MAP, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, TrackedFruit>>>("tracked_fruits", Self::VT_TRACKED_FRUITS, false)?
+     .visit_field::<u32>("next_fruit_id", Self::VT_NEXT_FRUIT_ID, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct MapSnapshotArgs<'a> {
+    pub trolley_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub based_on_seq: u64,
+    pub map: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
+    pub tracked_fruits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, TrackedFruit>>>,
+    pub next_fruit_id: u32,
+}
+impl<'a> Default for MapSnapshotArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    MapSnapshotArgs {
+      trolley_id: None,
+      planner_id: None,
+      based_on_seq: 0,
+      map: None,
+      tracked_fruits: None,
+      next_fruit_id: 0,
+    }
+  }
+}
+
+pub struct MapSnapshotBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapSnapshotBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_trolley_id(&mut self, trolley_id: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_TROLLEY_ID, trolley_id);
+  }
+  #[inline]
+  pub fn add_planner_id(&mut self, planner_id: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_PLANNER_ID, planner_id);
+  }
+  #[inline]
+  pub fn add_based_on_seq(&mut self, based_on_seq: u64) {
+    self.fbb_.push_slot::<u64>(MapSnapshot::VT_BASED_ON_SEQ, based_on_seq, 0);
+  }
+  #[inline]
+  pub fn add_map(&mut self, map: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , u8>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_MAP, map);
+  }
+  #[inline]
+  pub fn add_tracked_fruits(&mut self, tracked_fruits: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , TrackedFruit>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_TRACKED_FRUITS, tracked_fruits);
+  }
+  #[inline]
+  pub fn add_next_fruit_id(&mut self, next_fruit_id: u32) {
+    self.fbb_.push_slot::<u32>(MapSnapshot::VT_NEXT_FRUIT_ID, next_fruit_id, 0);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapSnapshotBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    MapSnapshotBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<MapSnapshot<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for MapSnapshot<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("MapSnapshot");
+      ds.field("trolley_id", &self.trolley_id());
+      ds.field("planner_id", &self.planner_id());
+      ds.field("based_on_seq", &self.based_on_seq());
+      ds.field("map", &self.map());
+      ds.field("tracked_fruits", &self.tracked_fruits());
+      ds.field("next_fruit_id", &self.next_fruit_id());
+      ds.finish()
+  }
+}
+pub enum FleetFruitOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// One fruit of the fleet's glasshouse map.
+pub struct FleetFruit<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for FleetFruit<'a> {
+  type Inner = FleetFruit<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> FleetFruit<'a> {
+  pub const VT_FLEET_ID: ::flatbuffers::VOffsetT = 4;
+  pub const VT_FRUIT: ::flatbuffers::VOffsetT = 6;
+  pub const VT_SOURCES: ::flatbuffers::VOffsetT = 8;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    FleetFruit { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args FleetFruitArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<FleetFruit<'bldr>> {
+    let mut builder = FleetFruitBuilder::new(_fbb);
+    if let Some(x) = args.sources { builder.add_sources(x); }
+    if let Some(x) = args.fruit { builder.add_fruit(x); }
+    if let Some(x) = args.fleet_id { builder.add_fleet_id(x); }
+    builder.finish()
+  }
+
+
+  /// "{trolley}/{fruit id}" of the smallest source: stable while that source lives.
+  #[inline]
+  pub fn fleet_id(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(FleetFruit::VT_FLEET_ID, None)}
+  }
+  /// The estimate kept (the most confident source's), world frame.
+  #[inline]
+  pub fn fruit(&self) -> Option<Fruit<'a>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<Fruit>>(FleetFruit::VT_FRUIT, None)}
+  }
+  /// "{trolley}/{fruit id}" of every per-trolley estimate merged into this one.
+  #[inline]
+  pub fn sources(&self) -> Option<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<&'a str>>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<&'a str>>>>(FleetFruit::VT_SOURCES, None)}
+  }
+}
+
+impl ::flatbuffers::Verifiable for FleetFruit<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("fleet_id", Self::VT_FLEET_ID, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<Fruit>>("fruit", Self::VT_FRUIT, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<&'_ str>>>>("sources", Self::VT_SOURCES, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct FleetFruitArgs<'a> {
+    pub fleet_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub fruit: Option<::flatbuffers::WIPOffset<Fruit<'a>>>,
+    pub sources: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<&'a str>>>>,
+}
+impl<'a> Default for FleetFruitArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    FleetFruitArgs {
+      fleet_id: None,
+      fruit: None,
+      sources: None,
+    }
+  }
+}
+
+pub struct FleetFruitBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FleetFruitBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_fleet_id(&mut self, fleet_id: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FleetFruit::VT_FLEET_ID, fleet_id);
+  }
+  #[inline]
+  pub fn add_fruit(&mut self, fruit: ::flatbuffers::WIPOffset<Fruit<'b >>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<Fruit>>(FleetFruit::VT_FRUIT, fruit);
+  }
+  #[inline]
+  pub fn add_sources(&mut self, sources: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , ::flatbuffers::ForwardsUOffset<&'b  str>>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FleetFruit::VT_SOURCES, sources);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FleetFruitBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    FleetFruitBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<FleetFruit<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for FleetFruit<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("FleetFruit");
+      ds.field("fleet_id", &self.fleet_id());
+      ds.field("fruit", &self.fruit());
+      ds.field("sources", &self.sources());
+      ds.finish()
+  }
+}
+pub enum FleetFruitsOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// The fruit estimates of every trolley merged into one map, de-duplicated where rows overlap.
+pub struct FleetFruits<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for FleetFruits<'a> {
+  type Inner = FleetFruits<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> FleetFruits<'a> {
+  pub const VT_FRUITS: ::flatbuffers::VOffsetT = 4;
+  pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 6;
+  pub const VT_TROLLEYS: ::flatbuffers::VOffsetT = 8;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    FleetFruits { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args FleetFruitsArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<FleetFruits<'bldr>> {
+    let mut builder = FleetFruitsBuilder::new(_fbb);
+    builder.add_trolleys(args.trolleys);
+    if let Some(x) = args.planner_id { builder.add_planner_id(x); }
+    if let Some(x) = args.fruits { builder.add_fruits(x); }
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn fruits(&self) -> Option<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FleetFruit<'a>>>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FleetFruit>>>>(FleetFruits::VT_FRUITS, None)}
+  }
+  #[inline]
+  pub fn planner_id(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(FleetFruits::VT_PLANNER_ID, None)}
+  }
+  /// Trolleys whose estimates went in.
+  #[inline]
+  pub fn trolleys(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FleetFruits::VT_TROLLEYS, Some(0)).unwrap()}
+  }
+}
+
+impl ::flatbuffers::Verifiable for FleetFruits<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<FleetFruit>>>>("fruits", Self::VT_FRUITS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
+     .visit_field::<u32>("trolleys", Self::VT_TROLLEYS, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct FleetFruitsArgs<'a> {
+    pub fruits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FleetFruit<'a>>>>>,
+    pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub trolleys: u32,
+}
+impl<'a> Default for FleetFruitsArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    FleetFruitsArgs {
+      fruits: None,
+      planner_id: None,
+      trolleys: 0,
+    }
+  }
+}
+
+pub struct FleetFruitsBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FleetFruitsBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_fruits(&mut self, fruits: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , ::flatbuffers::ForwardsUOffset<FleetFruit<'b >>>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FleetFruits::VT_FRUITS, fruits);
+  }
+  #[inline]
+  pub fn add_planner_id(&mut self, planner_id: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FleetFruits::VT_PLANNER_ID, planner_id);
+  }
+  #[inline]
+  pub fn add_trolleys(&mut self, trolleys: u32) {
+    self.fbb_.push_slot::<u32>(FleetFruits::VT_TROLLEYS, trolleys, 0);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FleetFruitsBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    FleetFruitsBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<FleetFruits<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for FleetFruits<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("FleetFruits");
+      ds.field("fruits", &self.fruits());
+      ds.field("planner_id", &self.planner_id());
+      ds.field("trolleys", &self.trolleys());
+      ds.finish()
+  }
+}
 pub enum EnvelopeOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
@@ -4360,6 +5136,36 @@ impl<'a> Envelope<'a> {
     }
   }
 
+  #[inline]
+  #[allow(non_snake_case)]
+  pub fn payload_as_map_snapshot(&self) -> Option<MapSnapshot<'a>> {
+    if self.payload_type() == Payload::MapSnapshot {
+      self.payload().map(|t| {
+       // Safety:
+       // Created from a valid Table for this object
+       // Which contains a valid union in this slot
+       unsafe { MapSnapshot::init_from_table(t) }
+     })
+    } else {
+      None
+    }
+  }
+
+  #[inline]
+  #[allow(non_snake_case)]
+  pub fn payload_as_fleet_fruits(&self) -> Option<FleetFruits<'a>> {
+    if self.payload_type() == Payload::FleetFruits {
+      self.payload().map(|t| {
+       // Safety:
+       // Created from a valid Table for this object
+       // Which contains a valid union in this slot
+       unsafe { FleetFruits::init_from_table(t) }
+     })
+    } else {
+      None
+    }
+  }
+
 }
 
 impl ::flatbuffers::Verifiable for Envelope<'_> {
@@ -4386,6 +5192,8 @@ impl ::flatbuffers::Verifiable for Envelope<'_> {
           Payload::PlannerStatus => v.verify_union_variant::<::flatbuffers::ForwardsUOffset<PlannerStatus>>("Payload::PlannerStatus", pos),
           Payload::TrolleyStatus => v.verify_union_variant::<::flatbuffers::ForwardsUOffset<TrolleyStatus>>("Payload::TrolleyStatus", pos),
           Payload::DetectorStatus => v.verify_union_variant::<::flatbuffers::ForwardsUOffset<DetectorStatus>>("Payload::DetectorStatus", pos),
+          Payload::MapSnapshot => v.verify_union_variant::<::flatbuffers::ForwardsUOffset<MapSnapshot>>("Payload::MapSnapshot", pos),
+          Payload::FleetFruits => v.verify_union_variant::<::flatbuffers::ForwardsUOffset<FleetFruits>>("Payload::FleetFruits", pos),
           _ => Ok(()),
         }
      })?
@@ -4547,6 +5355,20 @@ impl ::core::fmt::Debug for Envelope<'_> {
         },
         Payload::DetectorStatus => {
           if let Some(x) = self.payload_as_detector_status() {
+            ds.field("payload", &x)
+          } else {
+            ds.field("payload", &"InvalidFlatbuffer: Union discriminant does not match value.")
+          }
+        },
+        Payload::MapSnapshot => {
+          if let Some(x) = self.payload_as_map_snapshot() {
+            ds.field("payload", &x)
+          } else {
+            ds.field("payload", &"InvalidFlatbuffer: Union discriminant does not match value.")
+          }
+        },
+        Payload::FleetFruits => {
+          if let Some(x) = self.payload_as_fleet_fruits() {
             ds.field("payload", &x)
           } else {
             ds.field("payload", &"InvalidFlatbuffer: Union discriminant does not match value.")

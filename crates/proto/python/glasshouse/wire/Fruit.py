@@ -6,6 +6,7 @@ import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
 from glasshouse.wire.Box3 import Box3
+from glasshouse.wire.FittedEllipsoid import FittedEllipsoid
 from glasshouse.wire.Vec3 import Vec3
 from typing import Optional
 np = import_numpy()
@@ -80,8 +81,20 @@ class Fruit(object):
             return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
         return 0.0
 
+    # Ellipsoid fitted to the cluster's surface voxels, kept out of observed free space (the
+    # estimate of the whole fruit, not only its seen part); absent when no fit was made.
+    # Fruit
+    def Fitted(self) -> Optional[FittedEllipsoid]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            x = self._tab.Indirect(o + self._tab.Pos)
+            obj = FittedEllipsoid()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
 def FruitStart(builder: flatbuffers.Builder):
-    builder.StartObject(6)
+    builder.StartObject(7)
 
 def Start(builder: flatbuffers.Builder):
     FruitStart(builder)
@@ -121,6 +134,12 @@ def FruitAddConfidence(builder: flatbuffers.Builder, confidence: float):
 
 def AddConfidence(builder: flatbuffers.Builder, confidence: float):
     FruitAddConfidence(builder, confidence)
+
+def FruitAddFitted(builder: flatbuffers.Builder, fitted: int):
+    builder.PrependUOffsetTRelativeSlot(6, flatbuffers.number_types.UOffsetTFlags.py_type(fitted), 0)
+
+def AddFitted(builder: flatbuffers.Builder, fitted: int):
+    FruitAddFitted(builder, fitted)
 
 def FruitEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -14,3 +14,5 @@ class Payload(object):
     PlannerStatus = 8
     TrolleyStatus = 9
     DetectorStatus = 10
+    MapSnapshot = 11
+    FleetFruits = 12

@@ -20,4 +20,6 @@ class Payload(object):
   PlannerStatus = cast(int, ...)
   TrolleyStatus = cast(int, ...)
   DetectorStatus = cast(int, ...)
+  MapSnapshot = cast(int, ...)
+  FleetFruits = cast(int, ...)
 

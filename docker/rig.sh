@@ -1,0 +1,489 @@
+#!/usr/bin/env bash
+# The Glasshouse compose rig: router, 2 detectors, 3 planners, 4 simulated trolleys, dashboard.
+#
+#   docker/rig.sh up     build the release binaries, stage stripped copies, make sure a local base
+#                        image exists (debootstrap when debian:bookworm-slim is absent and cannot
+#                        be pulled), build the image, start the rig
+#   docker/rig.sh test   start the rig if needed, wait until every trolley has fruit, kill the
+#                        planner that owns a trolley, check every trolley keeps getting views and
+#                        keeps its fruit, restart that planner and check it rejoins
+#   docker/rig.sh down   stop and remove the rig's containers and network (images are kept)
+#   docker/rig.sh logs [SERVICE...]   the last 50 log lines of the rig (or of some services)
+#
+# Environment (all optional):
+#   GH_SKIP_BUILD=1        up: do not run cargo; stage what target/release already has
+#   GH_CARGO_JOBS=N        up: cargo build -j N (default: cargo's own)
+#   GH_DEBIAN_MIRROR=URL   debootstrap mirror (default http://deb.debian.org/debian)
+#   BASE_IMAGE=IMAGE       use this local base image instead of looking for one
+#   GH_HTTP_PORT=8080      host port of the dashboard page + JSON API (also read by compose.yaml)
+#   GH_FRUIT_TIMEOUT=240   test: seconds to wait until every trolley has at least one fruit
+#   GH_FAILOVER_TIMEOUT=30 test: seconds for the failover and the rejoin checks
+#   GH_SETTLE_S=3          test: views reaching the dashboard this soon after the kill don't count
+#   GH_VICTIM_TROLLEY=ID   test: the trolley whose owning planner is killed (default: the first)
+#   GH_WIDTH, GH_RUST_LOG, GH_RERUN_WEB_PORT, GH_RERUN_GRPC_PORT, GH_PUBLIC_HOST: see compose.yaml
+set -euo pipefail
+
+DOCKER_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+REPO="$(cd "$DOCKER_DIR/.." && pwd)"
+COMPOSE_FILE="$DOCKER_DIR/compose.yaml"
+PROJECT=glasshouse
+STAGE="$DOCKER_DIR/.stage"
+BINS=(glasshouse edge detector-service planner-service dashboard)
+SLIM_IMAGE=debian:bookworm-slim
+CACHED_BASE=glasshouse-base:bookworm
+RIG_IMAGE=glasshouse-rig:latest
+MIRROR="${GH_DEBIAN_MIRROR:-http://deb.debian.org/debian}"
+export GH_HTTP_PORT="${GH_HTTP_PORT:-8080}"
+API="http://127.0.0.1:${GH_HTTP_PORT}"
+FRUIT_TIMEOUT="${GH_FRUIT_TIMEOUT:-240}"
+FAILOVER_TIMEOUT="${GH_FAILOVER_TIMEOUT:-30}"
+SETTLE_S="${GH_SETTLE_S:-3}"
+T_START=$(date +%s)
+
+log() { printf '[rig %s +%3ss] %s\n' "$(date +%T)" "$(($(date +%s) - T_START))" "$*" >&2; }
+
+# ---------------------------------------------------------------------------------------------
+# docker-compose v1 if present, else the `docker compose` v2 plugin; detected once.
+if command -v docker-compose >/dev/null 2>&1; then
+    DC=(docker-compose)
+elif docker compose version >/dev/null 2>&1; then
+    DC=(docker compose)
+else
+    echo "rig: neither docker-compose nor 'docker compose' is available" >&2
+    exit 1
+fi
+dc() { "${DC[@]}" -p "$PROJECT" -f "$COMPOSE_FILE" "$@"; }
+
+# Prints the last log lines of the given services (all when none are given), then the states.
+show_logs() {
+    echo "----- ${DC[*]} logs --tail=50 ${*:-(all services)} -----" >&2
+    dc logs --no-color --tail=50 "$@" >&2 || true
+    echo "----- ${DC[*]} ps -----" >&2
+    dc ps >&2 || true
+}
+
+# fail MESSAGE [SERVICE...]: logs of the failing services, the message, exit 1.
+KILLED_CID=""
+fail() {
+    local msg="$1"
+    shift
+    show_logs "$@"
+    if [[ -n "$KILLED_CID" ]]; then
+        # Leave the rig whole: start the planner the test killed.
+        docker start "$KILLED_CID" >/dev/null 2>&1 && log "restarted the killed container ${KILLED_CID:0:12}"
+    fi
+    log "FAIL: $msg"
+    exit 1
+}
+
+# ---------------------------------------------------------------------------------------------
+# up
+
+build_binaries() {
+    if [[ "${GH_SKIP_BUILD:-0}" == 1 ]]; then
+        log "GH_SKIP_BUILD=1: not running cargo"
+        return
+    fi
+    local t0=$SECONDS
+    log "cargo build --release --workspace --bins ${GH_CARGO_JOBS:+-j $GH_CARGO_JOBS}"
+    (cd "$REPO" && cargo build --release --workspace --bins ${GH_CARGO_JOBS:+-j "$GH_CARGO_JOBS"})
+    log "binaries built in $((SECONDS - t0)) s"
+}
+
+# Stripped copies in docker/.stage/bin; target/ is never touched.
+stage_binaries() {
+    local b
+    rm -rf "$STAGE/bin.new"
+    mkdir -p "$STAGE/bin.new"
+    for b in "${BINS[@]}"; do
+        [[ -x "$REPO/target/release/$b" ]] ||
+            fail "target/release/$b is missing (run without GH_SKIP_BUILD=1)"
+        strip --strip-all -o "$STAGE/bin.new/$b" "$REPO/target/release/$b"
+    done
+    rm -rf "${STAGE:?}/bin"
+    mv "$STAGE/bin.new" "$STAGE/bin"
+    log "staged stripped binaries: $(du -sh "$STAGE/bin" | cut -f1) in docker/.stage/bin"
+}
+
+as_root() {
+    if [[ $EUID -eq 0 ]]; then "$@"; else sudo "$@"; fi
+}
+
+# Builds glasshouse-base:bookworm from a debootstrap minbase rootfs (no registry needed).
+make_base_image() {
+    local t0=$SECONDS dir
+    if ! command -v debootstrap >/dev/null 2>&1; then
+        log "installing debootstrap"
+        as_root apt-get update -qq
+        as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq debootstrap >/dev/null
+    fi
+    dir="$(mktemp -d /var/tmp/glasshouse-rootfs.XXXXXX)"
+    log "debootstrap --variant=minbase bookworm $dir $MIRROR"
+    if ! as_root debootstrap --variant=minbase bookworm "$dir" "$MIRROR" >"$dir.log" 2>&1; then
+        tail -20 "$dir.log" >&2
+        as_root rm -rf "$dir" "$dir.log"
+        fail "debootstrap failed"
+    fi
+    as_root rm -rf "$dir"/var/cache/apt/archives/*.deb "$dir"/var/lib/apt/lists/* \
+        "$dir"/usr/share/doc/* "$dir"/usr/share/man/* "$dir"/usr/share/locale/*
+    log "docker import -> $CACHED_BASE"
+    as_root tar -C "$dir" -c . | docker import \
+        --change 'ENV PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin' \
+        --change 'CMD ["/bin/bash"]' - "$CACHED_BASE" >/dev/null
+    as_root rm -rf "$dir" "$dir.log"
+    log "base image $CACHED_BASE made in $((SECONDS - t0)) s"
+}
+
+# Sets BASE_IMAGE to a base image that is in the local store.
+ensure_base_image() {
+    if [[ -n "${BASE_IMAGE:-}" ]]; then
+        docker image inspect "$BASE_IMAGE" >/dev/null 2>&1 ||
+            fail "BASE_IMAGE=$BASE_IMAGE is not in the local image store"
+    elif docker image inspect "$SLIM_IMAGE" >/dev/null 2>&1; then
+        BASE_IMAGE=$SLIM_IMAGE
+    elif docker image inspect "$CACHED_BASE" >/dev/null 2>&1; then
+        BASE_IMAGE=$CACHED_BASE
+    elif timeout 60 docker pull -q "$SLIM_IMAGE" >/dev/null 2>&1; then
+        BASE_IMAGE=$SLIM_IMAGE
+    else
+        log "$SLIM_IMAGE is not local and cannot be pulled: building $CACHED_BASE"
+        make_base_image
+        BASE_IMAGE=$CACHED_BASE
+    fi
+    export BASE_IMAGE
+    log "base image: $BASE_IMAGE"
+}
+
+cmd_up() {
+    build_binaries
+    stage_binaries
+    ensure_base_image
+    local t0=$SECONDS
+    # Plain `docker build` (what compose.yaml's router `build:` section describes): it works with
+    # the legacy builder and with BuildKit, whereas compose v2 needs buildx to build.
+    log "building $RIG_IMAGE from $BASE_IMAGE (docker build)"
+    docker build --build-arg "BASE_IMAGE=$BASE_IMAGE" -t "$RIG_IMAGE" -f "$DOCKER_DIR/Dockerfile" \
+        "$DOCKER_DIR" || fail "image build failed"
+    # The previous image (now untagged) only holds older binaries.
+    docker image prune -f --filter label=org.glasshouse.rig=1 >/dev/null || true
+    log "image built in $((SECONDS - t0)) s ($(docker image inspect -f '{{.Size}}' "$RIG_IMAGE" |
+        awk '{printf "%.0f MB", $1 / 1e6}'))"
+    t0=$SECONDS
+    dc up -d --no-build --remove-orphans || fail "${DC[*]} up failed"
+    log "rig started in $((SECONDS - t0)) s; dashboard: http://localhost:$GH_HTTP_PORT/"
+}
+
+cmd_down() {
+    dc down --remove-orphans
+    log "rig removed (images kept)"
+}
+
+# ---------------------------------------------------------------------------------------------
+# test helpers: containers (found by their compose labels, which v1 and v2 both set)
+
+# Services of the compose file that have a running container.
+running_services() {
+    docker ps --filter "label=com.docker.compose.project=$PROJECT" \
+        --format '{{.Label "com.docker.compose.service"}}' | sort -u
+}
+
+# True when every service of the compose file has a running container.
+rig_running() {
+    local want have
+    want="$(dc config --services | sort -u)"
+    have="$(running_services)"
+    [[ -n "$want" && "$want" == "$have" ]]
+}
+
+# Container id of a compose service: `ps -q SERVICE` (first replica; -a: stopped ones too).
+cid_of() { dc ps -a -q "$1" | head -n1; }
+
+running() { [[ "$(docker inspect -f '{{.State.Running}}' "$1" 2>/dev/null)" == true ]]; }
+
+declare -A TROLLEY_SVC=() PLANNER_SVC=() PLANNER_CID=()
+LIVE_PLANNERS=()
+# Maps trolley and planner ids to compose services, from the containers' own command lines
+# (--trolley-id / --planner-id), so nothing here hard-codes ids or container names.
+map_services() {
+    local svc cid kind id
+    while read -r svc cid kind id; do
+        case "$kind" in
+            --trolley-id) TROLLEY_SVC[$id]=$svc ;;
+            --planner-id) PLANNER_SVC[$id]=$svc PLANNER_CID[$id]=$cid ;;
+        esac
+    done < <(docker ps -a -q --filter "label=com.docker.compose.project=$PROJECT" |
+        xargs -r docker inspect -f \
+            '{{index .Config.Labels "com.docker.compose.service"}} {{.Id}}{{range .Args}} {{.}}{{end}}' |
+        awk '{ for (i = 3; i < NF; i++) if ($i == "--trolley-id" || $i == "--planner-id") print $1, $2, $i, $(i + 1) }')
+    [[ ${#TROLLEY_SVC[@]} -gt 0 ]] || fail "no trolley services found"
+    [[ ${#PLANNER_SVC[@]} -gt 0 ]] || fail "no planner services found"
+}
+
+live_planners() {
+    local pid
+    LIVE_PLANNERS=()
+    for pid in "${!PLANNER_CID[@]}"; do
+        running "${PLANNER_CID[$pid]}" && LIVE_PLANNERS+=("$pid")
+    done
+    return 0
+}
+
+# ---------------------------------------------------------------------------------------------
+# test helpers: the dashboard JSON API
+
+# load_fleet: GET /api/fleet into T_* (per trolley) and P_* (per planner) arrays (P_ROW: the
+# planner's row as one string, without P_AGE = last_status_age_s, "-" when the dashboard does
+# not report it), plus one-line
+# summaries FLEET_LINE and PLANNER_LINE. Returns 1 when the dashboard does not answer.
+# Prints bash assignments (values shell-quoted) from the fleet document on stdin.
+read -r -d '' FLEET_PY <<'PY' || true
+import json, shlex, sys
+q = shlex.quote
+doc = json.load(sys.stdin)
+line = []
+for t in doc['trolleys']:
+    i = q(t['id'])
+    print(f"T_FRUITS[{i}]={t['fruits']} T_VIEWS[{i}]={t['views_done']} T_FRAMES[{i}]={t['frames']}"
+          f" T_PLANNER[{i}]={q(t['planner'] or '-')} T_STATE[{i}]={q(t['state'])}")
+    line.append(f"{t['id']}:{t['fruits']} fruits/{t['views_done']} views/{t['planner'] or '-'}")
+print("FLEET_LINE=" + q("  ".join(line)))
+line = []
+for p in doc['planners']:
+    i = q(p['id'])
+    owned, standby = ",".join(p['owned']) or "-", ",".join(p['standby']) or "-"
+    row = (f"owned={owned} standby={standby} clouds={p['clouds_integrated']}"
+           f" views={p['views_published']} voxels={p['map_voxels']}")
+    age = p.get('last_status_age_s')
+    age = '-' if age is None else f"{age:.1f}"
+    print(f"P_OWNED[{i}]={q(owned)} P_ROW[{i}]={q(row)} P_AGE[{i}]={q(age)}")
+    line.append(f"{p['id']} {row}" + ("" if age == '-' else f" status_age={age}s"))
+print("PLANNER_LINE=" + q("  |  ".join(line)))
+PY
+declare -A T_FRUITS=() T_VIEWS=() T_FRAMES=() T_PLANNER=() T_STATE=() P_OWNED=() P_ROW=() P_AGE=()
+FLEET_LINE="" PLANNER_LINE=""
+load_fleet() {
+    local json out
+    json="$(curl -fsS --max-time 5 "$API/api/fleet" 2>/dev/null)" || return 1
+    out="$(python3 -c "$FLEET_PY" <<<"$json")" || return 1
+    T_FRUITS=() T_VIEWS=() T_FRAMES=() T_PLANNER=() T_STATE=() P_OWNED=() P_ROW=() P_AGE=()
+    eval "$out"
+}
+
+# Number of fruits /api/trolleys/{id}/fruits lists (empty when the trolley is unknown).
+fruit_count() {
+    curl -fsS --max-time 5 "$API/api/trolleys/$1/fruits" 2>/dev/null |
+        python3 -c 'import json, sys; print(len(json.load(sys.stdin)))' 2>/dev/null || true
+}
+
+# ---------------------------------------------------------------------------------------------
+# owner_of TID: which planner owns a trolley, from the state load_fleet read. Kept in one place
+# so it can follow the planner cluster as it grows. Order:
+#   1. the one live planner whose PlannerStatus lists TID in `owned` (PlannerRow.owned);
+#   2. when none or several do (today every planner plans for every trolley, so all of them
+#      "own" it), the planner_id of the trolley's latest RankedViews (TrolleyRow.planner).
+# Sets OWNER and OWNER_HOW. Dead planners (stopped containers) are skipped via LIVE_PLANNERS.
+owner_of() {
+    local tid="$1" claims=() pid
+    for pid in "${LIVE_PLANNERS[@]}"; do
+        [[ ",${P_OWNED[$pid]:-}," == *",$tid,"* ]] && claims+=("$pid")
+    done
+    if [[ ${#claims[@]} -eq 1 ]]; then
+        OWNER="${claims[0]}" OWNER_HOW="PlannerStatus.owned"
+    else
+        OWNER="${T_PLANNER[$tid]:--}"
+        OWNER_HOW="planner_id of its latest views (${#claims[@]} live planners claim it: ${claims[*]:-none})"
+    fi
+}
+
+# ---------------------------------------------------------------------------------------------
+
+cmd_test() {
+    local t_test=$SECONDS
+    # Any unexpected error during the test also shows the logs.
+    set -o errtrace
+    trap 'fail "unexpected error (exit $?) at rig.sh line $LINENO"' ERR
+    if rig_running; then
+        log "rig is running"
+    else
+        log "rig is not (fully) running: up"
+        cmd_up
+    fi
+    map_services
+    local tids=() tid pid
+    mapfile -t tids < <(printf '%s\n' "${!TROLLEY_SVC[@]}" | sort)
+    local planner_svcs=()
+    for pid in "${!PLANNER_SVC[@]}"; do planner_svcs+=("${PLANNER_SVC[$pid]}"); done
+    log "trolleys: $(for t in "${tids[@]}"; do printf '%s=%s ' "$t" "${TROLLEY_SVC[$t]}"; done)"
+    log "planners: $(for p in $(printf '%s\n' "${!PLANNER_SVC[@]}" | sort); do printf '%s=%s ' "$p" "${PLANNER_SVC[$p]}"; done)"
+
+    # 1. Every trolley has at least one fruit (fleet counts, confirmed by the fruits endpoint).
+    local t0=$SECONDS missing last_print=-100 line
+    log "waiting up to ${FRUIT_TIMEOUT} s until every trolley has a fruit ($API/api/fleet)"
+    while :; do
+        missing=()
+        if load_fleet; then
+            line="$FLEET_LINE"
+            for tid in "${tids[@]}"; do
+                [[ "${T_FRUITS[$tid]:-0}" -ge 1 ]] || missing+=("$tid")
+            done
+            if [[ ${#missing[@]} -eq 0 ]]; then
+                for tid in "${tids[@]}"; do
+                    [[ "$(fruit_count "$tid")" -ge 1 ]] 2>/dev/null || missing+=("$tid")
+                done
+                [[ ${#missing[@]} -eq 0 ]] && break
+            fi
+        else
+            missing=("${tids[@]}") line="dashboard API not answering yet"
+        fi
+        if ((SECONDS - t0 >= FRUIT_TIMEOUT)); then
+            local failing=(dashboard)
+            for tid in "${missing[@]}"; do failing+=("${TROLLEY_SVC[$tid]}"); done
+            fail "after ${FRUIT_TIMEOUT} s these trolleys still have no fruit: ${missing[*]} ($line)" \
+                "${failing[@]}" "${planner_svcs[@]}"
+        fi
+        if ((SECONDS - last_print >= 10)); then
+            log "  $((SECONDS - t0)) s: $line"
+            last_print=$SECONDS
+        fi
+        sleep 1
+    done
+    local t_fruits=$((SECONDS - t0))
+    log "every trolley has fruit after ${t_fruits} s: $FLEET_LINE"
+    log "planners: $PLANNER_LINE"
+
+    # 2. Kill the planner that owns the victim trolley; every trolley must keep getting views.
+    local victim="${GH_VICTIM_TROLLEY:-${tids[0]}}"
+    [[ -n "${TROLLEY_SVC[$victim]:-}" ]] || fail "GH_VICTIM_TROLLEY=$victim is not a trolley of the rig"
+    live_planners
+    owner_of "$victim"
+    local owner="$OWNER" how="$OWNER_HOW"
+    [[ -n "${PLANNER_SVC[$owner]:-}" ]] ||
+        fail "cannot tell which planner owns $victim (lookup gave '$owner' via $how)" dashboard "${planner_svcs[@]}"
+    local psvc="${PLANNER_SVC[$owner]}" pcid
+    pcid="$(cid_of "$psvc")"
+    [[ -n "$pcid" ]] || fail "no container for service $psvc"
+    log "owner of $victim: $owner via $how -> service $psvc, container ${pcid:0:12}"
+
+    declare -A views0=() views1=() fruits0=() frames0=() first_view=()
+    for tid in "${tids[@]}"; do
+        views0[$tid]="${T_VIEWS[$tid]}" fruits0[$tid]="${T_FRUITS[$tid]}" frames0[$tid]="${T_FRAMES[$tid]}"
+    done
+    docker kill "$pcid" >/dev/null
+    KILLED_CID=$pcid
+    local t_kill=$SECONDS takeover="" new_owner="" pending=("${tids[@]}") still settled=0
+    log "killed $psvc ($owner); every trolley must get a new view within ${FAILOVER_TIMEOUT} s"
+    live_planners
+    while :; do
+        sleep 0.5
+        load_fleet || continue
+        # Takeover observations (reported, not required): the victim's views come from another
+        # planner; a live planner's PlannerStatus names itself the victim's single owner.
+        if [[ -z "$takeover" && "${T_PLANNER[$victim]:--}" != "$owner" && "${T_PLANNER[$victim]:--}" != - ]]; then
+            takeover="views for $victim from ${T_PLANNER[$victim]} after $((SECONDS - t_kill)) s"
+        fi
+        if [[ -z "$new_owner" ]]; then
+            owner_of "$victim"
+            [[ "$OWNER_HOW" == PlannerStatus.owned ]] &&
+                new_owner="$OWNER owns $victim (PlannerStatus.owned) after $((SECONDS - t_kill)) s"
+        fi
+        # The dashboard lags the fleet by a second or two, so views the killed planner sent
+        # before it died still arrive after the kill. Count only views that arrive after
+        # SETTLE_S and whose sender (the trolley's latest views) is not the killed planner.
+        if ((settled == 0)); then
+            ((SECONDS - t_kill >= SETTLE_S)) || continue
+            for tid in "${tids[@]}"; do views1[$tid]="${T_VIEWS[$tid]:-0}"; done
+            settled=1
+            continue
+        fi
+        still=()
+        for tid in "${pending[@]}"; do
+            if [[ "${T_VIEWS[$tid]:-0}" -gt "${views1[$tid]}" && "${T_PLANNER[$tid]:--}" != "$owner" &&
+                "${T_FRUITS[$tid]:-0}" -ge 1 ]]; then
+                first_view[$tid]=$((SECONDS - t_kill))
+            else
+                still+=("$tid")
+            fi
+        done
+        pending=("${still[@]}")
+        [[ ${#pending[@]} -eq 0 && -n "$takeover" && -n "$new_owner" ]] && break
+        if ((SECONDS - t_kill >= FAILOVER_TIMEOUT)); then
+            [[ ${#pending[@]} -eq 0 ]] && break
+            local failing=(dashboard) detail=""
+            for tid in "${pending[@]}"; do
+                failing+=("${TROLLEY_SVC[$tid]}")
+                # Frames growing without views = the trolley re-announces and nobody answers;
+                # state Done = it finished its row (the edge then exits).
+                detail+=" $tid: state ${T_STATE[$tid]:-?}, views ${views0[$tid]} -> ${views1[$tid]:-?} (+${SETTLE_S} s) -> ${T_VIEWS[$tid]:-?} (latest from ${T_PLANNER[$tid]:-?}), frames ${frames0[$tid]} -> ${T_FRAMES[$tid]:-?}, fruits ${T_FRUITS[$tid]:-?};"
+            done
+            fail "after killing $owner, no new view within ${FAILOVER_TIMEOUT} s for: ${pending[*]} ($detail)" \
+                "${failing[@]}" "${planner_svcs[@]}"
+        fi
+    done
+    local t_failover=$((SECONDS - t_kill)) fruits_after_failover="${T_FRUITS[$victim]:-?}"
+    for tid in "${tids[@]}"; do
+        log "  $tid: views ${views0[$tid]} -> ${views1[$tid]} (at +${SETTLE_S} s) -> ${T_VIEWS[$tid]} (first counted one after ${first_view[$tid]} s), fruits ${fruits0[$tid]} -> ${T_FRUITS[$tid]}, latest views from ${T_PLANNER[$tid]}"
+    done
+    log "  takeover: ${takeover:-not seen: $victim got no views from another planner within ${FAILOVER_TIMEOUT} s}"
+    log "  ownership: ${new_owner:-no single live planner lists $victim in PlannerStatus.owned}"
+    log "  planners: $PLANNER_LINE"
+    running "$pcid" && log "  note: docker restarted $psvc by itself (restart policy)"
+
+    # 3. Restart the killed planner. It has rejoined when the dashboard gets a new PlannerStatus
+    #    from it: the dashboard keeps a dead planner's last row, so wait for that row to change.
+    local frozen="${P_ROW[$owner]:-}"
+    docker start "$pcid" >/dev/null
+    KILLED_CID=""
+    local t_restart=$SECONDS
+    log "restarted $psvc; its PlannerStatus ($owner) must come back within ${FAILOVER_TIMEOUT} s"
+    while :; do
+        sleep 0.5
+        if load_fleet && [[ -n "${P_ROW[$owner]:-}" && "${P_ROW[$owner]}" != "$frozen" ]]; then
+            break
+        fi
+        ((SECONDS - t_restart < FAILOVER_TIMEOUT)) ||
+            fail "$owner sent no new PlannerStatus within ${FAILOVER_TIMEOUT} s of its restart (row: ${P_ROW[$owner]:-none})" \
+                "$psvc" dashboard router
+    done
+    local t_rejoin=$((SECONDS - t_restart))
+    log "  $owner is back after ${t_rejoin} s: ${P_ROW[$owner]} last_status_age_s=${P_AGE[$owner]:--}"
+    # Reported, not required: whether the rejoined planner takes its trolley back.
+    live_planners
+    local back="" t_back=$SECONDS
+    while ((SECONDS - t_back < FAILOVER_TIMEOUT)); do
+        if load_fleet; then
+            owner_of "$victim"
+            if [[ "$OWNER" == "$owner" && "$OWNER_HOW" == PlannerStatus.owned ]]; then
+                back="$owner owns $victim again $((SECONDS - t_restart)) s after its restart"
+                break
+            fi
+        fi
+        sleep 0.5
+    done
+    log "  owner of $victim now: $OWNER via $OWNER_HOW${back:+ ($back)}"
+    local fruits_back="${T_FRUITS[$victim]:-?}"
+    log "  fruits of $victim: ${fruits0[$victim]} before the kill, $fruits_after_failover after the failover, $fruits_back now"
+
+    echo
+    echo "rig test PASSED (${DC[*]}, project $PROJECT)"
+    printf '  %-34s %s\n' \
+        "every trolley had fruit after" "${t_fruits} s (${#tids[@]} trolleys; limit ${FRUIT_TIMEOUT} s)" \
+        "killed planner" "$owner ($psvc), owner of $victim via $how" \
+        "every trolley had a new view after" "${t_failover} s (limit ${FAILOVER_TIMEOUT} s)" \
+        "takeover (views)" "${takeover:-not observed}" \
+        "takeover (ownership)" "${new_owner:-not observed}" \
+        "$owner rejoined after" "${t_rejoin} s (limit ${FAILOVER_TIMEOUT} s)" \
+        "ownership after the rejoin" "${back:-$victim stays with $OWNER (via $OWNER_HOW)}" \
+        "fruits of $victim" "${fruits0[$victim]} before the kill, $fruits_after_failover after the failover, $fruits_back at the end" \
+        "test total" "$((SECONDS - t_test)) s"
+}
+
+case "${1:-}" in
+    up) cmd_up ;;
+    down) cmd_down ;;
+    test) cmd_test ;;
+    logs) shift; dc logs --no-color --tail=50 "$@" ;;
+    *)
+        echo "usage: $0 up|test|down|logs [SERVICE...]" >&2
+        exit 2
+        ;;
+esac

@@ -1,0 +1,247 @@
+//! (e) Planner failover: three planner processes share a trolley; the owner is killed (SIGKILL)
+//! mid-run, the hot replica takes over, views resume, and the survivor's map equals the map
+//! rebuilt offline from every ROI cloud the trolley's detector published: no scan is lost.
+
+use std::collections::BTreeSet;
+use std::time::{Duration, Instant};
+
+use glasshouse_planner::PlannerSettings;
+use glasshouse_proto::keys::{self, TrolleyTopic};
+use glasshouse_proto::{Message, RoiCloud};
+use glasshouse_roimap::{MapConfig, RoiMap};
+use glasshouse_tests::procs::{build_binaries, Proc};
+use glasshouse_tests::{client, free_port, within};
+use zenoh::handlers::FifoChannel;
+
+/// Decodes a sample of a key of the tree, as the services do.
+fn decode(sample: &zenoh::sample::Sample) -> Option<(glasshouse_proto::Header, Message)> {
+    let kind = keys::parse(sample.key_expr().as_str())?.message_kind()?;
+    glasshouse_proto::decode_as(&sample.payload().to_bytes(), kind).ok()
+}
+
+/// The map a planner with default settings builds from these clouds, integrating each frame
+/// sequence once, in arrival order (the planner's rule).
+fn rebuild(clouds: &[RoiCloud]) -> RoiMap {
+    let settings = PlannerSettings::default();
+    let mut map = RoiMap::new(MapConfig {
+        resolution_m: settings.resolution_m,
+        max_range_m: Some(settings.max_range_m),
+        ..MapConfig::default()
+    })
+    .expect("map config");
+    let mut last = None;
+    for c in clouds {
+        if last.is_none_or(|l| c.source_frame_seq > l) {
+            map.insert_scan(&c.sensor_origin_in_world, &c.points_in_world, &c.roi)
+                .expect("cloud integrates");
+            last = Some(c.source_frame_seq);
+        }
+    }
+    map
+}
+
+fn voxels(map: &RoiMap) -> Vec<([i32; 3], u32, u32)> {
+    let mut v: Vec<_> = map
+        .iter()
+        .map(|(k, x)| {
+            (
+                [k.x, k.y, k.z],
+                x.occupancy_logodds.to_bits(),
+                x.roi_logodds.to_bits(),
+            )
+        })
+        .collect();
+    v.sort_unstable();
+    v
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn killed_owner_is_replaced_without_losing_a_scan() {
+    build_binaries();
+    let logs = std::env::temp_dir().join(format!("glasshouse-failover-{}", std::process::id()));
+    std::fs::create_dir_all(&logs).expect("log dir");
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let base = [
+        "-e",
+        endpoint.as_str(),
+        "--mode",
+        "client",
+        "--lease-ms",
+        "1000",
+    ];
+    let args = |extra: &[&str]| -> Vec<String> {
+        base.iter().chain(extra).map(|s| s.to_string()).collect()
+    };
+    let start = |name: &'static str, bin: &str, extra: &[&str]| {
+        let a = args(extra);
+        Proc::start(
+            name,
+            bin,
+            &a.iter().map(String::as_str).collect::<Vec<_>>(),
+            &logs,
+        )
+    };
+    let _router = Proc::start("router", "glasshouse", &["router", "-l", &endpoint], &logs);
+    let observer = client(&endpoint).await;
+    let subscribe = |key: String| {
+        let observer = observer.clone();
+        async move {
+            observer
+                .declare_subscriber(key)
+                .with(FifoChannel::new(100_000))
+                .await
+                .expect("subscriber")
+        }
+    };
+    let clouds_sub = subscribe(keys::trolley("t1", TrolleyTopic::Roi).expect("key")).await;
+    let views_sub = subscribe(keys::trolley("t1", TrolleyTopic::Views).expect("key")).await;
+    let status_sub = subscribe("gh/planner/*/status".to_owned()).await;
+    let _detector = start("detector", "detector-service", &[]);
+    let mut planners: Vec<(String, Proc)> = ["p1", "p2", "p3"]
+        .into_iter()
+        .map(|pid| {
+            let name: &'static str = match pid {
+                "p1" => "planner-p1",
+                "p2" => "planner-p2",
+                _ => "planner-p3",
+            };
+            (
+                pid.to_owned(),
+                start(name, "planner-service", &["--planner-id", pid]),
+            )
+        })
+        .collect();
+
+    // The planners see each other before the trolley appears.
+    within(60, "three planners report", async {
+        let mut seen = BTreeSet::new();
+        while seen.len() < 3 {
+            let sample = status_sub.recv_async().await.expect("status");
+            if let Some((_, Message::PlannerStatus(s))) = decode(&sample) {
+                seen.insert(s.planner_id);
+            }
+        }
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let edge = start(
+        "edge",
+        "edge",
+        &["--trolley-id", "t1", "--scenario", "2", "--width", "160"],
+    );
+
+    // Owner: the planner the views come from; replica: the planner reporting t1 on standby.
+    let (owner, replica) = within(180, "views from the owner and a replica on standby", async {
+        let (mut owner, mut replica, mut views) = (None::<String>, None::<String>, 0);
+        loop {
+            tokio::select! {
+                sample = views_sub.recv_async() => {
+                    if let Some((h, Message::RankedViews(_))) = decode(&sample.expect("views")) {
+                        views += 1;
+                        owner = Some(h.source_id);
+                    }
+                }
+                sample = status_sub.recv_async() => {
+                    if let Some((_, Message::PlannerStatus(s))) = decode(&sample.expect("status")) {
+                        if s.standby_trolleys.iter().any(|t| t == "t1") {
+                            replica = Some(s.planner_id);
+                        }
+                    }
+                }
+            }
+            if let (Some(o), Some(r)) = (&owner, &replica) {
+                if views >= 3 && o != r {
+                    return (o.clone(), r.clone());
+                }
+            }
+        }
+    })
+    .await;
+
+    let killed = Instant::now();
+    let (_, victim) = planners
+        .iter_mut()
+        .find(|(pid, _)| *pid == owner)
+        .expect("the owner is one of ours");
+    victim.kill();
+    eprintln!("killed owner {owner}; replica {replica}");
+    // The loop goes on: views on three new frames from the replica.
+    let takeover = within(
+        120,
+        "views on three frames from the replica after the kill",
+        async {
+            let mut frames = BTreeSet::new();
+            let mut first = None;
+            loop {
+                let sample = views_sub.recv_async().await.expect("views");
+                if let Some((h, Message::RankedViews(v))) = decode(&sample) {
+                    if h.source_id != owner {
+                        assert_eq!(
+                            h.source_id, replica,
+                            "views from a planner that was not the replica"
+                        );
+                        first.get_or_insert_with(|| killed.elapsed());
+                        frames.insert(v.based_on_seq);
+                        if frames.len() >= 3 {
+                            return first.unwrap_or_default();
+                        }
+                    }
+                }
+            }
+        },
+    )
+    .await;
+    eprintln!(
+        "views resumed {:.2} s after the kill",
+        takeover.as_secs_f64()
+    );
+
+    edge.terminate();
+    let mut clouds = Vec::new();
+    while let Ok(Some(sample)) = clouds_sub.try_recv() {
+        if let Some((_, Message::RoiCloud(c))) = decode(&sample) {
+            clouds.push(c);
+        }
+    }
+    let last_seq = clouds
+        .iter()
+        .map(|c| c.source_frame_seq)
+        .max()
+        .expect("clouds");
+    let expected = rebuild(&clouds);
+
+    // The survivor has integrated the last cloud once its snapshot says so.
+    let key = keys::planner_snapshot(&replica, "t1").expect("key");
+    let survivor = within(60, "the survivor's snapshot at the last cloud", async {
+        loop {
+            match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
+                Ok((_, Message::MapSnapshot(s))) if s.based_on_seq >= last_seq => {
+                    return RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
+                }
+                Ok((_, Message::MapSnapshot(s))) => {
+                    eprintln!("survivor at seq {} of {last_seq}", s.based_on_seq)
+                }
+                Ok(_) => eprintln!("unexpected reply"),
+                Err(e) => eprintln!("no snapshot yet: {e}"),
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    })
+    .await;
+    eprintln!(
+        "{} clouds (last seq {last_seq}), survivor map {} voxels",
+        clouds.len(),
+        survivor.len()
+    );
+    assert!(last_seq >= 5, "only {} frames", last_seq);
+    assert_eq!(survivor.scans_inserted(), expected.scans_inserted());
+    assert!(
+        voxels(&survivor) == voxels(&expected),
+        "the survivor's map differs from the map of every published cloud"
+    );
+    let _ = observer.close().await;
+    for (_, p) in planners {
+        drop(p);
+    }
+    let _ = std::fs::remove_dir_all(&logs);
+}

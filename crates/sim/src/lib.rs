@@ -362,7 +362,7 @@ impl Scene {
     /// First surface along a world ray (floor included), or None for the sky.
     /// Closest hit of a ray (shapes, then the floor); `hint` as in [`Bvh::closest_hit`].
     fn trace(&self, ray: &Ray, hint: Option<usize>, stack: &mut Vec<(u32, f32)>) -> Option<RayHit> {
-        let floor_t = floor_hit(ray);
+        let floor_t = floor_hit(&ray.origin, &ray.dir);
         let t_limit = floor_t.unwrap_or(f64::INFINITY);
         if let Some((t, i)) = self.bvh.closest_hit(ray, t_limit, hint, stack) {
             let shape = self.shapes.get(i)?;
@@ -401,7 +401,8 @@ impl Scene {
         // that the noise is drawn in row-major order.
         let mut band_t = vec![0f64; PACKET_HEIGHT * width];
         let mut band_hit = vec![NO_HIT; PACKET_HEIGHT * width];
-        let mut band_dir = vec![Vector3::zeros(); PACKET_HEIGHT * width];
+        // Camera-frame direction (its z turns ray length into depth) and world-frame direction.
+        let mut band_dir = vec![(Vector3::zeros(), Vector3::zeros()); PACKET_HEIGHT * width];
         let mut stack = Vec::with_capacity(64);
         let mut packet = Packet::new(origin);
         for band_v in (0..height).step_by(PACKET_HEIGHT) {
@@ -415,9 +416,11 @@ impl Scene {
                     }
                     let dir_in_camera = k.ray_direction(u as f64, v as f64);
                     let ray = Ray::new(origin, rotation * dir_in_camera);
-                    packet.t[lane] = floor_hit(&ray).unwrap_or(f64::INFINITY);
+                    // Nothing lies below the floor, so it need not bound the search: a lane that
+                    // hits no shape is tested against the floor when shaded.
+                    packet.t[lane] = f64::INFINITY;
+                    band_dir[dv * width + u] = (dir_in_camera, ray.dir);
                     packet.rays[lane] = ray;
-                    band_dir[dv * width + u] = dir_in_camera;
                 }
                 self.bvh.closest_hits(&mut packet, &mut stack);
                 for lane in 0..PACKET {
@@ -432,9 +435,8 @@ impl Scene {
                 for u in 0..width {
                     let pixel = (band_v + dv) * width + u;
                     let slot = dv * width + u;
-                    let t = band_t[slot];
-                    let dir_in_camera = band_dir[slot];
-                    let dir_in_world = rotation * dir_in_camera;
+                    let mut t = band_t[slot];
+                    let (dir_in_camera, dir_in_world) = band_dir[slot];
                     let (normal, albedo) = match self.shapes.get(band_hit[slot] as usize) {
                         Some(shape) => (
                             shape.normal_at(&(origin + dir_in_world * t)),
@@ -443,11 +445,16 @@ impl Scene {
                                 .copied()
                                 .unwrap_or(FLOOR_ALBEDO),
                         ),
-                        None if t.is_finite() => (Vector3::z(), FLOOR_ALBEDO),
-                        None => {
-                            rgb[3 * pixel..3 * pixel + 3].copy_from_slice(&SKY_RGB);
-                            continue;
-                        }
+                        None => match floor_hit(&origin, &dir_in_world) {
+                            Some(floor_t) => {
+                                t = floor_t;
+                                (Vector3::z(), FLOOR_ALBEDO)
+                            }
+                            None => {
+                                rgb[3 * pixel..3 * pixel + 3].copy_from_slice(&SKY_RGB);
+                                continue;
+                            }
+                        },
                     };
                     // Two-sided shading: turn the normal towards the camera.
                     let cos_incidence = dir_in_world.dot(&normal);
@@ -597,8 +604,8 @@ impl Scene {
 
 /// Fixed light from above, slightly oblique so upright surfaces are not all equally lit.
 /// Where a ray meets the floor, the infinite plane z = 0 seen from above only.
-fn floor_hit(ray: &Ray) -> Option<f64> {
-    (ray.dir.z < -1e-12 && ray.origin.z > 0.0).then(|| -ray.origin.z / ray.dir.z)
+fn floor_hit(origin: &Vector3<f64>, dir: &Vector3<f64>) -> Option<f64> {
+    (dir.z < -1e-12 && origin.z > 0.0).then(|| -origin.z / dir.z)
 }
 
 fn light_direction() -> Vector3<f64> {

@@ -4,6 +4,7 @@ mod bench_map;
 mod dashboard_bench;
 mod demo;
 mod eval;
+mod fleet_bench;
 mod render;
 
 use clap::{Parser, Subcommand};
@@ -24,6 +25,10 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Measure whether the dashboard keeps up with a fleet of synthetic trolleys, and its memory.
     DashboardBench(dashboard_bench::DashboardBenchArgs),
+    /// Run the fleet as real processes over loopback Zenoh (router, detectors, planners, simulated
+    /// trolleys), kill the owner of a trolley half-way, and report views per minute, frame → views
+    /// latency, drops, takeover time, and CPU and memory per process kind.
+    FleetBench(fleet_bench::FleetBenchArgs),
     /// Time the ROI map's scan insertion (OctoMap semantics) on your own PLY clouds.
     BenchMap(bench_map::BenchMapArgs),
     /// Run the paper's experiments on the simulator: seeded trials per method, Table I, p-values,
@@ -45,6 +50,7 @@ async fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Demo(args) => demo::run(args).await,
         Command::DashboardBench(args) => dashboard_bench::run(args).await,
+        Command::FleetBench(args) => fleet_bench::run(args).await,
         Command::BenchMap(args) => bench_map::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Render(args) => render::run(args),

@@ -56,6 +56,9 @@ pub struct EdgeConfig {
     pub replay_dir: Option<PathBuf>,
     /// Record every captured frame (and the trolley info) to this folder.
     pub record_frames_dir: Option<PathBuf>,
+    /// Wall-clock time at least between two captures (0: capture as soon as the last view is
+    /// done). A real camera streams at a fixed rate; 200 ms paces a trolley at 5 frames/s.
+    pub frame_interval_ms: u64,
 }
 
 impl Default for EdgeConfig {
@@ -73,6 +76,7 @@ impl Default for EdgeConfig {
             segment_done_utility: 0.2,
             replay_dir: None,
             record_frames_dir: None,
+            frame_interval_ms: 0,
         }
     }
 }
@@ -198,9 +202,15 @@ pub async fn run(
         }
     };
 
+    let mut next_capture = tokio::time::Instant::now();
     'capture: loop {
         if shutdown.is_set() {
             break;
+        }
+        if config.frame_interval_ms > 0 {
+            tokio::time::sleep_until(next_capture).await;
+            next_capture =
+                tokio::time::Instant::now() + Duration::from_millis(config.frame_interval_ms);
         }
         frame_seq += 1;
         status.state = TrolleyState::Capturing;

@@ -11,7 +11,8 @@ use glasshouse_edge::{EdgeConfig, EdgeCounters};
 ///
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
-/// segment_length_m, segment_done_utility, replay_dir, record_frames_dir), then the flags below.
+/// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir), then
+/// the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
 struct Cli {
@@ -30,6 +31,10 @@ struct Cli {
     /// Stop after this many views (0 = run until stopped).
     #[arg(long)]
     max_views: Option<u32>,
+    /// Wall-clock milliseconds at least between two captures (200 = 5 frames/s; 0 = as fast as
+    /// the views come).
+    #[arg(long, value_name = "MS")]
+    frame_interval_ms: Option<u64>,
     /// Image width in pixels (height follows at 4:3 unless --height is given).
     #[arg(long)]
     width: Option<u32>,
@@ -62,6 +67,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if let Some(v) = cli.max_views {
         config.max_views = v;
+    }
+    if let Some(v) = cli.frame_interval_ms {
+        config.frame_interval_ms = v;
     }
     if let Some(w) = cli.width {
         config.width = w;

@@ -399,8 +399,9 @@ struct Slot {
     sync: SyncState,
 }
 
-/// Snapshots are asked of each candidate in turn for this long.
-const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(2);
+/// Snapshots are asked of each candidate in turn for this long: a row's map is hundreds of MB and
+/// takes seconds to write and send; a candidate without the map declines at once.
+const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// Key whose rendezvous winner among the live planners publishes the fleet fruit map.
 const FLEET_MAP_KEY: &str = "fleet";

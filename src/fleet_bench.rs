@@ -1,0 +1,622 @@
+//! `glasshouse fleet-bench`: the whole fleet as real processes on this machine over loopback
+//! Zenoh (a router, detectors, planners, simulated trolleys), measured from outside.
+//!
+//! An observer session records, per trolley, when each frame, its ROI cloud and the views planned
+//! on it arrive (the first arrival of each frame sequence), which planner sent the views, and the
+//! drop counters every service reports in its status. Each process's CPU time and peak resident
+//! memory come from `/proc`. Half-way through (`--kill-at-s`) the planner that owns the first
+//! trolley is killed with SIGKILL; the takeover time is the time until that trolley's views come
+//! from another planner.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{ensure, Context};
+use glasshouse_bus::BusArgs;
+use glasshouse_proto::keys::{self, ParsedKey, TrolleyTopic};
+use glasshouse_proto::{decode_as, Message};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+
+#[derive(clap::Args, Debug)]
+pub struct FleetBenchArgs {
+    /// Simulated trolleys (one edge process each, trolley ids t1..tN, seeds 1..N).
+    #[arg(long, default_value_t = 8)]
+    pub trolleys: u32,
+    /// Planner processes (p1..pN).
+    #[arg(long, default_value_t = 3)]
+    pub planners: u32,
+    /// Detector processes (d1..dN).
+    #[arg(long, default_value_t = 2)]
+    pub detectors: u32,
+    /// Simulated scenario of every trolley: 1, 2 or row.
+    #[arg(long, default_value = "row")]
+    pub scenario: String,
+    /// Length of the measured run.
+    #[arg(long, default_value_t = 2.0)]
+    pub minutes: f64,
+    /// Frames per second each trolley streams at most.
+    #[arg(long, default_value_t = 5.0)]
+    pub fps: f64,
+    /// Image width (height 3/4 of it).
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    /// Seconds into the run at which the owner of t1 is killed (0: never; default: half-way).
+    #[arg(long)]
+    pub kill_at_s: Option<f64>,
+    /// Zenoh link lease of every process: how soon a killed planner is noticed.
+    #[arg(long, default_value_t = 1000)]
+    pub lease_ms: u64,
+    /// Also write the report as JSON here.
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
+    /// Keep the processes' logs in this folder (default: a temporary one, removed).
+    #[arg(long, value_name = "DIR")]
+    pub logs: Option<PathBuf>,
+}
+
+/// One process of the fleet.
+struct Proc {
+    kind: &'static str,
+    name: String,
+    child: Child,
+    /// CPU seconds (user + system) at the start of the measured run.
+    cpu_at_start_s: f64,
+    peak_rss_kib: u64,
+    killed: bool,
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn clock_ticks_per_s() -> f64 {
+    // Linux's USER_HZ is 100 on every architecture Rust supports.
+    100.0
+}
+
+/// CPU seconds of a process so far, from /proc/<pid>/stat (fields 14 and 15).
+fn cpu_seconds(pid: u32) -> Option<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // The command name may hold spaces: fields start after the closing parenthesis.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    Some((utime + stime) / clock_ticks_per_s())
+}
+
+fn rss_kib(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+}
+
+fn spawn(
+    kind: &'static str,
+    name: String,
+    bin: &Path,
+    args: &[String],
+    logs: &Path,
+) -> anyhow::Result<Proc> {
+    let log = std::fs::File::create(logs.join(format!("{name}.log")))?;
+    let child = Command::new(bin)
+        .args(args)
+        .env(
+            "RUST_LOG",
+            std::env::var("RUST_LOG").unwrap_or("info".into()),
+        )
+        .stdout(Stdio::null())
+        .stderr(log)
+        .spawn()
+        .with_context(|| format!("cannot start {}", bin.display()))?;
+    Ok(Proc {
+        kind,
+        name,
+        child,
+        cpu_at_start_s: 0.0,
+        peak_rss_kib: 0,
+        killed: false,
+    })
+}
+
+/// What the observer saw of one trolley.
+#[derive(Default)]
+struct TrolleyLog {
+    frame_at: HashMap<u64, Instant>,
+    cloud_at: HashMap<u64, Instant>,
+    /// Frame → cloud and frame → views latencies, ms.
+    frame_to_cloud_ms: Vec<f64>,
+    frame_to_views_ms: Vec<f64>,
+    views: u64,
+    /// (arrival, planner) of every RankedViews.
+    views_from: Vec<(Instant, String)>,
+}
+
+#[derive(Default)]
+struct Observed {
+    trolleys: BTreeMap<String, TrolleyLog>,
+    /// Latest drop counter of each reporting member.
+    drops: BTreeMap<String, u64>,
+    owned: BTreeMap<String, Vec<String>>,
+    corrupt: u64,
+}
+
+fn percentile(values: &[f64], p: f64) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let rank = ((p / 100.0) * (v.len() - 1) as f64).round() as usize;
+    v.get(rank.min(v.len() - 1)).copied()
+}
+
+#[derive(Serialize)]
+struct KindReport {
+    processes: usize,
+    cpu_percent_of_one_core: f64,
+    peak_rss_mib_per_process: f64,
+}
+
+#[derive(Serialize)]
+struct Report {
+    trolleys: u32,
+    planners: u32,
+    detectors: u32,
+    scenario: String,
+    width: u32,
+    fps_per_trolley_max: f64,
+    measured_s: f64,
+    frames_per_s_per_trolley: f64,
+    views_per_minute_per_trolley: f64,
+    frame_to_cloud_ms_p50: Option<f64>,
+    frame_to_cloud_ms_p99: Option<f64>,
+    frame_to_views_ms_p50: Option<f64>,
+    frame_to_views_ms_p99: Option<f64>,
+    messages_dropped: u64,
+    observer_corrupt: u64,
+    killed_planner: Option<String>,
+    takeover_s: Option<f64>,
+    per_kind: BTreeMap<String, KindReport>,
+}
+
+/// Where the other binaries are: next to this one.
+fn sibling(name: &str) -> anyhow::Result<PathBuf> {
+    let exe = std::env::current_exe().context("own path")?;
+    let path = exe
+        .parent()
+        .context("own folder")?
+        .join(format!("{name}{}", std::env::consts::EXE_SUFFIX));
+    ensure!(
+        path.exists(),
+        "{} not found: build every binary first (cargo build --release --workspace --bins)",
+        path.display()
+    );
+    Ok(path)
+}
+
+fn free_port() -> anyhow::Result<u16> {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").context("no free loopback port")?;
+    Ok(listener.local_addr()?.port())
+}
+
+pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
+    ensure!(
+        (1..=64).contains(&args.trolleys),
+        "--trolleys must be 1..=64"
+    );
+    ensure!(
+        (1..=16).contains(&args.planners),
+        "--planners must be 1..=16"
+    );
+    ensure!(
+        (1..=16).contains(&args.detectors),
+        "--detectors must be 1..=16"
+    );
+    ensure!(
+        args.minutes.is_finite() && args.minutes > 0.0 && args.minutes <= 24.0 * 60.0,
+        "--minutes must be in (0, 1440]"
+    );
+    ensure!(
+        args.fps.is_finite() && args.fps > 0.0 && args.fps <= 100.0,
+        "--fps must be in (0, 100]"
+    );
+    ensure!(
+        (16..=1280).contains(&args.width),
+        "--width must be within 16..=1280"
+    );
+    ["1", "2", "row"]
+        .contains(&args.scenario.as_str())
+        .then_some(())
+        .context("--scenario must be 1, 2 or row")?;
+    let measured = Duration::from_secs_f64(args.minutes * 60.0);
+    let kill_at = Duration::from_secs_f64(
+        args.kill_at_s
+            .unwrap_or(measured.as_secs_f64() / 2.0)
+            .max(0.0),
+    );
+    let kill_enabled = args.kill_at_s != Some(0.0) && args.planners >= 2;
+
+    let temp_logs = args.logs.is_none();
+    let logs = args.logs.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("glasshouse-fleet-bench-{}", std::process::id()))
+    });
+    std::fs::create_dir_all(&logs).with_context(|| format!("log folder {}", logs.display()))?;
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
+    let lease = args.lease_ms.to_string();
+    let client_args = |extra: &[String]| -> Vec<String> {
+        let mut a: Vec<String> = ["-e", &endpoint, "--mode", "client", "--lease-ms", &lease]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        a.extend_from_slice(extra);
+        a
+    };
+    let mut procs: Vec<Proc> = Vec::new();
+    procs.push(spawn(
+        "router",
+        "router".into(),
+        &sibling("glasshouse")?,
+        &[
+            "router".into(),
+            "-l".into(),
+            endpoint.clone(),
+            "--lease-ms".into(),
+            lease.clone(),
+        ],
+        &logs,
+    )?);
+    let observer = glasshouse_bus::open(&BusArgs::client(&endpoint)).await?;
+    let observed = Arc::new(Mutex::new(Observed::default()));
+    let sink = observed.clone();
+    let _subscriber = observer
+        .declare_subscriber(keys::EVERYTHING)
+        .callback(move |sample| {
+            let now = Instant::now();
+            let Some(key) = keys::parse(sample.key_expr().as_str()) else {
+                return;
+            };
+            let Some(kind) = key.message_kind() else {
+                return;
+            };
+            let bytes = sample.payload().to_bytes();
+            let Ok(mut o) = sink.lock() else { return };
+            let Ok((header, message)) = decode_as(&bytes, kind) else {
+                o.corrupt += 1;
+                return;
+            };
+            match (&key, message) {
+                (ParsedKey::Trolley { tid, topic }, message) => {
+                    let t = o.trolleys.entry(tid.clone()).or_default();
+                    match (topic, message) {
+                        (TrolleyTopic::Rgbd, _) => {
+                            t.frame_at.entry(header.seq).or_insert(now);
+                        }
+                        (TrolleyTopic::Roi, Message::RoiCloud(c)) => {
+                            let seq = c.source_frame_seq;
+                            if let std::collections::hash_map::Entry::Vacant(e) =
+                                t.cloud_at.entry(seq)
+                            {
+                                e.insert(now);
+                                if let Some(f) = t.frame_at.get(&seq) {
+                                    t.frame_to_cloud_ms
+                                        .push(now.duration_since(*f).as_secs_f64() * 1e3);
+                                }
+                            }
+                        }
+                        (TrolleyTopic::Views, Message::RankedViews(v)) => {
+                            t.views += 1;
+                            t.views_from.push((now, header.source_id.clone()));
+                            // The first views on a frame: the loop's latency.
+                            if let Some(f) = t.frame_at.remove(&v.based_on_seq) {
+                                t.frame_to_views_ms
+                                    .push(now.duration_since(f).as_secs_f64() * 1e3);
+                            }
+                        }
+                        (TrolleyTopic::Status, Message::TrolleyStatus(s)) => {
+                            o.drops.insert(format!("trolley/{tid}"), s.dropped_messages);
+                        }
+                        _ => {}
+                    }
+                }
+                (ParsedKey::PlannerStatus { pid }, Message::PlannerStatus(s)) => {
+                    o.drops.insert(format!("planner/{pid}"), s.dropped_messages);
+                    o.owned.insert(pid.clone(), s.owned_trolleys);
+                }
+                (ParsedKey::DetectorStatus { did }, Message::DetectorStatus(s)) => {
+                    o.drops
+                        .insert(format!("detector/{did}"), s.dropped_messages);
+                }
+                _ => {}
+            }
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("observer subscriber: {e}"))?;
+
+    for i in 1..=args.detectors {
+        let a = client_args(&["--detector-id".into(), format!("d{i}")]);
+        procs.push(spawn(
+            "detector",
+            format!("d{i}"),
+            &sibling("detector-service")?,
+            &a,
+            &logs,
+        )?);
+    }
+    for i in 1..=args.planners {
+        let a = client_args(&["--planner-id".into(), format!("p{i}")]);
+        procs.push(spawn(
+            "planner",
+            format!("p{i}"),
+            &sibling("planner-service")?,
+            &a,
+            &logs,
+        )?);
+    }
+    // Let the planners and detectors find each other before the trolleys appear.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let interval_ms = (1000.0 / args.fps).round() as u64;
+    for i in 1..=args.trolleys {
+        let a = client_args(&[
+            "--trolley-id".into(),
+            format!("t{i}"),
+            "--scenario".into(),
+            args.scenario.clone(),
+            "--seed".into(),
+            i.to_string(),
+            "--width".into(),
+            args.width.to_string(),
+            "--frame-interval-ms".into(),
+            interval_ms.to_string(),
+        ]);
+        procs.push(spawn(
+            "edge",
+            format!("t{i}"),
+            &sibling("edge")?,
+            &a,
+            &logs,
+        )?);
+    }
+    // Warm-up: every trolley has views once before measuring.
+    let warm_up_until = Instant::now() + Duration::from_secs(120);
+    loop {
+        let ready = observed
+            .lock()
+            .map(|o| o.trolleys.values().filter(|t| t.views > 0).count())
+            .unwrap_or(0);
+        if ready >= args.trolleys as usize {
+            break;
+        }
+        ensure!(
+            Instant::now() < warm_up_until,
+            "only {ready} of {} trolleys got views within 120 s (logs: {})",
+            args.trolleys,
+            logs.display()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // Measure from here: reset the logs.
+    if let Ok(mut o) = observed.lock() {
+        for t in o.trolleys.values_mut() {
+            *t = TrolleyLog::default();
+        }
+        o.corrupt = 0;
+    }
+    let drops_at_start: BTreeMap<String, u64> =
+        observed.lock().map(|o| o.drops.clone()).unwrap_or_default();
+    for p in procs.iter_mut() {
+        p.cpu_at_start_s = cpu_seconds(p.child.id()).unwrap_or(0.0);
+    }
+    let started = Instant::now();
+    let bar = ProgressBar::new(measured.as_secs());
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} s (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_message("fleet-bench");
+    let mut killed: Option<(String, Instant)> = None;
+    let mut cpu_at_kill: HashMap<String, f64> = HashMap::new();
+    while started.elapsed() < measured {
+        tokio::time::sleep(Duration::from_millis(250)).await;
+        for p in procs.iter_mut().filter(|p| !p.killed) {
+            if let Some(rss) = rss_kib(p.child.id()) {
+                p.peak_rss_kib = p.peak_rss_kib.max(rss);
+            }
+        }
+        if kill_enabled && killed.is_none() && started.elapsed() >= kill_at {
+            let owner = observed.lock().ok().and_then(|o| {
+                o.owned
+                    .iter()
+                    .find(|(_, trolleys)| trolleys.iter().any(|t| t == "t1"))
+                    .map(|(pid, _)| pid.clone())
+            });
+            if let Some(pid) = owner {
+                if let Some(p) = procs
+                    .iter_mut()
+                    .find(|p| p.kind == "planner" && p.name == pid)
+                {
+                    cpu_at_kill.insert(
+                        pid.clone(),
+                        cpu_seconds(p.child.id()).unwrap_or(p.cpu_at_start_s),
+                    );
+                    let _ = p.child.kill();
+                    let _ = p.child.wait();
+                    p.killed = true;
+                    bar.println(format!(
+                        "killed {pid}, the owner of t1, at {:.1} s",
+                        started.elapsed().as_secs_f64()
+                    ));
+                    killed = Some((pid, Instant::now()));
+                }
+            }
+        }
+        bar.set_position(started.elapsed().as_secs().min(measured.as_secs()));
+    }
+    bar.finish_and_clear();
+    let elapsed_s = started.elapsed().as_secs_f64();
+    let mut per_kind: BTreeMap<String, (usize, f64, u64)> = BTreeMap::new();
+    for p in &procs {
+        let cpu_end = if p.killed {
+            cpu_at_kill
+                .get(&p.name)
+                .copied()
+                .unwrap_or(p.cpu_at_start_s)
+        } else {
+            cpu_seconds(p.child.id()).unwrap_or(p.cpu_at_start_s)
+        };
+        let e = per_kind.entry(p.kind.to_owned()).or_default();
+        e.0 += 1;
+        e.1 += cpu_end - p.cpu_at_start_s;
+        e.2 = e.2.max(p.peak_rss_kib);
+    }
+    let report = {
+        let o = observed
+            .lock()
+            .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
+        let all_cloud: Vec<f64> = o
+            .trolleys
+            .values()
+            .flat_map(|t| t.frame_to_cloud_ms.iter().copied())
+            .collect();
+        let all_views: Vec<f64> = o
+            .trolleys
+            .values()
+            .flat_map(|t| t.frame_to_views_ms.iter().copied())
+            .collect();
+        let frames: usize = o.trolleys.values().map(|t| t.cloud_at.len()).sum();
+        let views: u64 = o.trolleys.values().map(|t| t.views).sum();
+        let takeover_s = killed.as_ref().and_then(|(pid, at)| {
+            o.trolleys.get("t1").and_then(|t| {
+                t.views_from
+                    .iter()
+                    .find(|(when, from)| when > at && from != pid)
+                    .map(|(when, _)| when.duration_since(*at).as_secs_f64())
+            })
+        });
+        let dropped: u64 = o
+            .drops
+            .iter()
+            .map(|(k, v)| v.saturating_sub(drops_at_start.get(k).copied().unwrap_or(0)))
+            .sum();
+        let n = f64::from(args.trolleys);
+        Report {
+            trolleys: args.trolleys,
+            planners: args.planners,
+            detectors: args.detectors,
+            scenario: args.scenario.clone(),
+            width: args.width,
+            fps_per_trolley_max: args.fps,
+            measured_s: elapsed_s,
+            frames_per_s_per_trolley: frames as f64 / elapsed_s / n,
+            views_per_minute_per_trolley: views as f64 / (elapsed_s / 60.0) / n,
+            frame_to_cloud_ms_p50: percentile(&all_cloud, 50.0),
+            frame_to_cloud_ms_p99: percentile(&all_cloud, 99.0),
+            frame_to_views_ms_p50: percentile(&all_views, 50.0),
+            frame_to_views_ms_p99: percentile(&all_views, 99.0),
+            messages_dropped: dropped,
+            observer_corrupt: o.corrupt,
+            killed_planner: killed.as_ref().map(|(p, _)| p.clone()),
+            takeover_s,
+            per_kind: per_kind
+                .into_iter()
+                .map(|(k, (count, cpu, rss))| {
+                    (
+                        k,
+                        KindReport {
+                            processes: count,
+                            cpu_percent_of_one_core: 100.0 * cpu / elapsed_s,
+                            peak_rss_mib_per_process: rss as f64 / 1024.0,
+                        },
+                    )
+                })
+                .collect(),
+        }
+    };
+    print_report(&report);
+    if let Some(path) = &args.json {
+        std::fs::write(path, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        println!("report written to {}", path.display());
+    }
+    drop(_subscriber);
+    let _ = observer.close().await;
+    // Edges and services first, the router last.
+    for p in procs.iter_mut().rev() {
+        if !p.killed {
+            let _ = Command::new("kill")
+                .args(["-TERM", &p.child.id().to_string()])
+                .status();
+        }
+    }
+    let deadline = Instant::now() + Duration::from_secs(10);
+    for p in procs.iter_mut() {
+        while p.child.try_wait().ok().flatten().is_none() && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    drop(procs);
+    if temp_logs {
+        let _ = std::fs::remove_dir_all(&logs);
+    } else {
+        println!("logs in {}", logs.display());
+    }
+    Ok(())
+}
+
+fn ms(v: Option<f64>) -> String {
+    v.map_or("–".into(), |v| format!("{v:.0} ms"))
+}
+
+fn print_report(r: &Report) {
+    println!(
+        "fleet-bench: {} trolleys ({} scenario, {} px wide, at most {} frames/s each), {} planners, {} detectors, {:.0} s measured",
+        r.trolleys, r.scenario, r.width, r.fps_per_trolley_max, r.planners, r.detectors, r.measured_s
+    );
+    println!(
+        "  frames per second per trolley   {:.2}",
+        r.frames_per_s_per_trolley
+    );
+    println!(
+        "  views per minute per trolley    {:.1}",
+        r.views_per_minute_per_trolley
+    );
+    println!(
+        "  frame -> ROI cloud   p50 {}  p99 {}",
+        ms(r.frame_to_cloud_ms_p50),
+        ms(r.frame_to_cloud_ms_p99)
+    );
+    println!(
+        "  frame -> views       p50 {}  p99 {}",
+        ms(r.frame_to_views_ms_p50),
+        ms(r.frame_to_views_ms_p99)
+    );
+    println!(
+        "  messages dropped     {} (services' counters) + {} corrupt at the observer",
+        r.messages_dropped, r.observer_corrupt
+    );
+    match (&r.killed_planner, r.takeover_s) {
+        (Some(p), Some(t)) => {
+            println!("  takeover: t1's owner {p} killed; views from another planner after {t:.2} s")
+        }
+        (Some(p), None) => {
+            println!("  takeover: t1's owner {p} killed; NO views from another planner afterwards")
+        }
+        _ => println!("  takeover: no planner killed"),
+    }
+    println!("  per process kind: CPU (% of one core, all processes of the kind) and peak RSS per process");
+    for (kind, k) in &r.per_kind {
+        println!(
+            "    {kind:<9} x{:<2} CPU {:>6.1} %   RSS {:>7.1} MiB",
+            k.processes, k.cpu_percent_of_one_core, k.peak_rss_mib_per_process
+        );
+    }
+}

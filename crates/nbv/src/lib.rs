@@ -329,9 +329,9 @@ impl RoiDistanceField {
         }
     }
 
-    /// U_P weight of an unknown voxel centred at `p`.
-    fn unknown_weight(&self, p: &Point3<f64>) -> f64 {
-        match self.distance_m.get(&cell_of(p)) {
+    /// U_P weight of the unknown voxels in a 5 cm cell.
+    fn cell_weight(&self, cell: VoxelKey) -> f64 {
+        match self.distance_m.get(&cell) {
             Some(&d) if f64::from(d) < self.max_dist_m => {
                 0.5 + 0.5 * (self.max_dist_m - f64::from(d)) / self.max_dist_m
             }
@@ -386,6 +386,8 @@ impl<'a> GainEvaluator<'a> {
             let dir_in_world = world_from_camera.rotation * dir_in_camera;
             let mut visited = 0usize;
             let mut weight_sum = 0.0;
+            // A ray crosses about five voxels per 5 cm cell: look each cell up once.
+            let mut last_cell: Option<(VoxelKey, f64)> = None;
             self.map.walk_ray(
                 &camera_in_world,
                 &dir_in_world,
@@ -396,7 +398,17 @@ impl<'a> GainEvaluator<'a> {
                         None => {
                             weight_sum += match &self.proximity {
                                 None => 1.0,
-                                Some(field) => field.unknown_weight(&self.map.centre_of(key)),
+                                Some(field) => {
+                                    let cell = cell_of(&self.map.centre_of(key));
+                                    match last_cell {
+                                        Some((c, w)) if c == cell => w,
+                                        _ => {
+                                            let w = field.cell_weight(cell);
+                                            last_cell = Some((cell, w));
+                                            w
+                                        }
+                                    }
+                                }
                             };
                             true
                         }

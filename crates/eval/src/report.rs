@@ -387,18 +387,7 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         out.push('\n');
         for metric in &METRICS {
             let _ = write!(out, "| {} |", metric.label);
-            let sign = if metric.higher_is_better { ">" } else { "<" };
-            for (ours, explo) in &pairs {
-                let key = format!("{ours} {sign} {explo}");
-                match p.get(metric.key).and_then(|r| r.get(&key)) {
-                    Some(v) => {
-                        let _ = write!(out, " {v:.4} |");
-                    }
-                    None => {
-                        let _ = write!(out, " – |");
-                    }
-                }
-            }
+            write_p_cells(&mut out, &p, metric, &pairs);
             out.push('\n');
         }
         for metric in &OVER_TIME_METRICS {
@@ -419,7 +408,6 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
                 let _ = write!(out, "---|");
             }
             out.push('\n');
-            let sign = if metric.higher_is_better { ">" } else { "<" };
             for t in checkpoints(budget_s) {
                 let _ = write!(out, "| {t} |");
                 for r in runs {
@@ -427,22 +415,33 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
                     let _ = write!(out, " {:.*} |", metric.decimals, mean);
                 }
                 let p = p_values_at(runs, std::slice::from_ref(metric), t);
-                for (ours, explo) in &pairs {
-                    let key = format!("{ours} {sign} {explo}");
-                    match p.get(metric.key).and_then(|r| r.get(&key)) {
-                        Some(v) => {
-                            let _ = write!(out, " {v:.4} |");
-                        }
-                        None => {
-                            let _ = write!(out, " – |");
-                        }
-                    }
-                }
+                write_p_cells(&mut out, &p, metric, &pairs);
                 out.push('\n');
             }
         }
     }
     out
+}
+
+/// One table cell per (Ours, Explo) pair: the metric's one-sided p-value, or `–`.
+fn write_p_cells(
+    out: &mut String,
+    p: &BTreeMap<&'static str, BTreeMap<String, f64>>,
+    metric: &MetricDef,
+    pairs: &[(Method, Method)],
+) {
+    let sign = if metric.higher_is_better { ">" } else { "<" };
+    for (ours, explo) in pairs {
+        let key = format!("{ours} {sign} {explo}");
+        match p.get(metric.key).and_then(|r| r.get(&key)) {
+            Some(v) => {
+                let _ = write!(out, " {v:.4} |");
+            }
+            None => {
+                let _ = write!(out, " – |");
+            }
+        }
+    }
 }
 
 /// Mean over trials of a per-second value (NaN values skipped; NaN when none), index = second.

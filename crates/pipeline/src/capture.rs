@@ -1,0 +1,243 @@
+//! Capture: the trolley's camera and arm behind [`TrolleySource`], and the simulated trolley
+//! ([`SimTrolley`]) that the edge and the experiments share.
+
+use glasshouse_arm::{Interval, Mount, MountState};
+use glasshouse_proto::{ArmModel, ArmState, Fruit, MountKind, RgbdFrame, TrolleyInfo};
+use glasshouse_sim::{CameraModel, ScenarioKind, Scene, Segment, SimArm};
+use nalgebra::Isometry3;
+
+pub use glasshouse_sim::Executed;
+
+/// Depth travels as millimetres.
+pub const DEPTH_SCALE_M: f32 = 0.001;
+
+/// Why a simulated trolley cannot be set up.
+#[derive(thiserror::Error, Debug, Clone, PartialEq)]
+pub enum CaptureError {
+    #[error("the arm cannot reach the scene's initial view: {0}")]
+    InitialView(String),
+    #[error("segment length must be finite and > 0, got {0}")]
+    SegmentLength(f64),
+    #[error("image size {0}x{1} outside 16x12..1280x960")]
+    ImageSize(u32, u32),
+}
+
+/// Seed of the camera noise of frame `frame_seq` of a scene seeded with `scene_seed`.
+pub fn noise_seed(scene_seed: u64, frame_seq: u64) -> u64 {
+    scene_seed.wrapping_mul(1_000_003).wrapping_add(frame_seq)
+}
+
+/// Renders the simulated camera and packs the frame for the wire. Depth is in millimetres with
+/// one rule for every consumer: invalid and over-range depths are both 0
+/// ([`glasshouse_sim::RgbdImage::depth_as_u16`]).
+pub fn render_frame(
+    scene: &Scene,
+    camera: &CameraModel,
+    world_from_camera: &Isometry3<f64>,
+    noise_seed: u64,
+) -> RgbdFrame {
+    let image = scene.render(camera, world_from_camera, noise_seed);
+    RgbdFrame {
+        depth: image.depth_as_u16(f64::from(DEPTH_SCALE_M)),
+        intrinsics: image.intrinsics,
+        world_from_camera: *world_from_camera,
+        depth_scale_m: DEPTH_SCALE_M,
+        min_range_m: camera.min_range_m as f32,
+        max_range_m: camera.max_range_m as f32,
+        rgb: image.rgb,
+    }
+}
+
+/// A trolley's camera and arm, as the edge's loop sees them: the simulator, a recording, or a
+/// real driver.
+pub trait TrolleySource: Send {
+    /// What planners need to know about this trolley now (regions follow the segment).
+    fn info(&self) -> TrolleyInfo;
+    /// Ground truth, when the source knows it (the simulator does).
+    fn ground_truth(&self) -> Option<Vec<Fruit>>;
+    /// Captures frame `frame_seq` at the current pose. `Ok(None)` when the source has no more
+    /// frames; `Err` with a reason when the capture failed.
+    fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String>;
+    /// The arm now.
+    fn arm_state(&self, moving: bool, views_done: u32) -> ArmState;
+    /// Moves to the first of `goals` (best first) the arm can reach; None, and no motion, when it
+    /// reaches none.
+    fn execute(&mut self, goals: &[Isometry3<f64>]) -> Option<Executed>;
+    /// Moves on to the next part of the row; the motion time, or None when the row is done.
+    fn next_segment(&mut self) -> Option<f64>;
+}
+
+/// The settings that define a simulated trolley.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SimTrolleySettings {
+    pub scenario: ScenarioKind,
+    /// Scene and camera-noise seed.
+    pub seed: u64,
+    pub width: u32,
+    pub height: u32,
+    /// Length along the row of the part the trolley works on at a time (row scenario).
+    pub segment_length_m: f64,
+}
+
+/// The simulated glasshouse: renders the scene at the camera pose of the scene's UR5e, which
+/// executes views (IK, then a collision-free joint path) and moves along the row's segments.
+#[derive(Clone, Debug)]
+pub struct SimTrolley {
+    scene: Scene,
+    camera: CameraModel,
+    arm: SimArm,
+    segments: Vec<Segment>,
+    segment: usize,
+    settings: SimTrolleySettings,
+}
+
+impl SimTrolley {
+    pub fn new(settings: SimTrolleySettings) -> Result<Self, CaptureError> {
+        let (w, h) = (settings.width, settings.height);
+        if !((16..=1280).contains(&w) && (12..=960).contains(&h)) {
+            return Err(CaptureError::ImageSize(w, h));
+        }
+        let scene = Scene::generate(settings.scenario, settings.seed);
+        let arm = SimArm::new(&scene).map_err(|e| CaptureError::InitialView(e.to_string()))?;
+        let segments = scene.segments(settings.segment_length_m);
+        if segments.is_empty() {
+            return Err(CaptureError::SegmentLength(settings.segment_length_m));
+        }
+        // Start in the segment that holds the initial view.
+        let eye = arm.world_from_camera().translation.vector;
+        let segment = segments
+            .iter()
+            .position(|s| s.camera_workspace.contains(&eye.into()))
+            .unwrap_or(0);
+        Ok(Self {
+            camera: CameraModel::with_resolution(w, h),
+            scene,
+            arm,
+            segments,
+            segment,
+            settings,
+        })
+    }
+
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    pub fn world_from_camera(&self) -> Isometry3<f64> {
+        self.arm.world_from_camera()
+    }
+
+    /// The segment the trolley works on now.
+    pub fn segment(&self) -> Segment {
+        self.segments.get(self.segment).copied().unwrap_or(Segment {
+            camera_workspace: self.scene.camera_workspace(),
+            sampling_region: self.scene.sampling_region(),
+        })
+    }
+
+    fn mount_ranges(&self) -> (MountKind, Interval, Interval) {
+        let zero = Interval::new(0.0, 0.0);
+        match &self.arm.robot().mount {
+            Mount::Fixed { .. } => (MountKind::StaticPole, zero, zero),
+            Mount::CeilingGantry {
+                max_extension_m, ..
+            } => (
+                MountKind::CeilingGantry,
+                zero,
+                Interval::new(0.0, *max_extension_m),
+            ),
+            Mount::RailLift {
+                position_m, lift_m, ..
+            } => (MountKind::RailLift, *position_m, *lift_m),
+        }
+    }
+}
+
+impl TrolleySource for SimTrolley {
+    fn info(&self) -> TrolleyInfo {
+        let robot = self.arm.robot();
+        let (mount, rail, lift) = self.mount_ranges();
+        let segment = self.segment();
+        TrolleyInfo {
+            arm_model: ArmModel::Ur5e,
+            mount,
+            world_from_base: robot
+                .world_from_base(&self.arm.pose().mount)
+                .unwrap_or_else(|_| Isometry3::identity()),
+            joint_min_rad: robot.arm.limits.lower.to_vec(),
+            joint_max_rad: robot.arm.limits.upper.to_vec(),
+            rail_min_m: rail.min,
+            rail_max_m: rail.max,
+            lift_min_m: lift.min,
+            lift_max_m: lift.max,
+            camera_workspace: segment.camera_workspace,
+            sampling_region: segment.sampling_region,
+            scenario: self.settings.scenario.to_string(),
+            scene_seed: self.settings.seed,
+            intrinsics: self.camera.intrinsics,
+        }
+    }
+
+    fn ground_truth(&self) -> Option<Vec<Fruit>> {
+        let truth = self.scene.fruits().iter().map(|f| {
+            let aabb = f.aabb();
+            Fruit {
+                id: f.id,
+                centre_in_world: f.centre.cast(),
+                box_min: aabb.min.cast(),
+                box_max: aabb.max.cast(),
+                volume_m3: f.volume_m3 as f32,
+                voxel_count: f.voxel_keys(0.01).len().min(u32::MAX as usize) as u32,
+                confidence: 1.0,
+                fitted: None,
+            }
+        });
+        Some(truth.collect())
+    }
+
+    fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String> {
+        let pose = self.arm.world_from_camera();
+        let seed = noise_seed(self.settings.seed, frame_seq);
+        Ok(Some(render_frame(&self.scene, &self.camera, &pose, seed)))
+    }
+
+    fn arm_state(&self, moving: bool, views_done: u32) -> ArmState {
+        let (rail_position_m, lift_height_m) = match self.arm.pose().mount {
+            MountState::Rail { position_m, lift_m } => (position_m, lift_m),
+            MountState::Gantry { extension_m, .. } => (0.0, extension_m),
+            MountState::Fixed => (0.0, 0.0),
+        };
+        ArmState {
+            joint_angles_rad: self.arm.pose().joints.to_vec(),
+            world_from_camera: self.arm.world_from_camera(),
+            rail_position_m,
+            lift_height_m,
+            moving,
+            views_done,
+        }
+    }
+
+    fn execute(&mut self, goals: &[Isometry3<f64>]) -> Option<Executed> {
+        self.arm.execute_first_reachable(&self.scene, goals)
+    }
+
+    fn next_segment(&mut self) -> Option<f64> {
+        let next = self.segment + 1;
+        let segment = *self.segments.get(next)?;
+        // The same view of the plants, shifted to the next segment; else its workspace centre
+        // looking across the row.
+        let here = self.arm.world_from_camera();
+        let from = self.segments.get(self.segment)?.camera_workspace.centre();
+        let to = segment.camera_workspace.centre();
+        let shifted = Isometry3::from_parts(
+            (here.translation.vector + (to - from)).into(),
+            here.rotation,
+        );
+        let across = glasshouse_geom::look_at(&to, &segment.sampling_region.centre());
+        let executed = self
+            .arm
+            .execute_first_reachable(&self.scene, &[shifted, across]);
+        self.segment = next;
+        Some(executed.map_or(0.0, |e| e.motion_s))
+    }
+}

@@ -1,0 +1,29 @@
+//! Detection: one RGB-D frame in, its ROI-labelled world cloud out.
+
+use glasshouse_detect::{detect, DepthFrame, DetectError, DetectorConfig};
+use glasshouse_proto::{RgbdFrame, RoiCloud};
+
+/// Runs the detector ([`glasshouse_detect::detect`]: 1 cm averaging, the paper's HSI rule,
+/// back-projection with the frame's intrinsics and pose) on frame `frame_seq`.
+pub fn detect_frame(
+    frame: &RgbdFrame,
+    frame_seq: u64,
+    detector_id: &str,
+    config: &DetectorConfig,
+) -> Result<RoiCloud, DetectError> {
+    let depth_frame = DepthFrame {
+        intrinsics: frame.intrinsics,
+        depth: &frame.depth,
+        depth_scale_m: f64::from(frame.depth_scale_m),
+        rgb: &frame.rgb,
+    };
+    let cloud = detect(&depth_frame, &frame.world_from_camera, config)?;
+    Ok(RoiCloud {
+        points_in_world: cloud.points_in_world,
+        roi: cloud.roi,
+        sensor_origin_in_world: cloud.sensor_origin_in_world,
+        source_frame_seq: frame_seq,
+        invalid_pixels: cloud.invalid_pixels.min(u32::MAX as usize) as u32,
+        detector_id: detector_id.to_owned(),
+    })
+}

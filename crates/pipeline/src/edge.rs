@@ -1,0 +1,333 @@
+//! The edge's loop as a state machine ([`EdgeNode`]): events in, actions out, no I/O.
+//!
+//! The loop is the paper's Algorithm 1 split across machines: capture frame n and announce it;
+//! wait for RankedViews planned on frame n (announce it again when none come in time); execute
+//! the first view the arm can reach; capture again. In a row, when the best view offered is not
+//! worth a look, the trolley moves on to the next segment instead. The clock is simulated: each
+//! view costs its motion time plus a capture time.
+//!
+//! The edge service's driver performs the actions on the bus and on its [`TrolleySource`]
+//! (`crate::TrolleySource`); the experiments perform them in-process. Both feed the outcomes
+//! back as events.
+
+use glasshouse_proto::{RankedView, RankedViews, TrolleyState, TrolleyStatus};
+use nalgebra::Isometry3;
+
+use crate::Executed;
+
+/// What the edge's loop is configured to do.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EdgeSettings {
+    pub trolley_id: String,
+    /// Stop after this many executed views (0 = no limit).
+    pub max_views: u32,
+    /// Simulated time to capture one view.
+    pub capture_time_s: f64,
+    /// The trolley moves on to the next segment when the best view it is sent has a utility no
+    /// higher than this (the planner's switching threshold): nothing worth a look is left.
+    pub segment_done_utility: f64,
+}
+
+/// What the edge reports to whoever embeds it (the demo prints these, the experiments count them).
+#[derive(Clone, Debug, PartialEq)]
+pub enum EdgeEvent {
+    /// A view was executed.
+    ViewDone {
+        views_done: u32,
+        frame_seq: u64,
+        view: RankedView,
+        sim_time_s: f64,
+    },
+    /// No view of the ranked list planned on `frame_seq` could be reached; capturing again.
+    NoReachableView { frame_seq: u64, offered: usize },
+    /// Nothing above the threshold was left in a segment; the trolley moved to the next one.
+    SegmentDone { segments_done: u32, sim_time_s: f64 },
+    /// No planner answered frame `frame_seq` in time; it was announced again.
+    Reannounced { frame_seq: u64 },
+    /// The run is over: the view budget is spent, the row is done or the source has no frames.
+    Finished { views_done: u32, frames: u64 },
+}
+
+/// An event the driver feeds in.
+#[derive(Clone, Debug, PartialEq)]
+pub enum EdgeInput {
+    /// Begin the loop.
+    Start,
+    /// The capture asked for finished: `true` with a frame, `false` when the source has no more.
+    Captured { frame: bool },
+    /// No views arrived within the driver's timeout since the last `AwaitViews`.
+    ViewsTimedOut,
+    /// Views arrived on the trolley's views key.
+    Views {
+        trolley_id: String,
+        views: RankedViews,
+    },
+    /// The outcome of an `Execute` action.
+    Executed(Option<Executed>),
+    /// The outcome of a `MoveToNextSegment` action: the motion time, or None at the row's end.
+    SegmentMoved(Option<f64>),
+}
+
+/// What the driver must do, in order.
+#[derive(Clone, Debug, PartialEq)]
+pub enum EdgeAction {
+    /// Capture frame `frame_seq` at the current pose, then feed `Captured`.
+    Capture { frame_seq: u64 },
+    /// Publish the captured frame with the trolley info, arm state (still) and ground truth.
+    Announce { frame_seq: u64, sim_time_s: f64 },
+    /// (Re)start the timeout for views on the announced frame.
+    AwaitViews,
+    /// Publish the trolley's status (the driver fills in its drop count).
+    PublishStatus {
+        frame_seq: u64,
+        sim_time_s: f64,
+        status: TrolleyStatus,
+    },
+    /// Move to the first reachable of `goals` (best first), then feed `Executed`.
+    Execute { goals: Vec<Isometry3<f64>> },
+    /// Publish the arm state while it moves to the executed view.
+    PublishArmMoving {
+        frame_seq: u64,
+        sim_time_s: f64,
+        views_done: u32,
+    },
+    /// Move the trolley to the next segment of the row, then feed `SegmentMoved`.
+    MoveToNextSegment,
+    /// Tell the embedder.
+    Report(EdgeEvent),
+    /// The loop is over: publish nothing more after the actions before this one.
+    Stop,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum Phase {
+    Idle,
+    Capturing,
+    WaitingForViews,
+    Executing(RankedViews),
+    MovingSegment(RankedViews),
+    Done,
+}
+
+/// The edge's loop (see the module docs).
+#[derive(Clone, Debug)]
+pub struct EdgeNode {
+    settings: EdgeSettings,
+    frame_seq: u64,
+    sim_time_s: f64,
+    segments_done: u32,
+    status: TrolleyStatus,
+    phase: Phase,
+}
+
+impl EdgeNode {
+    pub fn new(settings: EdgeSettings) -> Self {
+        Self {
+            settings,
+            frame_seq: 0,
+            sim_time_s: 0.0,
+            segments_done: 0,
+            status: TrolleyStatus {
+                state: TrolleyState::Starting,
+                views_done: 0,
+                frames_published: 0,
+                unreachable_views: 0,
+                reannounces: 0,
+                dropped_messages: 0,
+                last_views_seq: 0,
+                message: String::new(),
+            },
+            phase: Phase::Idle,
+        }
+    }
+
+    /// Simulated seconds spent moving and capturing so far.
+    pub fn sim_time_s(&self) -> f64 {
+        self.sim_time_s
+    }
+
+    /// The latest frame sequence (the frame views are awaited for).
+    pub fn frame_seq(&self) -> u64 {
+        self.frame_seq
+    }
+
+    pub fn status(&self) -> &TrolleyStatus {
+        &self.status
+    }
+
+    pub fn is_done(&self) -> bool {
+        self.phase == Phase::Done
+    }
+
+    /// Waiting for views on the latest frame (the driver's timeout applies).
+    pub fn is_waiting_for_views(&self) -> bool {
+        self.phase == Phase::WaitingForViews
+    }
+
+    /// Feeds one event; returns what to do. Events that do not fit the current phase (views on
+    /// an older frame, a stray timeout) change nothing.
+    pub fn handle(&mut self, input: EdgeInput) -> Vec<EdgeAction> {
+        match (std::mem::replace(&mut self.phase, Phase::Idle), input) {
+            (Phase::Idle, EdgeInput::Start) => self.capture(),
+            (Phase::Capturing, EdgeInput::Captured { frame: true }) => self.announce(),
+            (Phase::Capturing, EdgeInput::Captured { frame: false }) => self.finish(),
+            (Phase::WaitingForViews, EdgeInput::ViewsTimedOut) => self.reannounce(),
+            (Phase::WaitingForViews, EdgeInput::Views { trolley_id, views }) => {
+                self.on_views(&trolley_id, views)
+            }
+            (Phase::Executing(views), EdgeInput::Executed(executed)) => {
+                self.on_executed(&views, executed)
+            }
+            (Phase::MovingSegment(views), EdgeInput::SegmentMoved(moved)) => {
+                self.on_segment_moved(views, moved)
+            }
+            (phase, _) => {
+                self.phase = phase;
+                Vec::new()
+            }
+        }
+    }
+
+    /// Ends the loop now (shutdown, or the end of the run): the final status, then `Stop`.
+    pub fn finish(&mut self) -> Vec<EdgeAction> {
+        let mut actions = Vec::new();
+        if self.phase != Phase::Done {
+            actions.push(EdgeAction::Report(EdgeEvent::Finished {
+                views_done: self.status.views_done,
+                frames: self.status.frames_published,
+            }));
+        }
+        self.phase = Phase::Done;
+        self.status.state = TrolleyState::Done;
+        self.status.message = format!(
+            "{} views, {} frames",
+            self.status.views_done, self.status.frames_published
+        );
+        actions.push(self.status_action());
+        actions.push(EdgeAction::Stop);
+        actions
+    }
+
+    fn status_action(&self) -> EdgeAction {
+        EdgeAction::PublishStatus {
+            frame_seq: self.frame_seq,
+            sim_time_s: self.sim_time_s,
+            status: self.status.clone(),
+        }
+    }
+
+    fn capture(&mut self) -> Vec<EdgeAction> {
+        self.frame_seq += 1;
+        self.status.state = TrolleyState::Capturing;
+        self.phase = Phase::Capturing;
+        vec![EdgeAction::Capture {
+            frame_seq: self.frame_seq,
+        }]
+    }
+
+    fn announce(&mut self) -> Vec<EdgeAction> {
+        self.status.frames_published += 1;
+        self.status.state = TrolleyState::WaitingForViews;
+        self.phase = Phase::WaitingForViews;
+        vec![
+            EdgeAction::Announce {
+                frame_seq: self.frame_seq,
+                sim_time_s: self.sim_time_s,
+            },
+            self.status_action(),
+            EdgeAction::AwaitViews,
+        ]
+    }
+
+    fn reannounce(&mut self) -> Vec<EdgeAction> {
+        self.status.reannounces += 1;
+        self.phase = Phase::WaitingForViews;
+        vec![
+            EdgeAction::Report(EdgeEvent::Reannounced {
+                frame_seq: self.frame_seq,
+            }),
+            EdgeAction::Announce {
+                frame_seq: self.frame_seq,
+                sim_time_s: self.sim_time_s,
+            },
+            EdgeAction::AwaitViews,
+        ]
+    }
+
+    fn on_views(&mut self, trolley_id: &str, views: RankedViews) -> Vec<EdgeAction> {
+        self.phase = Phase::WaitingForViews;
+        if trolley_id != self.settings.trolley_id || views.based_on_seq != self.frame_seq {
+            return Vec::new();
+        }
+        self.status.last_views_seq = views.based_on_seq;
+        let max = self.settings.max_views;
+        if max > 0 && self.status.views_done >= max {
+            return self.finish();
+        }
+        let best_utility = views.views.first().map_or(f32::NEG_INFINITY, |v| v.utility);
+        if f64::from(best_utility) <= self.settings.segment_done_utility {
+            self.phase = Phase::MovingSegment(views);
+            return vec![EdgeAction::MoveToNextSegment];
+        }
+        self.execute(views)
+    }
+
+    fn execute(&mut self, views: RankedViews) -> Vec<EdgeAction> {
+        let goals = views.views.iter().map(|v| v.world_from_camera).collect();
+        self.phase = Phase::Executing(views);
+        vec![EdgeAction::Execute { goals }]
+    }
+
+    fn on_segment_moved(&mut self, views: RankedViews, moved: Option<f64>) -> Vec<EdgeAction> {
+        match moved {
+            Some(motion_s) => {
+                self.segments_done += 1;
+                self.sim_time_s += motion_s.max(0.0) + self.settings.capture_time_s;
+                let mut actions = vec![EdgeAction::Report(EdgeEvent::SegmentDone {
+                    segments_done: self.segments_done,
+                    sim_time_s: self.sim_time_s,
+                })];
+                actions.extend(self.capture());
+                actions
+            }
+            // The row is done, but views below the threshold are still views: take them.
+            None if !views.views.is_empty() => self.execute(views),
+            None => self.finish(),
+        }
+    }
+
+    fn on_executed(&mut self, views: &RankedViews, executed: Option<Executed>) -> Vec<EdgeAction> {
+        let offered = views.views.len();
+        let unreachable = executed.map_or(offered, |e| e.index.min(offered));
+        self.status.unreachable_views = self
+            .status
+            .unreachable_views
+            .saturating_add(unreachable as u32);
+        let Some(executed) = executed.filter(|e| e.index < offered) else {
+            self.sim_time_s += self.settings.capture_time_s;
+            let mut actions = vec![EdgeAction::Report(EdgeEvent::NoReachableView {
+                frame_seq: self.frame_seq,
+                offered,
+            })];
+            actions.extend(self.capture());
+            return actions;
+        };
+        self.status.state = TrolleyState::Moving;
+        self.sim_time_s += executed.motion_s.max(0.0) + self.settings.capture_time_s;
+        let moving = EdgeAction::PublishArmMoving {
+            frame_seq: self.frame_seq,
+            sim_time_s: self.sim_time_s,
+            views_done: self.status.views_done,
+        };
+        self.status.views_done += 1;
+        let done = EdgeEvent::ViewDone {
+            views_done: self.status.views_done,
+            frame_seq: self.frame_seq,
+            view: views.views[executed.index].clone(),
+            sim_time_s: self.sim_time_s,
+        };
+        let mut actions = vec![moving, EdgeAction::Report(done)];
+        actions.extend(self.capture());
+        actions
+    }
+}

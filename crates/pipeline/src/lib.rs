@@ -1,0 +1,32 @@
+//! The steps of the glasshouse loop, written once: capture, detection, per-trolley planning, view
+//! execution and the edge's state machine.
+//!
+//! ```text
+//!  TrolleySource::capture ──RgbdFrame──> detect_frame ──RoiCloud──> TrolleyPlanner
+//!        ^                                                   integrate, fruits, plan
+//!        └── TrolleySource::execute <──RankedViews── EdgeNode <───────────┘
+//! ```
+//!
+//! The services call these steps across the bus (the edge drives [`EdgeNode`] and a
+//! [`TrolleySource`], the detector calls [`detect_frame`], the planner keeps a [`TrolleyPlanner`]
+//! per trolley); the experiments (`glasshouse-eval`) call the very same steps in one thread with
+//! a simulated clock. Seeds ([`noise_seed`], [`plan_seed`]), the depth packing and the planner's
+//! defaults ([`PlanningSettings::default`]) exist only here. No I/O: time and seeds are passed in.
+
+mod capture;
+mod detection;
+mod edge;
+mod planning;
+
+pub use capture::{
+    noise_seed, render_frame, CaptureError, Executed, SimTrolley, SimTrolleySettings,
+    TrolleySource, DEPTH_SCALE_M,
+};
+pub use detection::detect_frame;
+pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings};
+pub use planning::{
+    plan_seed, ranked_views, FruitRecord, PlanningError, PlanningSettings, TrolleyPlanner,
+};
+
+#[cfg(test)]
+mod tests;

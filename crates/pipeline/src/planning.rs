@@ -1,0 +1,361 @@
+//! Planning: one trolley's map, fruit tracker, fits and next best views ([`TrolleyPlanner`]),
+//! with the settings and seeds the planner service and the experiments share.
+
+use std::collections::HashSet;
+
+use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, FittedShape, ShapeKind};
+use glasshouse_nbv::{
+    plan_views, FruitEstimate, FruitTracker, Method, Plan, PlanError, PlannerConfig,
+    PlanningContext,
+};
+use glasshouse_proto::{
+    FittedEllipsoid, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
+    TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
+};
+use glasshouse_roimap::{MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey};
+use nalgebra::Isometry3;
+use serde::{Deserialize, Serialize};
+
+/// Why a planning step failed; the trolley's state is left as it was before the step.
+#[derive(thiserror::Error, Debug, Clone, PartialEq)]
+pub enum PlanningError {
+    #[error("invalid planning settings: {0}")]
+    Settings(String),
+    #[error("cloud rejected by the map: {0}")]
+    Map(#[from] MapError),
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    #[error("unusable map snapshot: {0}")]
+    Snapshot(String),
+}
+
+/// What the planner does with each trolley; the planner service's settings file and the
+/// experiments both start from [`PlanningSettings::default`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PlanningSettings {
+    pub method: Method,
+    /// Plans are seeded from this and the frame sequence ([`plan_seed`]).
+    pub seed: u64,
+    pub resolution_m: f64,
+    /// Rays are integrated up to this range (points further away free the ray only).
+    pub max_range_m: f64,
+    /// ROI clusters smaller than this are not fruits.
+    pub min_cluster_voxels: usize,
+    /// The whole-fruit ellipsoid fit published with every fruit.
+    pub fit: FitConfig,
+    /// Threads that score candidates (0: one per core); any count gives the same plan.
+    pub scoring_threads: usize,
+}
+
+impl Default for PlanningSettings {
+    fn default() -> Self {
+        Self {
+            method: Method::OursUu,
+            seed: 1,
+            resolution_m: 0.01,
+            max_range_m: 2.0,
+            min_cluster_voxels: 10,
+            fit: FitConfig::default(),
+            scoring_threads: 0,
+        }
+    }
+}
+
+impl PlanningSettings {
+    pub fn validate(&self) -> Result<(), PlanningError> {
+        if !(self.max_range_m.is_finite() && self.max_range_m > 0.0) {
+            return Err(PlanningError::Settings(format!(
+                "max range must be finite and > 0, got {}",
+                self.max_range_m
+            )));
+        }
+        self.map_config().validate()?;
+        self.planner_config().validate()?;
+        Ok(())
+    }
+
+    pub fn map_config(&self) -> MapConfig {
+        MapConfig {
+            resolution_m: self.resolution_m,
+            max_range_m: Some(self.max_range_m),
+            ..MapConfig::default()
+        }
+    }
+
+    pub fn planner_config(&self) -> PlannerConfig {
+        PlannerConfig {
+            method: self.method,
+            scoring_threads: self.scoring_threads,
+            ..PlannerConfig::default()
+        }
+    }
+}
+
+/// Seed of the plan made on frame `frame_seq` by a planner seeded with `seed`.
+pub fn plan_seed(seed: u64, frame_seq: u64) -> u64 {
+    seed.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(frame_seq)
+}
+
+/// One fruit with both estimates: the paper's box over the cluster and the fitted ellipsoid.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct FruitRecord {
+    pub estimate: FruitEstimate,
+    pub fitted: FittedShape,
+}
+
+impl FruitRecord {
+    /// The fruit as it travels on the bus.
+    pub fn to_message(&self) -> Fruit {
+        let (f, s) = (&self.estimate, &self.fitted);
+        Fruit {
+            id: f.id,
+            centre_in_world: f.centre.cast(),
+            box_min: f.min.cast(),
+            box_max: f.max.cast(),
+            volume_m3: f.volume_m3 as f32,
+            voxel_count: f.voxel_count.min(u32::MAX as usize) as u32,
+            confidence: f.confidence as f32,
+            fitted: Some(FittedEllipsoid {
+                centre_in_world: s.centre.cast(),
+                semi_axes_m: s.semi_axes_m.cast(),
+                volume_m3: s.volume_m3 as f32,
+                box_volume_m3: s.box_volume_m3 as f32,
+                confidence: s.confidence as f32,
+                is_fit: s.kind == ShapeKind::Ellipsoid,
+            }),
+        }
+    }
+}
+
+/// The ranked views of a plan as they travel on the bus.
+pub fn ranked_views(
+    plan: &Plan,
+    based_on_seq: u64,
+    planning_time_ms: f32,
+    pid: &str,
+) -> RankedViews {
+    let views = plan.views.iter().map(|v| RankedView {
+        world_from_camera: v.world_from_camera,
+        utility: v.utility as f32,
+        gain: v.gain as f32,
+        cost_m: v.cost_m as f32,
+        kind: match v.kind {
+            glasshouse_nbv::ViewKind::Roi => ViewKind::Roi,
+            glasshouse_nbv::ViewKind::Exploration => ViewKind::Exploration,
+        },
+    });
+    RankedViews {
+        views: views.collect(),
+        based_on_seq,
+        planning_time_ms,
+        planner_id: pid.to_owned(),
+    }
+}
+
+/// One trolley's planning state: its ROI map, the fruit tracker with the latest clusters, the
+/// trolley's info, and what the map changes already published.
+#[derive(Clone)]
+pub struct TrolleyPlanner {
+    settings: PlanningSettings,
+    map: RoiMap,
+    tracker: FruitTracker,
+    info: Option<TrolleyInfo>,
+    last_cloud_seq: Option<u64>,
+    clusters: Vec<RoiCluster>,
+    estimates: Vec<FruitEstimate>,
+    map_seq: u64,
+    /// Voxels last published as occupied or ROI: MapUpdate carries solid voxels and the ones
+    /// that stopped being solid, not every newly freed voxel (those would dominate the traffic).
+    published_solid: HashSet<VoxelKey>,
+}
+
+impl TrolleyPlanner {
+    pub fn new(settings: PlanningSettings) -> Result<Self, PlanningError> {
+        settings.validate()?;
+        Ok(Self {
+            map: RoiMap::new(settings.map_config())?,
+            settings,
+            tracker: FruitTracker::default(),
+            info: None,
+            last_cloud_seq: None,
+            clusters: Vec::new(),
+            estimates: Vec::new(),
+            map_seq: 0,
+            published_solid: HashSet::new(),
+        })
+    }
+
+    pub fn map(&self) -> &RoiMap {
+        &self.map
+    }
+
+    pub fn settings(&self) -> &PlanningSettings {
+        &self.settings
+    }
+
+    /// The last frame sequence integrated, if any.
+    pub fn last_cloud_seq(&self) -> Option<u64> {
+        self.last_cloud_seq
+    }
+
+    pub fn info(&self) -> Option<&TrolleyInfo> {
+        self.info.as_ref()
+    }
+
+    /// The trolley's latest workspace and arm (TrolleyInfo); planning waits for the first one.
+    pub fn set_info(&mut self, info: TrolleyInfo) {
+        self.info = Some(info);
+    }
+
+    /// Inserts the cloud into the map (each frame sequence once: a re-announced frame comes back
+    /// as the same cloud), then updates the ROI clusters and the fruit ids. Returns whether the
+    /// map took the cloud; a rejected cloud leaves the map untouched.
+    pub fn integrate(&mut self, cloud: &RoiCloud) -> Result<bool, PlanningError> {
+        let seq = cloud.source_frame_seq;
+        let fresh = self.last_cloud_seq.is_none_or(|last| seq > last);
+        if fresh {
+            self.map.insert_scan(
+                &cloud.sensor_origin_in_world,
+                &cloud.points_in_world,
+                &cloud.roi,
+            )?;
+            self.last_cloud_seq = Some(seq);
+        }
+        self.clusters = self.map.clusters(self.settings.min_cluster_voxels);
+        self.estimates = self.tracker.update(&self.clusters);
+        Ok(fresh)
+    }
+
+    /// Every fruit of the latest clusters with its fitted ellipsoid.
+    pub fn fruits(&self) -> Vec<FruitRecord> {
+        self.clusters
+            .iter()
+            .zip(&self.estimates)
+            .map(|(cluster, estimate)| FruitRecord {
+                fitted: fit_ellipsoid(&self.map, cluster, &self.settings.fit),
+                estimate: estimate.clone(),
+            })
+            .collect()
+    }
+
+    /// The next best views from the camera at `world_from_camera`, seeded for frame `frame_seq`;
+    /// None until the trolley's info (its workspace) is known.
+    pub fn plan(
+        &self,
+        world_from_camera: &Isometry3<f64>,
+        frame_seq: u64,
+    ) -> Result<Option<Plan>, PlanningError> {
+        let Some(info) = &self.info else {
+            return Ok(None);
+        };
+        let ctx = PlanningContext {
+            map: &self.map,
+            world_from_camera: *world_from_camera,
+            camera_workspace: info.camera_workspace,
+            sampling_region: info.sampling_region,
+        };
+        let seed = plan_seed(self.settings.seed, frame_seq);
+        Ok(Some(plan_views(
+            &ctx,
+            &self.settings.planner_config(),
+            seed,
+        )?))
+    }
+
+    /// The solid voxels changed since the last call (and the ones that stopped being solid).
+    pub fn map_update(&mut self, based_on_seq: u64, pid: &str) -> MapUpdate {
+        self.map_seq += 1;
+        let mut voxels = Vec::new();
+        for (key, voxel) in self.map.take_changes() {
+            let change = voxel_change(&self.map, key, voxel);
+            let was_solid = if change.state == VoxelState::Free {
+                self.published_solid.remove(&key)
+            } else {
+                self.published_solid.insert(key);
+                true
+            };
+            if was_solid {
+                voxels.push(change);
+            }
+        }
+        MapUpdate {
+            resolution_m: self.settings.resolution_m as f32,
+            map_seq: self.map_seq,
+            based_on_seq,
+            full: false,
+            voxels,
+            planner_id: pid.to_owned(),
+        }
+    }
+
+    /// The trolley's state for another planner (the reply to a snapshot query).
+    pub fn snapshot(&self, tid: &str, pid: &str) -> Result<MapSnapshot, PlanningError> {
+        let mut map = Vec::new();
+        self.map
+            .write_snapshot(&mut map)
+            .map_err(|e| PlanningError::Snapshot(e.to_string()))?;
+        let (tracked, next_fruit_id) = self.tracker.state();
+        let tracked_fruits = tracked.into_iter().map(|(id, c)| TrackedFruit {
+            id,
+            centre_in_world: c.cast(),
+        });
+        Ok(MapSnapshot {
+            trolley_id: tid.to_owned(),
+            planner_id: pid.to_owned(),
+            based_on_seq: self.last_cloud_seq.unwrap_or(0),
+            map,
+            tracked_fruits: tracked_fruits.collect(),
+            next_fruit_id,
+        })
+    }
+
+    /// A planner continuing from another planner's snapshot: its map, fruit ids and last
+    /// integrated frame; the voxels it holds count as published (the former owner published them).
+    pub fn from_snapshot(
+        settings: PlanningSettings,
+        snapshot: &MapSnapshot,
+    ) -> Result<Self, PlanningError> {
+        let map = RoiMap::read_snapshot(snapshot.map.as_slice())
+            .map_err(|e| PlanningError::Snapshot(e.to_string()))?;
+        let wanted = settings.map_config();
+        if map.config().resolution_m != wanted.resolution_m
+            || map.config().max_range_m != wanted.max_range_m
+        {
+            return Err(PlanningError::Snapshot(
+                "its map settings differ from this planner's".into(),
+            ));
+        }
+        let mut planner = Self::new(settings)?;
+        planner.published_solid = map
+            .iter()
+            .filter(|(key, voxel)| voxel.occupancy() == Occupancy::Occupied || map.is_roi(*key))
+            .map(|(key, _)| key)
+            .collect();
+        planner.map = map;
+        let tracked = snapshot.tracked_fruits.iter();
+        planner.tracker = FruitTracker::from_state(
+            tracked.map(|f| (f.id, f.centre_in_world.cast())).collect(),
+            snapshot.next_fruit_id,
+        );
+        planner.last_cloud_seq = (snapshot.based_on_seq > 0).then_some(snapshot.based_on_seq);
+        Ok(planner)
+    }
+}
+
+fn voxel_change(map: &RoiMap, key: VoxelKey, voxel: Voxel) -> VoxelChange {
+    let state = if map.is_roi(key) {
+        VoxelState::Roi
+    } else if map.occupancy(key) == Occupancy::Occupied {
+        VoxelState::Occupied
+    } else {
+        VoxelState::Free
+    };
+    VoxelChange {
+        key: [key.x, key.y, key.z],
+        occupancy_logodds: voxel.occupancy_logodds,
+        roi_logodds: voxel.roi_logodds,
+        state,
+    }
+}

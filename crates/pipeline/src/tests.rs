@@ -1,0 +1,346 @@
+#![allow(clippy::unwrap_used)]
+
+use glasshouse_detect::DetectorConfig;
+use glasshouse_proto::{RankedView, RankedViews, TrolleyState, ViewKind};
+use glasshouse_sim::ScenarioKind;
+use nalgebra::{Isometry3, Translation3};
+
+use super::*;
+
+fn settings() -> EdgeSettings {
+    EdgeSettings {
+        trolley_id: "t1".into(),
+        max_views: 0,
+        capture_time_s: 0.5,
+        segment_done_utility: 0.2,
+    }
+}
+
+fn views(seq: u64, utilities: &[f32]) -> RankedViews {
+    let views = utilities
+        .iter()
+        .enumerate()
+        .map(|(i, &utility)| RankedView {
+            world_from_camera: Isometry3::from_parts(
+                Translation3::new(i as f64, 0.0, 1.0),
+                Default::default(),
+            ),
+            utility,
+            gain: utility,
+            cost_m: 0.0,
+            kind: ViewKind::Roi,
+        });
+    RankedViews {
+        views: views.collect(),
+        based_on_seq: seq,
+        planning_time_ms: 1.0,
+        planner_id: "p1".into(),
+    }
+}
+
+fn views_for(seq: u64, utilities: &[f32]) -> EdgeInput {
+    EdgeInput::Views {
+        trolley_id: "t1".into(),
+        views: views(seq, utilities),
+    }
+}
+
+/// A node that has announced frame 1 and waits for views.
+fn waiting(settings: EdgeSettings) -> EdgeNode {
+    let mut node = EdgeNode::new(settings);
+    assert_eq!(
+        node.handle(EdgeInput::Start),
+        vec![EdgeAction::Capture { frame_seq: 1 }]
+    );
+    let actions = node.handle(EdgeInput::Captured { frame: true });
+    assert!(matches!(
+        actions[0],
+        EdgeAction::Announce { frame_seq: 1, .. }
+    ));
+    assert_eq!(actions.last(), Some(&EdgeAction::AwaitViews));
+    assert!(node.is_waiting_for_views());
+    node
+}
+
+fn executed(index: usize, motion_s: f64) -> EdgeInput {
+    EdgeInput::Executed(Some(Executed { index, motion_s }))
+}
+
+#[test]
+fn a_view_is_executed_then_the_next_frame_captured() {
+    let mut node = waiting(settings());
+    let actions = node.handle(views_for(1, &[0.9, 0.5]));
+    let EdgeAction::Execute { goals } = &actions[0] else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(goals.len(), 2);
+    let actions = node.handle(executed(1, 2.0));
+    assert!(matches!(
+        actions[0],
+        EdgeAction::PublishArmMoving { views_done: 0, .. }
+    ));
+    let EdgeAction::Report(EdgeEvent::ViewDone {
+        view, views_done, ..
+    }) = &actions[1]
+    else {
+        panic!("{actions:?}")
+    };
+    assert_eq!((*views_done, view.utility), (1, 0.5));
+    assert_eq!(actions[2], EdgeAction::Capture { frame_seq: 2 });
+    // The first view was not reachable; motion 2 s plus capture 0.5 s.
+    assert_eq!(node.status().unreachable_views, 1);
+    assert!((node.sim_time_s() - 2.5).abs() < 1e-12);
+}
+
+#[test]
+fn no_answer_reannounces_the_same_frame() {
+    let mut node = waiting(settings());
+    for n in 1..=2 {
+        let actions = node.handle(EdgeInput::ViewsTimedOut);
+        assert_eq!(
+            actions[0],
+            EdgeAction::Report(EdgeEvent::Reannounced { frame_seq: 1 })
+        );
+        assert!(matches!(
+            actions[1],
+            EdgeAction::Announce { frame_seq: 1, .. }
+        ));
+        assert_eq!(node.status().reannounces, n);
+    }
+    // Late views for frame 1 are still taken.
+    assert!(matches!(
+        node.handle(views_for(1, &[0.9]))[0],
+        EdgeAction::Execute { .. }
+    ));
+}
+
+#[test]
+fn views_on_another_frame_or_trolley_are_ignored() {
+    let mut node = waiting(settings());
+    assert!(node.handle(views_for(7, &[0.9])).is_empty());
+    let other = EdgeInput::Views {
+        trolley_id: "t2".into(),
+        views: views(1, &[0.9]),
+    };
+    assert!(node.handle(other).is_empty());
+    assert!(node.is_waiting_for_views());
+    // Events that do not fit the phase change nothing.
+    assert!(node.handle(executed(0, 1.0)).is_empty());
+    assert!(node.handle(EdgeInput::Start).is_empty());
+    assert!(node.is_waiting_for_views());
+}
+
+#[test]
+fn no_reachable_view_costs_a_capture_and_captures_again() {
+    let mut node = waiting(settings());
+    node.handle(views_for(1, &[0.9, 0.8, 0.7]));
+    let actions = node.handle(EdgeInput::Executed(None));
+    assert_eq!(
+        actions,
+        vec![
+            EdgeAction::Report(EdgeEvent::NoReachableView {
+                frame_seq: 1,
+                offered: 3
+            }),
+            EdgeAction::Capture { frame_seq: 2 }
+        ]
+    );
+    assert_eq!(node.status().unreachable_views, 3);
+    assert_eq!(node.status().views_done, 0);
+    assert!((node.sim_time_s() - 0.5).abs() < 1e-12);
+}
+
+#[test]
+fn low_utility_moves_to_the_next_segment() {
+    let mut node = waiting(settings());
+    assert_eq!(
+        node.handle(views_for(1, &[0.1])),
+        vec![EdgeAction::MoveToNextSegment]
+    );
+    let actions = node.handle(EdgeInput::SegmentMoved(Some(3.0)));
+    assert_eq!(
+        actions[0],
+        EdgeAction::Report(EdgeEvent::SegmentDone {
+            segments_done: 1,
+            sim_time_s: 3.5
+        })
+    );
+    assert_eq!(actions[1], EdgeAction::Capture { frame_seq: 2 });
+}
+
+#[test]
+fn at_the_row_end_low_views_are_still_executed_and_none_finishes() {
+    let mut node = waiting(settings());
+    node.handle(views_for(1, &[0.1]));
+    assert!(matches!(
+        node.handle(EdgeInput::SegmentMoved(None))[0],
+        EdgeAction::Execute { .. }
+    ));
+    let mut node = waiting(settings());
+    node.handle(views_for(1, &[]));
+    let actions = node.handle(EdgeInput::SegmentMoved(None));
+    assert!(matches!(
+        actions[0],
+        EdgeAction::Report(EdgeEvent::Finished { .. })
+    ));
+    assert_eq!(actions.last(), Some(&EdgeAction::Stop));
+    assert!(node.is_done());
+}
+
+#[test]
+fn the_view_budget_ends_the_run_once_the_last_frame_is_answered() {
+    let mut node = waiting(EdgeSettings {
+        max_views: 1,
+        ..settings()
+    });
+    node.handle(views_for(1, &[0.9]));
+    node.handle(executed(0, 1.0));
+    node.handle(EdgeInput::Captured { frame: true });
+    let actions = node.handle(views_for(2, &[0.9]));
+    assert_eq!(
+        actions[0],
+        EdgeAction::Report(EdgeEvent::Finished {
+            views_done: 1,
+            frames: 2
+        })
+    );
+    let EdgeAction::PublishStatus { status, .. } = &actions[1] else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(status.state, TrolleyState::Done);
+    assert_eq!(actions[2], EdgeAction::Stop);
+    // Nothing happens after the end.
+    assert!(node.handle(EdgeInput::ViewsTimedOut).is_empty());
+}
+
+#[test]
+fn a_source_without_frames_finishes() {
+    let mut node = EdgeNode::new(settings());
+    node.handle(EdgeInput::Start);
+    let actions = node.handle(EdgeInput::Captured { frame: false });
+    assert!(matches!(
+        actions[0],
+        EdgeAction::Report(EdgeEvent::Finished {
+            views_done: 0,
+            frames: 0
+        })
+    ));
+    assert_eq!(actions.last(), Some(&EdgeAction::Stop));
+}
+
+fn sim(scenario: ScenarioKind) -> SimTrolley {
+    SimTrolley::new(SimTrolleySettings {
+        scenario,
+        seed: 3,
+        width: 160,
+        height: 120,
+        segment_length_m: 1.0,
+    })
+    .unwrap()
+}
+
+#[test]
+fn one_depth_rule_invalid_and_over_range_are_zero() {
+    let mut trolley = sim(ScenarioKind::Two);
+    let frame = trolley.capture(1).unwrap().unwrap();
+    assert_eq!(frame.depth.len(), 160 * 120);
+    assert_eq!(frame.depth_scale_m, DEPTH_SCALE_M);
+    let image = trolley.scene().render(
+        &glasshouse_sim::CameraModel::with_resolution(160, 120),
+        &trolley.world_from_camera(),
+        noise_seed(3, 1),
+    );
+    for (&d_m, &packed) in image.depth_m.iter().zip(&frame.depth) {
+        let units = f64::from(d_m) / f64::from(DEPTH_SCALE_M);
+        if d_m.is_finite() && (0.5..65535.5).contains(&units) {
+            assert_eq!(packed, units.round() as u16);
+        } else {
+            assert_eq!(packed, 0);
+        }
+    }
+}
+
+#[test]
+fn the_steps_capture_detect_integrate_plan_and_fit() {
+    let mut trolley = sim(ScenarioKind::Two);
+    let frame = trolley.capture(1).unwrap().unwrap();
+    let cloud = detect_frame(&frame, 1, "d1", &DetectorConfig::default()).unwrap();
+    assert!(cloud.roi.iter().any(|&r| r));
+    let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    // No info yet: the cloud is integrated, planning waits.
+    assert!(planner.integrate(&cloud).unwrap());
+    assert!(planner.plan(&frame.world_from_camera, 1).unwrap().is_none());
+    planner.set_info(trolley.info());
+    // The same frame again is not inserted twice.
+    let known = planner.map().len();
+    assert!(!planner.integrate(&cloud).unwrap());
+    assert_eq!(planner.map().len(), known);
+    let plan = planner.plan(&frame.world_from_camera, 1).unwrap().unwrap();
+    assert!(!plan.views.is_empty());
+    // Seeded: the same plan again.
+    let again = planner.plan(&frame.world_from_camera, 1).unwrap().unwrap();
+    let poses = |p: &glasshouse_nbv::Plan| {
+        p.views
+            .iter()
+            .map(|v| (v.world_from_camera, v.utility))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(poses(&plan), poses(&again));
+    let update = planner.map_update(1, "p1");
+    assert!(!update.voxels.is_empty());
+    assert!(planner.map_update(1, "p1").voxels.is_empty());
+    let executed = trolley.execute(&[plan.views[0].world_from_camera]);
+    assert!(executed.is_none_or(|e| e.index == 0));
+}
+
+#[test]
+fn a_snapshot_carries_map_ids_and_seq() {
+    let mut trolley = sim(ScenarioKind::Two);
+    let frame = trolley.capture(1).unwrap().unwrap();
+    let mut cloud = detect_frame(&frame, 1, "d1", &DetectorConfig::default()).unwrap();
+    cloud.source_frame_seq = 5;
+    let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    planner.integrate(&cloud).unwrap();
+    let snapshot = planner.snapshot("t1", "p1").unwrap();
+    assert_eq!(snapshot.based_on_seq, 5);
+    let copy = TrolleyPlanner::from_snapshot(PlanningSettings::default(), &snapshot).unwrap();
+    assert_eq!(copy.map().len(), planner.map().len());
+    assert_eq!(copy.last_cloud_seq(), Some(5));
+    let coarse = PlanningSettings {
+        resolution_m: 0.02,
+        ..PlanningSettings::default()
+    };
+    assert!(matches!(
+        TrolleyPlanner::from_snapshot(coarse, &snapshot),
+        Err(PlanningError::Snapshot(_))
+    ));
+    let mut bad = snapshot.clone();
+    bad.map.truncate(10);
+    assert!(TrolleyPlanner::from_snapshot(PlanningSettings::default(), &bad).is_err());
+}
+
+#[test]
+fn bad_settings_are_rejected() {
+    for bad in [
+        PlanningSettings {
+            max_range_m: f64::NAN,
+            ..PlanningSettings::default()
+        },
+        PlanningSettings {
+            resolution_m: 0.0,
+            ..PlanningSettings::default()
+        },
+    ] {
+        assert!(TrolleyPlanner::new(bad).is_err());
+    }
+    assert!(matches!(
+        SimTrolley::new(SimTrolleySettings {
+            scenario: ScenarioKind::One,
+            seed: 1,
+            width: 8,
+            height: 8,
+            segment_length_m: 1.0
+        }),
+        Err(CaptureError::ImageSize(8, 8))
+    ));
+}

@@ -10,15 +10,17 @@ use glasshouse_bus::{BusArgs, Shutdown};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
+use glasshouse_nbv::Method;
 use glasshouse_planner::{PlannerCounters, PlannerSettings};
 use glasshouse_proto::{Fruit, ViewKind};
+use glasshouse_sim::ScenarioKind;
 use serde::Serialize;
 
 #[derive(clap::Args, Debug)]
 pub struct DemoArgs {
     /// Simulated scenario: 1 (arm on a pole), 2 (arm on a ceiling gantry) or row.
     #[arg(long, default_value = "1")]
-    pub scenario: String,
+    pub scenario: ScenarioKind,
     /// Scene and planner seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -27,7 +29,7 @@ pub struct DemoArgs {
     pub views: u32,
     /// Planning method: ours-uu, ours-up, explo-uu or explo-up.
     #[arg(long, default_value = "ours-uu")]
-    pub method: String,
+    pub method: Method,
     /// Image width in pixels (height is 3/4 of it).
     #[arg(long, default_value_t = 640)]
     pub width: u32,
@@ -80,6 +82,8 @@ struct Summary {
     seed: u64,
     views: u32,
     frames: u64,
+    /// Frames whose ranked views the arm could reach none of.
+    frames_without_reachable_view: u64,
     wall_time_s: f64,
     sim_time_s: f64,
     fruits: Vec<FruitSummary>,
@@ -93,7 +97,7 @@ fn free_port() -> anyhow::Result<u16> {
 pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let edge_config = EdgeConfig {
-        scenario: args.scenario.clone(),
+        scenario: args.scenario,
         seed: args.seed,
         max_views: args.views.max(1),
         width: args.width,
@@ -101,11 +105,9 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         ..EdgeConfig::default()
     };
     edge_config.validate()?;
-    let planner_settings = PlannerSettings {
-        method: args.method.clone(),
-        seed: args.seed,
-        ..PlannerSettings::default()
-    };
+    let mut planner_settings = PlannerSettings::default();
+    planner_settings.planning.method = args.method;
+    planner_settings.planning.seed = args.seed;
     planner_settings.validate()?;
 
     // An in-process router on a free loopback port; every component is a client of it.
@@ -168,6 +170,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     );
     let mut frames = 0u64;
     let mut views_done = 0u32;
+    let mut no_reachable = 0u64;
     let mut sim_time_s = 0.0;
     let stall = Duration::from_secs(args.stall_timeout_s.max(5));
     let mut interrupted = false;
@@ -213,6 +216,10 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
                     view.cost_m,
                     started.elapsed().as_secs_f64()
                 );
+            }
+            Ok(Some(EdgeEvent::NoReachableView { frame_seq, offered })) => {
+                no_reachable += 1;
+                println!("frame {frame_seq}: none of {offered} views reachable, capturing again");
             }
             Ok(Some(EdgeEvent::Reannounced { frame_seq })) => {
                 println!("frame {frame_seq}: no views yet, re-announced");
@@ -268,10 +275,11 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         .unwrap_or_default();
     print_fruit_table(&fruits);
     let summary = Summary {
-        scenario: args.scenario.clone(),
+        scenario: args.scenario.to_string(),
         seed: args.seed,
         views: views_done,
         frames,
+        frames_without_reachable_view: no_reachable,
         wall_time_s: started.elapsed().as_secs_f64(),
         sim_time_s,
         fruits: fruits
@@ -298,9 +306,10 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
             .collect(),
     };
     println!(
-        "{} views, {} frames, {} fruits in {:.1} s wall ({:.1} s simulated)",
+        "{} views, {} frames ({} with no reachable view), {} fruits in {:.1} s wall ({:.1} s simulated)",
         summary.views,
         summary.frames,
+        summary.frames_without_reachable_view,
         summary.fruits.len(),
         summary.wall_time_s,
         summary.sim_time_s

@@ -22,8 +22,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, ensure, Context};
 use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
 use glasshouse_eval::report::{self, method_label, MethodRuns};
-use glasshouse_eval::trial::{run_trial, MotionKind};
-use glasshouse_eval::{ComputeTime, TrialConfig, TrialResult};
+use glasshouse_eval::{run_trial, ComputeTime, TrialConfig, TrialResult};
 use glasshouse_nbv::Method;
 use glasshouse_sim::ScenarioKind;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -32,10 +31,14 @@ use indicatif::{ProgressBar, ProgressStyle};
 pub struct EvalArgs {
     /// Simulated scenario: 1, 2 or row.
     #[arg(long, default_value = "2")]
-    pub scenario: String,
+    pub scenario: ScenarioKind,
     /// Comma-separated methods: ours-uu, ours-up, explo-uu, explo-up.
-    #[arg(long, default_value = "ours-uu,ours-up,explo-uu,explo-up")]
-    pub methods: String,
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "ours-uu,ours-up,explo-uu,explo-up"
+    )]
+    pub methods: Vec<Method>,
     /// Trials per method.
     #[arg(long, default_value_t = 20)]
     pub trials: u32,
@@ -55,10 +58,6 @@ pub struct EvalArgs {
     /// Image width in pixels (height is 3/4 of it); smaller runs faster.
     #[arg(long, default_value_t = 640)]
     pub width: u32,
-    /// Who executes the views: `arm` (the scene's UR5e on its mount, as the edge) or
-    /// `free-camera` (a camera flying at 0.5 m/s anywhere free in the workspace).
-    #[arg(long, default_value = "arm")]
-    pub motion: String,
     /// Trials run in parallel (default: the number of cores).
     #[arg(long)]
     pub jobs: Option<usize>,
@@ -67,22 +66,14 @@ pub struct EvalArgs {
 /// Parsed and checked arguments.
 struct Plan {
     scenario: ScenarioKind,
-    motion: MotionKind,
     methods: Vec<Method>,
     compute_time: ComputeTime,
     jobs: usize,
 }
 
 fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
-    let scenario: ScenarioKind = args
-        .scenario
-        .parse()
-        .map_err(|e| anyhow::anyhow!("--scenario: {e}"))?;
     let mut methods = Vec::new();
-    for name in args.methods.split(',').filter(|s| !s.trim().is_empty()) {
-        let method: Method = name
-            .parse()
-            .map_err(|e| anyhow::anyhow!("--methods: {e}"))?;
+    for &method in &args.methods {
         ensure!(
             !methods.contains(&method),
             "--methods: {method} given twice"
@@ -109,16 +100,11 @@ fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
         (16..=1280).contains(&args.width),
         "--width must be within 16..=1280"
     );
-    let motion: MotionKind = args
-        .motion
-        .parse()
-        .map_err(|e| anyhow::anyhow!("--motion: {e}"))?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let jobs = args.jobs.unwrap_or(cores);
     ensure!(jobs > 0, "--jobs must be at least 1");
     Ok(Plan {
-        scenario,
-        motion,
+        scenario: args.scenario,
         methods,
         compute_time,
         jobs,
@@ -150,7 +136,6 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 height,
                 budget_s: args.budget_s,
                 compute_time: plan.compute_time,
-                motion: plan.motion,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -266,7 +251,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "budget_s": args.budget_s,
         "seed": args.seed,
         "compute_ms": args.compute_ms,
-        "motion": plan.motion.to_string(),
+        "motion": "arm",
         "width": args.width,
         "height": height,
     });
@@ -370,15 +355,14 @@ mod tests {
 
     fn args(out: PathBuf) -> EvalArgs {
         EvalArgs {
-            scenario: "2".into(),
-            methods: "ours-uu,explo-uu".into(),
+            scenario: ScenarioKind::Two,
+            methods: vec![Method::OursUu, Method::ExploUu],
             trials: 1,
             budget_s: 4.0,
             seed: 1,
             out,
             compute_ms: Some(50.0),
             width: 64,
-            motion: "arm".into(),
             jobs: Some(2),
         }
     }
@@ -388,23 +372,15 @@ mod tests {
         let out = std::env::temp_dir().join(format!("gh-eval-bad-{}", std::process::id()));
         let bad = [
             EvalArgs {
-                methods: "ours-uu,nope".into(),
+                methods: Vec::new(),
                 ..args(out.clone())
             },
             EvalArgs {
-                methods: "".into(),
-                ..args(out.clone())
-            },
-            EvalArgs {
-                methods: "ours-uu,ours-uu".into(),
+                methods: vec![Method::OursUu, Method::OursUu],
                 ..args(out.clone())
             },
             EvalArgs {
                 trials: 0,
-                ..args(out.clone())
-            },
-            EvalArgs {
-                scenario: "3".into(),
                 ..args(out.clone())
             },
             EvalArgs {
@@ -417,10 +393,6 @@ mod tests {
             },
             EvalArgs {
                 jobs: Some(0),
-                ..args(out.clone())
-            },
-            EvalArgs {
-                motion: "teleport".into(),
                 ..args(out.clone())
             },
         ];

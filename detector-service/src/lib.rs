@@ -22,9 +22,10 @@ use glasshouse_bus::{
     declare_alive, Delivery, DropCounters, MemberEvent, MemberWatch, Received, Shutdown,
     TypedPublisher, TypedSubscriber,
 };
-use glasshouse_detect::{detect, DepthFrame, DetectorConfig};
+use glasshouse_detect::DetectorConfig;
+use glasshouse_pipeline::detect_frame;
 use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
-use glasshouse_proto::{DetectorStatus, Header, Message, RgbdFrame, RoiCloud};
+use glasshouse_proto::{DetectorStatus, Header, Message};
 use serde::Deserialize;
 use zenoh::Session;
 
@@ -83,30 +84,6 @@ pub fn served_trolleys<'a>(
         .filter(|tid| glasshouse_fleet::rank_planners(tid, &detectors).first() == Some(&did))
         .map(String::as_str)
         .collect()
-}
-
-/// Turns one frame into an ROI cloud.
-pub fn frame_to_cloud(
-    frame: &RgbdFrame,
-    frame_seq: u64,
-    detector_id: &str,
-    config: &DetectorConfig,
-) -> Result<RoiCloud, glasshouse_detect::DetectError> {
-    let depth_frame = DepthFrame {
-        intrinsics: frame.intrinsics,
-        depth: &frame.depth,
-        depth_scale_m: frame.depth_scale_m as f64,
-        rgb: &frame.rgb,
-    };
-    let cloud = detect(&depth_frame, &frame.world_from_camera, config)?;
-    Ok(RoiCloud {
-        points_in_world: cloud.points_in_world,
-        roi: cloud.roi,
-        sensor_origin_in_world: cloud.sensor_origin_in_world,
-        source_frame_seq: frame_seq,
-        invalid_pixels: cloud.invalid_pixels.min(u32::MAX as usize) as u32,
-        detector_id: detector_id.to_owned(),
-    })
 }
 
 /// Frames waiting for detection, over all served trolleys.
@@ -191,7 +168,7 @@ pub async fn run(
                 let cfg = config.clone();
                 let detector_id = did.clone();
                 let seq = header.seq;
-                let result = tokio::task::spawn_blocking(move || frame_to_cloud(&frame, seq, &detector_id, &cfg))
+                let result = tokio::task::spawn_blocking(move || detect_frame(&frame, seq, &detector_id, &cfg))
                     .await
                     .context("detection task failed")?;
                 let cloud = match result {

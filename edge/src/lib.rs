@@ -1,13 +1,15 @@
 //! The trolley process: streams RGB-D frames and arm state, executes ranked views.
 //!
-//! The loop is the paper's Algorithm 1 split across machines: capture a frame (seq n) and publish
-//! it with the arm state; wait for RankedViews planned on frame n; execute the first view the arm
-//! can reach; capture again. When no planner answers in time the edge re-announces frame n.
-//! The source is the simulated glasshouse ([`glasshouse_sim`]); the clock is simulated: each view
-//! costs its motion time plus a capture time.
+//! The loop itself is [`glasshouse_pipeline::EdgeNode`] (capture, announce, wait for views on
+//! the latest frame or announce it again, execute the first reachable view, move along the row);
+//! this crate is its driver: it performs the node's actions on the bus and on a
+//! [`TrolleySource`] (the simulated glasshouse by default, a recording with `replay_dir`), and
+//! feeds back what happened. The clock is simulated: each view costs its motion time plus a
+//! capture time.
 
 pub mod source;
 
+use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -17,26 +19,26 @@ use anyhow::Context;
 use glasshouse_bus::{
     declare_alive, Delivery, DropCounters, Received, Shutdown, TypedPublisher, TypedSubscriber,
 };
-use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
-use glasshouse_proto::{
-    FruitEstimates, Header, Message, RankedView, RgbdFrame, TrolleyState, TrolleyStatus,
+use glasshouse_pipeline::{
+    EdgeAction, EdgeInput, EdgeNode, EdgeSettings, SimTrolley, SimTrolleySettings, TrolleySource,
 };
-use glasshouse_sim::{CameraModel, ScenarioKind, Scene};
-use nalgebra::Isometry3;
+use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
+use glasshouse_proto::{FruitEstimates, Header, Message};
+use glasshouse_sim::ScenarioKind;
 use serde::Deserialize;
-use source::{FrameRecorder, ReplaySource, SimSource, TrolleySource};
+use source::{FrameRecorder, ReplaySource};
+use tokio::time::Instant;
 use zenoh::Session;
 
-/// Depth is sent in millimetres.
-pub const DEPTH_SCALE_M: f32 = 0.001;
+pub use glasshouse_pipeline::EdgeEvent;
 
 /// Edge settings; every field has a default, a JSON5 file may set any of them.
 #[derive(Clone, Debug, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EdgeConfig {
     pub trolley_id: String,
-    /// Scenario name: `1`, `2` or `row`.
-    pub scenario: String,
+    /// Scenario: `1`, `2` or `row`.
+    pub scenario: ScenarioKind,
     pub seed: u64,
     pub width: u32,
     pub height: u32,
@@ -65,7 +67,7 @@ impl Default for EdgeConfig {
     fn default() -> Self {
         Self {
             trolley_id: "t1".into(),
-            scenario: "1".into(),
+            scenario: ScenarioKind::One,
             seed: 1,
             width: 640,
             height: 480,
@@ -73,7 +75,7 @@ impl Default for EdgeConfig {
             views_timeout_ms: 3000,
             capture_time_s: glasshouse_arm::CAPTURE_TIME_S,
             segment_length_m: 1.0,
-            segment_done_utility: 0.2,
+            segment_done_utility: glasshouse_nbv::PlannerConfig::default().utility_threshold,
             replay_dir: None,
             record_frames_dir: None,
             frame_interval_ms: 0,
@@ -82,7 +84,7 @@ impl Default for EdgeConfig {
 }
 
 impl EdgeConfig {
-    pub fn validate(&self) -> anyhow::Result<ScenarioKind> {
+    pub fn validate(&self) -> anyhow::Result<()> {
         keys::validate_id(&self.trolley_id)?;
         anyhow::ensure!(
             (16..=1280).contains(&self.width) && (12..=960).contains(&self.height),
@@ -98,28 +100,36 @@ impl EdgeConfig {
             self.segment_length_m.is_finite() && self.segment_length_m > 0.0,
             "segment length must be finite and > 0"
         );
-        self.scenario
-            .parse::<ScenarioKind>()
-            .map_err(|e| anyhow::anyhow!("{e}"))
+        Ok(())
     }
-}
 
-/// What the edge reports to an embedding process (the demo prints these).
-#[derive(Clone, Debug)]
-pub enum EdgeEvent {
-    /// A view was executed.
-    ViewDone {
-        views_done: u32,
-        frame_seq: u64,
-        view: RankedView,
-        sim_time_s: f64,
-    },
-    /// Nothing above the threshold was left in a segment; the trolley moved to the next one.
-    SegmentDone { segments_done: u32, sim_time_s: f64 },
-    /// No planner answered frame `frame_seq` in time; it was published again.
-    Reannounced { frame_seq: u64 },
-    /// The view budget is spent and the last frame was answered.
-    Finished { views_done: u32, frames: u64 },
+    /// The loop's settings.
+    pub fn loop_settings(&self) -> EdgeSettings {
+        EdgeSettings {
+            trolley_id: self.trolley_id.clone(),
+            max_views: self.max_views,
+            capture_time_s: self.capture_time_s,
+            segment_done_utility: self.segment_done_utility,
+        }
+    }
+
+    /// The simulated trolley these settings describe.
+    pub fn sim(&self) -> SimTrolleySettings {
+        SimTrolleySettings {
+            scenario: self.scenario,
+            seed: self.seed,
+            width: self.width,
+            height: self.height,
+            segment_length_m: self.segment_length_m,
+        }
+    }
+
+    fn open_source(&self) -> anyhow::Result<Box<dyn TrolleySource>> {
+        Ok(match &self.replay_dir {
+            Some(dir) => Box::new(ReplaySource::open(dir)?),
+            None => Box::new(SimTrolley::new(self.sim())?),
+        })
+    }
 }
 
 /// Counters the edge exposes to tests and status messages.
@@ -128,7 +138,226 @@ pub struct EdgeCounters {
     pub drops: Arc<DropCounters>,
 }
 
-/// Runs the trolley until its view budget is spent or `shutdown` fires.
+/// The edge's publishers.
+struct Outputs {
+    rgbd: TypedPublisher,
+    arm: TypedPublisher,
+    info: TypedPublisher,
+    status: TypedPublisher,
+    truth: TypedPublisher,
+}
+
+impl Outputs {
+    async fn declare(
+        session: &Session,
+        tid: &str,
+        drops: &Arc<DropCounters>,
+    ) -> anyhow::Result<Self> {
+        let declare = |topic, delivery| {
+            let (session, drops) = (session.clone(), drops.clone());
+            let key = keys::trolley(tid, topic);
+            async move { TypedPublisher::declare(&session, key?, delivery, drops).await }
+        };
+        Ok(Self {
+            rgbd: declare(TrolleyTopic::Rgbd, Delivery::Stream).await?,
+            arm: declare(TrolleyTopic::Arm, Delivery::Stream).await?,
+            info: declare(TrolleyTopic::Info, Delivery::Reliable).await?,
+            status: declare(TrolleyTopic::Status, Delivery::Reliable).await?,
+            truth: declare(TrolleyTopic::Truth, Delivery::Reliable).await?,
+        })
+    }
+
+    async fn close(self) {
+        for p in [self.rgbd, self.arm, self.info, self.status, self.truth] {
+            p.close().await;
+        }
+    }
+}
+
+/// The messages that announce the latest frame (published again on a re-announce).
+struct Announcement {
+    info: Message,
+    arm: Message,
+    frame: Message,
+}
+
+/// Performs the node's actions on the bus and the source.
+struct Driver {
+    config: EdgeConfig,
+    source: Option<Box<dyn TrolleySource>>,
+    out: Outputs,
+    drops: Arc<DropCounters>,
+    recorder: Option<FrameRecorder>,
+    truth: Option<Message>,
+    announcement: Option<Announcement>,
+    views_deadline: Option<Instant>,
+    next_capture: Instant,
+    views_done: u32,
+    events: Option<tokio::sync::mpsc::UnboundedSender<EdgeEvent>>,
+}
+
+impl Driver {
+    fn header(&self, seq: u64, sim_time_s: f64) -> Header {
+        let tid = &self.config.trolley_id;
+        Header {
+            seq,
+            stamp_ns: (sim_time_s * 1e9) as u64,
+            trolley_id: tid.clone(),
+            source_id: tid.clone(),
+            frame_id: "world".into(),
+        }
+    }
+
+    /// Runs `f` on the source on a blocking thread (rendering and IK are heavy).
+    async fn on_source<T: Send + 'static>(
+        &mut self,
+        f: impl FnOnce(&mut dyn TrolleySource) -> T + Send + 'static,
+    ) -> anyhow::Result<T> {
+        let mut source = self.source.take().context("the source is busy")?;
+        let (source, value) = tokio::task::spawn_blocking(move || {
+            let value = f(source.as_mut());
+            (source, value)
+        })
+        .await
+        .context("source task failed")?;
+        self.source = Some(source);
+        Ok(value)
+    }
+
+    async fn capture(&mut self, frame_seq: u64) -> anyhow::Result<EdgeInput> {
+        if self.config.frame_interval_ms > 0 {
+            tokio::time::sleep_until(self.next_capture).await;
+            self.next_capture =
+                Instant::now() + Duration::from_millis(self.config.frame_interval_ms);
+        }
+        let views_done = self.views_done;
+        let captured = self
+            .on_source(move |s| {
+                let frame = s.capture(frame_seq)?;
+                Ok::<_, String>(frame.map(|f| (f, s.info(), s.arm_state(false, views_done))))
+            })
+            .await?
+            .map_err(|e| anyhow::anyhow!("capture failed: {e}"))?;
+        let Some((frame, info, arm)) = captured else {
+            tracing::info!(trolley = %self.config.trolley_id, "the source has no more frames");
+            return Ok(EdgeInput::Captured { frame: false });
+        };
+        let announcement = Announcement {
+            info: Message::TrolleyInfo(info),
+            arm: Message::ArmState(arm),
+            frame: Message::RgbdFrame(frame),
+        };
+        if let Some(recorder) = &self.recorder {
+            let h = self.header(frame_seq, 0.0);
+            recorder.write(&h, &announcement.info)?;
+            recorder.write(&h, &announcement.frame)?;
+        }
+        self.announcement = Some(announcement);
+        Ok(EdgeInput::Captured { frame: true })
+    }
+
+    async fn announce(&self, header: &Header) -> anyhow::Result<()> {
+        let Some(a) = &self.announcement else {
+            return Ok(());
+        };
+        self.out.info.publish(header, &a.info).await?;
+        if let Some(truth) = &self.truth {
+            self.out.truth.publish(header, truth).await?;
+        }
+        self.out.arm.publish(header, &a.arm).await?;
+        self.out.rgbd.publish(header, &a.frame).await?;
+        Ok(())
+    }
+
+    fn report(&mut self, event: EdgeEvent) {
+        let tid = &self.config.trolley_id;
+        match &event {
+            EdgeEvent::ViewDone { views_done, .. } => self.views_done = *views_done,
+            EdgeEvent::NoReachableView { frame_seq, offered } => {
+                tracing::info!(trolley = %tid, frame_seq, offered, "no reachable view; capturing again")
+            }
+            EdgeEvent::Reannounced { frame_seq } => {
+                tracing::info!(trolley = %tid, frame_seq, "no views yet; re-announcing the frame")
+            }
+            EdgeEvent::SegmentDone { segments_done, .. } => {
+                tracing::info!(trolley = %tid, segment = segments_done, "segment done; moving along the row")
+            }
+            _ => {}
+        }
+        if let Some(tx) = &self.events {
+            let _ = tx.send(event);
+        }
+    }
+
+    /// Performs one action; the event it produced, if any.
+    async fn perform(&mut self, action: EdgeAction) -> anyhow::Result<Option<EdgeInput>> {
+        Ok(match action {
+            EdgeAction::Capture { frame_seq } => Some(self.capture(frame_seq).await?),
+            EdgeAction::Announce {
+                frame_seq,
+                sim_time_s,
+            } => {
+                self.announce(&self.header(frame_seq, sim_time_s)).await?;
+                None
+            }
+            EdgeAction::AwaitViews => {
+                let timeout = Duration::from_millis(self.config.views_timeout_ms);
+                self.views_deadline = Some(Instant::now() + timeout);
+                None
+            }
+            EdgeAction::PublishStatus {
+                frame_seq,
+                sim_time_s,
+                mut status,
+            } => {
+                status.dropped_messages = self.drops.total();
+                let header = self.header(frame_seq, sim_time_s);
+                let message = Message::TrolleyStatus(status);
+                self.out.status.publish(&header, &message).await?;
+                None
+            }
+            EdgeAction::Execute { goals } => Some(EdgeInput::Executed(
+                self.on_source(move |s| s.execute(&goals)).await?,
+            )),
+            EdgeAction::PublishArmMoving {
+                frame_seq,
+                sim_time_s,
+                views_done,
+            } => {
+                let arm = self
+                    .on_source(move |s| s.arm_state(true, views_done))
+                    .await?;
+                let header = self.header(frame_seq, sim_time_s);
+                self.out
+                    .arm
+                    .publish(&header, &Message::ArmState(arm))
+                    .await?;
+                None
+            }
+            EdgeAction::MoveToNextSegment => Some(EdgeInput::SegmentMoved(
+                self.on_source(|s| s.next_segment()).await?,
+            )),
+            EdgeAction::Report(event) => {
+                self.report(event);
+                None
+            }
+            EdgeAction::Stop => None,
+        })
+    }
+
+    /// Performs actions (and those their outcomes cause) until none is left.
+    async fn drain(&mut self, node: &mut EdgeNode, actions: Vec<EdgeAction>) -> anyhow::Result<()> {
+        let mut queue: VecDeque<EdgeAction> = actions.into();
+        while let Some(action) = queue.pop_front() {
+            if let Some(input) = self.perform(action).await? {
+                queue.extend(node.handle(input));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Runs the trolley until its view budget is spent, its source ends or `shutdown` fires.
 pub async fn run(
     session: Session,
     config: EdgeConfig,
@@ -136,38 +365,15 @@ pub async fn run(
     events: Option<tokio::sync::mpsc::UnboundedSender<EdgeEvent>>,
     counters: Arc<EdgeCounters>,
 ) -> anyhow::Result<()> {
-    let scenario = config.validate()?;
+    config.validate()?;
     let tid = config.trolley_id.clone();
     let drops = counters.drops.clone();
-    let publisher = |topic, delivery| {
-        let session = session.clone();
-        let drops = drops.clone();
-        let key = keys::trolley(&tid, topic);
-        async move { TypedPublisher::declare(&session, key?, delivery, drops).await }
-    };
-    let rgbd = publisher(TrolleyTopic::Rgbd, Delivery::Stream).await?;
-    let arm = publisher(TrolleyTopic::Arm, Delivery::Stream).await?;
-    let info_pub = publisher(TrolleyTopic::Info, Delivery::Reliable).await?;
-    let status_pub = publisher(TrolleyTopic::Status, Delivery::Reliable).await?;
-    let truth_pub = publisher(TrolleyTopic::Truth, Delivery::Reliable).await?;
-    let views_sub = TypedSubscriber::declare(
-        &session,
-        &keys::trolley(&tid, TrolleyTopic::Views)?,
-        Delivery::Reliable,
-        drops.clone(),
-    )
-    .await?;
+    let out = Outputs::declare(&session, &tid, &drops).await?;
+    let views_key = keys::trolley(&tid, TrolleyTopic::Views)?;
+    let views =
+        TypedSubscriber::declare(&session, &views_key, Delivery::Reliable, drops.clone()).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
-
-    let mut source: Box<dyn TrolleySource> = match &config.replay_dir {
-        Some(dir) => Box::new(ReplaySource::open(dir)?),
-        None => Box::new(SimSource::new(&config)?),
-    };
-    let recorder = config
-        .record_frames_dir
-        .as_deref()
-        .map(FrameRecorder::create)
-        .transpose()?;
+    let source = config.open_source()?;
     let truth = source.ground_truth().map(|fruits| {
         Message::FruitEstimates(FruitEstimates {
             fruits,
@@ -175,221 +381,48 @@ pub async fn run(
             planner_id: format!("truth-{tid}"),
         })
     });
-    let mut sim_time_s = 0.0;
-    let mut frame_seq = 0u64;
-    let mut segments_done = 0u32;
-    let mut status = TrolleyStatus {
-        state: TrolleyState::Starting,
+    let recorder = config
+        .record_frames_dir
+        .as_deref()
+        .map(FrameRecorder::create);
+    let mut driver = Driver {
+        recorder: recorder.transpose()?,
+        source: Some(source),
+        out,
+        drops: drops.clone(),
+        truth,
+        announcement: None,
+        views_deadline: None,
+        next_capture: Instant::now(),
         views_done: 0,
-        frames_published: 0,
-        unreachable_views: 0,
-        reannounces: 0,
-        dropped_messages: 0,
-        last_views_seq: 0,
-        message: String::new(),
+        events,
+        config,
     };
-    tracing::info!(trolley = %tid, %scenario, seed = config.seed, "edge started");
-    let header = |seq: u64, sim_time_s: f64| Header {
-        seq,
-        stamp_ns: (sim_time_s * 1e9) as u64,
-        trolley_id: tid.clone(),
-        source_id: tid.clone(),
-        frame_id: "world".into(),
-    };
-    let emit = |event: EdgeEvent| {
-        if let Some(tx) = &events {
-            let _ = tx.send(event);
-        }
-    };
-
-    let mut next_capture = tokio::time::Instant::now();
-    'capture: loop {
-        if shutdown.is_set() {
-            break;
-        }
-        if config.frame_interval_ms > 0 {
-            tokio::time::sleep_until(next_capture).await;
-            next_capture =
-                tokio::time::Instant::now() + Duration::from_millis(config.frame_interval_ms);
-        }
-        frame_seq += 1;
-        status.state = TrolleyState::Capturing;
-        let (returned, frame) = tokio::task::spawn_blocking(move || {
-            let frame = source.capture(frame_seq);
-            (source, frame)
-        })
-        .await
-        .context("capture task failed")?;
-        source = returned;
-        let Some(frame) = frame? else {
-            tracing::info!(trolley = %tid, "the source has no more frames");
-            emit(EdgeEvent::Finished {
-                views_done: status.views_done,
-                frames: status.frames_published,
-            });
-            break;
-        };
-        let info_msg = Message::TrolleyInfo(source.info());
-        let frame_msg = Message::RgbdFrame(frame);
-        if let Some(recorder) = &recorder {
-            let h = header(frame_seq, sim_time_s);
-            recorder.write(&h, &info_msg)?;
-            recorder.write(&h, &frame_msg)?;
-        }
-        let arm_msg = Message::ArmState(source.arm_state(false, status.views_done));
-        let announce = |seq: u64, t: f64| {
-            let h = header(seq, t);
-            let (info_pub, arm, rgbd, truth_pub) = (&info_pub, &arm, &rgbd, &truth_pub);
-            let (info_msg, arm_msg, frame_msg, truth) = (&info_msg, &arm_msg, &frame_msg, &truth);
-            async move {
-                info_pub.publish(&h, info_msg).await?;
-                if let Some(truth) = truth {
-                    truth_pub.publish(&h, truth).await?;
+    tracing::info!(trolley = %tid, scenario = %driver.config.scenario, seed = driver.config.seed, "edge started");
+    let mut node = EdgeNode::new(driver.config.loop_settings());
+    let start = node.handle(EdgeInput::Start);
+    driver.drain(&mut node, start).await?;
+    while !node.is_done() {
+        let deadline = driver.views_deadline.unwrap_or_else(Instant::now);
+        let input = tokio::select! {
+            _ = shutdown.wait() => break,
+            received = views.recv() => match received {
+                Some(Received { header, message: Message::RankedViews(views), .. }) => {
+                    EdgeInput::Views { trolley_id: header.trolley_id, views }
                 }
-                arm.publish(&h, arm_msg).await?;
-                rgbd.publish(&h, frame_msg).await
-            }
+                Some(_) => continue,
+                None => break,
+            },
+            _ = tokio::time::sleep_until(deadline), if node.is_waiting_for_views() => EdgeInput::ViewsTimedOut,
         };
-        announce(frame_seq, sim_time_s).await?;
-        status.frames_published += 1;
-        status.state = TrolleyState::WaitingForViews;
-        status.dropped_messages = drops.total();
-        status_pub
-            .publish(
-                &header(frame_seq, sim_time_s),
-                &Message::TrolleyStatus(status.clone()),
-            )
-            .await?;
-
-        // Wait for views planned on this frame; re-announce it when nobody answers.
-        let views = loop {
-            let timeout = Duration::from_millis(config.views_timeout_ms);
-            tokio::select! {
-                _ = shutdown.wait() => break 'capture,
-                received = tokio::time::timeout(timeout, views_sub.recv()) => match received {
-                    Err(_) => {
-                        status.reannounces += 1;
-                        tracing::info!(trolley = %tid, frame_seq, "no views yet; re-announcing the frame");
-                        emit(EdgeEvent::Reannounced { frame_seq });
-                        announce(frame_seq, sim_time_s).await?;
-                    }
-                    Ok(None) => break 'capture,
-                    Ok(Some(Received { header, message: Message::RankedViews(views), .. })) => {
-                        if header.trolley_id == tid && views.based_on_seq == frame_seq {
-                            break views;
-                        }
-                        tracing::debug!(based_on = views.based_on_seq, frame_seq, "ignoring views planned on another frame");
-                    }
-                    Ok(Some(_)) => {}
-                },
-            }
-        };
-        status.last_views_seq = views.based_on_seq;
-        if config.max_views > 0 && status.views_done >= config.max_views {
-            emit(EdgeEvent::Finished {
-                views_done: status.views_done,
-                frames: status.frames_published,
-            });
-            break;
-        }
-        // Nothing worth a look is left in this segment: move on along the row.
-        let best_utility = views.views.first().map_or(f32::NEG_INFINITY, |v| v.utility);
-        if f64::from(best_utility) <= config.segment_done_utility {
-            match source.next_segment() {
-                Some(motion_s) => {
-                    segments_done += 1;
-                    sim_time_s += motion_s + config.capture_time_s;
-                    tracing::info!(trolley = %tid, frame_seq, best_utility, segment = segments_done, "segment done; moving along the row");
-                    emit(EdgeEvent::SegmentDone {
-                        segments_done,
-                        sim_time_s,
-                    });
-                    continue;
-                }
-                None if !views.views.is_empty() => {}
-                None => {
-                    tracing::info!(trolley = %tid, frame_seq, "row done: no view left above the threshold");
-                    emit(EdgeEvent::Finished {
-                        views_done: status.views_done,
-                        frames: status.frames_published,
-                    });
-                    break;
-                }
-            }
-        }
-        // Execute the first reachable view (Algorithm 1: "moveToPose, else the next view"):
-        // inverse kinematics, then a collision-free joint path.
-        let goals: Vec<Isometry3<f64>> = views.views.iter().map(|v| v.world_from_camera).collect();
-        let executed = source.execute(&goals);
-        status.unreachable_views += executed.map_or(goals.len(), |e| e.index) as u32;
-        let Some(executed) = executed else {
-            tracing::info!(trolley = %tid, frame_seq, offered = views.views.len(), "no reachable view; capturing again");
-            sim_time_s += config.capture_time_s;
-            continue;
-        };
-        let view = views.views[executed.index].clone();
-        status.state = TrolleyState::Moving;
-        sim_time_s += executed.motion_s + config.capture_time_s;
-        arm.publish(
-            &header(frame_seq, sim_time_s),
-            &Message::ArmState(source.arm_state(true, status.views_done)),
-        )
-        .await?;
-        status.views_done += 1;
-        emit(EdgeEvent::ViewDone {
-            views_done: status.views_done,
-            frame_seq,
-            view,
-            sim_time_s,
-        });
+        let actions = node.handle(input);
+        driver.drain(&mut node, actions).await?;
     }
-
-    status.state = TrolleyState::Done;
-    status.dropped_messages = drops.total();
-    status.message = format!(
-        "{} views, {} frames",
-        status.views_done, status.frames_published
-    );
-    status_pub
-        .publish(
-            &header(frame_seq, sim_time_s),
-            &Message::TrolleyStatus(status.clone()),
-        )
-        .await?;
-    for p in [rgbd, arm, info_pub, status_pub, truth_pub] {
-        p.close().await;
-    }
+    let last = node.finish();
+    driver.drain(&mut node, last).await?;
+    driver.out.close().await;
+    let status = node.status();
     tracing::info!(trolley = %tid, views = status.views_done, frames = status.frames_published,
         dropped = drops.total(), corrupt = drops.corrupt.load(Ordering::Relaxed), "edge stopped");
     Ok(())
-}
-
-/// Renders the simulated camera and packs the frame for the wire (depth in millimetres).
-pub fn render_frame(
-    scene: &Scene,
-    camera: &CameraModel,
-    world_from_camera: &Isometry3<f64>,
-    noise_seed: u64,
-) -> RgbdFrame {
-    let image = scene.render(camera, world_from_camera, noise_seed);
-    let depth = image
-        .depth_m
-        .iter()
-        .map(|&d| {
-            if d.is_finite() && d > 0.0 {
-                (d / DEPTH_SCALE_M).round().clamp(1.0, u16::MAX as f32) as u16
-            } else {
-                0
-            }
-        })
-        .collect();
-    RgbdFrame {
-        intrinsics: image.intrinsics,
-        world_from_camera: *world_from_camera,
-        depth_scale_m: DEPTH_SCALE_M,
-        min_range_m: camera.min_range_m as f32,
-        max_range_m: camera.max_range_m as f32,
-        depth,
-        rgb: image.rgb,
-    }
 }

@@ -24,7 +24,7 @@ struct Cli {
     trolley_id: Option<String>,
     /// Simulated scenario: 1, 2 or row.
     #[arg(long)]
-    scenario: Option<String>,
+    scenario: Option<glasshouse_sim::ScenarioKind>,
     /// Scene seed.
     #[arg(long)]
     seed: Option<u64>,

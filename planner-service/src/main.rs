@@ -10,8 +10,9 @@ use glasshouse_planner::{PlannerCounters, PlannerSettings};
 /// Integrates ROI clouds into a voxel map per trolley, publishes ranked next best views and
 /// fruit estimates.
 ///
-/// Settings: defaults, then `--config FILE` (JSON5: planner_id, method, seed, resolution_m,
-/// max_range_m, min_cluster_voxels, status_period_ms), then the flags below.
+/// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms, and
+/// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
+/// scoring_threads }`), then the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "planner-service", version)]
 struct Cli {
@@ -23,7 +24,7 @@ struct Cli {
     planner_id: Option<String>,
     /// Planning method: ours-uu, ours-up, explo-uu or explo-up.
     #[arg(long)]
-    method: Option<String>,
+    method: Option<glasshouse_nbv::Method>,
     /// Planner seed (views are seeded from it and the frame sequence).
     #[arg(long)]
     seed: Option<u64>,
@@ -40,10 +41,10 @@ async fn main() -> anyhow::Result<()> {
         settings.planner_id = v;
     }
     if let Some(v) = cli.method {
-        settings.method = v;
+        settings.planning.method = v;
     }
     if let Some(v) = cli.seed {
-        settings.seed = v;
+        settings.planning.seed = v;
     }
     settings.validate()?;
     let session = glasshouse_bus::open(&cli.bus).await?;

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use glasshouse_planner::PlannerSettings;
 use glasshouse_proto::keys::{self, TrolleyTopic};
 use glasshouse_proto::{Message, RoiCloud};
-use glasshouse_roimap::{MapConfig, RoiMap};
+use glasshouse_roimap::RoiMap;
 use glasshouse_tests::procs::{build_binaries, Proc};
 use glasshouse_tests::{client, free_port, within};
 use zenoh::handlers::FifoChannel;
@@ -23,12 +23,7 @@ fn decode(sample: &zenoh::sample::Sample) -> Option<(glasshouse_proto::Header, M
 /// sequence once, in arrival order (the planner's rule).
 fn rebuild(clouds: &[RoiCloud]) -> RoiMap {
     let settings = PlannerSettings::default();
-    let mut map = RoiMap::new(MapConfig {
-        resolution_m: settings.resolution_m,
-        max_range_m: Some(settings.max_range_m),
-        ..MapConfig::default()
-    })
-    .expect("map config");
+    let mut map = RoiMap::new(settings.planning.map_config()).expect("map config");
     let mut last = None;
     for c in clouds {
         if last.is_none_or(|l| c.source_frame_seq > l) {

@@ -66,7 +66,7 @@ async fn the_row_trolley_moves_on_segment_by_segment() {
     // A threshold no view reaches: every plan says "nothing left here", so the trolley walks
     // the whole row, then executes views in the last segment.
     let config = EdgeConfig {
-        scenario: "row".into(),
+        scenario: glasshouse_sim::ScenarioKind::Row,
         segment_length_m: 1.0,
         segment_done_utility: 10.0,
         ..test_edge_config(2)

@@ -5,8 +5,8 @@
 //!
 //! - [`metrics`]: greedy one-to-one matching of estimates to ground truth and the Table I metrics;
 //! - [`stats`]: mean ± std and the one-sided Mann-Whitney U test;
-//! - [`trial`]: a seeded trial through the same detector and planner code the services run, on the
-//!   simulator's clock, with the [`trial::Motion`] rule deciding reachability and motion time;
+//! - [`trial`]: a seeded trial through the same steps the services run ([`glasshouse_pipeline`]: the
+//!   edge's state machine, detection, the per-trolley planner), on the simulator's clock;
 //! - [`report`]: per-trial CSV, Table I markdown, p-values and `summary.json`;
 //! - [`plot`]: PNG line plots of the mean curves.
 
@@ -19,7 +19,4 @@ pub mod trial;
 pub use metrics::{evaluate, greedy_match, BoxEstimate, Match, Metrics, MATCH_DISTANCE_M};
 pub use report::{MethodRuns, METRICS};
 pub use stats::{mann_whitney_u, mean_std, Alternative, MannWhitney, MeanStd};
-pub use trial::{
-    run_trial, ArmMotion, ComputeTime, EvalError, Executed, FreeCameraMotion, Motion, MotionKind,
-    Sample, Trial, TrialConfig, TrialResult,
-};
+pub use trial::{run_trial, ComputeTime, EvalError, Sample, Trial, TrialConfig, TrialResult};

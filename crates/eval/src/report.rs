@@ -342,23 +342,23 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         }
         out.push('\n');
     }
-    let _ = write!(out, "| {scenario} | views executed |");
-    for r in runs {
-        let views: Vec<f64> = r.trials.iter().map(|t| f64::from(t.views)).collect();
-        let _ = write!(out, " {} |", cell(&views, 1));
+    let rows: [(&str, fn(&TrialResult) -> Option<f64>); 3] = [
+        ("views executed", |t| Some(f64::from(t.views))),
+        ("planner compute per frame (ms)", |t| {
+            (t.frames > 0).then(|| 1e3 * t.compute_time_s / t.frames as f64)
+        }),
+        ("frames with no reachable view (%)", |t| {
+            (t.frames > 0).then(|| 100.0 * t.frames_without_reachable_view as f64 / t.frames as f64)
+        }),
+    ];
+    for (label, value) in rows {
+        let _ = write!(out, "| {scenario} | {label} |");
+        for r in runs {
+            let values: Vec<f64> = r.trials.iter().filter_map(value).collect();
+            let _ = write!(out, " {} |", cell(&values, 1));
+        }
+        out.push('\n');
     }
-    out.push('\n');
-    let _ = write!(out, "| {scenario} | planner compute per frame (ms) |");
-    for r in runs {
-        let per_frame_ms: Vec<f64> = r
-            .trials
-            .iter()
-            .filter(|t| t.frames > 0)
-            .map(|t| 1e3 * t.compute_time_s / t.frames as f64)
-            .collect();
-        let _ = write!(out, " {} |", cell(&per_frame_ms, 1));
-    }
-    out.push('\n');
 
     let p = p_values(runs);
     let pairs: Vec<(Method, Method)> = runs
@@ -497,8 +497,10 @@ mod tests {
             views: 1,
             frames: 2,
             unreachable_views: 0,
+            frames_without_reachable_view: 0,
             compute_time_s: 0.002,
             fruits: Vec::new(),
+            plans: Vec::new(),
         }
     }
 

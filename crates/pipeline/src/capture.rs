@@ -50,7 +50,7 @@ pub fn render_frame(
 
 /// A trolley's camera and arm, as the edge's loop sees them: the simulator, a recording, or a
 /// real driver.
-pub trait TrolleySource: Send {
+pub trait TrolleySource: Send + Sync {
     /// What planners need to know about this trolley now (regions follow the segment).
     fn info(&self) -> TrolleyInfo;
     /// Ground truth, when the source knows it (the simulator does).

@@ -189,14 +189,15 @@ impl EdgeNode {
     }
 
     /// Ends the loop now (shutdown, or the end of the run): the final status, then `Stop`.
+    /// Nothing when the loop is already over.
     pub fn finish(&mut self) -> Vec<EdgeAction> {
-        let mut actions = Vec::new();
-        if self.phase != Phase::Done {
-            actions.push(EdgeAction::Report(EdgeEvent::Finished {
-                views_done: self.status.views_done,
-                frames: self.status.frames_published,
-            }));
+        if self.phase == Phase::Done {
+            return Vec::new();
         }
+        let mut actions = vec![EdgeAction::Report(EdgeEvent::Finished {
+            views_done: self.status.views_done,
+            frames: self.status.frames_published,
+        })];
         self.phase = Phase::Done;
         self.status.state = TrolleyState::Done;
         self.status.message = format!(

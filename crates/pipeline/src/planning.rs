@@ -247,14 +247,8 @@ impl TrolleyPlanner {
         world_from_camera: &Isometry3<f64>,
         frame_seq: u64,
     ) -> Result<Option<Plan>, PlanningError> {
-        let Some(info) = &self.info else {
+        let Some(ctx) = self.context(world_from_camera) else {
             return Ok(None);
-        };
-        let ctx = PlanningContext {
-            map: &self.map,
-            world_from_camera: *world_from_camera,
-            camera_workspace: info.camera_workspace,
-            sampling_region: info.sampling_region,
         };
         let seed = plan_seed(self.settings.seed, frame_seq);
         Ok(Some(plan_views(
@@ -262,6 +256,17 @@ impl TrolleyPlanner {
             &self.settings.planner_config(),
             seed,
         )?))
+    }
+
+    /// What a plan from `world_from_camera` looks at; None until the trolley's info is known.
+    pub fn context(&self, world_from_camera: &Isometry3<f64>) -> Option<PlanningContext<'_>> {
+        let info = self.info.as_ref()?;
+        Some(PlanningContext {
+            map: &self.map,
+            world_from_camera: *world_from_camera,
+            camera_workspace: info.camera_workspace,
+            sampling_region: info.sampling_region,
+        })
     }
 
     /// The solid voxels changed since the last call (and the ones that stopped being solid).

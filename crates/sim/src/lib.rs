@@ -38,8 +38,10 @@ pub const DIFFUSE: f32 = 0.55;
 /// Colour of pixels whose ray meets nothing.
 const SKY_RGB: [u8; 3] = [170, 200, 230];
 
-/// The simulated set-ups: the paper's two scenarios and a glasshouse row for the fleet.
+/// The simulated set-ups: the paper's two scenarios and a glasshouse row for the fleet. Settings
+/// files and JSON spell them as on the command line (`"1"`, `"2"`, `"row"`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
 pub enum ScenarioKind {
     /// Paper §VII-A scenario 1: arm on a static pole, four plants, two with seven fruits.
     One,
@@ -64,6 +66,20 @@ impl FromStr for ScenarioKind {
             "row" => Ok(ScenarioKind::Row),
             _ => Err(ParseScenarioError(s.to_string())),
         }
+    }
+}
+
+impl TryFrom<String> for ScenarioKind {
+    type Error = ParseScenarioError;
+
+    fn try_from(s: String) -> Result<Self, Self::Error> {
+        s.parse()
+    }
+}
+
+impl From<ScenarioKind> for String {
+    fn from(kind: ScenarioKind) -> String {
+        kind.to_string()
     }
 }
 

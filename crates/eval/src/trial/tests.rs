@@ -1,0 +1,142 @@
+#![allow(clippy::unwrap_used)]
+
+use glasshouse_pipeline::Executed;
+use glasshouse_proto::{ArmState, Fruit, TrolleyInfo};
+use nalgebra::Isometry3;
+
+use super::*;
+
+fn small(method: Method, budget_s: f64) -> TrialConfig {
+    TrialConfig {
+        width: 96,
+        height: 72,
+        budget_s,
+        compute_time: ComputeTime::Fixed { ms: 50.0 },
+        ..TrialConfig::new(ScenarioKind::Two, method, 3)
+    }
+}
+
+#[test]
+fn a_trial_samples_every_second_and_finds_fruit() {
+    let result = run_trial(small(Method::OursUu, 20.0), |_| {}).unwrap();
+    assert_eq!(result.samples.len(), 21);
+    for (i, s) in result.samples.iter().enumerate() {
+        assert_eq!(s.time_s, i as u32);
+        assert!(s.boxes.detected <= result.fruits_total);
+        assert!((0.0..=1.0).contains(&s.boxes.covered_volume));
+    }
+    // Nothing is known at 0 s; views and frames never decrease.
+    assert_eq!(result.samples[0].frames, 0);
+    assert_eq!(result.samples[0].boxes.detected, 0);
+    assert!(result
+        .samples
+        .windows(2)
+        .all(|w| w[0].views <= w[1].views && w[0].frames <= w[1].frames));
+    let last = result.last().unwrap();
+    assert!(last.boxes.detected > 0, "{last:?}");
+    assert!(result.views > 3, "{}", result.views);
+    // 50 ms per planning call entered the clock.
+    assert!((result.compute_time_s - 0.05 * result.frames as f64).abs() < 1e-9);
+    // One ranked list per frame, planned on that frame.
+    assert_eq!(result.plans.len() as u64, result.frames);
+    for (i, plan) in result.plans.iter().enumerate() {
+        assert_eq!(plan.based_on_seq, i as u64 + 1);
+    }
+}
+
+#[test]
+fn fixed_compute_time_replays_exactly() {
+    let config = small(Method::ExploUp, 8.0);
+    let (a, b) = (
+        run_trial(config, |_| {}).unwrap(),
+        run_trial(config, |_| {}).unwrap(),
+    );
+    assert_eq!(
+        serde_json::to_string(&a.samples).unwrap(),
+        serde_json::to_string(&b.samples).unwrap()
+    );
+    assert_eq!(a.views, b.views);
+    assert_eq!(a.plans, b.plans);
+}
+
+/// The simulated trolley with an arm that reaches nothing: every frame costs a capture and the
+/// camera never moves.
+struct Stuck(SimTrolley);
+
+impl TrolleySource for Stuck {
+    fn info(&self) -> TrolleyInfo {
+        self.0.info()
+    }
+    fn ground_truth(&self) -> Option<Vec<Fruit>> {
+        self.0.ground_truth()
+    }
+    fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String> {
+        self.0.capture(frame_seq)
+    }
+    fn arm_state(&self, moving: bool, views_done: u32) -> ArmState {
+        self.0.arm_state(moving, views_done)
+    }
+    fn execute(&mut self, _: &[Isometry3<f64>]) -> Option<Executed> {
+        None
+    }
+    fn next_segment(&mut self) -> Option<f64> {
+        None
+    }
+}
+
+#[test]
+fn unreachable_views_cost_a_capture_each() {
+    let config = TrialConfig {
+        capture_time_s: 1.0,
+        compute_time: ComputeTime::Fixed { ms: 0.0 },
+        ..small(Method::OursUu, 4.5)
+    };
+    let source = Stuck(SimTrolley::new(config.sim()).unwrap());
+    let result = Trial::with_source(config, source)
+        .unwrap()
+        .run(|_| {})
+        .unwrap();
+    assert_eq!(result.views, 0);
+    // Frames at 0, 1, 2, 3, 4 s.
+    assert_eq!(result.frames, 5);
+    assert_eq!(result.frames_without_reachable_view, 5);
+    assert!(result.unreachable_views > 0);
+    assert_eq!(result.samples.len(), 5);
+    // A frame captured at t is available at t (0 ms compute): sample t sees frame t + 1.
+    for (t, s) in result.samples.iter().enumerate() {
+        assert_eq!(s.frames, t as u64 + 1);
+    }
+}
+
+#[test]
+fn bad_configurations_are_rejected() {
+    let bad = [
+        TrialConfig {
+            width: 0,
+            ..small(Method::OursUu, 5.0)
+        },
+        TrialConfig {
+            budget_s: f64::NAN,
+            ..small(Method::OursUu, 5.0)
+        },
+        TrialConfig {
+            compute_time: ComputeTime::Fixed { ms: -1.0 },
+            ..small(Method::OursUu, 5.0)
+        },
+        TrialConfig {
+            capture_time_s: 0.0,
+            compute_time: ComputeTime::Fixed { ms: 0.0 },
+            ..small(Method::OursUu, 5.0)
+        },
+        TrialConfig {
+            segment_length_m: 0.0,
+            ..small(Method::OursUu, 5.0)
+        },
+    ];
+    for config in bad {
+        assert!(matches!(
+            Trial::new(config),
+            Err(EvalError::InvalidConfig(_)) | Err(EvalError::Capture(_))
+        ));
+    }
+}

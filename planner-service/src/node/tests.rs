@@ -1,0 +1,310 @@
+#![allow(clippy::unwrap_used)]
+
+use glasshouse_detect::DetectorConfig;
+use glasshouse_pipeline::{detect_frame, SimTrolley, SimTrolleySettings, TrolleySource};
+use glasshouse_sim::ScenarioKind;
+
+use super::*;
+
+/// Trolley t1's info and `n` clouds (frames 1..=n) of scenario 2 at a small resolution.
+fn trolley_clouds(n: u64) -> (TrolleyInfo, Vec<RoiCloud>) {
+    let mut trolley = SimTrolley::new(SimTrolleySettings {
+        scenario: ScenarioKind::Two,
+        seed: 3,
+        width: 96,
+        height: 72,
+        segment_length_m: 1.0,
+    })
+    .unwrap();
+    let clouds = (1..=n)
+        .map(|seq| {
+            let frame = trolley.capture(seq).unwrap().unwrap();
+            detect_frame(&frame, seq, "d1", &DetectorConfig::default()).unwrap()
+        })
+        .collect();
+    (trolley.info(), clouds)
+}
+
+fn header(tid: &str, seq: u64) -> Header {
+    Header {
+        seq,
+        trolley_id: tid.into(),
+        source_id: "d1".into(),
+        frame_id: "world".into(),
+        ..Header::default()
+    }
+}
+
+fn cloud_event(cloud: &RoiCloud) -> PlannerEvent {
+    PlannerEvent::Cloud {
+        header: header("t1", cloud.source_frame_seq),
+        cloud: cloud.clone(),
+    }
+}
+
+fn info_event(info: &TrolleyInfo) -> PlannerEvent {
+    PlannerEvent::Info {
+        header: header("t1", 0),
+        info: info.clone(),
+    }
+}
+
+fn node(pid: &str) -> PlannerNode {
+    PlannerNode::new(
+        pid,
+        PlanningSettings {
+            scoring_threads: 1,
+            ..PlanningSettings::default()
+        },
+    )
+}
+
+fn asks(actions: &[PlannerAction]) -> Vec<(String, Vec<String>)> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::AskSnapshot { tid, sources } => Some((tid.clone(), sources.clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+fn views_of(actions: &[PlannerAction]) -> Vec<RankedViews> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::Publish {
+                output: TrolleyOutput::Views(v),
+                ..
+            } => Some(v.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Two planners that both know each other and t1, with empty, live copies of t1.
+fn pair() -> (PlannerNode, PlannerNode) {
+    let (mut a, mut b) = (node("p1"), node("p2"));
+    for (n, other) in [(&mut a, "p2"), (&mut b, "p1")] {
+        n.handle(PlannerEvent::PlannerJoined(other.into()));
+        let actions = n.handle(PlannerEvent::TrolleyJoined("t1".into()));
+        assert_eq!(
+            asks(&actions),
+            vec![("t1".to_string(), vec![other.to_string()])]
+        );
+        assert!(n.is_loading("t1"));
+        n.handle(PlannerEvent::SnapshotLoaded {
+            tid: "t1".into(),
+            snapshot: None,
+        });
+        assert!(!n.is_loading("t1"));
+    }
+    (a, b)
+}
+
+/// (owner, replica) of t1.
+fn roles(a: PlannerNode, b: PlannerNode) -> (PlannerNode, PlannerNode) {
+    match (a.role("t1"), b.role("t1")) {
+        (Some(Role::Owner), Some(Role::Replica)) => (a, b),
+        (Some(Role::Replica), Some(Role::Owner)) => (b, a),
+        other => panic!("one owner and one replica expected, got {other:?}"),
+    }
+}
+
+#[test]
+fn the_owner_plans_and_publishes_the_replica_only_integrates() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut owner, mut replica) = roles(pair().0, pair().1);
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+    }
+    for cloud in &clouds {
+        let published = owner.handle(cloud_event(cloud));
+        let views = views_of(&published);
+        assert_eq!(views.len(), 1);
+        assert_eq!(views[0].based_on_seq, cloud.source_frame_seq);
+        assert_eq!(published.len(), 3, "views, fruits and map");
+        assert!(replica.handle(cloud_event(cloud)).is_empty());
+    }
+    assert_eq!(owner.stats().clouds_integrated, 2);
+    assert_eq!(replica.stats().clouds_integrated, 2);
+    assert_eq!(owner.stats().views_published, 2);
+    let (om, rm) = (owner.planner("t1").unwrap(), replica.planner("t1").unwrap());
+    assert_eq!(om.map().len(), rm.map().len());
+    assert_eq!(om.last_cloud_seq(), Some(2));
+}
+
+#[test]
+fn planning_waits_for_the_trolley_info() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut owner, _) = roles(pair().0, pair().1);
+    let actions = owner.handle(cloud_event(&clouds[0]));
+    assert!(views_of(&actions).is_empty());
+    assert_eq!(owner.stats().clouds_integrated, 1);
+    owner.handle(info_event(&info));
+    assert_eq!(views_of(&owner.handle(cloud_event(&clouds[1]))).len(), 1);
+}
+
+#[test]
+fn the_replica_takes_over_and_plans_on_the_latest_cloud_at_once() {
+    let (info, clouds) = trolley_clouds(1);
+    let (mut owner, mut replica) = roles(pair().0, pair().1);
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+        n.handle(cloud_event(&clouds[0]));
+    }
+    let lost = owner.pid.clone();
+    let actions = replica.handle(PlannerEvent::PlannerLeft(lost));
+    assert_eq!(replica.role("t1"), Some(Role::Owner));
+    let views = views_of(&actions);
+    assert_eq!(views.len(), 1, "{actions:?}");
+    assert_eq!(views[0].based_on_seq, 1);
+    // The frame was not inserted twice.
+    assert_eq!(replica.stats().clouds_integrated, 2);
+    assert_eq!(
+        replica.planner("t1").unwrap().map().len(),
+        owner.planner("t1").unwrap().map().len()
+    );
+}
+
+#[test]
+fn a_planner_that_leaves_the_owner_demotes_nobody_else() {
+    let (mut a, _) = pair();
+    // Our own token going away is not news.
+    assert!(a.handle(PlannerEvent::PlannerLeft("p1".into())).is_empty());
+    assert!(a.role("t1").is_some());
+}
+
+#[test]
+fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
+    let (info, clouds) = trolley_clouds(3);
+    // p1 alone owns t1 and integrates two clouds.
+    let mut p1 = node("p1");
+    p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    p1.handle(info_event(&info));
+    for c in &clouds[..2] {
+        p1.handle(cloud_event(c));
+    }
+    // p2 joins: it asks p1 for a snapshot and buffers the third cloud meanwhile.
+    let mut p2 = node("p2");
+    p2.handle(PlannerEvent::PlannerJoined("p1".into()));
+    let actions = p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    assert_eq!(
+        asks(&actions),
+        vec![("t1".to_string(), vec!["p1".to_string()])]
+    );
+    p1.handle(PlannerEvent::PlannerJoined("p2".into()));
+    assert!(p2.handle(info_event(&info)).is_empty());
+    assert!(p2.handle(cloud_event(&clouds[2])).is_empty());
+    assert!(p2.is_loading("t1"));
+    assert_eq!(p2.stats().clouds_integrated, 0);
+    // Nobody gets a snapshot of a copy that is still loading.
+    let refused = p2.handle(PlannerEvent::SnapshotAsked {
+        query_id: 9,
+        tid: "t1".into(),
+    });
+    assert!(matches!(
+        &refused[..],
+        [PlannerAction::ReplySnapshot {
+            query_id: 9,
+            answer: Err(_)
+        }]
+    ));
+    let reply = p1.handle(PlannerEvent::SnapshotAsked {
+        query_id: 1,
+        tid: "t1".into(),
+    });
+    let [PlannerAction::ReplySnapshot {
+        answer: Ok((h, snapshot)),
+        ..
+    }] = &reply[..]
+    else {
+        panic!("{reply:?}")
+    };
+    assert_eq!((h.seq, snapshot.based_on_seq), (2, 2));
+    let loaded = p2.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot.clone()),
+    });
+    assert!(!p2.is_loading("t1"));
+    // The buffered cloud is integrated on top of the snapshot: the same map as p1's after it.
+    p1.handle(cloud_event(&clouds[2]));
+    let (m1, m2) = (
+        p1.planner("t1").unwrap().map(),
+        p2.planner("t1").unwrap().map(),
+    );
+    assert_eq!(m1.len(), m2.len());
+    assert!(m1.iter().all(|(k, v)| m2.get(k) == Some(v)));
+    assert_eq!(p2.planner("t1").unwrap().last_cloud_seq(), Some(3));
+    // As owner it plans on the last buffered cloud, as replica it stays quiet.
+    let planned = views_of(&loaded);
+    match p2.role("t1") {
+        Some(Role::Owner) => assert_eq!(planned[0].based_on_seq, 3),
+        _ => assert!(planned.is_empty()),
+    }
+}
+
+#[test]
+fn a_trolley_that_leaves_and_returns_keeps_its_map() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut owner, _) = roles(pair().0, pair().1);
+    owner.handle(info_event(&info));
+    owner.handle(cloud_event(&clouds[0]));
+    let known = owner.planner("t1").unwrap().map().len();
+    assert!(owner
+        .handle(PlannerEvent::TrolleyLeft("t1".into()))
+        .is_empty());
+    assert_eq!(owner.role("t1"), Some(Role::Owner));
+    let back = owner.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    assert!(asks(&back).is_empty(), "no snapshot needed: {back:?}");
+    assert_eq!(owner.planner("t1").unwrap().map().len(), known);
+    assert_eq!(views_of(&owner.handle(cloud_event(&clouds[1]))).len(), 1);
+}
+
+#[test]
+fn bad_clouds_are_counted_and_leave_the_map_alone() {
+    let (info, clouds) = trolley_clouds(1);
+    let (mut owner, _) = roles(pair().0, pair().1);
+    owner.handle(info_event(&info));
+    let mut bad_id = cloud_event(&clouds[0]);
+    if let PlannerEvent::Cloud { header, .. } = &mut bad_id {
+        header.trolley_id = "t1/../x".into();
+    }
+    assert!(owner.handle(bad_id).is_empty());
+    let mut short = clouds[0].clone();
+    short.roi.pop();
+    assert!(owner.handle(cloud_event(&short)).is_empty());
+    assert_eq!(owner.stats().clouds_rejected, 2);
+    assert_eq!(owner.planner("t1").unwrap().map().len(), 0);
+}
+
+#[test]
+fn the_status_lists_owned_and_standby_trolleys() {
+    let (owner, replica) = roles(pair().0, pair().1);
+    for (mut n, owned) in [(owner, true), (replica, false)] {
+        let actions = n.handle(PlannerEvent::StatusTick {
+            dropped_messages: 4,
+        });
+        let PlannerAction::PublishStatus { status, .. } = &actions[0] else {
+            panic!("{actions:?}")
+        };
+        let t1 = vec!["t1".to_string()];
+        let (o, s) = if owned {
+            (t1, Vec::new())
+        } else {
+            (Vec::new(), t1)
+        };
+        assert_eq!(
+            (
+                status.owned_trolleys.clone(),
+                status.standby_trolleys.clone()
+            ),
+            (o, s)
+        );
+        assert_eq!(status.dropped_messages, 4);
+    }
+}

@@ -291,6 +291,7 @@ impl TrolleyPlanner {
                     world_from_camera,
                     camera_workspace: info.camera_workspace,
                     sampling_region: info.sampling_region,
+                    reach: None,
                 };
                 let config = PlannerConfig {
                     method,

@@ -7,11 +7,13 @@
 //! - [`stats`]: mean ± std and the one-sided Mann-Whitney U test;
 //! - [`trial`]: a seeded trial through the same detector and planner code the services run, on the
 //!   simulator's clock, with the [`trial::Motion`] rule deciding reachability and motion time;
+//! - [`reach`]: the planner's reach filter for a scene's robot ([`trial::TrialConfig::reach`]);
 //! - [`report`]: per-trial CSV, Table I markdown, p-values and `summary.json`;
 //! - [`plot`]: PNG line plots of the mean curves.
 
 pub mod metrics;
 pub mod plot;
+pub mod reach;
 pub mod report;
 pub mod stats;
 pub mod trial;

@@ -497,6 +497,7 @@ mod tests {
             views: 1,
             frames: 2,
             unreachable_views: 0,
+            frames_without_view: 0,
             compute_time_s: 0.002,
             fruits: Vec::new(),
         }

@@ -21,6 +21,7 @@
 
 use std::time::Instant;
 
+use glasshouse_arm::ReachCheck;
 use glasshouse_detect::{detect, DepthFrame, DetectorConfig};
 use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, FittedShape};
 use glasshouse_nbv::{
@@ -32,6 +33,7 @@ use nalgebra::{Isometry3, Point3};
 use serde::Serialize;
 
 use crate::metrics::{evaluate, BoxEstimate, Metrics};
+use crate::reach::{as_predicate, scene_reach_predicate, OwnedReach};
 
 /// Depth travels as millimetres between the edge and the detector.
 pub const DEPTH_SCALE_M: f32 = 0.001;
@@ -241,6 +243,10 @@ pub struct TrialConfig {
     pub max_range_m: f64,
     pub min_cluster_voxels: usize,
     pub fit: FitConfig,
+    /// The planner drops candidate views the scene's robot cannot reach, checked this far
+    /// ([`crate::reach::scene_reachability`]); `None`: it plans over the whole camera workspace,
+    /// as the planner-service does today.
+    pub reach: Option<ReachCheck>,
 }
 
 impl TrialConfig {
@@ -260,6 +266,7 @@ impl TrialConfig {
             max_range_m: 2.0,
             min_cluster_voxels: 10,
             fit: FitConfig::default(),
+            reach: None,
         }
     }
 
@@ -352,6 +359,8 @@ pub struct TrialResult {
     pub views: u32,
     pub frames: u64,
     pub unreachable_views: u64,
+    /// Frames whose ranked list held no view the robot could execute (each cost a capture).
+    pub frames_without_view: u64,
     /// Sum of the compute times that entered the clock.
     pub compute_time_s: f64,
     /// The estimates at the end of the budget.
@@ -384,12 +393,14 @@ pub struct Trial<M: Motion> {
     map: RoiMap,
     tracker: FruitTracker,
     motion: M,
+    reach: Option<OwnedReach>,
     pose: Isometry3<f64>,
     /// Capture time of the next frame.
     clock_s: f64,
     frame_seq: u64,
     views: u32,
     unreachable_views: u64,
+    frames_without_view: u64,
     compute_time_s: f64,
     published: Published,
     samples: Vec<Sample>,
@@ -413,6 +424,10 @@ impl<M: Motion> Trial<M> {
         planner.validate()?;
         let scene = Scene::generate(config.scenario, config.seed);
         let motion = make_motion(&scene)?;
+        let reach = config
+            .reach
+            .map(|check| scene_reach_predicate(&scene, check))
+            .transpose()?;
         let camera = CameraModel::with_resolution(config.width, config.height);
         let map = RoiMap::new(config.map_config())?;
         let empty_boxes = Metrics::empty(scene.fruits(), config.resolution_m);
@@ -428,10 +443,12 @@ impl<M: Motion> Trial<M> {
             map,
             tracker: FruitTracker::default(),
             motion,
+            reach,
             clock_s: 0.0,
             frame_seq: 0,
             views: 0,
             unreachable_views: 0,
+            frames_without_view: 0,
             compute_time_s: 0.0,
             published: Published {
                 frames: 0,
@@ -460,6 +477,7 @@ impl<M: Motion> Trial<M> {
             world_from_camera: self.pose,
             camera_workspace: self.scene.camera_workspace(),
             sampling_region: self.scene.sampling_region(),
+            reach: self.reach.as_ref().map(as_predicate),
         }
     }
 
@@ -603,7 +621,10 @@ impl<M: Motion> Trial<M> {
                 self.pose = executed.world_from_camera;
                 self.views += 1;
             }
-            None => self.unreachable_views += goals.len() as u64,
+            None => {
+                self.unreachable_views += goals.len() as u64;
+                self.frames_without_view += 1;
+            }
         }
         self.clock_s = next_clock;
         Ok(true)
@@ -622,6 +643,7 @@ impl<M: Motion> Trial<M> {
             views: self.views,
             frames: self.published.frames,
             unreachable_views: self.unreachable_views,
+            frames_without_view: self.frames_without_view,
             compute_time_s: self.compute_time_s,
             fruits: self.published.fruits,
         })

@@ -28,6 +28,31 @@ pub fn scene_reach_predicate(scene: &Scene, check: ReachCheck) -> Result<OwnedRe
 }
 
 /// The owned predicate as the planner takes it.
-pub fn as_predicate(reach: &OwnedReach) -> &ReachPredicate {
+pub fn as_predicate(reach: &OwnedReach) -> &ReachPredicate<'_> {
     reach.as_ref()
+}
+
+/// No voxel the map knows as occupied within `clearance_m` (a cube of `resolution_m` voxels) of
+/// the camera position: the edge refuses a camera closer than that to a solid.
+pub fn clear_of_occupied(
+    map: &glasshouse_roimap::RoiMap,
+    world_from_camera: &Isometry3<f64>,
+    clearance_m: f64,
+    resolution_m: f64,
+) -> bool {
+    let eye = nalgebra::Point3::from(world_from_camera.translation.vector);
+    let centre = map.key_of(&eye);
+    let n = (clearance_m / resolution_m).ceil() as i32;
+    for dx in -n..=n {
+        for dy in -n..=n {
+            for dz in -n..=n {
+                if map.occupancy(centre.offset(dx, dy, dz))
+                    == glasshouse_roimap::Occupancy::Occupied
+                {
+                    return false;
+                }
+            }
+        }
+    }
+    true
 }

@@ -26,14 +26,15 @@ use glasshouse_detect::{detect, DepthFrame, DetectorConfig};
 use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, FittedShape};
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, PlanError, PlannerConfig, PlanningContext,
+    ReachPredicate,
 };
 use glasshouse_roimap::{MapConfig, MapError, RoiCluster, RoiMap};
-use glasshouse_sim::{CameraModel, ScenarioKind, Scene, SimArm};
+use glasshouse_sim::{CameraModel, ScenarioKind, Scene, SimArm, CAMERA_CLEARANCE_M};
 use nalgebra::{Isometry3, Point3};
 use serde::Serialize;
 
 use crate::metrics::{evaluate, BoxEstimate, Metrics};
-use crate::reach::{as_predicate, scene_reach_predicate, OwnedReach};
+use crate::reach::{as_predicate, clear_of_occupied, scene_reach_predicate, OwnedReach};
 
 /// Depth travels as millimetres between the edge and the detector.
 pub const DEPTH_SCALE_M: f32 = 0.001;
@@ -244,8 +245,9 @@ pub struct TrialConfig {
     pub min_cluster_voxels: usize,
     pub fit: FitConfig,
     /// The planner drops candidate views the scene's robot cannot reach, checked this far
-    /// ([`crate::reach::scene_reachability`]); `None`: it plans over the whole camera workspace,
-    /// as the planner-service does today.
+    /// ([`crate::reach::scene_reachability`]) or closer than [`CAMERA_CLEARANCE_M`] to a voxel
+    /// the map knows as occupied; `None`: it plans over the whole camera workspace, as the
+    /// planner-service does today.
     pub reach: Option<ReachCheck>,
 }
 
@@ -540,7 +542,19 @@ impl<M: Motion> Trial<M> {
         )?;
         let clusters = self.map.clusters(self.config.min_cluster_voxels);
         let estimates = self.tracker.update(&clusters);
-        let plan = plan_views(&self.planning_context(), &self.planner, self.plan_seed())?;
+        let base = self.planning_context();
+        let map = &self.map;
+        let res = self.config.resolution_m;
+        // The edge also refuses a camera near a solid: ask for clearance from the known ones.
+        let reach_and_clear = move |pose: &Isometry3<f64>| {
+            base.reach.is_some_and(|reach| reach(pose))
+                && clear_of_occupied(map, pose, CAMERA_CLEARANCE_M, res)
+        };
+        let ctx = PlanningContext {
+            reach: base.reach.map(|_| &reach_and_clear as &ReachPredicate<'_>),
+            ..base
+        };
+        let plan = plan_views(&ctx, &self.planner, self.plan_seed())?;
         Ok((clusters, estimates, plan))
     }
 

@@ -240,7 +240,7 @@ impl PlannerConfig {
 
 /// Can the robot bring its camera to a `world_from_camera` pose? Called once per candidate pose
 /// that passed the samplers' own checks, so it should be cheap (microseconds).
-pub type ReachPredicate = dyn Fn(&Isometry3<f64>) -> bool + Sync;
+pub type ReachPredicate<'a> = dyn Fn(&Isometry3<f64>) -> bool + Sync + 'a;
 
 /// Everything a planning call looks at.
 #[derive(Clone, Copy)]
@@ -254,7 +254,7 @@ pub struct PlanningContext<'a> {
     pub sampling_region: Aabb,
     /// Which poses the robot can reach; candidates it rejects are dropped before scoring and
     /// never ranked. `None`: every pose in the camera workspace counts as reachable.
-    pub reach: Option<&'a ReachPredicate>,
+    pub reach: Option<&'a ReachPredicate<'a>>,
 }
 
 impl fmt::Debug for PlanningContext<'_> {

@@ -17,7 +17,11 @@
 //!   `Fn(Point3<f64>) -> bool`).
 //! - [`ReachabilityMap`]: where the camera's optical centre can go (paper §VII: joints sampled at
 //!   10°, 2 cm cells), cached on disk by a hash of its parameters, queried in the base frame, in
-//!   the world for a mount state, or for some mount state.
+//!   the world for a mount state, or for some mount state; [`shared_reachability_map`] builds it
+//!   once per process.
+//! - [`ViewReachability`]: can the robot reach a camera pose for some mount state (map, then the
+//!   edge's placement and IK, then the mount's structure), cheap enough to filter every candidate
+//!   view of a planner.
 //! - [`MotionLimits`]: synchronised trapezoidal joint motion and mount motion in parallel;
 //!   [`CAPTURE_TIME_S`] is added by the caller per view.
 //!
@@ -40,6 +44,7 @@ mod motion;
 mod mount;
 mod reach;
 mod robot;
+mod view_reach;
 
 pub use collision::{
     CollisionWorld, Contact, ContactWith, Obstacle, OccupancyQuery, PathContact, WorldCapsule,
@@ -54,6 +59,7 @@ pub use motion::{AxisLimit, MotionLimits, CAPTURE_TIME_S};
 pub use mount::{Interval, Mount, MountState, POLE_RADIUS_M};
 pub use reach::{CacheStatus, ReachabilityMap, ReachabilityParams};
 pub use robot::{Robot, MAX_MARGIN_M, MIN_VOXEL_RESOLUTION_M};
+pub use view_reach::{shared_reachability_map, ReachCheck, ViewReachability};
 
 #[cfg(test)]
 mod tests;

@@ -16,7 +16,7 @@ pub const MAX_MARGIN_M: f64 = 1.0;
 pub const MIN_VOXEL_RESOLUTION_M: f64 = 1e-3;
 
 /// A UR arm with its camera, on a mount.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Robot {
     pub arm: ArmModel,
     pub mount: Mount,

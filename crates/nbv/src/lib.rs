@@ -19,6 +19,13 @@
 //!   otherwise the exploration list; Explo methods always explore. The result is ranked best first
 //!   and never empty when the workspace is a valid box: if nothing beats the threshold the best views
 //!   are returned anyway, and with no candidates at all random fallback views are scored.
+//! - **Reach**: with a predicate in [`PlanningContext::reach`] (the robot's reachability, e.g.
+//!   `glasshouse_arm::ViewReachability`), every sampler (ROI, exploration, fallback) drops the
+//!   poses it rejects before scoring, so an unreachable view is never ranked. A rejected pose is
+//!   a spent try, as an occluded one is: the number of tries and the random draws stay those of
+//!   the paper, and the predicate is asked only after a try's draws, so the same seed gives the
+//!   same plan, and `reach: None` the plans of the planner without it. When the predicate
+//!   rejects every fallback try too, the plan is empty: the robot has no view it can reach.
 //!
 //! Free/unknown follows the map's single rule (see `glasshouse_roimap`): never updated is unknown,
 //! occupancy log-odds > 0 is occupied, anything else free.
@@ -231,8 +238,12 @@ impl PlannerConfig {
     }
 }
 
+/// Can the robot bring its camera to a `world_from_camera` pose? Called once per candidate pose
+/// that passed the samplers' own checks, so it should be cheap (microseconds).
+pub type ReachPredicate<'a> = dyn Fn(&Isometry3<f64>) -> bool + Sync + 'a;
+
 /// Everything a planning call looks at.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy)]
 pub struct PlanningContext<'a> {
     pub map: &'a RoiMap,
     /// The current camera pose.
@@ -241,6 +252,28 @@ pub struct PlanningContext<'a> {
     pub camera_workspace: Aabb,
     /// Where targets and frontiers may lie.
     pub sampling_region: Aabb,
+    /// Which poses the robot can reach; candidates it rejects are dropped before scoring and
+    /// never ranked. `None`: every pose in the camera workspace counts as reachable.
+    pub reach: Option<&'a ReachPredicate<'a>>,
+}
+
+impl fmt::Debug for PlanningContext<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("PlanningContext")
+            .field("map", &self.map)
+            .field("world_from_camera", &self.world_from_camera)
+            .field("camera_workspace", &self.camera_workspace)
+            .field("sampling_region", &self.sampling_region)
+            .field("reach", &self.reach.map(|_| "predicate"))
+            .finish()
+    }
+}
+
+impl PlanningContext<'_> {
+    /// True when no reach predicate is set or it accepts the pose.
+    fn reachable(&self, world_from_camera: &Isometry3<f64>) -> bool {
+        self.reach.is_none_or(|reach| reach(world_from_camera))
+    }
 }
 
 /// A candidate view with its score.
@@ -485,8 +518,13 @@ fn sample_roi_views(
                     voxel.is_some_and(|v| v.occupancy_logodds > config.occlusion_occupancy_logodds);
                 !occluded
             });
-        if !occluded {
-            poses.push(look_at(&camera_in_world, &target_in_world));
+        if occluded {
+            continue;
+        }
+        let pose = look_at(&camera_in_world, &target_in_world);
+        // After every draw of the try, so a predicate never shifts the random stream.
+        if ctx.reachable(&pose) {
+            poses.push(pose);
         }
     }
     poses
@@ -530,7 +568,10 @@ fn sample_exploration_views(
         {
             continue;
         }
-        poses.push(look_along(&camera_in_world, &(-normal)));
+        let pose = look_along(&camera_in_world, &(-normal));
+        if ctx.reachable(&pose) {
+            poses.push(pose);
+        }
     }
     poses
 }
@@ -551,13 +592,18 @@ fn sample_fallback_views(
         let camera_in_world = point_in(rng, &ctx.camera_workspace);
         let target_in_world = point_in(rng, &ctx.sampling_region);
         let pose = look_at(&camera_in_world, &target_in_world);
+        // An unreachable pose is never a view, not even the last resort below.
+        if !ctx.reachable(&pose) {
+            continue;
+        }
         if ctx.map.occupancy(ctx.map.key_of(&camera_in_world)) == Occupancy::Occupied {
             last = Some(pose);
             continue;
         }
         poses.push(pose);
     }
-    // Even a workspace full of occupied voxels yields a view, so the robot is never left idle.
+    // Even a workspace full of occupied voxels yields a view, so the robot is never left idle
+    // (unless the reach predicate rejected every try).
     if poses.is_empty() {
         poses.extend(last);
     }

@@ -61,6 +61,7 @@ fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
         world_from_camera: look_along(&Point3::new(0.0, -0.4, 1.0), &Vector3::y()),
         camera_workspace: aabb([-0.4, -0.6, 0.6], [0.4, -0.2, 1.4]),
         sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
+        reach: None,
     }
 }
 
@@ -250,6 +251,7 @@ fn exploration_when_there_is_no_roi() {
         world_from_camera: look_along(&Point3::new(0.0, -0.4, 1.0), &Vector3::y()),
         camera_workspace: aabb([-0.6, -0.7, 0.5], [0.6, -0.1, 1.5]),
         sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
+        reach: None,
     };
     for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
         let config = PlannerConfig {
@@ -279,6 +281,7 @@ fn never_empty_on_an_empty_map() {
         world_from_camera: look_along(&Point3::new(0.0, 0.0, 1.0), &Vector3::y()),
         camera_workspace: aabb([-0.5, -0.5, 0.5], [0.5, 0.0, 1.5]),
         sampling_region: aabb([-1.0, 0.2, 0.0], [1.0, 0.8, 2.0]),
+        reach: None,
     };
     for method in Method::ALL {
         let config = PlannerConfig {
@@ -396,4 +399,81 @@ fn confidence_is_the_seen_share_of_the_box_surface() {
         ..full
     };
     assert_eq!(fruit_confidence(&hollow_missing), 0.0);
+}
+
+/// The views, every number written exactly (`Debug` of an f64 round-trips).
+fn views_of(plan: &Plan) -> String {
+    format!("{:?}", plan.views)
+}
+
+#[test]
+fn a_reach_predicate_drops_the_poses_it_rejects() {
+    let map = blob_map();
+    // The robot reaches only the left half of the camera workspace (x < 0).
+    let left_only = |pose: &Isometry3<f64>| pose.translation.vector.x < 0.0;
+    let ctx = PlanningContext {
+        reach: Some(&left_only),
+        ..blob_context(&map)
+    };
+    for method in Method::ALL {
+        let config = PlannerConfig {
+            method,
+            ..PlannerConfig::default()
+        };
+        for seed in 0..4 {
+            let plan = plan_views(&ctx, &config, seed).expect("valid plan");
+            assert!(!plan.views.is_empty(), "{method} seed {seed}");
+            for view in &plan.views {
+                assert!(left_only(&view.world_from_camera), "{method}: {view:?}");
+            }
+            // Deterministic with a predicate too.
+            let again = plan_views(&ctx, &config, seed).expect("valid plan");
+            assert_eq!(views_of(&plan), views_of(&again));
+        }
+    }
+}
+
+#[test]
+fn an_accepting_predicate_changes_nothing() {
+    let map = blob_map();
+    let accept = |_: &Isometry3<f64>| true;
+    let with = PlanningContext {
+        reach: Some(&accept),
+        ..blob_context(&map)
+    };
+    let without = blob_context(&map);
+    for method in Method::ALL {
+        let config = PlannerConfig {
+            method,
+            ..PlannerConfig::default()
+        };
+        let (a, b) = (
+            plan_views(&with, &config, 9).expect("valid plan"),
+            plan_views(&without, &config, 9).expect("valid plan"),
+        );
+        assert_eq!(views_of(&a), views_of(&b));
+        assert_eq!(a.candidates_scored, b.candidates_scored);
+    }
+}
+
+#[test]
+fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
+    let map = empty_map();
+    let reject = |_: &Isometry3<f64>| false;
+    let ctx = PlanningContext {
+        map: &map,
+        world_from_camera: look_along(&Point3::new(0.0, 0.0, 1.0), &Vector3::y()),
+        camera_workspace: aabb([-0.5, -0.5, 0.5], [0.5, 0.0, 1.5]),
+        sampling_region: aabb([-1.0, 0.2, 0.0], [1.0, 0.8, 2.0]),
+        reach: Some(&reject),
+    };
+    for method in Method::ALL {
+        let config = PlannerConfig {
+            method,
+            ..PlannerConfig::default()
+        };
+        let plan = plan_views(&ctx, &config, 11).expect("valid plan");
+        assert!(plan.views.is_empty());
+        assert_eq!(plan.candidates_scored, 0);
+    }
 }

@@ -17,6 +17,7 @@ mod capture;
 mod detection;
 mod edge;
 mod planning;
+mod reach;
 
 pub use capture::{
     noise_seed, render_frame, CaptureError, Executed, SimTrolley, SimTrolleySettings,
@@ -27,6 +28,7 @@ pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings};
 pub use planning::{
     plan_seed, ranked_views, FruitRecord, PlanningError, PlanningSettings, TrolleyPlanner,
 };
+pub use reach::ReachFilter;
 
 #[cfg(test)]
 mod tests;

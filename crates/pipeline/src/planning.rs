@@ -3,10 +3,11 @@
 
 use std::collections::HashSet;
 
+use glasshouse_arm::Robot;
 use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, FittedShape, ShapeKind};
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, Plan, PlanError, PlannerConfig,
-    PlanningContext,
+    PlanningContext, ReachPredicate,
 };
 use glasshouse_proto::{
     FittedEllipsoid, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
@@ -15,6 +16,8 @@ use glasshouse_proto::{
 use glasshouse_roimap::{MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey};
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
+
+use crate::ReachFilter;
 
 /// Why a planning step failed; the trolley's state is left as it was before the step.
 #[derive(thiserror::Error, Debug, Clone, PartialEq)]
@@ -162,6 +165,8 @@ pub struct TrolleyPlanner {
     map: RoiMap,
     tracker: FruitTracker,
     info: Option<TrolleyInfo>,
+    /// Views the arm cannot reach are never proposed (once the trolley's robot is known).
+    reach: Option<ReachFilter>,
     last_cloud_seq: Option<u64>,
     clusters: Vec<RoiCluster>,
     estimates: Vec<FruitEstimate>,
@@ -179,6 +184,7 @@ impl TrolleyPlanner {
             settings,
             tracker: FruitTracker::default(),
             info: None,
+            reach: None,
             last_cloud_seq: None,
             clusters: Vec::new(),
             estimates: Vec::new(),
@@ -247,15 +253,41 @@ impl TrolleyPlanner {
         world_from_camera: &Isometry3<f64>,
         frame_seq: u64,
     ) -> Result<Option<Plan>, PlanningError> {
-        let Some(ctx) = self.context(world_from_camera) else {
+        let Some(mut ctx) = self.context(world_from_camera) else {
             return Ok(None);
         };
+        let map = &self.map;
+        let reach = self.reach.as_ref();
+        let accepts = move |pose: &Isometry3<f64>| reach.is_none_or(|r| r.accepts(map, pose));
+        if reach.is_some() {
+            ctx.reach = Some(&accepts as &ReachPredicate<'_>);
+        }
         let seed = plan_seed(self.settings.seed, frame_seq);
         Ok(Some(plan_views(
             &ctx,
             &self.settings.planner_config(),
             seed,
         )?))
+    }
+
+    /// The trolley's arm and mount: from now on only views it can reach are proposed (`None`:
+    /// any pose in the camera workspace).
+    pub fn set_robot(&mut self, robot: Option<Robot>) -> Result<(), PlanningError> {
+        if self.reach.as_ref().map(ReachFilter::robot) == robot.as_ref() {
+            return Ok(());
+        }
+        self.reach = None;
+        if let Some(robot) = robot {
+            let filter = ReachFilter::for_robot(robot)
+                .map_err(|e| PlanningError::Settings(format!("the trolley's robot: {e}")))?;
+            self.reach = Some(filter);
+        }
+        Ok(())
+    }
+
+    /// Whether proposed views are filtered by the arm's reach.
+    pub fn filters_reach(&self) -> bool {
+        self.reach.is_some()
     }
 
     /// What a plan from `world_from_camera` looks at; None until the trolley's info is known.
@@ -266,6 +298,7 @@ impl TrolleyPlanner {
             world_from_camera: *world_from_camera,
             camera_workspace: info.camera_workspace,
             sampling_region: info.sampling_region,
+            reach: None,
         })
     }
 

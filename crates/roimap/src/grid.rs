@@ -122,8 +122,6 @@ pub(crate) struct Block {
     pub occ: [f32; BLOCK_VOXELS],
     /// ROI log-odds, allocated at the first ROI update (most blocks are free space).
     pub roi: Option<Box<[f32; BLOCK_VOXELS]>>,
-    /// Map sequence number of each voxel's last change (0 = never).
-    pub seq: [u32; BLOCK_VOXELS],
     /// Voxels ever updated.
     pub known: Mask,
     /// Occupancy log-odds > 0.
@@ -136,8 +134,6 @@ pub(crate) struct Block {
     pub roi_frontier: Mask,
     /// Changed since the last `take_changes`.
     pub dirty: Mask,
-    /// Largest `seq` in the block.
-    pub max_seq: u32,
 }
 
 impl Block {
@@ -145,14 +141,12 @@ impl Block {
         Box::new(Self {
             occ: [0.0; BLOCK_VOXELS],
             roi: None,
-            seq: [0; BLOCK_VOXELS],
             known: EMPTY,
             occupied: EMPTY,
             roi_mask: EMPTY,
             expl_frontier: EMPTY,
             roi_frontier: EMPTY,
             dirty: EMPTY,
-            max_seq: 0,
         })
     }
 }

@@ -317,7 +317,6 @@ impl RoiMap {
         }
 
         // Pass 4: apply block by block.
-        self.seq += 1;
         let mut log = ChangeLog::default();
         let nb = s.grid.nb;
         let lo_block = [0, 1, 2].map(|i| s.grid.lo[i] >> BLOCK_SHIFT);
@@ -410,7 +409,6 @@ impl RoiMap {
         let (lo, hi) = (cfg.clamp_min_logodds, cfg.clamp_max_logodds);
         let (hit, miss) = (cfg.hit_logodds, cfg.miss_logodds);
         let thr = cfg.roi_threshold_logodds;
-        let seq = self.seq as u32;
         let bi = self.store.get_or_create(key);
         let block = &mut self.store.blocks[bi];
         let mut state_changed = EMPTY;
@@ -475,17 +473,8 @@ impl RoiMap {
                 (known_before ^ block.known[w]) | (occ_before ^ block.occupied[w]) | roi_changed[w];
             if changed != 0 {
                 any_changed = true;
-                let mut bits = changed;
-                while bits != 0 {
-                    let b = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    block.seq[base + b] = seq;
-                }
                 block.dirty[w] |= changed;
             }
-        }
-        if any_changed {
-            block.max_seq = seq;
         }
         self.known_count = self.known_count.wrapping_add_signed(d_known);
         self.occupied_count = self.occupied_count.wrapping_add_signed(d_occ);

@@ -60,18 +60,6 @@ pub enum SnapshotError {
     Config(#[from] MapError),
 }
 
-/// Voxels changed between two sequence numbers of a map ([`RoiMap::delta_since`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct MapDelta {
-    pub resolution_m: f64,
-    /// The replica must have applied everything up to this sequence number.
-    pub from_seq: u64,
-    /// Sequence number of the map after applying the delta.
-    pub to_seq: u64,
-    /// Current values of the changed voxels, sorted by key.
-    pub voxels: Vec<(VoxelKey, Voxel)>,
-}
-
 const fn crc_table() -> [u32; 256] {
     let mut table = [0u32; 256];
     let mut i = 0;
@@ -266,9 +254,6 @@ impl RoiMap {
             body.extend_from_slice(&v.to_le_bytes());
         }
         body.extend_from_slice(&c.max_range_m.unwrap_or(-1.0).to_le_bytes());
-        body.extend_from_slice(&c.roi_distance_max_m.to_le_bytes());
-        body.extend_from_slice(&c.roi_distance_cell_m.to_le_bytes());
-        body.extend_from_slice(&self.seq.to_le_bytes());
         body.extend_from_slice(&self.scans_inserted.to_le_bytes());
         let blocks: Vec<usize> = (0..self.store.blocks.len())
             .filter(|&i| mask_count(&self.store.blocks[i].known) > 0)
@@ -303,8 +288,6 @@ impl RoiMap {
         let clamp_max_logodds = c.f32()?;
         let roi_threshold_logodds = c.f32()?;
         let max_range = c.f64()?;
-        let roi_distance_max_m = c.f64()?;
-        let roi_distance_cell_m = c.f64()?;
         let config = MapConfig {
             resolution_m,
             hit_logodds,
@@ -313,14 +296,10 @@ impl RoiMap {
             clamp_max_logodds,
             roi_threshold_logodds,
             max_range_m: (max_range >= 0.0).then_some(max_range),
-            roi_distance_max_m,
-            roi_distance_cell_m,
         };
         let mut map = RoiMap::new(config)?;
-        let seq = c.u64()?;
         let scans_inserted = c.u64()?;
         let n_blocks = c.u32()?;
-        map.seq = seq;
         let mut log = ChangeLog::default();
         let mut seen = crate::KeySet::default();
         for _ in 0..n_blocks {
@@ -366,53 +345,5 @@ impl RoiMap {
             map.store.blocks[bi as usize].dirty = [0; 8];
         }
         Ok(map)
-    }
-}
-
-impl MapDelta {
-    /// Writes the delta in the framed format (kind 1).
-    pub fn write_to(&self, mut w: impl Write) -> Result<(), SnapshotError> {
-        let mut body = Vec::with_capacity(28 + self.voxels.len() * 20);
-        body.extend_from_slice(&self.resolution_m.to_le_bytes());
-        body.extend_from_slice(&self.from_seq.to_le_bytes());
-        body.extend_from_slice(&self.to_seq.to_le_bytes());
-        body.extend_from_slice(&(self.voxels.len() as u32).to_le_bytes());
-        for (k, v) in &self.voxels {
-            for c in [k.x, k.y, k.z] {
-                body.extend_from_slice(&c.to_le_bytes());
-            }
-            body.extend_from_slice(&v.occupancy_logodds.to_le_bytes());
-            body.extend_from_slice(&v.roi_logodds.to_le_bytes());
-        }
-        frame(KIND_DELTA, &body, &mut w)
-    }
-
-    /// Reads a delta written by [`MapDelta::write_to`].
-    pub fn read_from(mut r: impl Read) -> Result<MapDelta, SnapshotError> {
-        let body = unframe(KIND_DELTA, &mut r)?;
-        let mut c = Cursor::new(&body);
-        let resolution_m = c.f64()?;
-        let from_seq = c.u64()?;
-        let to_seq = c.u64()?;
-        let n = c.u32()? as usize;
-        if n.saturating_mul(20) != body.len().saturating_sub(28) {
-            return Err(SnapshotError::Corrupt(format!(
-                "{n} voxels do not fit a body of {} bytes",
-                body.len()
-            )));
-        }
-        let mut voxels = Vec::with_capacity(n);
-        for _ in 0..n {
-            let k = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
-            let v = finite_voxel(c.f32()?, c.f32()?)?;
-            voxels.push((k, v));
-        }
-        c.finished()?;
-        Ok(MapDelta {
-            resolution_m,
-            from_seq,
-            to_seq,
-            voxels,
-        })
     }
 }

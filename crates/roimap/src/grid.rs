@@ -8,6 +8,7 @@
 
 use std::collections::HashMap;
 
+use crate::values::Values;
 use crate::{KeyBuildHasher, VoxelKey};
 
 pub(crate) const BLOCK_SHIFT: i32 = 3;
@@ -119,9 +120,10 @@ pub(crate) const FACE_OFFSETS: [(i32, i32, i32); 6] = crate::NEIGHBOURS_6;
 /// One block of voxels.
 #[derive(Clone)]
 pub(crate) struct Block {
-    pub occ: [f32; BLOCK_VOXELS],
-    /// ROI log-odds, allocated at the first ROI update (most blocks are free space).
-    pub roi: Option<Box<[f32; BLOCK_VOXELS]>>,
+    /// Occupancy log-odds (0 for unknown voxels).
+    pub occ: Values,
+    /// ROI log-odds (0 for unknown voxels and voxels never hit as an end point).
+    pub roi: Values,
     /// Voxels ever updated.
     pub known: Mask,
     /// Occupancy log-odds > 0.
@@ -139,8 +141,8 @@ pub(crate) struct Block {
 impl Block {
     pub(crate) fn new() -> Box<Self> {
         Box::new(Self {
-            occ: [0.0; BLOCK_VOXELS],
-            roi: None,
+            occ: Values::default(),
+            roi: Values::default(),
             known: EMPTY,
             occupied: EMPTY,
             roi_mask: EMPTY,
@@ -152,15 +154,14 @@ impl Block {
 }
 
 impl Block {
-    /// ROI log-odds of local voxel `l` (0 when the block has none).
+    /// ROI log-odds of local voxel `l`.
     pub(crate) fn roi_at(&self, l: usize) -> f32 {
-        self.roi.as_ref().map_or(0.0, |r| r[l])
+        self.roi.get(l)
     }
 
-    /// The ROI log-odds, allocated (all 0) on first use.
-    pub(crate) fn roi_mut(&mut self) -> &mut [f32; BLOCK_VOXELS] {
-        self.roi
-            .get_or_insert_with(|| Box::new([0.0; BLOCK_VOXELS]))
+    /// Occupancy log-odds of local voxel `l`.
+    pub(crate) fn occ_at(&self, l: usize) -> f32 {
+        self.occ.get(l)
     }
 }
 
@@ -196,8 +197,11 @@ impl Storage {
 
     pub(crate) fn heap_bytes(&self) -> usize {
         self.blocks.len() * std::mem::size_of::<Block>()
-            + self.blocks.iter().filter(|b| b.roi.is_some()).count()
-                * std::mem::size_of::<[f32; BLOCK_VOXELS]>()
+            + self
+                .blocks
+                .iter()
+                .map(|b| b.occ.heap_bytes() + b.roi.heap_bytes())
+                .sum::<usize>()
             + self.blocks.capacity() * std::mem::size_of::<Box<Block>>()
             + self.coords.capacity() * std::mem::size_of::<VoxelKey>()
             + self.index.capacity() * (std::mem::size_of::<(VoxelKey, u32)>() + 1)

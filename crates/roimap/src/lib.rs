@@ -43,6 +43,7 @@ mod insert;
 pub mod ply;
 pub mod snapshot;
 pub mod testdata;
+mod values;
 mod walk;
 
 use std::collections::{HashMap, HashSet};
@@ -509,14 +510,13 @@ impl RoiMap {
         let was_known = mask_test(&b.known, l);
         let was_occ = mask_test(&b.occupied, l);
         let was_roi = mask_test(&b.roi_mask, l);
-        let changed = !was_known || b.occ[l] != v.occupancy_logodds || b.roi_at(l) != v.roi_logodds;
+        let changed =
+            !was_known || b.occ_at(l) != v.occupancy_logodds || b.roi_at(l) != v.roi_logodds;
         if !changed {
             return;
         }
-        b.occ[l] = v.occupancy_logodds;
-        if v.roi_logodds != 0.0 || b.roi.is_some() {
-            b.roi_mut()[l] = v.roi_logodds;
-        }
+        b.occ.set(l, v.occupancy_logodds);
+        b.roi.set(l, v.roi_logodds);
         let is_occ = v.occupancy_logodds > 0.0;
         let is_roi = v.roi_logodds >= thr;
         mask_set(&mut b.known, l, true);
@@ -545,7 +545,7 @@ impl RoiMap {
         let b = self.store.find(block_of(key))?;
         let l = local_of(key);
         mask_test(&b.known, l).then(|| Voxel {
-            occupancy_logodds: b.occ[l],
+            occupancy_logodds: b.occ_at(l),
             roi_logodds: b.roi_at(l),
         })
     }
@@ -615,7 +615,7 @@ impl RoiMap {
                     out.push((
                         key_at(bk, l),
                         Voxel {
-                            occupancy_logodds: b.occ[l],
+                            occupancy_logodds: b.occ_at(l),
                             roi_logodds: b.roi_at(l),
                         },
                     ))
@@ -646,7 +646,7 @@ impl RoiMap {
                 out.push((
                     key_at(bk, l),
                     Voxel {
-                        occupancy_logodds: b.occ[l],
+                        occupancy_logodds: b.occ_at(l),
                         roi_logodds: b.roi_at(l),
                     },
                 ))
@@ -718,7 +718,7 @@ impl RoiMap {
             let b = cached.1?;
             let l = local_of(k);
             mask_test(&b.known, l).then(|| Voxel {
-                occupancy_logodds: b.occ[l],
+                occupancy_logodds: b.occ_at(l),
                 roi_logodds: b.roi_at(l),
             })
         };

@@ -26,14 +26,14 @@
 
 use std::io::{Read, Write};
 
-use crate::grid::{for_each_bit, key_at, mask_count, Mask};
-use crate::{ChangeLog, MapConfig, MapError, RoiMap, Voxel, VoxelKey};
+use crate::grid::{for_each_bit, mask_count, Mask};
+use crate::values::Values;
+use crate::{ChangeLog, MapConfig, MapError, RoiMap, VoxelKey};
 
 const MAGIC: &[u8; 4] = b"GHRM";
 /// Current format version.
-pub const FORMAT_VERSION: u16 = 1;
+pub const FORMAT_VERSION: u16 = 2;
 const KIND_SNAPSHOT: u16 = 0;
-const KIND_DELTA: u16 = 1;
 const HEADER_BYTES: usize = 16;
 
 /// Errors reading or writing snapshots and deltas.
@@ -94,7 +94,6 @@ pub fn crc32(bytes: &[u8]) -> u32 {
 fn kind_name(kind: u16) -> &'static str {
     match kind {
         KIND_SNAPSHOT => "snapshot",
-        KIND_DELTA => "delta",
         _ => "unknown kind",
     }
 }
@@ -197,6 +196,19 @@ impl<'a> Cursor<'a> {
         Ok(out)
     }
 
+    fn slice(&mut self, n: usize) -> Result<&'a [u8], SnapshotError> {
+        let end = self.at.saturating_add(n);
+        let slice = self
+            .bytes
+            .get(self.at..end)
+            .ok_or_else(|| SnapshotError::Corrupt("body ends early".into()))?;
+        self.at = end;
+        Ok(slice)
+    }
+
+    fn u8(&mut self) -> Result<u8, SnapshotError> {
+        Ok(self.take::<1>()?[0])
+    }
     fn u16(&mut self) -> Result<u16, SnapshotError> {
         Ok(u16::from_le_bytes(self.take()?))
     }
@@ -227,22 +239,106 @@ impl<'a> Cursor<'a> {
     }
 }
 
-fn finite_voxel(occ: f32, roi: f32) -> Result<Voxel, SnapshotError> {
-    if occ.is_finite() && roi.is_finite() {
-        Ok(Voxel {
-            occupancy_logodds: occ,
-            roi_logodds: roi,
-        })
-    } else {
-        Err(SnapshotError::Corrupt("non-finite log-odds".into()))
+/// Bits per palette index for a palette of `n` values (0 for a single value).
+fn index_bits(n: usize) -> u32 {
+    usize::BITS - (n.max(1) - 1).leading_zeros()
+}
+
+/// Appends one block's values: tag 0 = one value, 1 = palette (count − 1 as u8, the values,
+/// then each known voxel's index in bit order, packed LSB first), 2 = each known voxel's value.
+fn write_values(body: &mut Vec<u8>, values: &Values, known: &Mask) {
+    match values.palette() {
+        Some((pal, idx)) => {
+            let (Some(idx), true) = (idx, pal.len() > 1) else {
+                body.push(0);
+                body.extend_from_slice(&pal[0].to_le_bytes());
+                return;
+            };
+            body.push(1);
+            body.push((pal.len() - 1) as u8);
+            for v in pal {
+                body.extend_from_slice(&v.to_le_bytes());
+            }
+            let bits = index_bits(pal.len());
+            let (mut acc, mut filled) = (0u64, 0u32);
+            for_each_bit(known, |l| {
+                acc |= u64::from(idx[l]) << filled;
+                filled += bits;
+                if filled >= 32 {
+                    body.extend_from_slice(&(acc as u32).to_le_bytes());
+                    acc >>= 32;
+                    filled -= 32;
+                }
+            });
+            let tail = filled.div_ceil(8) as usize;
+            body.extend_from_slice(&acc.to_le_bytes()[..tail]);
+        }
+        None => {
+            body.push(2);
+            for_each_bit(known, |l| {
+                body.extend_from_slice(&values.get(l).to_le_bytes());
+            });
+        }
+    }
+}
+
+/// Reads what [`write_values`] wrote.
+fn read_values(c: &mut Cursor, known: &Mask) -> Result<Values, SnapshotError> {
+    let finite = |v: f32| {
+        v.is_finite()
+            .then_some(v)
+            .ok_or_else(|| SnapshotError::Corrupt("non-finite log-odds".into()))
+    };
+    match c.u8()? {
+        0 => {
+            let v = finite(c.f32()?)?;
+            Values::from_palette(vec![v], known, || 0)
+                .ok_or_else(|| SnapshotError::Corrupt("bad palette".into()))
+        }
+        1 => {
+            let n = usize::from(c.u8()?) + 1;
+            let mut pal = Vec::with_capacity(n + 1);
+            for _ in 0..n {
+                pal.push(finite(c.f32()?)?);
+            }
+            let bits = index_bits(n);
+            let packed = (mask_count(known) * bits as usize).div_ceil(8);
+            let bytes = c.slice(packed)?;
+            let (mut at, mut acc, mut filled) = (0usize, 0u64, 0u32);
+            let index = || {
+                while filled < bits {
+                    acc |= u64::from(bytes.get(at).copied().unwrap_or(0)) << filled;
+                    at += 1;
+                    filled += 8;
+                }
+                let i = (acc & ((1 << bits) - 1)) as u8;
+                acc >>= bits;
+                filled -= bits;
+                i
+            };
+            Values::from_palette(pal, known, index)
+                .ok_or_else(|| SnapshotError::Corrupt("palette index out of range".into()))
+        }
+        2 => {
+            let mut err = None;
+            let v = Values::from_known(known, || match c.f32().and_then(finite) {
+                Ok(v) => v,
+                Err(e) => {
+                    err.get_or_insert(e);
+                    0.0
+                }
+            });
+            err.map_or(Ok(v), Err)
+        }
+        t => Err(SnapshotError::Corrupt(format!("unknown value tag {t}"))),
     }
 }
 
 impl RoiMap {
-    /// Writes the whole map (configuration, voxels, sequence number) as a snapshot.
+    /// Writes the whole map (configuration and voxels) as a compressed snapshot.
     pub fn write_snapshot(&self, mut w: impl Write) -> Result<(), SnapshotError> {
         let c = &self.config;
-        let mut body = Vec::with_capacity(64 + self.known_count * 8 + self.store.blocks.len() * 80);
+        let mut body = Vec::with_capacity(64 + self.known_count + self.store.blocks.len() * 100);
         body.extend_from_slice(&c.resolution_m.to_le_bytes());
         for v in [
             c.hit_logodds,
@@ -268,18 +364,18 @@ impl RoiMap {
             for w in b.known {
                 body.extend_from_slice(&w.to_le_bytes());
             }
-            for_each_bit(&b.known, |l| {
-                body.extend_from_slice(&b.occ[l].to_le_bytes());
-                body.extend_from_slice(&b.roi_at(l).to_le_bytes());
-            });
+            write_values(&mut body, &b.occ, &b.known);
+            write_values(&mut body, &b.roi, &b.known);
         }
-        frame(KIND_SNAPSHOT, &body, &mut w)
+        let packed = lz4_flex::block::compress_prepend_size(&body);
+        frame(KIND_SNAPSHOT, &packed, &mut w)
     }
 
     /// Reads a snapshot written by [`RoiMap::write_snapshot`]. The restored map has no pending
-    /// changes; its sequence number continues from the snapshot's.
+    /// changes.
     pub fn read_snapshot(mut r: impl Read) -> Result<RoiMap, SnapshotError> {
-        let body = unframe(KIND_SNAPSHOT, &mut r)?;
+        let packed = unframe(KIND_SNAPSHOT, &mut r)?;
+        let body = unpack(&packed)?;
         let mut c = Cursor::new(&body);
         let resolution_m = c.f64()?;
         let hit_logodds = c.f32()?;
@@ -298,52 +394,65 @@ impl RoiMap {
             max_range_m: (max_range >= 0.0).then_some(max_range),
         };
         let mut map = RoiMap::new(config)?;
-        let scans_inserted = c.u64()?;
+        map.scans_inserted = c.u64()?;
         let n_blocks = c.u32()?;
         let mut log = ChangeLog::default();
-        let mut seen = crate::KeySet::default();
         for _ in 0..n_blocks {
-            let bk = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
-            if !seen.insert(bk) {
-                return Err(SnapshotError::Corrupt(format!("block {bk:?} twice")));
-            }
-            let mut known: Mask = [0; 8];
-            for w in &mut known {
-                *w = c.u64()?;
-            }
-            let mut voxels = Vec::with_capacity(mask_count(&known));
-            let mut err = None;
-            for_each_bit(&known, |l| {
-                let v = c
-                    .f32()
-                    .and_then(|o| c.f32().and_then(|r| finite_voxel(o, r)));
-                match v {
-                    Ok(v) => voxels.push((key_at(bk, l), v)),
-                    Err(e) => {
-                        if err.is_none() {
-                            err = Some(e);
-                        }
-                    }
-                }
-            });
-            if let Some(e) = err {
-                return Err(e);
-            }
-            let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
-            if !(key_ok(bk.x) && key_ok(bk.y) && key_ok(bk.z)) {
-                return Err(SnapshotError::Corrupt(format!("block {bk:?} out of range")));
-            }
-            for (k, v) in voxels {
-                map.set_voxel(k, v, &mut log);
-            }
+            map.read_block(&mut c, &mut log)?;
         }
         c.finished()?;
         map.refresh_derived(&log);
-        map.scans_inserted = scans_inserted;
-        // Nothing pending: the snapshot is the baseline.
-        for bi in map.dirty_blocks.drain() {
-            map.store.blocks[bi as usize].dirty = [0; 8];
-        }
         Ok(map)
     }
+
+    /// Reads one block of a snapshot into a new block of the map.
+    fn read_block(&mut self, c: &mut Cursor, log: &mut ChangeLog) -> Result<(), SnapshotError> {
+        let bk = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
+        let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
+        if !(key_ok(bk.x) && key_ok(bk.y) && key_ok(bk.z)) {
+            return Err(SnapshotError::Corrupt(format!("block {bk:?} out of range")));
+        }
+        if self.store.index.contains_key(&bk) {
+            return Err(SnapshotError::Corrupt(format!("block {bk:?} twice")));
+        }
+        let mut known: Mask = [0; 8];
+        for w in &mut known {
+            *w = c.u64()?;
+        }
+        let occ = read_values(c, &known)?;
+        let roi = read_values(c, &known)?;
+        let thr = self.config.roi_threshold_logodds;
+        let bi = self.store.get_or_create(bk);
+        let b = &mut self.store.blocks[bi];
+        for_each_bit(&known, |l| {
+            let bit = 1u64 << (l & 63);
+            if occ.get(l) > 0.0 {
+                b.occupied[l >> 6] |= bit;
+            }
+            if roi.get(l) >= thr {
+                b.roi_mask[l >> 6] |= bit;
+            }
+        });
+        b.known = known;
+        b.occ = occ;
+        b.roi = roi;
+        self.known_count += mask_count(&known);
+        self.occupied_count += mask_count(&b.occupied);
+        log.note(bi as u32, &known, &b.roi_mask);
+        Ok(())
+    }
+}
+
+/// Decompresses a verified body, refusing a stated size no LZ4 block could expand to.
+fn unpack(packed: &[u8]) -> Result<Vec<u8>, SnapshotError> {
+    let corrupt = |m: &str| SnapshotError::Corrupt(m.into());
+    let size = packed
+        .get(..4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+        .ok_or_else(|| corrupt("body ends early"))?;
+    // LZ4 expands at most about 255 times.
+    if size > packed.len().saturating_mul(256) + 64 {
+        return Err(corrupt("stated size does not fit the compressed body"));
+    }
+    lz4_flex::block::decompress(&packed[4..], size).map_err(|e| corrupt(&e.to_string()))
 }

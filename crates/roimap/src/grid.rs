@@ -139,8 +139,8 @@ pub(crate) struct Block {
 }
 
 impl Block {
-    pub(crate) fn new() -> Box<Self> {
-        Box::new(Self {
+    pub(crate) fn new() -> Self {
+        Self {
             occ: Values::default(),
             roi: Values::default(),
             known: EMPTY,
@@ -149,7 +149,7 @@ impl Block {
             expl_frontier: EMPTY,
             roi_frontier: EMPTY,
             dirty: EMPTY,
-        })
+        }
     }
 }
 
@@ -169,14 +169,14 @@ impl Block {
 #[derive(Clone, Default)]
 pub(crate) struct Storage {
     pub index: HashMap<VoxelKey, u32, KeyBuildHasher>,
-    pub blocks: Vec<Box<Block>>,
+    pub blocks: Vec<Block>,
     /// Block coordinate of each entry of `blocks`.
     pub coords: Vec<VoxelKey>,
 }
 
 impl Storage {
     pub(crate) fn find(&self, b: VoxelKey) -> Option<&Block> {
-        self.index.get(&b).map(|&i| &*self.blocks[i as usize])
+        self.index.get(&b).map(|&i| &self.blocks[i as usize])
     }
 
     pub(crate) fn get_or_create(&mut self, b: VoxelKey) -> usize {
@@ -196,13 +196,12 @@ impl Storage {
     }
 
     pub(crate) fn heap_bytes(&self) -> usize {
-        self.blocks.len() * std::mem::size_of::<Block>()
+        self.blocks.capacity() * std::mem::size_of::<Block>()
             + self
                 .blocks
                 .iter()
                 .map(|b| b.occ.heap_bytes() + b.roi.heap_bytes())
                 .sum::<usize>()
-            + self.blocks.capacity() * std::mem::size_of::<Box<Block>>()
             + self.coords.capacity() * std::mem::size_of::<VoxelKey>()
             + self.index.capacity() * (std::mem::size_of::<(VoxelKey, u32)>() + 1)
     }

@@ -20,6 +20,8 @@ use crate::{ChangeLog, KeySet, MapError, RoiMap, ScanStats, VoxelKey};
 
 /// Largest dense grid in blocks (2^17 blocks = 64M voxels, 8 MB per bit plane).
 const MAX_GRID_BLOCKS: usize = 1 << 17;
+/// Per-scan buffers up to this size are kept for the next scan; larger ones are freed.
+const KEEP_SCRATCH_BYTES: usize = 256 << 10;
 /// Margin in voxels around the key box: absorbs the walk's rounding overshoot.
 const MARGIN: i32 = 2;
 
@@ -387,7 +389,11 @@ impl RoiMap {
         }
         g.overflow_roi.clear();
 
-        self.scratch = s;
+        // The per-scan buffers are as large as the map itself after a few scans (the scan's key
+        // box as bit planes); keeping them would double the map's memory for ~1 ms a scan.
+        if s.heap_bytes() <= KEEP_SCRATCH_BYTES {
+            self.scratch = s;
+        }
         self.refresh_derived(&log);
         self.scans_inserted += 1;
         Ok(stats)

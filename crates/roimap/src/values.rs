@@ -164,7 +164,7 @@ impl Values {
         Values::Flat(a)
     }
 
-    fn to_palette(&mut self) -> Option<&mut Palette> {
+    fn palette_mut(&mut self) -> Option<&mut Palette> {
         if let Values::Uniform(v) = *self {
             *self = Values::Palette(Box::new(Palette {
                 values: vec![v],
@@ -201,7 +201,7 @@ impl Values {
                 return;
             }
         }
-        if let Some(p) = self.to_palette() {
+        if let Some(p) = self.palette_mut() {
             if p.values.len() >= COMPACT_AT {
                 p.compact();
             }
@@ -226,7 +226,7 @@ impl Values {
         step: Step,
         pred: impl Fn(f32) -> bool,
     ) -> (Mask, Mask) {
-        if let Some(p) = self.to_palette() {
+        if let Some(p) = self.palette_mut() {
             if p.values.len() >= COMPACT_AT {
                 p.compact();
             }

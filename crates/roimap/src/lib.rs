@@ -27,15 +27,14 @@
 //! Keys are bounded: a coordinate more than `2^20` voxels from the origin (about 10 km at 1 cm) is
 //! outside the map (OctoMap's bound is `2^15`); such points are skipped and counted.
 //!
-//! Storage is blocked: 8×8×8-voxel blocks with flat arrays, in a hash map keyed by block. The map
-//! maintains, as voxels change, the set of ROI voxels, the ROI-frontier and exploration-frontier
-//! sets (paper-method §3; recomputed only around the voxels a scan changed), and a distance field
-//! to the nearest ROI voxel up to a maximum (for the proximity gain).
+//! Storage is blocked: 8×8×8-voxel blocks in a hash map keyed by block, each holding its exact
+//! `f32` log-odds as one value, a palette with byte indices, or a flat array (whichever the block
+//! needs). The map maintains, as voxels change, the set of ROI voxels and the ROI-frontier and
+//! exploration-frontier sets (paper-method §3; recomputed only around the voxels a scan changed).
 //!
-//! Change tracking: [`RoiMap::take_changes`] returns the voxels changed since its last call;
-//! [`RoiMap::delta_since`] the voxels changed since a sequence number (for replicas). A compact
-//! checksummed snapshot ([`RoiMap::write_snapshot`]) and a PLY export ([`RoiMap::write_ply`])
-//! persist and exchange the map.
+//! Change tracking: [`RoiMap::take_changes`] returns the voxels changed since its last call. A
+//! compressed checksummed snapshot ([`RoiMap::write_snapshot`]) and a PLY export
+//! ([`RoiMap::write_ply`]) persist and exchange the map.
 
 mod derived;
 mod grid;

@@ -1,24 +1,23 @@
-//! Compact versioned binary snapshot of a map, and deltas for replicas.
+//! Compressed versioned binary snapshot of a map.
 //!
 //! Layout (little endian):
 //!
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `GHRM` |
-//! | 2 | format version (1) |
-//! | 2 | kind: 0 snapshot, 1 delta |
-//! | 8 | body length in bytes |
-//! | body | see below |
+//! | 2 | format version (2) |
+//! | 2 | kind: 0 snapshot |
+//! | 8 | length of the compressed body in bytes |
+//! | body | the LZ4 block (`lz4_flex`, uncompressed size as a u32 first) of the body below |
 //! | 4 | CRC-32 (IEEE) of everything before it |
 //!
-//! Snapshot body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI
-//! threshold as f32, `max_range_m` f64 with −1 for none, ROI distance max and cell f64), `seq` u64,
-//! `scans_inserted` u64, the block count u32, then per block its coordinate (3 × i32), its known
-//! mask (8 × u64, bit `z*64 + y*8 + x`) and, for each known voxel in bit order, occupancy and ROI
-//! log-odds (2 × f32). About 8 bytes per known voxel.
-//!
-//! Delta body: `resolution_m` f64, `from_seq` u64, `to_seq` u64, voxel count u32, then per voxel
-//! its key (3 × i32) and log-odds (2 × f32).
+//! Body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI threshold as
+//! f32, `max_range_m` f64 with −1 for none), `scans_inserted` u64, the block count u32, then per
+//! block its coordinate (3 × i32), its known mask (8 × u64, bit `z*64 + y*8 + x`) and the
+//! occupancy, then the ROI log-odds of its known voxels: tag 0 and one f32 (all equal), tag 1, the
+//! palette size − 1 (u8), the palette (f32 each) and each known voxel's index in bit order packed
+//! LSB first in ⌈log2 size⌉ bits (padded to a byte), or tag 2 and one f32 per known voxel. Well
+//! under one byte per known voxel on the glasshouse scans.
 //!
 //! A short file is [`SnapshotError::Truncated`]; any flipped bit is
 //! [`SnapshotError::ChecksumMismatch`]; content that passes the checksum but is inconsistent is

@@ -169,14 +169,17 @@ impl Block {
 #[derive(Clone, Default)]
 pub(crate) struct Storage {
     pub index: HashMap<VoxelKey, u32, KeyBuildHasher>,
-    pub blocks: Vec<Block>,
+    /// Boxed so that growing the vector moves pointers, and its spare capacity costs a pointer
+    /// per slot rather than a block.
+    #[allow(clippy::vec_box)]
+    pub blocks: Vec<Box<Block>>,
     /// Block coordinate of each entry of `blocks`.
     pub coords: Vec<VoxelKey>,
 }
 
 impl Storage {
     pub(crate) fn find(&self, b: VoxelKey) -> Option<&Block> {
-        self.index.get(&b).map(|&i| &self.blocks[i as usize])
+        self.index.get(&b).map(|&i| &*self.blocks[i as usize])
     }
 
     pub(crate) fn get_or_create(&mut self, b: VoxelKey) -> usize {
@@ -184,7 +187,7 @@ impl Storage {
             return i as usize;
         }
         let i = self.blocks.len();
-        self.blocks.push(Block::new());
+        self.blocks.push(Box::new(Block::new()));
         self.coords.push(b);
         self.index.insert(b, i as u32);
         i
@@ -196,7 +199,8 @@ impl Storage {
     }
 
     pub(crate) fn heap_bytes(&self) -> usize {
-        self.blocks.capacity() * std::mem::size_of::<Block>()
+        self.blocks.len() * std::mem::size_of::<Block>()
+            + self.blocks.capacity() * std::mem::size_of::<Box<Block>>()
             + self
                 .blocks
                 .iter()

@@ -5,7 +5,7 @@
 //! Rows: one filtered scan and one raw scan inserted into the map of the other nine scans (1 and
 //! 2 threads), the unobserved-voxel gain over a 200×150-ray fan, the frontier queries (incremental)
 //! next to a from-scratch recomputation, clustering, and snapshot writing. The memory of the
-//! 10-scan map is printed once.
+//! 10-scan map is printed once. The `row` group sweeps a simulated row segment by segment.
 
 use std::hint::black_box;
 
@@ -13,7 +13,7 @@ use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use glasshouse_geom::Aabb;
 use glasshouse_roimap::testdata::{ray_fan, unobserved_gain, Scan, Workload};
 use glasshouse_roimap::{Neighbourhood, Occupancy, RoiMap, VoxelKey};
-use nalgebra::Point3;
+use nalgebra::{Point3, Vector3};
 
 const SEED: u64 = 1;
 
@@ -102,6 +102,20 @@ fn queries(c: &mut Criterion) {
     g.bench_function("clusters_min10", |b| {
         b.iter(|| m.clusters(black_box(10)).len())
     });
+    let mut snap = Vec::new();
+    m.write_snapshot(&mut snap).expect("write");
+    eprintln!(
+        "10-scan map snapshot: {} bytes, {:.3} B per known voxel",
+        snap.len(),
+        snap.len() as f64 / m.len() as f64
+    );
+    g.bench_function("snapshot_read", |b| {
+        b.iter(|| {
+            RoiMap::read_snapshot(black_box(snap.as_slice()))
+                .expect("read")
+                .len()
+        })
+    });
     g.bench_function("snapshot_write", |b| {
         b.iter(|| {
             let mut out = Vec::new();
@@ -152,5 +166,78 @@ fn brute_frontiers(m: &RoiMap, region: &Aabb) -> (usize, usize) {
     (expl, roi)
 }
 
-criterion_group!(benches, insertion, queries);
+/// A scan moved by `dy_m` along the row (y).
+fn shifted(s: &Scan, dy_m: f64) -> Scan {
+    let dy = dy_m as f32;
+    Scan {
+        origin: s.origin + Vector3::new(0.0, dy_m, 0.0),
+        points: s
+            .points
+            .iter()
+            .map(|p| p + Vector3::new(0.0, dy, 0.0))
+            .collect(),
+        roi: s.roi.clone(),
+    }
+}
+
+/// Row workload: the ten filtered scans repeated segment by segment along a row (1 m apart, 8
+/// segments). Times the last scan of the first segment and of the last segment, each inserted
+/// into the map of everything before it, and prints memory and snapshot bytes per known voxel.
+fn row(c: &mut Criterion) {
+    const SEGMENTS: usize = 8;
+    let w = Workload::standard(SEED);
+    let filtered = w.filtered_scans();
+    let segment =
+        |i: usize| -> Vec<Scan> { filtered.iter().map(|s| shifted(s, i as f64)).collect() };
+    let first = segment(0);
+    let start_map = map_of(&w, &first[..9]);
+    let mut end_map = RoiMap::new(w.map_config()).expect("valid config");
+    let mut last = Vec::new();
+    for i in 0..SEGMENTS {
+        let scans = segment(i);
+        let n = if i + 1 == SEGMENTS { 9 } else { 10 };
+        for s in &scans[..n] {
+            end_map
+                .insert_scan(&s.origin, &s.points, &s.roi)
+                .expect("valid");
+        }
+        last = scans;
+    }
+    let mut full = end_map.clone();
+    let s = &last[9];
+    full.insert_scan(&s.origin, &s.points, &s.roi)
+        .expect("valid");
+    let mut snap = Vec::new();
+    full.write_snapshot(&mut snap).expect("write");
+    eprintln!(
+        "row of {SEGMENTS} segments: {} known voxels, {} blocks, memory {:.1} MB = {:.2} B per \
+         known voxel, snapshot {:.2} MB = {:.3} B per known voxel",
+        full.len(),
+        full.counts().blocks,
+        full.memory_bytes() as f64 / 1e6,
+        full.memory_bytes() as f64 / full.len() as f64,
+        snap.len() as f64 / 1e6,
+        snap.len() as f64 / full.len() as f64
+    );
+    let mut g = c.benchmark_group("row");
+    g.sample_size(10);
+    for (name, map, scan) in [
+        ("scan_start", &start_map, &first[9]),
+        ("scan_end", &end_map, &last[9]),
+    ] {
+        g.bench_function(name, |b| {
+            b.iter_batched_ref(
+                || map.clone(),
+                |m| {
+                    m.insert_scan(&scan.origin, &scan.points, &scan.roi)
+                        .expect("valid")
+                },
+                BatchSize::LargeInput,
+            )
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, insertion, queries, row);
 criterion_main!(benches);

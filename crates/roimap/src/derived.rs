@@ -1,15 +1,11 @@
-//! State derived from the voxels and maintained as they change: the ROI set, the two frontier
-//! sets (as per-block masks) and the ROI distance field.
-
-use std::collections::{HashMap, VecDeque};
-
-use nalgebra::Point3;
+//! State derived from the voxels and maintained as they change: the ROI set and the
+//! two frontier sets (as per-block masks).
 
 use crate::grid::{
     faces_touched, for_each_bit, has_neighbour_in, key_at, mask_count, mask_is_empty, mask_test,
     Block, Mask, EMPTY, FACE_OFFSETS,
 };
-use crate::{ChangeLog, KeyBuildHasher, KeySet, RoiMap, VoxelKey, NEIGHBOURS_26};
+use crate::{ChangeLog, KeySet, RoiMap};
 
 const FULL: Mask = [u64::MAX; 8];
 
@@ -49,7 +45,7 @@ fn frontier_masks(b: &Block, n: [Option<&Block>; 6]) -> (Mask, Mask) {
 }
 
 impl RoiMap {
-    /// Updates the ROI set, the frontier masks and the distance field for the voxels in `log`.
+    /// Updates the ROI set, and the frontier masks for the voxels in `log`.
     pub(crate) fn refresh_derived(&mut self, log: &ChangeLog) {
         if log.blocks.is_empty() {
             return;
@@ -111,141 +107,6 @@ impl RoiMap {
             let b = &mut self.store.blocks[bi as usize];
             b.expl_frontier = expl;
             b.roi_frontier = roi;
-        }
-        // Distance field.
-        if !added.is_empty() || !removed.is_empty() {
-            let res = self.config.resolution_m;
-            let centre = |k: VoxelKey| {
-                Point3::new(
-                    (f64::from(k.x) + 0.5) * res,
-                    (f64::from(k.y) + 0.5) * res,
-                    (f64::from(k.z) + 0.5) * res,
-                )
-            };
-            let roi_set = &self.roi_set;
-            self.distance
-                .update(&added, &removed, |k| roi_set.contains(&k), centre);
-        }
-    }
-}
-
-/// Distance to the nearest ROI voxel centre, up to a maximum, on cells of a fixed size.
-///
-/// Each cell within the maximum of some ROI voxel stores the distance from its centre to the
-/// nearest ROI voxel centre found and that voxel (its *site*). Updates are incremental, after
-/// Lau et al.'s dynamic distance maps: a new ROI voxel starts a lowering wave from its cell (a cell
-/// takes the site when it is closer than its current one, then offers it to its 26 neighbours);
-/// a removed ROI voxel clears the cells whose site it was, and those are refilled from the sites
-/// of their neighbours. Distances are exact for the site found; the wave can in rare geometric
-/// configurations settle on a site slightly farther than the true nearest (at most about one
-/// cell).
-#[derive(Clone, Debug)]
-pub struct RoiDistanceField {
-    cell_m: f64,
-    max_m: f64,
-    cells: HashMap<VoxelKey, (f32, VoxelKey), KeyBuildHasher>,
-}
-
-impl RoiDistanceField {
-    pub(crate) fn new(cell_m: f64, max_m: f64) -> Self {
-        Self {
-            cell_m,
-            max_m,
-            cells: HashMap::default(),
-        }
-    }
-
-    fn cell_of(&self, p: &Point3<f64>) -> VoxelKey {
-        let c = |v: f64| (v / self.cell_m).floor() as i32;
-        VoxelKey::new(c(p.x), c(p.y), c(p.z))
-    }
-
-    fn cell_centre(&self, c: VoxelKey) -> Point3<f64> {
-        Point3::new(
-            (f64::from(c.x) + 0.5) * self.cell_m,
-            (f64::from(c.y) + 0.5) * self.cell_m,
-            (f64::from(c.z) + 0.5) * self.cell_m,
-        )
-    }
-
-    /// Cell edge in metres.
-    pub fn cell_m(&self) -> f64 {
-        self.cell_m
-    }
-
-    /// Largest stored distance in metres.
-    pub fn max_m(&self) -> f64 {
-        self.max_m
-    }
-
-    /// Distance from the centre of `p`'s cell to the nearest ROI voxel centre, if within the
-    /// maximum.
-    pub fn distance_m(&self, p: &Point3<f64>) -> Option<f64> {
-        if !p.iter().all(|c| c.is_finite()) {
-            return None;
-        }
-        self.cells.get(&self.cell_of(p)).map(|&(d, _)| f64::from(d))
-    }
-
-    /// Cells holding a distance.
-    pub fn len(&self) -> usize {
-        self.cells.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.cells.is_empty()
-    }
-
-    pub(crate) fn heap_bytes(&self) -> usize {
-        self.cells.capacity() * (std::mem::size_of::<(VoxelKey, (f32, VoxelKey))>() + 1)
-    }
-
-    pub(crate) fn update(
-        &mut self,
-        added: &[VoxelKey],
-        removed: &[VoxelKey],
-        is_roi: impl Fn(VoxelKey) -> bool,
-        centre: impl Fn(VoxelKey) -> Point3<f64>,
-    ) {
-        let mut queue: VecDeque<(VoxelKey, VoxelKey)> = VecDeque::new();
-        if !removed.is_empty() {
-            let gone: KeySet = removed.iter().copied().collect();
-            let cleared: Vec<VoxelKey> = self
-                .cells
-                .iter()
-                .filter(|(_, (_, site))| gone.contains(site))
-                .map(|(c, _)| *c)
-                .collect();
-            for c in &cleared {
-                self.cells.remove(c);
-            }
-            for &c in &cleared {
-                for &(dx, dy, dz) in &NEIGHBOURS_26 {
-                    if let Some(&(_, site)) = self.cells.get(&c.offset(dx, dy, dz)) {
-                        if is_roi(site) {
-                            queue.push_back((c, site));
-                        }
-                    }
-                }
-            }
-        }
-        for &site in added {
-            queue.push_back((self.cell_of(&centre(site)), site));
-        }
-        while let Some((cell, site)) = queue.pop_front() {
-            let d = (self.cell_centre(cell) - centre(site)).norm();
-            if d > self.max_m {
-                continue;
-            }
-            let d = d as f32;
-            match self.cells.get(&cell) {
-                Some(&(cur, cur_site)) if cur < d || (cur == d && cur_site <= site) => continue,
-                _ => {}
-            }
-            self.cells.insert(cell, (d, site));
-            for &(dx, dy, dz) in &NEIGHBOURS_26 {
-                queue.push_back((cell.offset(dx, dy, dz), site));
-            }
         }
     }
 }

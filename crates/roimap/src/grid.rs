@@ -8,6 +8,7 @@
 
 use std::collections::HashMap;
 
+use crate::values::Values;
 use crate::{KeyBuildHasher, VoxelKey};
 
 pub(crate) const BLOCK_SHIFT: i32 = 3;
@@ -119,11 +120,10 @@ pub(crate) const FACE_OFFSETS: [(i32, i32, i32); 6] = crate::NEIGHBOURS_6;
 /// One block of voxels.
 #[derive(Clone)]
 pub(crate) struct Block {
-    pub occ: [f32; BLOCK_VOXELS],
-    /// ROI log-odds, allocated at the first ROI update (most blocks are free space).
-    pub roi: Option<Box<[f32; BLOCK_VOXELS]>>,
-    /// Map sequence number of each voxel's last change (0 = never).
-    pub seq: [u32; BLOCK_VOXELS],
+    /// Occupancy log-odds (0 for unknown voxels).
+    pub occ: Values,
+    /// ROI log-odds (0 for unknown voxels and voxels never hit as an end point).
+    pub roi: Values,
     /// Voxels ever updated.
     pub known: Mask,
     /// Occupancy log-odds > 0.
@@ -136,37 +136,32 @@ pub(crate) struct Block {
     pub roi_frontier: Mask,
     /// Changed since the last `take_changes`.
     pub dirty: Mask,
-    /// Largest `seq` in the block.
-    pub max_seq: u32,
 }
 
 impl Block {
-    pub(crate) fn new() -> Box<Self> {
-        Box::new(Self {
-            occ: [0.0; BLOCK_VOXELS],
-            roi: None,
-            seq: [0; BLOCK_VOXELS],
+    pub(crate) fn new() -> Self {
+        Self {
+            occ: Values::default(),
+            roi: Values::default(),
             known: EMPTY,
             occupied: EMPTY,
             roi_mask: EMPTY,
             expl_frontier: EMPTY,
             roi_frontier: EMPTY,
             dirty: EMPTY,
-            max_seq: 0,
-        })
+        }
     }
 }
 
 impl Block {
-    /// ROI log-odds of local voxel `l` (0 when the block has none).
+    /// ROI log-odds of local voxel `l`.
     pub(crate) fn roi_at(&self, l: usize) -> f32 {
-        self.roi.as_ref().map_or(0.0, |r| r[l])
+        self.roi.get(l)
     }
 
-    /// The ROI log-odds, allocated (all 0) on first use.
-    pub(crate) fn roi_mut(&mut self) -> &mut [f32; BLOCK_VOXELS] {
-        self.roi
-            .get_or_insert_with(|| Box::new([0.0; BLOCK_VOXELS]))
+    /// Occupancy log-odds of local voxel `l`.
+    pub(crate) fn occ_at(&self, l: usize) -> f32 {
+        self.occ.get(l)
     }
 }
 
@@ -174,6 +169,9 @@ impl Block {
 #[derive(Clone, Default)]
 pub(crate) struct Storage {
     pub index: HashMap<VoxelKey, u32, KeyBuildHasher>,
+    /// Boxed so that growing the vector moves pointers, and its spare capacity costs a pointer
+    /// per slot rather than a block.
+    #[allow(clippy::vec_box)]
     pub blocks: Vec<Box<Block>>,
     /// Block coordinate of each entry of `blocks`.
     pub coords: Vec<VoxelKey>,
@@ -189,7 +187,7 @@ impl Storage {
             return i as usize;
         }
         let i = self.blocks.len();
-        self.blocks.push(Block::new());
+        self.blocks.push(Box::new(Block::new()));
         self.coords.push(b);
         self.index.insert(b, i as u32);
         i
@@ -202,9 +200,12 @@ impl Storage {
 
     pub(crate) fn heap_bytes(&self) -> usize {
         self.blocks.len() * std::mem::size_of::<Block>()
-            + self.blocks.iter().filter(|b| b.roi.is_some()).count()
-                * std::mem::size_of::<[f32; BLOCK_VOXELS]>()
             + self.blocks.capacity() * std::mem::size_of::<Box<Block>>()
+            + self
+                .blocks
+                .iter()
+                .map(|b| b.occ.heap_bytes() + b.roi.heap_bytes())
+                .sum::<usize>()
             + self.coords.capacity() * std::mem::size_of::<VoxelKey>()
             + self.index.capacity() * (std::mem::size_of::<(VoxelKey, u32)>() + 1)
     }

@@ -14,11 +14,14 @@
 use nalgebra::Point3;
 
 use crate::grid::{Mask, BLOCK_EDGE, BLOCK_SHIFT, EMPTY};
+use crate::values::Step;
 use crate::walk::{key_of_f32, norm_f32, walk_interleaved, RaySetup};
 use crate::{ChangeLog, KeySet, MapError, RoiMap, ScanStats, VoxelKey};
 
 /// Largest dense grid in blocks (2^17 blocks = 64M voxels, 8 MB per bit plane).
 const MAX_GRID_BLOCKS: usize = 1 << 17;
+/// Per-scan buffers up to this size are kept for the next scan; larger ones are freed.
+const KEEP_SCRATCH_BYTES: usize = 256 << 10;
 /// Margin in voxels around the key box: absorbs the walk's rounding overshoot.
 const MARGIN: i32 = 2;
 
@@ -317,7 +320,6 @@ impl RoiMap {
         }
 
         // Pass 4: apply block by block.
-        self.seq += 1;
         let mut log = ChangeLog::default();
         let nb = s.grid.nb;
         let lo_block = [0, 1, 2].map(|i| s.grid.lo[i] >> BLOCK_SHIFT);
@@ -387,7 +389,11 @@ impl RoiMap {
         }
         g.overflow_roi.clear();
 
-        self.scratch = s;
+        // The per-scan buffers are as large as the map itself after a few scans (the scan's key
+        // box as bit planes); keeping them would double the map's memory for ~1 ms a scan.
+        if s.heap_bytes() <= KEEP_SCRATCH_BYTES {
+            self.scratch = s;
+        }
         self.refresh_derived(&log);
         self.scans_inserted += 1;
         Ok(stats)
@@ -407,85 +413,53 @@ impl RoiMap {
         log: &mut ChangeLog,
     ) {
         let cfg = self.config;
-        let (lo, hi) = (cfg.clamp_min_logodds, cfg.clamp_max_logodds);
-        let (hit, miss) = (cfg.hit_logodds, cfg.miss_logodds);
+        let step = Step {
+            hit: cfg.hit_logodds,
+            miss: cfg.miss_logodds,
+            lo: cfg.clamp_min_logodds,
+            hi: cfg.clamp_max_logodds,
+        };
         let thr = cfg.roi_threshold_logodds;
-        let seq = self.seq as u32;
+        let (mut touched, mut roi_touched) = (EMPTY, EMPTY);
+        for w in 0..8 {
+            let f = free[w] & !occ[w];
+            let n = non_roi[w] & !roi[w];
+            touched[w] = f | occ[w];
+            roi_touched[w] = roi[w] | n;
+            stats.free_updates += f.count_ones() as usize;
+            stats.occupied_updates += occ[w].count_ones() as usize;
+            stats.roi_updates += roi[w].count_ones() as usize;
+            stats.non_roi_updates += n.count_ones() as usize;
+        }
         let bi = self.store.get_or_create(key);
         let block = &mut self.store.blocks[bi];
+        let (mut changed, occupied_now) = block.occ.update(&touched, occ, step, |v| v > 0.0);
+        let (roi_changed_values, roi_now) = if roi_touched == EMPTY {
+            (EMPTY, EMPTY)
+        } else {
+            block.roi.update(&roi_touched, roi, step, |v| v >= thr)
+        };
         let mut state_changed = EMPTY;
         let mut roi_changed = EMPTY;
         let mut any_changed = false;
         let (mut d_known, mut d_occ) = (0isize, 0isize);
         for w in 0..8 {
-            let o = occ[w];
-            let f = free[w] & !o;
-            let r = roi[w];
-            let n = non_roi[w] & !r;
-            let touched = f | o;
-            if touched == 0 {
-                continue;
-            }
-            stats.free_updates += f.count_ones() as usize;
-            stats.occupied_updates += o.count_ones() as usize;
-            stats.roi_updates += r.count_ones() as usize;
-            stats.non_roi_updates += n.count_ones() as usize;
-            let base = w * 64;
-            let mut changed = touched & !block.known[w];
-            let mut occupied_bits = 0u64;
-            let mut bits = touched;
-            while bits != 0 {
-                let b = bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                let l = base + b;
-                let v = block.occ[l];
-                let delta = if o >> b & 1 != 0 { hit } else { miss };
-                let nv = (v + delta).clamp(lo, hi);
-                block.occ[l] = nv;
-                changed |= u64::from(nv != v) << b;
-                occupied_bits |= u64::from(nv > 0.0) << b;
-            }
-            let mut roi_bits_now = 0u64;
-            let mut bits = r | n;
-            if bits != 0 {
-                let values = block.roi_mut();
-                while bits != 0 {
-                    let b = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    let l = base + b;
-                    let v = values[l];
-                    let delta = if r >> b & 1 != 0 { hit } else { miss };
-                    let nv = (v + delta).clamp(lo, hi);
-                    values[l] = nv;
-                    changed |= u64::from(nv != v) << b;
-                    roi_bits_now |= u64::from(nv >= thr) << b;
-                }
-            }
+            let t = touched[w];
             let known_before = block.known[w];
             let occ_before = block.occupied[w];
             let roi_before = block.roi_mask[w];
-            block.known[w] |= touched;
-            block.occupied[w] = (occ_before & !touched) | occupied_bits;
-            block.roi_mask[w] = (roi_before & !(r | n)) | roi_bits_now;
+            changed[w] |= roi_changed_values[w] | (t & !known_before);
+            block.known[w] |= t;
+            block.occupied[w] = (occ_before & !t) | occupied_now[w];
+            block.roi_mask[w] = (roi_before & !roi_touched[w]) | roi_now[w];
             d_known +=
                 (block.known[w].count_ones() as isize) - (known_before.count_ones() as isize);
             d_occ += (block.occupied[w].count_ones() as isize) - (occ_before.count_ones() as isize);
             roi_changed[w] = roi_before ^ block.roi_mask[w];
             state_changed[w] =
                 (known_before ^ block.known[w]) | (occ_before ^ block.occupied[w]) | roi_changed[w];
-            if changed != 0 {
-                any_changed = true;
-                let mut bits = changed;
-                while bits != 0 {
-                    let b = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    block.seq[base + b] = seq;
-                }
-                block.dirty[w] |= changed;
-            }
-        }
-        if any_changed {
-            block.max_seq = seq;
+            block.dirty[w] |= changed[w];
+            any_changed |= changed[w] != 0;
         }
         self.known_count = self.known_count.wrapping_add_signed(d_known);
         self.occupied_count = self.occupied_count.wrapping_add_signed(d_occ);

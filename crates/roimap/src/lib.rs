@@ -27,15 +27,14 @@
 //! Keys are bounded: a coordinate more than `2^20` voxels from the origin (about 10 km at 1 cm) is
 //! outside the map (OctoMap's bound is `2^15`); such points are skipped and counted.
 //!
-//! Storage is blocked: 8×8×8-voxel blocks with flat arrays, in a hash map keyed by block. The map
-//! maintains, as voxels change, the set of ROI voxels, the ROI-frontier and exploration-frontier
-//! sets (paper-method §3; recomputed only around the voxels a scan changed), and a distance field
-//! to the nearest ROI voxel up to a maximum (for the proximity gain).
+//! Storage is blocked: 8×8×8-voxel blocks in a hash map keyed by block, each holding its exact
+//! `f32` log-odds as one value, a palette with byte indices, or a flat array (whichever the block
+//! needs). The map maintains, as voxels change, the set of ROI voxels and the ROI-frontier and
+//! exploration-frontier sets (paper-method §3; recomputed only around the voxels a scan changed).
 //!
-//! Change tracking: [`RoiMap::take_changes`] returns the voxels changed since its last call;
-//! [`RoiMap::delta_since`] the voxels changed since a sequence number (for replicas). A compact
-//! checksummed snapshot ([`RoiMap::write_snapshot`]) and a PLY export ([`RoiMap::write_ply`])
-//! persist and exchange the map.
+//! Change tracking: [`RoiMap::take_changes`] returns the voxels changed since its last call. A
+//! compressed checksummed snapshot ([`RoiMap::write_snapshot`]) and a PLY export
+//! ([`RoiMap::write_ply`]) persist and exchange the map.
 
 mod derived;
 mod grid;
@@ -43,6 +42,7 @@ mod insert;
 pub mod ply;
 pub mod snapshot;
 pub mod testdata;
+mod values;
 mod walk;
 
 use std::collections::{HashMap, HashSet};
@@ -57,8 +57,7 @@ use crate::grid::{
 };
 use crate::walk::{axis_key, RaySetup, KEY_LIMIT};
 
-pub use crate::derived::RoiDistanceField;
-pub use crate::snapshot::{MapDelta, SnapshotError};
+pub use crate::snapshot::SnapshotError;
 
 /// Offsets of the 6-neighbourhood (face neighbours).
 pub const NEIGHBOURS_6: [(i32, i32, i32); 6] = [
@@ -138,10 +137,6 @@ pub struct MapConfig {
     pub roi_threshold_logodds: f32,
     /// Sensor range in metres; `None` means unlimited (OctoMap's `maxrange < 0`).
     pub max_range_m: Option<f64>,
-    /// The ROI distance field stores distances up to this (the proximity gain's `max_dist`).
-    pub roi_distance_max_m: f64,
-    /// Cell edge of the ROI distance field (the original code used 5 cm cells).
-    pub roi_distance_cell_m: f64,
 }
 
 impl Default for MapConfig {
@@ -154,8 +149,6 @@ impl Default for MapConfig {
             clamp_max_logodds: 3.5110,
             roi_threshold_logodds: 1.0,
             max_range_m: None,
-            roi_distance_max_m: 0.3,
-            roi_distance_cell_m: 0.05,
         }
     }
 }
@@ -203,21 +196,6 @@ impl MapConfig {
                     "max_range_m must be finite and > 0 when set, got {range}"
                 ));
             }
-        }
-        if !(self.roi_distance_max_m.is_finite() && self.roi_distance_max_m >= 0.0) {
-            return bad(format!(
-                "roi_distance_max_m must be finite and >= 0, got {}",
-                self.roi_distance_max_m
-            ));
-        }
-        if !(self.roi_distance_cell_m.is_finite()
-            && self.roi_distance_cell_m > 0.0
-            && self.roi_distance_max_m / self.roi_distance_cell_m <= 1000.0)
-        {
-            return bad(format!(
-                "roi_distance_cell_m must be finite, > 0 and at least max/1000, got {}",
-                self.roi_distance_cell_m
-            ));
         }
         Ok(())
     }
@@ -418,10 +396,7 @@ pub struct RoiMap {
     occupied_count: usize,
     expl_count: usize,
     roi_front_count: usize,
-    distance: RoiDistanceField,
     scratch: insert::Scratch,
-    /// Incremented by every update; voxels remember the sequence number of their last change.
-    seq: u64,
     scans_inserted: u64,
 }
 
@@ -432,7 +407,6 @@ impl std::fmt::Debug for RoiMap {
             .field("config", &self.config)
             .field("voxels", &self.known_count)
             .field("blocks", &self.store.blocks.len())
-            .field("seq", &self.seq)
             .field("scans_inserted", &self.scans_inserted)
             .finish()
     }
@@ -454,9 +428,7 @@ impl RoiMap {
             occupied_count: 0,
             expl_count: 0,
             roi_front_count: 0,
-            distance: RoiDistanceField::new(config.roi_distance_cell_m, config.roi_distance_max_m),
             scratch: insert::Scratch::default(),
-            seq: 0,
             scans_inserted: 0,
         })
     }
@@ -531,29 +503,25 @@ impl RoiMap {
     /// Sets one voxel (making it known); records the change when it is new or differs.
     pub(crate) fn set_voxel(&mut self, key: VoxelKey, v: Voxel, log: &mut ChangeLog) {
         let thr = self.config.roi_threshold_logodds;
-        let seq = self.seq as u32;
         let bi = self.store.get_or_create(block_of(key));
         let l = local_of(key);
         let b = &mut self.store.blocks[bi];
         let was_known = mask_test(&b.known, l);
         let was_occ = mask_test(&b.occupied, l);
         let was_roi = mask_test(&b.roi_mask, l);
-        let changed = !was_known || b.occ[l] != v.occupancy_logodds || b.roi_at(l) != v.roi_logodds;
+        let changed =
+            !was_known || b.occ_at(l) != v.occupancy_logodds || b.roi_at(l) != v.roi_logodds;
         if !changed {
             return;
         }
-        b.occ[l] = v.occupancy_logodds;
-        if v.roi_logodds != 0.0 || b.roi.is_some() {
-            b.roi_mut()[l] = v.roi_logodds;
-        }
+        b.occ.set(l, v.occupancy_logodds);
+        b.roi.set(l, v.roi_logodds);
         let is_occ = v.occupancy_logodds > 0.0;
         let is_roi = v.roi_logodds >= thr;
         mask_set(&mut b.known, l, true);
         mask_set(&mut b.occupied, l, is_occ);
         mask_set(&mut b.roi_mask, l, is_roi);
         mask_set(&mut b.dirty, l, true);
-        b.seq[l] = seq;
-        b.max_seq = seq;
         self.dirty_blocks.insert(bi as u32);
         if !was_known {
             self.known_count += 1;
@@ -576,7 +544,7 @@ impl RoiMap {
         let b = self.store.find(block_of(key))?;
         let l = local_of(key);
         mask_test(&b.known, l).then(|| Voxel {
-            occupancy_logodds: b.occ[l],
+            occupancy_logodds: b.occ_at(l),
             roi_logodds: b.roi_at(l),
         })
     }
@@ -646,68 +614,13 @@ impl RoiMap {
                     out.push((
                         key_at(bk, l),
                         Voxel {
-                            occupancy_logodds: b.occ[l],
+                            occupancy_logodds: b.occ_at(l),
                             roi_logodds: b.roi_at(l),
                         },
                     ))
                 });
                 out
             })
-    }
-
-    /// Known voxels with keys in `lo..=hi` (per axis), visiting only the blocks that overlap.
-    pub fn iter_box(
-        &self,
-        lo: VoxelKey,
-        hi: VoxelKey,
-    ) -> impl Iterator<Item = (VoxelKey, Voxel)> + '_ {
-        let (blo, bhi) = (block_of(lo), block_of(hi));
-        let span = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1).max(0) as u64;
-        let box_blocks = span(blo.x, bhi.x) * span(blo.y, bhi.y) * span(blo.z, bhi.z);
-        // Few blocks in the box: look them up; otherwise scan the allocated blocks.
-        let picked: Vec<usize> = if box_blocks <= self.store.blocks.len() as u64 {
-            let mut v = Vec::new();
-            for bz in blo.z..=bhi.z {
-                for by in blo.y..=bhi.y {
-                    for bx in blo.x..=bhi.x {
-                        if let Some(&i) = self.store.index.get(&VoxelKey::new(bx, by, bz)) {
-                            v.push(i as usize);
-                        }
-                    }
-                }
-            }
-            v
-        } else {
-            (0..self.store.blocks.len())
-                .filter(|&i| {
-                    let c = self.store.coords[i];
-                    (blo.x..=bhi.x).contains(&c.x)
-                        && (blo.y..=bhi.y).contains(&c.y)
-                        && (blo.z..=bhi.z).contains(&c.z)
-                })
-                .collect()
-        };
-        picked.into_iter().flat_map(move |i| {
-            let b = &self.store.blocks[i];
-            let bk = self.store.coords[i];
-            let mut out = Vec::new();
-            for_each_bit(&b.known, |l| {
-                let k = key_at(bk, l);
-                if (lo.x..=hi.x).contains(&k.x)
-                    && (lo.y..=hi.y).contains(&k.y)
-                    && (lo.z..=hi.z).contains(&k.z)
-                {
-                    out.push((
-                        k,
-                        Voxel {
-                            occupancy_logodds: b.occ[l],
-                            roi_logodds: b.roi_at(l),
-                        },
-                    ));
-                }
-            });
-            out
-        })
     }
 
     /// Keys of all ROI voxels, sorted.
@@ -732,7 +645,7 @@ impl RoiMap {
                 out.push((
                     key_at(bk, l),
                     Voxel {
-                        occupancy_logodds: b.occ[l],
+                        occupancy_logodds: b.occ_at(l),
                         roi_logodds: b.roi_at(l),
                     },
                 ))
@@ -746,7 +659,6 @@ impl RoiMap {
     /// Overwrites voxel values (for replicas and dashboards) and records them as changes when
     /// they differ. Entries with non-finite log-odds are ignored, so bad input cannot poison the map.
     pub fn apply_voxels(&mut self, voxels: &[(VoxelKey, Voxel)]) {
-        self.seq += 1;
         let mut log = ChangeLog::default();
         for &(key, value) in voxels {
             if !(value.occupancy_logodds.is_finite() && value.roi_logodds.is_finite()) {
@@ -761,53 +673,6 @@ impl RoiMap {
             self.set_voxel(key, value, &mut log);
         }
         self.refresh_derived(&log);
-    }
-
-    /// Sequence number of the last update (scan or applied voxels); 0 for a new map.
-    pub fn seq(&self) -> u64 {
-        self.seq
-    }
-
-    /// Known voxels changed after sequence number `since` (current values, sorted by key), for a
-    /// replica that has applied everything up to `since`. `delta_since(0)` is the whole map.
-    pub fn delta_since(&self, since: u64) -> MapDelta {
-        let since32 = u32::try_from(since).unwrap_or(u32::MAX);
-        let mut voxels = Vec::new();
-        for (b, &bk) in self.store.blocks.iter().zip(&self.store.coords) {
-            if b.max_seq <= since32 {
-                continue;
-            }
-            for_each_bit(&b.known, |l| {
-                if b.seq[l] > since32 {
-                    voxels.push((
-                        key_at(bk, l),
-                        Voxel {
-                            occupancy_logodds: b.occ[l],
-                            roi_logodds: b.roi_at(l),
-                        },
-                    ));
-                }
-            });
-        }
-        voxels.sort_unstable_by_key(|(k, _)| *k);
-        MapDelta {
-            resolution_m: self.config.resolution_m,
-            from_seq: since.min(self.seq),
-            to_seq: self.seq,
-            voxels,
-        }
-    }
-
-    /// Applies a delta from [`RoiMap::delta_since`] (of a map with the same resolution).
-    pub fn apply_delta(&mut self, delta: &MapDelta) -> Result<(), MapError> {
-        if delta.resolution_m != self.config.resolution_m {
-            return Err(MapError::InvalidConfig(format!(
-                "delta resolution {} m differs from the map's {} m",
-                delta.resolution_m, self.config.resolution_m
-            )));
-        }
-        self.apply_voxels(&delta.voxels);
-        Ok(())
     }
 
     /// Walks the voxels of the segment `origin + t * direction`, `t` in `[0, max_range_m]`, with the
@@ -852,7 +717,7 @@ impl RoiMap {
             let b = cached.1?;
             let l = local_of(k);
             mask_test(&b.known, l).then(|| Voxel {
-                occupancy_logodds: b.occ[l],
+                occupancy_logodds: b.occ_at(l),
                 roi_logodds: b.roi_at(l),
             })
         };
@@ -931,18 +796,6 @@ impl RoiMap {
         out
     }
 
-    /// Distance in metres from `p` to the nearest ROI voxel centre, when within
-    /// `roi_distance_max_m`; measured from the centre of `p`'s distance-field cell
-    /// (`roi_distance_cell_m`). Maintained incrementally as ROI voxels appear and disappear.
-    pub fn roi_distance_m(&self, p: &Point3<f64>) -> Option<f64> {
-        self.distance.distance_m(p)
-    }
-
-    /// The ROI distance field itself.
-    pub fn roi_distance_field(&self) -> &RoiDistanceField {
-        &self.distance
-    }
-
     /// ROI voxels grown into 26-connected clusters; clusters with at least `min_voxels` voxels,
     /// ordered by their smallest key.
     pub fn clusters(&self, min_voxels: usize) -> Vec<RoiCluster> {
@@ -1001,7 +854,7 @@ impl RoiMap {
         self.scans_inserted
     }
 
-    /// Heap use in bytes: blocks, indexes, derived sets, distance field and scan buffers (hash
+    /// Heap use in bytes: blocks, indexes, derived sets, and scan buffers (hash
     /// tables at their capacity, one control byte per slot).
     pub fn memory_bytes(&self) -> usize {
         let key = std::mem::size_of::<VoxelKey>() + 1;
@@ -1012,7 +865,6 @@ impl RoiMap {
                 + self.expl_blocks.capacity()
                 + self.roi_front_blocks.capacity())
                 * key
-            + self.distance.heap_bytes()
             + self.scratch.heap_bytes()
     }
 }

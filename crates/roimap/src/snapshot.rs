@@ -1,24 +1,23 @@
-//! Compact versioned binary snapshot of a map, and deltas for replicas.
+//! Compressed versioned binary snapshot of a map.
 //!
 //! Layout (little endian):
 //!
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `GHRM` |
-//! | 2 | format version (1) |
-//! | 2 | kind: 0 snapshot, 1 delta |
-//! | 8 | body length in bytes |
-//! | body | see below |
+//! | 2 | format version (2) |
+//! | 2 | kind: 0 snapshot |
+//! | 8 | length of the compressed body in bytes |
+//! | body | the LZ4 block (`lz4_flex`, uncompressed size as a u32 first) of the body below |
 //! | 4 | CRC-32 (IEEE) of everything before it |
 //!
-//! Snapshot body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI
-//! threshold as f32, `max_range_m` f64 with −1 for none, ROI distance max and cell f64), `seq` u64,
-//! `scans_inserted` u64, the block count u32, then per block its coordinate (3 × i32), its known
-//! mask (8 × u64, bit `z*64 + y*8 + x`) and, for each known voxel in bit order, occupancy and ROI
-//! log-odds (2 × f32). About 8 bytes per known voxel.
-//!
-//! Delta body: `resolution_m` f64, `from_seq` u64, `to_seq` u64, voxel count u32, then per voxel
-//! its key (3 × i32) and log-odds (2 × f32).
+//! Body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI threshold as
+//! f32, `max_range_m` f64 with −1 for none), `scans_inserted` u64, the block count u32, then per
+//! block its coordinate (3 × i32), its known mask (8 × u64, bit `z*64 + y*8 + x`) and the
+//! occupancy, then the ROI log-odds of its known voxels: tag 0 and one f32 (all equal), tag 1, the
+//! palette size − 1 (u8), the palette (f32 each) and each known voxel's index in bit order packed
+//! LSB first in ⌈log2 size⌉ bits (padded to a byte), or tag 2 and one f32 per known voxel. Well
+//! under one byte per known voxel on the glasshouse scans.
 //!
 //! A short file is [`SnapshotError::Truncated`]; any flipped bit is
 //! [`SnapshotError::ChecksumMismatch`]; content that passes the checksum but is inconsistent is
@@ -26,14 +25,14 @@
 
 use std::io::{Read, Write};
 
-use crate::grid::{for_each_bit, key_at, mask_count, Mask};
-use crate::{ChangeLog, MapConfig, MapError, RoiMap, Voxel, VoxelKey};
+use crate::grid::{for_each_bit, mask_count, Mask};
+use crate::values::Values;
+use crate::{ChangeLog, MapConfig, MapError, RoiMap, VoxelKey};
 
 const MAGIC: &[u8; 4] = b"GHRM";
 /// Current format version.
-pub const FORMAT_VERSION: u16 = 1;
+pub const FORMAT_VERSION: u16 = 2;
 const KIND_SNAPSHOT: u16 = 0;
-const KIND_DELTA: u16 = 1;
 const HEADER_BYTES: usize = 16;
 
 /// Errors reading or writing snapshots and deltas.
@@ -58,18 +57,6 @@ pub enum SnapshotError {
     Corrupt(String),
     #[error("map file has an invalid configuration: {0}")]
     Config(#[from] MapError),
-}
-
-/// Voxels changed between two sequence numbers of a map ([`RoiMap::delta_since`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct MapDelta {
-    pub resolution_m: f64,
-    /// The replica must have applied everything up to this sequence number.
-    pub from_seq: u64,
-    /// Sequence number of the map after applying the delta.
-    pub to_seq: u64,
-    /// Current values of the changed voxels, sorted by key.
-    pub voxels: Vec<(VoxelKey, Voxel)>,
 }
 
 const fn crc_table() -> [u32; 256] {
@@ -106,7 +93,6 @@ pub fn crc32(bytes: &[u8]) -> u32 {
 fn kind_name(kind: u16) -> &'static str {
     match kind {
         KIND_SNAPSHOT => "snapshot",
-        KIND_DELTA => "delta",
         _ => "unknown kind",
     }
 }
@@ -209,6 +195,19 @@ impl<'a> Cursor<'a> {
         Ok(out)
     }
 
+    fn slice(&mut self, n: usize) -> Result<&'a [u8], SnapshotError> {
+        let end = self.at.saturating_add(n);
+        let slice = self
+            .bytes
+            .get(self.at..end)
+            .ok_or_else(|| SnapshotError::Corrupt("body ends early".into()))?;
+        self.at = end;
+        Ok(slice)
+    }
+
+    fn u8(&mut self) -> Result<u8, SnapshotError> {
+        Ok(self.take::<1>()?[0])
+    }
     fn u16(&mut self) -> Result<u16, SnapshotError> {
         Ok(u16::from_le_bytes(self.take()?))
     }
@@ -239,22 +238,106 @@ impl<'a> Cursor<'a> {
     }
 }
 
-fn finite_voxel(occ: f32, roi: f32) -> Result<Voxel, SnapshotError> {
-    if occ.is_finite() && roi.is_finite() {
-        Ok(Voxel {
-            occupancy_logodds: occ,
-            roi_logodds: roi,
-        })
-    } else {
-        Err(SnapshotError::Corrupt("non-finite log-odds".into()))
+/// Bits per palette index for a palette of `n` values (0 for a single value).
+fn index_bits(n: usize) -> u32 {
+    usize::BITS - (n.max(1) - 1).leading_zeros()
+}
+
+/// Appends one block's values: tag 0 = one value, 1 = palette (count − 1 as u8, the values,
+/// then each known voxel's index in bit order, packed LSB first), 2 = each known voxel's value.
+fn write_values(body: &mut Vec<u8>, values: &Values, known: &Mask) {
+    match values.palette() {
+        Some((pal, idx)) => {
+            let (Some(idx), true) = (idx, pal.len() > 1) else {
+                body.push(0);
+                body.extend_from_slice(&pal[0].to_le_bytes());
+                return;
+            };
+            body.push(1);
+            body.push((pal.len() - 1) as u8);
+            for v in pal {
+                body.extend_from_slice(&v.to_le_bytes());
+            }
+            let bits = index_bits(pal.len());
+            let (mut acc, mut filled) = (0u64, 0u32);
+            for_each_bit(known, |l| {
+                acc |= u64::from(idx[l]) << filled;
+                filled += bits;
+                if filled >= 32 {
+                    body.extend_from_slice(&(acc as u32).to_le_bytes());
+                    acc >>= 32;
+                    filled -= 32;
+                }
+            });
+            let tail = filled.div_ceil(8) as usize;
+            body.extend_from_slice(&acc.to_le_bytes()[..tail]);
+        }
+        None => {
+            body.push(2);
+            for_each_bit(known, |l| {
+                body.extend_from_slice(&values.get(l).to_le_bytes());
+            });
+        }
+    }
+}
+
+/// Reads what [`write_values`] wrote.
+fn read_values(c: &mut Cursor, known: &Mask) -> Result<Values, SnapshotError> {
+    let finite = |v: f32| {
+        v.is_finite()
+            .then_some(v)
+            .ok_or_else(|| SnapshotError::Corrupt("non-finite log-odds".into()))
+    };
+    match c.u8()? {
+        0 => {
+            let v = finite(c.f32()?)?;
+            Values::from_palette(vec![v], known, || 0)
+                .ok_or_else(|| SnapshotError::Corrupt("bad palette".into()))
+        }
+        1 => {
+            let n = usize::from(c.u8()?) + 1;
+            let mut pal = Vec::with_capacity(n + 1);
+            for _ in 0..n {
+                pal.push(finite(c.f32()?)?);
+            }
+            let bits = index_bits(n);
+            let packed = (mask_count(known) * bits as usize).div_ceil(8);
+            let bytes = c.slice(packed)?;
+            let (mut at, mut acc, mut filled) = (0usize, 0u64, 0u32);
+            let index = || {
+                while filled < bits {
+                    acc |= u64::from(bytes.get(at).copied().unwrap_or(0)) << filled;
+                    at += 1;
+                    filled += 8;
+                }
+                let i = (acc & ((1 << bits) - 1)) as u8;
+                acc >>= bits;
+                filled -= bits;
+                i
+            };
+            Values::from_palette(pal, known, index)
+                .ok_or_else(|| SnapshotError::Corrupt("palette index out of range".into()))
+        }
+        2 => {
+            let mut err = None;
+            let v = Values::from_known(known, || match c.f32().and_then(finite) {
+                Ok(v) => v,
+                Err(e) => {
+                    err.get_or_insert(e);
+                    0.0
+                }
+            });
+            err.map_or(Ok(v), Err)
+        }
+        t => Err(SnapshotError::Corrupt(format!("unknown value tag {t}"))),
     }
 }
 
 impl RoiMap {
-    /// Writes the whole map (configuration, voxels, sequence number) as a snapshot.
+    /// Writes the whole map (configuration and voxels) as a compressed snapshot.
     pub fn write_snapshot(&self, mut w: impl Write) -> Result<(), SnapshotError> {
         let c = &self.config;
-        let mut body = Vec::with_capacity(64 + self.known_count * 8 + self.store.blocks.len() * 80);
+        let mut body = Vec::with_capacity(64 + self.known_count + self.store.blocks.len() * 100);
         body.extend_from_slice(&c.resolution_m.to_le_bytes());
         for v in [
             c.hit_logodds,
@@ -266,9 +349,6 @@ impl RoiMap {
             body.extend_from_slice(&v.to_le_bytes());
         }
         body.extend_from_slice(&c.max_range_m.unwrap_or(-1.0).to_le_bytes());
-        body.extend_from_slice(&c.roi_distance_max_m.to_le_bytes());
-        body.extend_from_slice(&c.roi_distance_cell_m.to_le_bytes());
-        body.extend_from_slice(&self.seq.to_le_bytes());
         body.extend_from_slice(&self.scans_inserted.to_le_bytes());
         let blocks: Vec<usize> = (0..self.store.blocks.len())
             .filter(|&i| mask_count(&self.store.blocks[i].known) > 0)
@@ -283,18 +363,18 @@ impl RoiMap {
             for w in b.known {
                 body.extend_from_slice(&w.to_le_bytes());
             }
-            for_each_bit(&b.known, |l| {
-                body.extend_from_slice(&b.occ[l].to_le_bytes());
-                body.extend_from_slice(&b.roi_at(l).to_le_bytes());
-            });
+            write_values(&mut body, &b.occ, &b.known);
+            write_values(&mut body, &b.roi, &b.known);
         }
-        frame(KIND_SNAPSHOT, &body, &mut w)
+        let packed = lz4_flex::block::compress_prepend_size(&body);
+        frame(KIND_SNAPSHOT, &packed, &mut w)
     }
 
     /// Reads a snapshot written by [`RoiMap::write_snapshot`]. The restored map has no pending
-    /// changes; its sequence number continues from the snapshot's.
+    /// changes.
     pub fn read_snapshot(mut r: impl Read) -> Result<RoiMap, SnapshotError> {
-        let body = unframe(KIND_SNAPSHOT, &mut r)?;
+        let packed = unframe(KIND_SNAPSHOT, &mut r)?;
+        let body = unpack(&packed)?;
         let mut c = Cursor::new(&body);
         let resolution_m = c.f64()?;
         let hit_logodds = c.f32()?;
@@ -303,8 +383,6 @@ impl RoiMap {
         let clamp_max_logodds = c.f32()?;
         let roi_threshold_logodds = c.f32()?;
         let max_range = c.f64()?;
-        let roi_distance_max_m = c.f64()?;
-        let roi_distance_cell_m = c.f64()?;
         let config = MapConfig {
             resolution_m,
             hit_logodds,
@@ -313,106 +391,67 @@ impl RoiMap {
             clamp_max_logodds,
             roi_threshold_logodds,
             max_range_m: (max_range >= 0.0).then_some(max_range),
-            roi_distance_max_m,
-            roi_distance_cell_m,
         };
         let mut map = RoiMap::new(config)?;
-        let seq = c.u64()?;
-        let scans_inserted = c.u64()?;
+        map.scans_inserted = c.u64()?;
         let n_blocks = c.u32()?;
-        map.seq = seq;
         let mut log = ChangeLog::default();
-        let mut seen = crate::KeySet::default();
         for _ in 0..n_blocks {
-            let bk = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
-            if !seen.insert(bk) {
-                return Err(SnapshotError::Corrupt(format!("block {bk:?} twice")));
-            }
-            let mut known: Mask = [0; 8];
-            for w in &mut known {
-                *w = c.u64()?;
-            }
-            let mut voxels = Vec::with_capacity(mask_count(&known));
-            let mut err = None;
-            for_each_bit(&known, |l| {
-                let v = c
-                    .f32()
-                    .and_then(|o| c.f32().and_then(|r| finite_voxel(o, r)));
-                match v {
-                    Ok(v) => voxels.push((key_at(bk, l), v)),
-                    Err(e) => {
-                        if err.is_none() {
-                            err = Some(e);
-                        }
-                    }
-                }
-            });
-            if let Some(e) = err {
-                return Err(e);
-            }
-            let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
-            if !(key_ok(bk.x) && key_ok(bk.y) && key_ok(bk.z)) {
-                return Err(SnapshotError::Corrupt(format!("block {bk:?} out of range")));
-            }
-            for (k, v) in voxels {
-                map.set_voxel(k, v, &mut log);
-            }
+            map.read_block(&mut c, &mut log)?;
         }
         c.finished()?;
         map.refresh_derived(&log);
-        map.scans_inserted = scans_inserted;
-        // Nothing pending: the snapshot is the baseline.
-        for bi in map.dirty_blocks.drain() {
-            map.store.blocks[bi as usize].dirty = [0; 8];
-        }
         Ok(map)
+    }
+
+    /// Reads one block of a snapshot into a new block of the map.
+    fn read_block(&mut self, c: &mut Cursor, log: &mut ChangeLog) -> Result<(), SnapshotError> {
+        let bk = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
+        let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
+        if !(key_ok(bk.x) && key_ok(bk.y) && key_ok(bk.z)) {
+            return Err(SnapshotError::Corrupt(format!("block {bk:?} out of range")));
+        }
+        if self.store.index.contains_key(&bk) {
+            return Err(SnapshotError::Corrupt(format!("block {bk:?} twice")));
+        }
+        let mut known: Mask = [0; 8];
+        for w in &mut known {
+            *w = c.u64()?;
+        }
+        let occ = read_values(c, &known)?;
+        let roi = read_values(c, &known)?;
+        let thr = self.config.roi_threshold_logodds;
+        let bi = self.store.get_or_create(bk);
+        let b = &mut self.store.blocks[bi];
+        for_each_bit(&known, |l| {
+            let bit = 1u64 << (l & 63);
+            if occ.get(l) > 0.0 {
+                b.occupied[l >> 6] |= bit;
+            }
+            if roi.get(l) >= thr {
+                b.roi_mask[l >> 6] |= bit;
+            }
+        });
+        b.known = known;
+        b.occ = occ;
+        b.roi = roi;
+        self.known_count += mask_count(&known);
+        self.occupied_count += mask_count(&b.occupied);
+        log.note(bi as u32, &known, &b.roi_mask);
+        Ok(())
     }
 }
 
-impl MapDelta {
-    /// Writes the delta in the framed format (kind 1).
-    pub fn write_to(&self, mut w: impl Write) -> Result<(), SnapshotError> {
-        let mut body = Vec::with_capacity(28 + self.voxels.len() * 20);
-        body.extend_from_slice(&self.resolution_m.to_le_bytes());
-        body.extend_from_slice(&self.from_seq.to_le_bytes());
-        body.extend_from_slice(&self.to_seq.to_le_bytes());
-        body.extend_from_slice(&(self.voxels.len() as u32).to_le_bytes());
-        for (k, v) in &self.voxels {
-            for c in [k.x, k.y, k.z] {
-                body.extend_from_slice(&c.to_le_bytes());
-            }
-            body.extend_from_slice(&v.occupancy_logodds.to_le_bytes());
-            body.extend_from_slice(&v.roi_logodds.to_le_bytes());
-        }
-        frame(KIND_DELTA, &body, &mut w)
+/// Decompresses a verified body, refusing a stated size no LZ4 block could expand to.
+fn unpack(packed: &[u8]) -> Result<Vec<u8>, SnapshotError> {
+    let corrupt = |m: &str| SnapshotError::Corrupt(m.into());
+    let size = packed
+        .get(..4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+        .ok_or_else(|| corrupt("body ends early"))?;
+    // LZ4 expands at most about 255 times.
+    if size > packed.len().saturating_mul(256) + 64 {
+        return Err(corrupt("stated size does not fit the compressed body"));
     }
-
-    /// Reads a delta written by [`MapDelta::write_to`].
-    pub fn read_from(mut r: impl Read) -> Result<MapDelta, SnapshotError> {
-        let body = unframe(KIND_DELTA, &mut r)?;
-        let mut c = Cursor::new(&body);
-        let resolution_m = c.f64()?;
-        let from_seq = c.u64()?;
-        let to_seq = c.u64()?;
-        let n = c.u32()? as usize;
-        if n.saturating_mul(20) != body.len().saturating_sub(28) {
-            return Err(SnapshotError::Corrupt(format!(
-                "{n} voxels do not fit a body of {} bytes",
-                body.len()
-            )));
-        }
-        let mut voxels = Vec::with_capacity(n);
-        for _ in 0..n {
-            let k = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
-            let v = finite_voxel(c.f32()?, c.f32()?)?;
-            voxels.push((k, v));
-        }
-        c.finished()?;
-        Ok(MapDelta {
-            resolution_m,
-            from_seq,
-            to_seq,
-            voxels,
-        })
-    }
+    lz4_flex::block::decompress(&packed[4..], size).map_err(|e| corrupt(&e.to_string()))
 }

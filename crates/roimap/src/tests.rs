@@ -925,82 +925,6 @@ fn incremental_frontiers_roi_set_and_counts_match_recomputation() {
     assert_eq!(m.roi_keys().len(), roi_now.len() - cleared.len());
 }
 
-fn brute_distance(m: &RoiMap, p: &Point3<f64>) -> Option<f64> {
-    let f = m.roi_distance_field();
-    let cell = |v: f64| ((v / f.cell_m()).floor() + 0.5) * f.cell_m();
-    let c = Point3::new(cell(p.x), cell(p.y), cell(p.z));
-    m.roi_keys()
-        .iter()
-        .map(|&k| (m.centre_of(k) - c).norm())
-        .fold(None, |a: Option<f64>, d| Some(a.map_or(d, |a| a.min(d))))
-        .filter(|&d| d <= f.max_m())
-}
-
-#[test]
-fn roi_distance_field_tracks_added_and_removed_roi_voxels() {
-    let config = MapConfig {
-        roi_distance_max_m: 0.1,
-        roi_distance_cell_m: 0.02,
-        ..MapConfig::default()
-    };
-    let mut m = RoiMap::new(config).expect("valid");
-    let mut rng = TestRng(17);
-    let roi_v = Voxel {
-        occupancy_logodds: 2.0,
-        roi_logodds: 2.0,
-    };
-    let plain = Voxel {
-        occupancy_logodds: 2.0,
-        roi_logodds: -1.0,
-    };
-    let mut keys = Vec::new();
-    for _ in 0..40 {
-        keys.push(k(
-            (rng.next_u64() % 30) as i32,
-            (rng.next_u64() % 30) as i32,
-            (rng.next_u64() % 10) as i32,
-        ));
-    }
-    let check = |m: &RoiMap, rng: &mut TestRng| {
-        let mut exact = 0;
-        let mut within = 0;
-        for _ in 0..400 {
-            let p = Point3::new(
-                rng.uniform(-0.1, 0.4),
-                rng.uniform(-0.1, 0.4),
-                rng.uniform(-0.1, 0.2),
-            );
-            let (got, want) = (m.roi_distance_m(&p), brute_distance(m, &p));
-            match (got, want) {
-                (Some(g), Some(w)) => {
-                    assert!(g + 1e-6 >= w, "never below the true distance");
-                    assert!(g <= w + 0.02 + 1e-6, "{g} vs {w}");
-                    exact += usize::from((g - w).abs() < 1e-6);
-                    within += 1;
-                }
-                (None, None) => {}
-                (None, Some(w)) => assert!(w > 0.1 - 0.02, "missing cell at {w}"),
-                (Some(g), None) => panic!("distance {g} where no ROI voxel is near"),
-            }
-        }
-        assert!(exact * 10 >= within * 9, "{exact} of {within} exact");
-    };
-    let batch: Vec<(VoxelKey, Voxel)> = keys[..20].iter().map(|&k| (k, roi_v)).collect();
-    m.apply_voxels(&batch);
-    check(&m, &mut rng);
-    let batch: Vec<(VoxelKey, Voxel)> = keys[20..].iter().map(|&k| (k, roi_v)).collect();
-    m.apply_voxels(&batch);
-    check(&m, &mut rng);
-    // Remove half of them.
-    let batch: Vec<(VoxelKey, Voxel)> = keys.iter().step_by(2).map(|&k| (k, plain)).collect();
-    m.apply_voxels(&batch);
-    check(&m, &mut rng);
-    // Remove all: the field empties.
-    let batch: Vec<(VoxelKey, Voxel)> = keys.iter().map(|&k| (k, plain)).collect();
-    m.apply_voxels(&batch);
-    assert!(m.roi_distance_field().is_empty());
-}
-
 #[test]
 fn snapshot_round_trip_and_errors() {
     let w = Workload::small(4, 64, 48, 6, 3);
@@ -1012,7 +936,6 @@ fn snapshot_round_trip_and_errors() {
     let back = RoiMap::read_snapshot(bytes.as_slice()).expect("read");
     assert_eq!(sorted_voxels(&back), sorted_voxels(&m));
     assert_eq!(back.config(), m.config());
-    assert_eq!(back.seq(), m.seq());
     assert_eq!(back.scans_inserted(), m.scans_inserted());
     assert_eq!(back.counts(), m.counts());
     assert_eq!(back.roi_keys(), m.roi_keys());
@@ -1053,56 +976,7 @@ fn snapshot_round_trip_and_errors() {
         RoiMap::read_snapshot(bad.as_slice()),
         Err(SnapshotError::UnsupportedVersion(9))
     ));
-    // A delta is not a snapshot.
-    let mut delta = Vec::new();
-    m.delta_since(0).write_to(&mut delta).expect("write");
-    assert!(matches!(
-        RoiMap::read_snapshot(delta.as_slice()),
-        Err(SnapshotError::WrongKind { .. })
-    ));
     assert_eq!(snapshot::crc32(b"123456789"), 0xCBF4_3926);
-}
-
-#[test]
-fn deltas_keep_a_replica_equal() {
-    let w = Workload::small(9, 64, 48, 6, 4);
-    let mut master = RoiMap::new(w.map_config()).expect("valid");
-    let mut replica = RoiMap::new(w.map_config()).expect("valid");
-    let mut synced = replica.seq();
-    for s in w.filtered_scans() {
-        master
-            .insert_scan(&s.origin, &s.points, &s.roi)
-            .expect("valid");
-        let delta = master.delta_since(synced);
-        assert_eq!(delta.from_seq, synced);
-        // Only voxels changed since then, not the whole map, after the first scan.
-        if synced > 0 {
-            assert!(delta.voxels.len() < master.len());
-        }
-        let mut wire = Vec::new();
-        delta.write_to(&mut wire).expect("write");
-        let got = MapDelta::read_from(wire.as_slice()).expect("read");
-        assert_eq!(got, delta);
-        replica.apply_delta(&got).expect("same resolution");
-        synced = got.to_seq;
-        assert_eq!(sorted_voxels(&replica), sorted_voxels(&master));
-        assert_eq!(replica.roi_keys(), master.roi_keys());
-    }
-    assert!(master.delta_since(master.seq()).voxels.is_empty());
-    let mut wire = Vec::new();
-    master.delta_since(1).write_to(&mut wire).expect("write");
-    wire.truncate(wire.len() - 3);
-    assert!(matches!(
-        MapDelta::read_from(wire.as_slice()),
-        Err(SnapshotError::Truncated { .. })
-    ));
-    let other = RoiMap::new(MapConfig {
-        resolution_m: 0.02,
-        ..MapConfig::default()
-    })
-    .expect("valid");
-    let mut o = other;
-    assert!(o.apply_delta(&master.delta_since(0)).is_err());
 }
 
 #[test]
@@ -1160,7 +1034,7 @@ fn ply_cloud_round_trip_and_voxel_export() {
 }
 
 #[test]
-fn neighbourhoods_box_iteration_and_filtered_workload() {
+fn neighbourhoods_and_filtered_workload() {
     assert_eq!(NEIGHBOURS_18.len(), 18);
     assert_eq!(NEIGHBOURS_26.len(), 26);
     let all: BTreeSet<(i32, i32, i32)> = NEIGHBOURS_26.iter().copied().collect();
@@ -1175,21 +1049,6 @@ fn neighbourhoods_box_iteration_and_filtered_workload() {
 
     let w = Workload::small(6, 64, 48, 6, 2);
     let m = w.filtered_map().expect("valid");
-    let (lo, hi) = (k(10, -20, -5), k(40, 3, 7));
-    let mut got: Vec<VoxelKey> = m.iter_box(lo, hi).map(|(k, _)| k).collect();
-    got.sort();
-    let want: Vec<VoxelKey> = sorted_voxels(&m)
-        .into_iter()
-        .map(|(k, _)| k)
-        .filter(|k| {
-            (lo.x..=hi.x).contains(&k.x)
-                && (lo.y..=hi.y).contains(&k.y)
-                && (lo.z..=hi.z).contains(&k.z)
-        })
-        .collect();
-    assert!(!want.is_empty());
-    assert_eq!(got, want);
-
     // Downsampling keeps one point per voxel.
     let raw = w.raw_scan(&w.origins[0]);
     let f = downsample(&raw, 0.01);
@@ -1219,4 +1078,109 @@ fn standard_workload_has_the_documented_size() {
         "{}",
         f.points.len()
     );
+}
+
+fn voxel_bits(entries: impl Iterator<Item = (VoxelKey, Voxel)>) -> Vec<(VoxelKey, u32, u32)> {
+    let mut v: Vec<_> = entries
+        .map(|(k, x)| (k, x.occupancy_logodds.to_bits(), x.roi_logodds.to_bits()))
+        .collect();
+    v.sort_unstable_by_key(|e| e.0);
+    v
+}
+
+/// Checks the map against the plain reference, value bits included, through `iter` and `get`.
+fn assert_matches_reference(m: &RoiMap, reference: &Reference, what: &str) {
+    let want = voxel_bits(reference.cells.iter().map(|(k, v)| (*k, *v)));
+    assert_eq!(voxel_bits(m.iter()), want, "{what}: iter");
+    let got = voxel_bits(
+        reference
+            .cells
+            .keys()
+            .filter_map(|&k| m.get(k).map(|v| (k, v))),
+    );
+    assert_eq!(got, want, "{what}: get");
+    for &(k, _, _) in want.iter().step_by(7) {
+        let beside = k.offset(0, 0, 1);
+        if !reference.cells.contains_key(&beside) {
+            assert_eq!(m.get(beside), None, "{what}: unknown voxel");
+        }
+    }
+}
+
+/// The compact storage (one value per block, palettes of exact values, flat blocks) reads back
+/// exactly the values of a plain per-voxel reference, over seeded random scans with NaN and
+/// infinite points, points beyond the maximum range and origins hundreds of metres from the
+/// map's origin; a snapshot restores the same bits.
+#[test]
+fn compact_layout_reads_back_the_plain_reference() {
+    for seed in 0..6u64 {
+        let mut rng = TestRng(1000 + seed);
+        let range = if seed % 2 == 0 { 0.3 } else { -1.0 };
+        let config = MapConfig {
+            max_range_m: (range > 0.0).then_some(range),
+            ..MapConfig::default()
+        };
+        let mut m = RoiMap::new(config).expect("valid");
+        let mut reference = Reference::new(0.01);
+        let base = Vector3::new(
+            rng.uniform(-400.0, 400.0),
+            rng.uniform(-400.0, 400.0),
+            rng.uniform(-50.0, 50.0),
+        );
+        for scan in 0..14 {
+            let origin = Point3::new(
+                rng.uniform(-0.05, 0.05),
+                rng.uniform(-0.05, 0.05),
+                rng.uniform(-0.05, 0.05),
+            ) + base;
+            let (mut pts, mut roi) = random_cloud(&mut rng, 300);
+            for p in &mut pts {
+                *p = (p.cast::<f64>() + base).cast::<f32>();
+            }
+            for bad in [
+                p32(f64::NAN, 0.0, 0.0),
+                p32(base.x, f64::INFINITY, base.z),
+                p32(base.x, base.y, f64::NEG_INFINITY),
+            ] {
+                pts.push(bad);
+                roi.push(scan % 2 == 0);
+            }
+            let stats = m.insert_scan(&origin, &pts, &roi).expect("valid scan");
+            assert_eq!(stats.skipped_non_finite, 3);
+            reference.insert(&origin, &pts, &roi, range);
+            assert_matches_reference(&m, &reference, &format!("seed {seed} scan {scan}"));
+        }
+        // More distinct values in one block than a palette holds: the block turns flat and
+        // later scans still update it exactly.
+        let origin = Point3::from(base);
+        let ko = m.key_of(&origin);
+        let corner = VoxelKey::new(ko.x & !7, ko.y & !7, ko.z & !7);
+        let direct: Vec<(VoxelKey, Voxel)> = (0..300)
+            .map(|i| {
+                let key = corner.offset(i % 8, (i / 8) % 8, i / 64);
+                let v = Voxel {
+                    occupancy_logodds: -1.9 + i as f32 * 0.0123,
+                    roi_logodds: 0.001 * i as f32,
+                };
+                (key, v)
+            })
+            .collect();
+        m.apply_voxels(&direct);
+        reference.cells.extend(direct.iter().copied());
+        let (pts, roi) = random_cloud(&mut rng, 300);
+        let pts: Vec<Point3<f32>> = pts
+            .iter()
+            .map(|p| (p.cast::<f64>() + base).cast())
+            .collect();
+        m.insert_scan(&origin, &pts, &roi).expect("valid scan");
+        reference.insert(&origin, &pts, &roi, range);
+        assert_matches_reference(&m, &reference, &format!("seed {seed} flat block"));
+
+        let mut bytes = Vec::new();
+        m.write_snapshot(&mut bytes).expect("write");
+        let back = RoiMap::read_snapshot(bytes.as_slice()).expect("read");
+        assert_matches_reference(&back, &reference, &format!("seed {seed} snapshot"));
+        assert_eq!(back.counts(), m.counts());
+        assert_eq!(back.roi_keys(), m.roi_keys());
+    }
 }

@@ -199,7 +199,6 @@ struct Lane {
     step: [i32; 3],
     left: u64,
     length: f64,
-    done: bool,
 }
 
 impl Lane {
@@ -214,7 +213,6 @@ impl Lane {
             step: s.step,
             left: (0..3).map(|i| u64::from(c[i].abs_diff(e[i]))).sum(),
             length: s.length,
-            done: false,
         }
     }
 
@@ -253,9 +251,103 @@ impl Lane {
     }
 }
 
-/// Walks many rays, four at a time (each walk is a chain of dependent floating-point steps;
-/// interleaving independent rays keeps the core busy). Calls `visit` with every free voxel of
-/// every ray, exactly as [`RaySetup::walk`] would, in an interleaved order.
+/// Rays walked side by side by [`walk_interleaved`].
+const LANES: usize = 8;
+
+/// [`LANES`] rays in flight, one array per field, so that one step of every lane is the same
+/// arithmetic on arrays (the compiler turns the loop in [`Lanes::advance`] into vector code).
+#[derive(Clone, Copy)]
+struct Lanes {
+    t: [[f64; LANES]; 3],
+    td: [[f64; LANES]; 3],
+    c: [[i32; LANES]; 3],
+    e: [[i32; LANES]; 3],
+    step: [[i32; LANES]; 3],
+    left: [u64; LANES],
+    length: [f64; LANES],
+}
+
+impl Lanes {
+    fn new(first: &[Lane; LANES]) -> Self {
+        let mut out = Self {
+            t: [[0.0; LANES]; 3],
+            td: [[0.0; LANES]; 3],
+            c: [[0; LANES]; 3],
+            e: [[0; LANES]; 3],
+            step: [[0; LANES]; 3],
+            left: [0; LANES],
+            length: [0.0; LANES],
+        };
+        for (j, l) in first.iter().enumerate() {
+            out.load(j, l);
+        }
+        out
+    }
+
+    fn load(&mut self, j: usize, l: &Lane) {
+        for i in 0..3 {
+            self.t[i][j] = l.t[i];
+            self.td[i][j] = l.td[i];
+            self.c[i][j] = l.c[i];
+            self.e[i][j] = l.e[i];
+            self.step[i][j] = l.step[i];
+        }
+        self.left[j] = l.left;
+        self.length[j] = l.length;
+    }
+
+    fn lane(&self, j: usize) -> Lane {
+        Lane {
+            t: [0, 1, 2].map(|i| self.t[i][j]),
+            td: [0, 1, 2].map(|i| self.td[i][j]),
+            c: [0, 1, 2].map(|i| self.c[i][j]),
+            e: [0, 1, 2].map(|i| self.e[i][j]),
+            step: [0, 1, 2].map(|i| self.step[i][j]),
+            left: self.left[j],
+            length: self.length[j],
+        }
+    }
+
+    /// [`Lane::advance`] for every lane at once; bit `j` of the result is set when lane `j`'s
+    /// ray is done (its new voxel is then not a free voxel).
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // one index over seven arrays
+    fn advance(&mut self) -> u32 {
+        let mut done = [false; LANES];
+        for j in 0..LANES {
+            let (t0, t1, t2) = (self.t[0][j], self.t[1][j], self.t[2][j]);
+            let a = t0 < t1;
+            let x = a & (t0 < t2);
+            let y = !a & (t1 < t2);
+            let z = !(x | y);
+            let n0 = t0 + if x { self.td[0][j] } else { 0.0 };
+            let n1 = t1 + if y { self.td[1][j] } else { 0.0 };
+            let n2 = t2 + if z { self.td[2][j] } else { 0.0 };
+            self.t[0][j] = n0;
+            self.t[1][j] = n1;
+            self.t[2][j] = n2;
+            self.c[0][j] += self.step[0][j] & -i32::from(x);
+            self.c[1][j] += self.step[1][j] & -i32::from(y);
+            self.c[2][j] += self.step[2][j] & -i32::from(z);
+            self.left[j] = self.left[j].wrapping_sub(1);
+            let at_end = (self.left[j] == 0)
+                & (self.c[0][j] == self.e[0][j])
+                & (self.c[1][j] == self.e[1][j])
+                & (self.c[2][j] == self.e[2][j]);
+            let m01 = if n0 < n1 { n0 } else { n1 };
+            let t_min = if m01 < n2 { m01 } else { n2 };
+            done[j] = at_end | (t_min > self.length[j]);
+        }
+        done.iter()
+            .enumerate()
+            .fold(0u32, |acc, (j, &d)| acc | u32::from(d) << j)
+    }
+}
+
+/// Walks many rays, [`LANES`] at a time (each walk is a chain of dependent floating-point steps;
+/// independent rays side by side keep the core busy and let the steps run as vector code).
+/// Calls `visit` with every free voxel of every ray, exactly as [`RaySetup::walk`] would, in an
+/// interleaved order.
 pub(crate) fn walk_interleaved(
     mut rays: impl Iterator<Item = RaySetup>,
     mut visit: impl FnMut([i32; 3]),
@@ -266,47 +358,51 @@ pub(crate) fn walk_interleaved(
             Lane::start(&s)
         })
     };
-    let first = [
-        start(&mut visit),
-        start(&mut visit),
-        start(&mut visit),
-        start(&mut visit),
-    ];
-    let [Some(mut l0), Some(mut l1), Some(mut l2), Some(mut l3)] = first else {
-        // Fewer than four rays: one at a time.
-        for mut l in first.into_iter().flatten() {
+    let mut first = Vec::with_capacity(LANES);
+    while first.len() < LANES {
+        match start(&mut visit) {
+            Some(l) => first.push(l),
+            None => break,
+        }
+    }
+    let Ok(first) = <[Lane; LANES]>::try_from(first.as_slice()) else {
+        // Fewer rays than lanes: one at a time.
+        for mut l in first {
             while let Some(c) = l.advance() {
                 visit(c);
             }
         }
         return;
     };
-    // All four lanes busy: unrolled, no liveness tests. A finished lane takes the next ray; when
-    // there is none, the lane is marked done and the others are finished one by one.
-    macro_rules! step {
-        ($lane:ident) => {
-            match $lane.advance() {
-                Some(c) => visit(c),
-                None => match start(&mut visit) {
-                    Some(next) => $lane = next,
-                    None => {
-                        $lane.done = true;
-                        break;
-                    }
-                },
+    let mut lanes = Lanes::new(&first);
+    // Every lane busy; a finished lane takes the next ray. When there is none, the lanes still
+    // running are finished one by one.
+    let mut rest: Vec<Lane> = Vec::new();
+    'steps: loop {
+        let done = lanes.advance();
+        for j in 0..LANES {
+            if done >> j & 1 == 0 {
+                visit([lanes.c[0][j], lanes.c[1][j], lanes.c[2][j]]);
+                continue;
             }
-        };
-    }
-    loop {
-        step!(l0);
-        step!(l1);
-        step!(l2);
-        step!(l3);
-    }
-    for mut l in [l0, l1, l2, l3] {
-        if l.done {
-            continue;
+            match start(&mut visit) {
+                Some(next) => lanes.load(j, &next),
+                None => {
+                    // Lanes before `j` are up to date; lanes after it have stepped but not
+                    // yet visited their new voxel.
+                    rest.extend((0..j).map(|k| lanes.lane(k)));
+                    for k in j + 1..LANES {
+                        if done >> k & 1 == 0 {
+                            visit([lanes.c[0][k], lanes.c[1][k], lanes.c[2][k]]);
+                            rest.push(lanes.lane(k));
+                        }
+                    }
+                    break 'steps;
+                }
+            }
         }
+    }
+    for mut l in rest {
         while let Some(c) = l.advance() {
             visit(c);
         }

@@ -1,0 +1,313 @@
+//! Exact `f32` log-odds of the 512 voxels of a block, stored by how many distinct values they
+//! hold: one value for the whole block (free space after a few scans, and never-updated blocks),
+//! a palette of up to 256 exact values with one byte per voxel (the common case: a block holds a
+//! handful of hit/miss counts), or a flat array when a block holds more distinct values.
+//!
+//! Values are compared by their bits, so what is read back is exactly what was stored.
+
+use crate::grid::{Mask, BLOCK_VOXELS, EMPTY};
+
+/// Largest palette; one more distinct value makes the block flat.
+const MAX_PALETTE: usize = 256;
+/// Palettes at least this long are compacted (unused entries dropped) before an update.
+const COMPACT_AT: usize = 48;
+
+/// One log-odds update rule: add `hit` or `miss`, then clamp to `[lo, hi]`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Step {
+    pub hit: f32,
+    pub miss: f32,
+    pub lo: f32,
+    pub hi: f32,
+}
+
+impl Step {
+    #[inline(always)]
+    fn apply(self, v: f32, is_hit: bool) -> f32 {
+        (v + if is_hit { self.hit } else { self.miss }).clamp(self.lo, self.hi)
+    }
+}
+
+/// Palette storage: `values[idx[l]]` is voxel `l`'s value.
+#[derive(Clone)]
+pub(crate) struct Palette {
+    values: Vec<f32>,
+    idx: [u8; BLOCK_VOXELS],
+}
+
+impl Palette {
+    fn find_or_push(&mut self, v: f32) -> Option<u8> {
+        let bits = v.to_bits();
+        if let Some(i) = self.values.iter().position(|x| x.to_bits() == bits) {
+            return Some(i as u8);
+        }
+        if self.values.len() >= MAX_PALETTE {
+            return None;
+        }
+        self.values.push(v);
+        Some((self.values.len() - 1) as u8)
+    }
+
+    /// Drops the entries no voxel uses.
+    fn compact(&mut self) {
+        let mut used = [false; MAX_PALETTE];
+        for &i in &self.idx {
+            used[usize::from(i)] = true;
+        }
+        let mut remap = [0u8; MAX_PALETTE];
+        let mut kept = Vec::with_capacity(self.values.len());
+        for (i, &v) in self.values.iter().enumerate() {
+            if used[i] {
+                remap[i] = kept.len() as u8;
+                kept.push(v);
+            }
+        }
+        for i in &mut self.idx {
+            *i = remap[usize::from(*i)];
+        }
+        self.values = kept;
+    }
+
+    fn flatten(&self) -> Box<[f32; BLOCK_VOXELS]> {
+        let mut out = Box::new([0.0; BLOCK_VOXELS]);
+        for (o, &i) in out.iter_mut().zip(&self.idx) {
+            *o = self.values[usize::from(i)];
+        }
+        out
+    }
+
+    /// The one value of the block, when every voxel holds the same.
+    fn single(&self) -> Option<f32> {
+        let first = self.idx[0];
+        self.idx
+            .iter()
+            .all(|&i| i == first)
+            .then(|| self.values[usize::from(first)])
+    }
+}
+
+/// Log-odds of one block's voxels.
+#[derive(Clone)]
+pub(crate) enum Values {
+    /// Every voxel holds this value.
+    Uniform(f32),
+    Palette(Box<Palette>),
+    Flat(Box<[f32; BLOCK_VOXELS]>),
+}
+
+impl Default for Values {
+    fn default() -> Self {
+        Values::Uniform(0.0)
+    }
+}
+
+impl Values {
+    #[inline]
+    pub(crate) fn get(&self, l: usize) -> f32 {
+        match self {
+            Values::Uniform(v) => *v,
+            Values::Palette(p) => p.values[usize::from(p.idx[l])],
+            Values::Flat(a) => a[l],
+        }
+    }
+
+    /// Heap bytes beyond the enum itself.
+    pub(crate) fn heap_bytes(&self) -> usize {
+        match self {
+            Values::Uniform(_) => 0,
+            Values::Palette(p) => std::mem::size_of::<Palette>() + p.values.capacity() * 4,
+            Values::Flat(_) => std::mem::size_of::<[f32; BLOCK_VOXELS]>(),
+        }
+    }
+
+    /// Distinct values and per-voxel indices (uniform: one value, all indices 0; flat: `None`).
+    pub(crate) fn palette(&self) -> Option<(&[f32], Option<&[u8; BLOCK_VOXELS]>)> {
+        match self {
+            Values::Uniform(v) => Some((std::slice::from_ref(v), None)),
+            Values::Palette(p) => Some((&p.values, Some(&p.idx))),
+            Values::Flat(_) => None,
+        }
+    }
+
+    /// Storage from a palette and the index of each voxel in `known` (in bit order); the other
+    /// voxels hold 0. `None` when an index is out of the palette.
+    pub(crate) fn from_palette(
+        values: Vec<f32>,
+        known: &Mask,
+        mut index: impl FnMut() -> u8,
+    ) -> Option<Values> {
+        let mut p = Palette {
+            values,
+            idx: [0; BLOCK_VOXELS],
+        };
+        let known_all = known.iter().all(|&w| w == u64::MAX);
+        let zero = if known_all { 0 } else { p.find_or_push(0.0)? };
+        p.idx = [zero; BLOCK_VOXELS];
+        let mut bad = false;
+        crate::grid::for_each_bit(known, |l| {
+            let i = index();
+            bad |= usize::from(i) >= p.values.len();
+            p.idx[l] = i;
+        });
+        if bad {
+            return None;
+        }
+        let mut v = Values::Palette(Box::new(p));
+        v.collapse();
+        Some(v)
+    }
+
+    /// Flat storage from the values of the voxels in `known` (in bit order); the others hold 0.
+    pub(crate) fn from_known(known: &Mask, mut value: impl FnMut() -> f32) -> Values {
+        let mut a = Box::new([0.0; BLOCK_VOXELS]);
+        crate::grid::for_each_bit(known, |l| a[l] = value());
+        Values::Flat(a)
+    }
+
+    fn palette_mut(&mut self) -> Option<&mut Palette> {
+        if let Values::Uniform(v) = *self {
+            *self = Values::Palette(Box::new(Palette {
+                values: vec![v],
+                idx: [0; BLOCK_VOXELS],
+            }));
+        }
+        match self {
+            Values::Palette(p) => Some(p),
+            _ => None,
+        }
+    }
+
+    fn make_flat(&mut self) {
+        let flat = match self {
+            Values::Uniform(v) => Box::new([*v; BLOCK_VOXELS]),
+            Values::Palette(p) => p.flatten(),
+            Values::Flat(_) => return,
+        };
+        *self = Values::Flat(flat);
+    }
+
+    /// Returns to uniform storage when every voxel holds the same value.
+    fn collapse(&mut self) {
+        if let Values::Palette(p) = self {
+            if let Some(v) = p.single() {
+                *self = Values::Uniform(v);
+            }
+        }
+    }
+
+    pub(crate) fn set(&mut self, l: usize, v: f32) {
+        if let Values::Uniform(u) = self {
+            if u.to_bits() == v.to_bits() {
+                return;
+            }
+        }
+        if let Some(p) = self.palette_mut() {
+            if p.values.len() >= COMPACT_AT {
+                p.compact();
+            }
+            if let Some(i) = p.find_or_push(v) {
+                p.idx[l] = i;
+                return;
+            }
+        }
+        self.make_flat();
+        if let Values::Flat(a) = self {
+            a[l] = v;
+        }
+    }
+
+    /// Updates the voxels of `touched` (a hit where `hits` is set, else a miss). Returns the
+    /// voxels whose value changed and, among the touched ones, those whose new value satisfies
+    /// `pred`.
+    pub(crate) fn update(
+        &mut self,
+        touched: &Mask,
+        hits: &Mask,
+        step: Step,
+        pred: impl Fn(f32) -> bool,
+    ) -> (Mask, Mask) {
+        if let Some(p) = self.palette_mut() {
+            if p.values.len() >= COMPACT_AT {
+                p.compact();
+            }
+            if p.values.len() * 3 <= MAX_PALETTE {
+                let out = update_palette(p, touched, hits, step, &pred);
+                self.collapse();
+                return out;
+            }
+        }
+        self.make_flat();
+        match self {
+            Values::Flat(a) => update_flat(a, touched, hits, step, &pred),
+            // make_flat leaves flat storage.
+            _ => (EMPTY, EMPTY),
+        }
+    }
+}
+
+/// Palette update: each entry's hit and miss successors are found once, then voxels only move
+/// indices. The caller guarantees room for two new entries per existing one.
+fn update_palette(
+    p: &mut Palette,
+    touched: &Mask,
+    hits: &Mask,
+    step: Step,
+    pred: &impl Fn(f32) -> bool,
+) -> (Mask, Mask) {
+    let n = p.values.len();
+    let (mut to_hit, mut to_miss) = ([0u8; MAX_PALETTE / 3], [0u8; MAX_PALETTE / 3]);
+    for i in 0..n {
+        let v = p.values[i];
+        // Room is guaranteed (n * 3 <= MAX_PALETTE), so both pushes succeed.
+        to_hit[i] = p.find_or_push(step.apply(v, true)).unwrap_or(0);
+        to_miss[i] = p.find_or_push(step.apply(v, false)).unwrap_or(0);
+    }
+    let mut holds = [false; MAX_PALETTE];
+    for (h, &v) in holds.iter_mut().zip(&p.values) {
+        *h = pred(v);
+    }
+    let (mut changed, mut satisfied) = (EMPTY, EMPTY);
+    for w in 0..8 {
+        let mut bits = touched[w];
+        while bits != 0 {
+            let b = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let l = w * 64 + b;
+            let old = usize::from(p.idx[l]);
+            let new = if hits[w] >> b & 1 != 0 {
+                to_hit[old]
+            } else {
+                to_miss[old]
+            };
+            p.idx[l] = new;
+            let new = usize::from(new);
+            changed[w] |= u64::from(p.values[new].to_bits() != p.values[old].to_bits()) << b;
+            satisfied[w] |= u64::from(holds[new]) << b;
+        }
+    }
+    (changed, satisfied)
+}
+
+fn update_flat(
+    a: &mut [f32; BLOCK_VOXELS],
+    touched: &Mask,
+    hits: &Mask,
+    step: Step,
+    pred: &impl Fn(f32) -> bool,
+) -> (Mask, Mask) {
+    let (mut changed, mut satisfied) = (EMPTY, EMPTY);
+    for w in 0..8 {
+        let mut bits = touched[w];
+        while bits != 0 {
+            let b = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let l = w * 64 + b;
+            let v = a[l];
+            let nv = step.apply(v, hits[w] >> b & 1 != 0);
+            a[l] = nv;
+            changed[w] |= u64::from(nv.to_bits() != v.to_bits()) << b;
+            satisfied[w] |= u64::from(pred(nv)) << b;
+        }
+    }
+    (changed, satisfied)
+}

@@ -14,12 +14,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use glasshouse_bus::{
-    declare_alive, Delivery, DropCounters, Received, Shutdown, TypedPublisher, TypedSubscriber,
-};
-use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
+use glasshouse_bus::{declare_alive, DropCounters, Publisher, Received, Shutdown, Subscriber};
+use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{
-    FruitEstimates, Header, Message, RankedView, RgbdFrame, TrolleyState, TrolleyStatus,
+    FruitEstimates, Header, RankedView, RgbdFrame, TrolleyState, TrolleyStatus,
 };
 use glasshouse_sim::{CameraModel, ScenarioKind, Scene};
 use nalgebra::Isometry3;
@@ -139,24 +137,12 @@ pub async fn run(
     let scenario = config.validate()?;
     let tid = config.trolley_id.clone();
     let drops = counters.drops.clone();
-    let publisher = |topic, delivery| {
-        let session = session.clone();
-        let drops = drops.clone();
-        let key = keys::trolley(&tid, topic);
-        async move { TypedPublisher::declare(&session, key?, delivery, drops).await }
-    };
-    let rgbd = publisher(TrolleyTopic::Rgbd, Delivery::Stream).await?;
-    let arm = publisher(TrolleyTopic::Arm, Delivery::Stream).await?;
-    let info_pub = publisher(TrolleyTopic::Info, Delivery::Reliable).await?;
-    let status_pub = publisher(TrolleyTopic::Status, Delivery::Reliable).await?;
-    let truth_pub = publisher(TrolleyTopic::Truth, Delivery::Reliable).await?;
-    let views_sub = TypedSubscriber::declare(
-        &session,
-        &keys::trolley(&tid, TrolleyTopic::Views)?,
-        Delivery::Reliable,
-        drops.clone(),
-    )
-    .await?;
+    let rgbd = Publisher::declare(&session, &keys::rgbd(&tid)?, drops.clone()).await?;
+    let arm = Publisher::declare(&session, &keys::arm(&tid)?, drops.clone()).await?;
+    let info_pub = Publisher::declare(&session, &keys::info(&tid)?, drops.clone()).await?;
+    let status_pub = Publisher::declare(&session, &keys::status(&tid)?, drops.clone()).await?;
+    let truth_pub = Publisher::declare(&session, &keys::truth(&tid)?, drops.clone()).await?;
+    let views_sub = Subscriber::declare(&session, &keys::views(&tid)?, drops.clone()).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
 
     let mut source: Box<dyn TrolleySource> = match &config.replay_dir {
@@ -168,12 +154,10 @@ pub async fn run(
         .as_deref()
         .map(FrameRecorder::create)
         .transpose()?;
-    let truth = source.ground_truth().map(|fruits| {
-        Message::FruitEstimates(FruitEstimates {
-            fruits,
-            based_on_seq: 0,
-            planner_id: format!("truth-{tid}"),
-        })
+    let truth = source.ground_truth().map(|fruits| FruitEstimates {
+        fruits,
+        based_on_seq: 0,
+        planner_id: format!("truth-{tid}"),
     });
     let mut sim_time_s = 0.0;
     let mut frame_seq = 0u64;
@@ -229,14 +213,14 @@ pub async fn run(
             });
             break;
         };
-        let info_msg = Message::TrolleyInfo(source.info());
-        let frame_msg = Message::RgbdFrame(frame);
+        let info_msg = source.info();
+        let frame_msg = frame;
         if let Some(recorder) = &recorder {
             let h = header(frame_seq, sim_time_s);
             recorder.write(&h, &info_msg)?;
             recorder.write(&h, &frame_msg)?;
         }
-        let arm_msg = Message::ArmState(source.arm_state(false, status.views_done));
+        let arm_msg = source.arm_state(false, status.views_done);
         let announce = |seq: u64, t: f64| {
             let h = header(seq, t);
             let (info_pub, arm, rgbd, truth_pub) = (&info_pub, &arm, &rgbd, &truth_pub);
@@ -255,10 +239,7 @@ pub async fn run(
         status.state = TrolleyState::WaitingForViews;
         status.dropped_messages = drops.total();
         status_pub
-            .publish(
-                &header(frame_seq, sim_time_s),
-                &Message::TrolleyStatus(status.clone()),
-            )
+            .publish(&header(frame_seq, sim_time_s), &status)
             .await?;
 
         // Wait for views planned on this frame; re-announce it when nobody answers.
@@ -274,13 +255,12 @@ pub async fn run(
                         announce(frame_seq, sim_time_s).await?;
                     }
                     Ok(None) => break 'capture,
-                    Ok(Some(Received { header, message: Message::RankedViews(views), .. })) => {
+                    Ok(Some(Received { header, message: views, .. })) => {
                         if header.trolley_id == tid && views.based_on_seq == frame_seq {
                             break views;
                         }
                         tracing::debug!(based_on = views.based_on_seq, frame_seq, "ignoring views planned on another frame");
                     }
-                    Ok(Some(_)) => {}
                 },
             }
         };
@@ -332,7 +312,7 @@ pub async fn run(
         sim_time_s += executed.motion_s + config.capture_time_s;
         arm.publish(
             &header(frame_seq, sim_time_s),
-            &Message::ArmState(source.arm_state(true, status.views_done)),
+            &source.arm_state(true, status.views_done),
         )
         .await?;
         status.views_done += 1;
@@ -351,14 +331,13 @@ pub async fn run(
         status.views_done, status.frames_published
     );
     status_pub
-        .publish(
-            &header(frame_seq, sim_time_s),
-            &Message::TrolleyStatus(status.clone()),
-        )
+        .publish(&header(frame_seq, sim_time_s), &status)
         .await?;
-    for p in [rgbd, arm, info_pub, status_pub, truth_pub] {
-        p.close().await;
-    }
+    rgbd.close().await;
+    arm.close().await;
+    info_pub.close().await;
+    status_pub.close().await;
+    truth_pub.close().await;
     tracing::info!(trolley = %tid, views = status.views_done, frames = status.frames_published,
         dropped = drops.total(), corrupt = drops.corrupt.load(Ordering::Relaxed), "edge stopped");
     Ok(())

@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use glasshouse_arm::{Interval, Mount, MountState};
 use glasshouse_proto::{
-    decode_as, encode, ArmModel, ArmState, Fruit, Header, Message, MessageKind, MountKind,
-    RgbdFrame, TrolleyInfo,
+    decode_typed, encode, ArmModel, ArmState, Fruit, Header, MessageKind, MountKind, RgbdFrame,
+    TrolleyInfo, Wire,
 };
 use glasshouse_sim::{CameraModel, Scene, Segment, SimArm};
 use nalgebra::Isometry3;
@@ -220,10 +220,10 @@ impl FrameRecorder {
         })
     }
 
-    pub fn write(&self, header: &Header, message: &Message) -> anyhow::Result<()> {
-        let name = match message {
-            Message::TrolleyInfo(_) => "info.ghw".to_string(),
-            Message::RgbdFrame(_) => format!("frame-{:08}.ghw", header.seq),
+    pub fn write<M: Wire>(&self, header: &Header, message: &M) -> anyhow::Result<()> {
+        let name = match M::KIND {
+            MessageKind::TrolleyInfo => "info.ghw".to_string(),
+            MessageKind::RgbdFrame => format!("frame-{:08}.ghw", header.seq),
             _ => anyhow::bail!("only frames and trolley info are recorded"),
         };
         let path = self.dir.join(name);
@@ -246,11 +246,8 @@ impl ReplaySource {
         let info_path = dir.join("info.ghw");
         let bytes = fs::read(&info_path)
             .with_context(|| format!("cannot read {} (not a recording?)", info_path.display()))?;
-        let (_, message) = decode_as(&bytes, MessageKind::TrolleyInfo)
+        let (_, info) = decode_typed::<TrolleyInfo>(&bytes)
             .with_context(|| format!("{} is not a TrolleyInfo", info_path.display()))?;
-        let Message::TrolleyInfo(info) = message else {
-            anyhow::bail!("{} is not a TrolleyInfo", info_path.display());
-        };
         let mut frames: Vec<PathBuf> = fs::read_dir(dir)
             .with_context(|| format!("cannot list {}", dir.display()))?
             .filter_map(|e| e.ok().map(|e| e.path()))
@@ -285,11 +282,8 @@ impl TrolleySource for ReplaySource {
             return Ok(None);
         };
         let bytes = fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-        let (_, message) = decode_as(&bytes, MessageKind::RgbdFrame)
+        let (_, frame) = decode_typed::<RgbdFrame>(&bytes)
             .with_context(|| format!("{} is not an RgbdFrame", path.display()))?;
-        let Message::RgbdFrame(frame) = message else {
-            anyhow::bail!("{} is not an RgbdFrame", path.display());
-        };
         self.last_pose = frame.world_from_camera;
         Ok(Some(frame))
     }

@@ -26,8 +26,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use glasshouse_bus::{
-    ask, declare_alive, reply, Delivery, DropCounters, MemberEvent, MemberWatch, Received,
-    Responder, Shutdown, TypedPublisher, TypedSubscriber,
+    ask, declare_alive, Delivery, DropCounters, MemberEvent, MemberWatch, Publisher, Received,
+    Responder, Shutdown, Subscriber,
 };
 use glasshouse_fleet::{
     merge_fruits, Assignment, FleetFruitInput, Membership, OwnershipChange, Role,
@@ -35,11 +35,11 @@ use glasshouse_fleet::{
 use glasshouse_geom::look_along;
 use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, ShapeKind};
 use glasshouse_nbv::{plan_views, FruitTracker, Method, PlannerConfig, PlanningContext};
-use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
+use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{
     FittedEllipsoid, FleetFruit, FleetFruits, Fruit, FruitEstimates, Header, MapSnapshot,
-    MapUpdate, Message, PlannerStatus, RankedView, RankedViews, RoiCloud, TrackedFruit,
-    TrolleyInfo, ViewKind, VoxelChange, VoxelState,
+    MapUpdate, PlannerStatus, RankedView, RankedViews, RoiCloud, TrackedFruit, TrolleyInfo,
+    ViewKind, VoxelChange, VoxelState,
 };
 use glasshouse_roimap::{MapConfig, Occupancy, RoiMap, Voxel, VoxelKey};
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -353,9 +353,9 @@ fn voxel_change(map: &RoiMap, key: VoxelKey, voxel: Voxel) -> VoxelChange {
 }
 
 struct Outputs {
-    views: TypedPublisher,
-    fruits: TypedPublisher,
-    map: TypedPublisher,
+    views: Publisher<RankedViews>,
+    fruits: Publisher<FruitEstimates>,
+    map: Publisher<MapUpdate>,
 }
 
 impl Outputs {
@@ -364,15 +364,10 @@ impl Outputs {
         tid: &str,
         drops: &Arc<DropCounters>,
     ) -> anyhow::Result<Self> {
-        let declare = |topic| {
-            let (session, drops) = (session.clone(), drops.clone());
-            let key = keys::trolley(tid, topic);
-            async move { TypedPublisher::declare(&session, key?, Delivery::Reliable, drops).await }
-        };
         Ok(Self {
-            views: declare(TrolleyTopic::Views).await?,
-            fruits: declare(TrolleyTopic::Fruits).await?,
-            map: declare(TrolleyTopic::Map).await?,
+            views: Publisher::declare(session, &keys::views(tid)?, drops.clone()).await?,
+            fruits: Publisher::declare(session, &keys::fruits(tid)?, drops.clone()).await?,
+            map: Publisher::declare(session, &keys::map(tid)?, drops.clone()).await?,
         })
     }
 
@@ -441,33 +436,22 @@ pub async fn run(
     let method = settings.validate()?;
     let pid = settings.planner_id.clone();
     let drops = counters.drops.clone();
-    let sub = |topic, delivery| {
-        let (session, drops) = (session.clone(), drops.clone());
-        async move {
-            TypedSubscriber::declare(&session, &keys::all_trolleys(topic), delivery, drops).await
-        }
-    };
-    let clouds = sub(TrolleyTopic::Roi, Delivery::Reliable).await?;
-    let infos = sub(TrolleyTopic::Info, Delivery::Reliable).await?;
-    let arms = sub(TrolleyTopic::Arm, Delivery::Stream).await?;
-    let fruit_reports = sub(TrolleyTopic::Fruits, Delivery::Monitor).await?;
+    let clouds = Subscriber::declare(&session, &keys::all_roi(), drops.clone()).await?;
+    let infos = Subscriber::declare(&session, &keys::all_info(), drops.clone()).await?;
+    let arms = Subscriber::declare(&session, &keys::all_arm(), drops.clone()).await?;
+    let fruit_reports = Subscriber::declare_with(
+        &session,
+        &keys::all_fruits(),
+        Delivery::Monitor,
+        drops.clone(),
+    )
+    .await?;
     let planner_watch = MemberWatch::declare(&session, MemberKind::Planner).await?;
     let trolley_watch = MemberWatch::declare(&session, MemberKind::Trolley).await?;
-    let snapshots = Responder::declare(&session, keys::planner_snapshots(&pid)?).await?;
-    let status_pub = TypedPublisher::declare(
-        &session,
-        keys::planner_status(&pid)?,
-        Delivery::Reliable,
-        drops.clone(),
-    )
-    .await?;
-    let fleet_pub = TypedPublisher::declare(
-        &session,
-        keys::FLEET_FRUITS.to_owned(),
-        Delivery::Reliable,
-        drops.clone(),
-    )
-    .await?;
+    let snapshots = Responder::declare(&session, &keys::planner_snapshots(&pid)?).await?;
+    let status_pub =
+        Publisher::declare(&session, &keys::planner_status(&pid)?, drops.clone()).await?;
+    let fleet_pub = Publisher::declare(&session, &keys::fleet_fruits(), drops.clone()).await?;
     let _alive = declare_alive(&session, MemberKind::Planner, &pid).await?;
     let mut membership = Membership::new();
     membership.planner_joined(&pid);
@@ -511,7 +495,7 @@ pub async fn run(
                 let tid = match keys::parse(query.key_expr().as_str()) {
                     Some(keys::ParsedKey::PlannerSnapshot { tid, .. }) => tid,
                     _ => {
-                        reply(&query, Err("not a snapshot key".into())).await;
+                        snapshots.reply(&query, Err("not a snapshot key".into())).await;
                         continue;
                     }
                 };
@@ -520,13 +504,13 @@ pub async fn run(
                         .snapshot(&tid, &pid)
                         .map(|m| {
                             let header = Header { seq: m.based_on_seq, trolley_id: tid.clone(), source_id: pid.clone(), frame_id: "world".into(), ..Header::default() };
-                            (header, Message::MapSnapshot(m))
+                            (header, m)
                         })
                         .map_err(|e| e.to_string()),
                     _ => Err(format!("planner {pid} holds no up-to-date map of {tid}")),
                 };
                 tracing::info!(planner = %pid, trolley = %tid, ok = answer.is_ok(), "snapshot asked");
-                reply(&query, answer).await;
+                snapshots.reply(&query, answer).await;
             }
             loaded = snapshot_rx.recv() => {
                 let Some((tid, snapshot)) = loaded else { continue };
@@ -564,21 +548,21 @@ pub async fn run(
                     map_voxels: slots.values().filter_map(|s| s.planner.as_ref()).map(|p| p.map.len() as u64).sum(),
                 };
                 let header = Header { seq: status_seq, source_id: pid.clone(), frame_id: "world".into(), ..Header::default() };
-                status_pub.publish(&header, &Message::PlannerStatus(status)).await?;
+                status_pub.publish(&header, &status).await?;
                 let live: Vec<String> = membership.planners().map(str::to_owned).collect();
                 if glasshouse_fleet::rank_planners(FLEET_MAP_KEY, &live).first() == Some(&pid.as_str()) && !latest_fruits.is_empty() {
                     let fleet = fleet_fruits(&latest_fruits, &pid);
-                    fleet_pub.publish(&header, &Message::FleetFruits(fleet)).await?;
+                    fleet_pub.publish(&header, &fleet).await?;
                 }
             }
             received = fruit_reports.recv() => {
-                let Some(Received { header, message: Message::FruitEstimates(f), .. }) = received else { continue };
+                let Some(Received { header, message: f, .. }) = received else { continue };
                 if keys::validate_id(&header.trolley_id).is_ok() {
                     latest_fruits.insert(header.trolley_id.clone(), f);
                 }
             }
             received = infos.recv() => {
-                let Some(Received { header, message: Message::TrolleyInfo(info), .. }) = received else { continue };
+                let Some(Received { header, message: info, .. }) = received else { continue };
                 // Info is periodic: it also introduces trolleys whose token we have not seen.
                 if keys::validate_id(&header.trolley_id).is_ok() && !membership.is_trolley_live(&header.trolley_id) {
                     changes = membership.trolley_joined(&header.trolley_id);
@@ -588,7 +572,7 @@ pub async fn run(
                 }
             }
             received = arms.recv() => {
-                let Some(Received { header, message: Message::ArmState(arm), .. }) = received else { continue };
+                let Some(Received { header, message: arm, .. }) = received else { continue };
                 if let Some(p) = slots.get_mut(&header.trolley_id).and_then(|s| s.planner.as_mut()) {
                     if !arm.moving {
                         p.world_from_camera = Some(arm.world_from_camera);
@@ -596,10 +580,7 @@ pub async fn run(
                 }
             }
             received = clouds.recv() => {
-                let Some(Received { header, message: Message::RoiCloud(cloud), .. }) = received else {
-                    if received.is_none() { break; }
-                    continue;
-                };
+                let Some(Received { header, message: cloud, .. }) = received else { break };
                 let tid = header.trolley_id.clone();
                 if keys::validate_id(&tid).is_err() {
                     counters.clouds_rejected.fetch_add(1, Ordering::Relaxed);
@@ -736,11 +717,10 @@ async fn apply_changes(
                             continue;
                         };
                         match ask(&session, &key, SNAPSHOT_TIMEOUT).await {
-                            Ok((_, Message::MapSnapshot(m))) => {
+                            Ok((_, m)) => {
                                 loaded = Some(m);
                                 break;
                             }
-                            Ok(_) => {}
                             Err(e) => {
                                 tracing::debug!(planner = %pid, trolley = %tid, %source, error = %e, "no snapshot")
                             }
@@ -820,19 +800,13 @@ async fn integrate(
         *total_ms += views.planning_time_ms as f64;
         *planned += 1;
         tracing::debug!(trolley = %tid, seq = header.seq, views = views.views.len(), ms = views.planning_time_ms, "views planned");
-        out.views
-            .publish(&out_header, &Message::RankedViews(views))
-            .await?;
+        out.views.publish(&out_header, &views).await?;
         counters.views_published.fetch_add(1, Ordering::Relaxed);
     } else {
         tracing::info!(trolley = %tid, "no TrolleyInfo yet: cloud integrated, planning deferred");
     }
-    out.fruits
-        .publish(&out_header, &Message::FruitEstimates(outcome.fruits))
-        .await?;
-    out.map
-        .publish(&out_header, &Message::MapUpdate(outcome.map_update))
-        .await?;
+    out.fruits.publish(&out_header, &outcome.fruits).await?;
+    out.map.publish(&out_header, &outcome.map_update).await?;
     Ok(())
 }
 

@@ -215,13 +215,10 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     let survivor = within(60, "the survivor's snapshot at the last cloud", async {
         loop {
             match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
-                Ok((_, Message::MapSnapshot(s))) if s.based_on_seq >= last_seq => {
+                Ok((_, s)) if s.based_on_seq >= last_seq => {
                     return RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
                 }
-                Ok((_, Message::MapSnapshot(s))) => {
-                    eprintln!("survivor at seq {} of {last_seq}", s.based_on_seq)
-                }
-                Ok(_) => eprintln!("unexpected reply"),
+                Ok((_, s)) => eprintln!("survivor at seq {} of {last_seq}", s.based_on_seq),
                 Err(e) => eprintln!("no snapshot yet: {e}"),
             }
             tokio::time::sleep(Duration::from_millis(200)).await;

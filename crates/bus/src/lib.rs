@@ -306,22 +306,13 @@ pub struct Publisher<M> {
 }
 
 impl<M: Wire> Publisher<M> {
-    /// Declares a publisher on `key` with the key's default delivery.
+    /// Declares a publisher on `key` with the key's delivery ([`Key::qos`]).
     pub async fn declare(
         session: &Session,
         key: &Key<M>,
         counters: Arc<DropCounters>,
     ) -> Result<Self> {
-        Self::declare_with(session, key, key.qos().into(), counters).await
-    }
-
-    /// Declares a publisher on `key` with an explicit delivery.
-    pub async fn declare_with(
-        session: &Session,
-        key: &Key<M>,
-        delivery: Delivery,
-        counters: Arc<DropCounters>,
-    ) -> Result<Self> {
+        let delivery = key.qos().into();
         let raw = RawPublisher::declare(session, key.as_str(), delivery, counters).await?;
         Ok(Self {
             raw,

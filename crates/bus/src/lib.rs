@@ -394,30 +394,53 @@ impl Inbox {
     /// The next payload that `decode` accepts; the others are counted and skipped.
     async fn recv<T>(
         &self,
-        decode: impl Fn(&str, &[u8]) -> glasshouse_proto::Result<(Header, T)>,
+        decode: impl Fn(&str, &[u8]) -> DecodeResult<T>,
     ) -> Option<Received<T>> {
         loop {
             let (key, bytes) = self.queue.pop().await?;
-            match decode(&key, &bytes) {
-                Ok((header, message)) => {
-                    return Some(Received {
-                        key,
-                        header,
-                        message,
-                        payload_bytes: bytes.len(),
-                    })
+            if let Some(received) = self.accept(key, bytes, &decode) {
+                return Some(received);
+            }
+        }
+    }
+
+    /// Like [`Inbox::recv`], but only from what has already arrived.
+    fn try_recv<T>(&self, decode: impl Fn(&str, &[u8]) -> DecodeResult<T>) -> Option<Received<T>> {
+        loop {
+            let (key, bytes) = self.queue.try_pop()?;
+            if let Some(received) = self.accept(key, bytes, &decode) {
+                return Some(received);
+            }
+        }
+    }
+
+    /// Decodes one payload, or counts and logs it as corrupt.
+    fn accept<T>(
+        &self,
+        key: String,
+        bytes: Vec<u8>,
+        decode: &impl Fn(&str, &[u8]) -> DecodeResult<T>,
+    ) -> Option<Received<T>> {
+        match decode(&key, &bytes) {
+            Ok((header, message)) => Some(Received {
+                key,
+                header,
+                message,
+                payload_bytes: bytes.len(),
+            }),
+            Err(e) => {
+                let n = self.counters.corrupt.fetch_add(1, Ordering::Relaxed) + 1;
+                // Log the first few and then every hundredth: a flood must not flood the log.
+                if n <= 5 || n.is_multiple_of(100) {
+                    tracing::warn!(%key, bytes = bytes.len(), error = %e, dropped = n, "dropped a bad payload");
                 }
-                Err(e) => {
-                    let n = self.counters.corrupt.fetch_add(1, Ordering::Relaxed) + 1;
-                    // Log the first few and then every hundredth: a flood must not flood the log.
-                    if n <= 5 || n.is_multiple_of(100) {
-                        tracing::warn!(%key, bytes = bytes.len(), error = %e, dropped = n, "dropped a bad payload");
-                    }
-                }
+                None
             }
         }
     }
 }
+
+type DecodeResult<T> = glasshouse_proto::Result<(Header, T)>;
 
 /// A subscriber of `M` on a key (or a wildcard of such keys): every payload must decode as `M`,
 /// the others are counted in [`DropCounters::corrupt`] and skipped.
@@ -453,6 +476,11 @@ impl<M: Wire> Subscriber<M> {
     /// The next message that decodes; `None` once the subscriber is closed.
     pub async fn recv(&self) -> Option<Received<M>> {
         self.inbox.recv(|_, bytes| decode_typed::<M>(bytes)).await
+    }
+
+    /// The next message that decodes among those already received, without waiting.
+    pub fn try_recv(&self) -> Option<Received<M>> {
+        self.inbox.try_recv(|_, bytes| decode_typed::<M>(bytes))
     }
 }
 

@@ -8,10 +8,14 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use glasshouse_bus::{BusArgs, Delivery, DropCounters, Shutdown, TypedPublisher};
+use glasshouse_bus::zenoh::Session;
+use glasshouse_bus::{BusArgs, DropCounters, Publisher, Shutdown};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState};
-use glasshouse_proto::keys::{self, TrolleyTopic};
-use glasshouse_proto::{samples, Header, Message, MessageKind, RgbdFrame, RoiCloud, VoxelChange};
+use glasshouse_proto::keys;
+use glasshouse_proto::{
+    samples, ArmState, FruitEstimates, Header, MapUpdate, RankedViews, RgbdFrame, RoiCloud,
+    TrolleyStatus, VoxelChange,
+};
 use nalgebra::Point3;
 
 #[derive(clap::Args, Debug)]
@@ -45,17 +49,14 @@ fn mib(bytes: u64) -> f64 {
     bytes as f64 / (1024.0 * 1024.0)
 }
 
-fn synthetic_frame(width: u32, seq: u64) -> Message {
-    let Message::RgbdFrame(template) = samples::message(MessageKind::RgbdFrame) else {
-        unreachable!("samples::message returns the kind it is asked for")
-    };
+fn synthetic_frame(width: u32, seq: u64) -> RgbdFrame {
     let intrinsics = glasshouse_geom::CameraIntrinsics::from_horizontal_fov(
         width,
         width * 3 / 4,
         80f64.to_radians(),
     );
     let pixels = intrinsics.pixel_count();
-    Message::RgbdFrame(RgbdFrame {
+    RgbdFrame {
         intrinsics,
         depth: (0..pixels)
             .map(|i| 500 + ((i as u64 + seq) % 2000) as u16)
@@ -63,11 +64,11 @@ fn synthetic_frame(width: u32, seq: u64) -> Message {
         rgb: (0..pixels * 3)
             .map(|i| (i as u64 * 31 + seq) as u8)
             .collect(),
-        ..template
-    })
+        ..samples::rgbd_frame()
+    }
 }
 
-fn synthetic_cloud(seq: u64) -> Message {
+fn synthetic_cloud(seq: u64) -> RoiCloud {
     let points: Vec<Point3<f32>> = (0..20_000)
         .map(|i| {
             let f = i as f32;
@@ -79,20 +80,19 @@ fn synthetic_cloud(seq: u64) -> Message {
         })
         .collect();
     let roi = (0..points.len()).map(|i| i % 17 == 0).collect();
-    Message::RoiCloud(RoiCloud {
+    RoiCloud {
         points_in_world: points,
         roi,
         sensor_origin_in_world: Point3::new(0.0, -0.5, 1.0),
+        world_from_camera: nalgebra::Isometry3::translation(0.0, -0.5, 1.0),
         source_frame_seq: seq,
         invalid_pixels: 0,
         detector_id: "bench".into(),
-    })
+    }
 }
 
-fn synthetic_map(seq: u64) -> Message {
-    let Message::MapUpdate(mut m) = samples::message(MessageKind::MapUpdate) else {
-        unreachable!("samples::message returns the kind it is asked for")
-    };
+fn synthetic_map(seq: u64) -> MapUpdate {
+    let mut m = samples::map_update();
     // A few thousand changed solid voxels per frame, moving through space so the folded map
     // grows like a real one.
     m.voxels = (0..2_000)
@@ -102,7 +102,66 @@ fn synthetic_map(seq: u64) -> Message {
         })
         .collect();
     m.map_seq = seq;
-    Message::MapUpdate(m)
+    m
+}
+
+/// What one synthetic trolley publishes, with the traffic of a trolley, its detector and its
+/// planner.
+struct TrolleyPublishers {
+    rgbd: Publisher<RgbdFrame>,
+    arm: Publisher<ArmState>,
+    roi: Publisher<RoiCloud>,
+    views: Publisher<RankedViews>,
+    fruits: Publisher<FruitEstimates>,
+    map: Publisher<MapUpdate>,
+    status: Publisher<TrolleyStatus>,
+}
+
+impl TrolleyPublishers {
+    async fn declare(session: &Session, tid: &str) -> anyhow::Result<Self> {
+        let drops = Arc::new(DropCounters::default());
+        Ok(Self {
+            rgbd: Publisher::declare(session, &keys::rgbd(tid)?, drops.clone()).await?,
+            arm: Publisher::declare(session, &keys::arm(tid)?, drops.clone()).await?,
+            roi: Publisher::declare(session, &keys::roi(tid)?, drops.clone()).await?,
+            views: Publisher::declare(session, &keys::views(tid)?, drops.clone()).await?,
+            fruits: Publisher::declare(session, &keys::fruits(tid)?, drops.clone()).await?,
+            map: Publisher::declare(session, &keys::map(tid)?, drops.clone()).await?,
+            status: Publisher::declare(session, &keys::status(tid)?, drops).await?,
+        })
+    }
+
+    async fn publish(&self, header: &Header, width: u32) -> anyhow::Result<()> {
+        let seq = header.seq;
+        let views = RankedViews {
+            based_on_seq: seq,
+            ..samples::ranked_views()
+        };
+        self.rgbd
+            .publish(header, &synthetic_frame(width, seq))
+            .await?;
+        self.arm.publish(header, &samples::arm_state()).await?;
+        self.roi.publish(header, &synthetic_cloud(seq)).await?;
+        self.views.publish(header, &views).await?;
+        self.fruits
+            .publish(header, &samples::fruit_estimates())
+            .await?;
+        self.map.publish(header, &synthetic_map(seq)).await?;
+        self.status
+            .publish(header, &samples::trolley_status())
+            .await?;
+        Ok(())
+    }
+
+    async fn close(self) {
+        self.rgbd.close().await;
+        self.arm.close().await;
+        self.roi.close().await;
+        self.views.close().await;
+        self.fruits.close().await;
+        self.map.close().await;
+        self.status.close().await;
+    }
 }
 
 async fn trolley(
@@ -113,27 +172,7 @@ async fn trolley(
     mut stop: Shutdown,
 ) -> anyhow::Result<u64> {
     let session = glasshouse_bus::open(&BusArgs::client(&endpoint)).await?;
-    let drops = Arc::new(DropCounters::default());
-    let mut publishers = Vec::new();
-    for (topic, delivery) in [
-        (TrolleyTopic::Rgbd, Delivery::Stream),
-        (TrolleyTopic::Arm, Delivery::Stream),
-        (TrolleyTopic::Roi, Delivery::Reliable),
-        (TrolleyTopic::Views, Delivery::Reliable),
-        (TrolleyTopic::Fruits, Delivery::Reliable),
-        (TrolleyTopic::Map, Delivery::Reliable),
-        (TrolleyTopic::Status, Delivery::Reliable),
-    ] {
-        publishers.push(
-            TypedPublisher::declare(
-                &session,
-                keys::trolley(&tid, topic)?,
-                delivery,
-                drops.clone(),
-            )
-            .await?,
-        );
-    }
+    let publishers = TrolleyPublishers::declare(&session, &tid).await?;
     let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / args_fps.max(0.1)));
     let mut seq = 0u64;
     loop {
@@ -149,26 +188,9 @@ async fn trolley(
             source_id: tid.clone(),
             frame_id: "world".into(),
         };
-        let mut views = samples::message(MessageKind::RankedViews);
-        if let Message::RankedViews(v) = &mut views {
-            v.based_on_seq = seq;
-        }
-        let messages = [
-            synthetic_frame(width, seq),
-            samples::message(MessageKind::ArmState),
-            synthetic_cloud(seq),
-            views,
-            samples::message(MessageKind::FruitEstimates),
-            synthetic_map(seq),
-            samples::message(MessageKind::TrolleyStatus),
-        ];
-        for (p, m) in publishers.iter().zip(messages.iter()) {
-            p.publish(&header, m).await?;
-        }
+        publishers.publish(&header, width).await?;
     }
-    for p in publishers {
-        p.close().await;
-    }
+    publishers.close().await;
     let _ = session.close().await;
     Ok(seq)
 }

@@ -16,8 +16,8 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use glasshouse_bus::{Delivery, DropCounters, Received, Shutdown, TypedSubscriber};
-use glasshouse_proto::keys::{self, ParsedKey, TrolleyTopic};
+use glasshouse_bus::{AnySubscriber, Delivery, DropCounters, Received, Shutdown};
+use glasshouse_proto::keys::{self, ParsedKey, Qos, TrolleyTopic};
 use glasshouse_proto::{
     DetectorStatus, FleetFruits, Fruit, Header, Message, PlannerStatus, RankedViews, TrolleyInfo,
     TrolleyStatus,
@@ -329,29 +329,27 @@ pub async fn run(
         None => None,
     };
     // Frames and arm states are streams (keep the newest); everything else a deep monitor queue.
-    let mut key_exprs = vec![
-        (keys::all_trolleys(TrolleyTopic::Rgbd), Delivery::Stream),
-        (keys::all_trolleys(TrolleyTopic::Arm), Delivery::Stream),
-        (
-            format!("{}/planner/*/status", keys::ROOT),
-            Delivery::Monitor,
-        ),
-        (
-            format!("{}/detector/*/status", keys::ROOT),
-            Delivery::Monitor,
-        ),
-        (keys::FLEET_FRUITS.to_owned(), Delivery::Monitor),
+    let mut key_exprs: Vec<(String, Delivery)> = TrolleyTopic::ALL
+        .into_iter()
+        .map(|topic| {
+            let delivery = match topic.qos() {
+                Qos::Stream => Delivery::Stream,
+                Qos::Reliable => Delivery::Monitor,
+            };
+            (keys::all_trolleys(topic), delivery)
+        })
+        .collect();
+    let services = [
+        keys::all_planner_status().to_string(),
+        keys::all_detector_status().to_string(),
+        keys::fleet_fruits().to_string(),
     ];
-    for topic in TrolleyTopic::ALL {
-        if !matches!(topic, TrolleyTopic::Rgbd | TrolleyTopic::Arm) {
-            key_exprs.push((keys::all_trolleys(topic), Delivery::Monitor));
-        }
-    }
-    let (tx, mut rx) = tokio::sync::mpsc::channel::<Received>(64);
+    key_exprs.extend(services.map(|key| (key, Delivery::Monitor)));
+    let (tx, mut rx) = tokio::sync::mpsc::channel::<Received<Message>>(64);
     let mut subscribers = Vec::new();
     for (key_expr, delivery) in key_exprs {
         let sub = Arc::new(
-            TypedSubscriber::declare(&session, &key_expr, delivery, counters.drops.clone()).await?,
+            AnySubscriber::declare(&session, &key_expr, delivery, counters.drops.clone()).await?,
         );
         subscribers.push(sub.clone());
         let tx = tx.clone();

@@ -19,13 +19,13 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use glasshouse_bus::{
-    declare_alive, Delivery, DropCounters, MemberEvent, MemberWatch, Received, Shutdown,
-    TypedPublisher, TypedSubscriber,
+    declare_alive, DropCounters, MemberEvent, MemberWatch, Publisher, Received, Shutdown,
+    Subscriber,
 };
 use glasshouse_detect::DetectorConfig;
 use glasshouse_pipeline::detect_frame;
-use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
-use glasshouse_proto::{DetectorStatus, Header, Message};
+use glasshouse_proto::keys::{self, MemberKind};
+use glasshouse_proto::{DetectorStatus, Header, RgbdFrame, RoiCloud};
 use serde::Deserialize;
 use zenoh::Session;
 
@@ -103,21 +103,20 @@ pub async fn run(
         ..DetectorConfig::default()
     });
     // Frames of the served trolleys, one subscriber (and forwarding task) per trolley.
-    let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel::<Received>(FRAME_QUEUE);
+    let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel::<Received<RgbdFrame>>(FRAME_QUEUE);
     let mut frame_tasks: HashMap<String, tokio::task::JoinHandle<()>> = HashMap::new();
     let detector_watch = MemberWatch::declare(&session, MemberKind::Detector).await?;
     let trolley_watch = MemberWatch::declare(&session, MemberKind::Trolley).await?;
     let mut live_detectors: BTreeSet<String> = BTreeSet::from([did.clone()]);
     let mut live_trolleys: BTreeSet<String> = BTreeSet::new();
-    let status_pub = TypedPublisher::declare(
+    let status_pub = Publisher::declare(
         &session,
-        keys::detector_status(&did)?,
-        Delivery::Reliable,
+        &keys::detector_status(&did)?,
         counters.drops.clone(),
     )
     .await?;
     let _alive = declare_alive(&session, MemberKind::Detector, &did).await?;
-    let mut clouds: HashMap<String, TypedPublisher> = HashMap::new();
+    let mut clouds: HashMap<String, Publisher<RoiCloud>> = HashMap::new();
     let mut status_tick =
         tokio::time::interval(Duration::from_millis(settings.status_period_ms.max(50)));
     let mut total_ms = 0.0f64;
@@ -152,10 +151,10 @@ pub async fn run(
                     mean_detect_time_ms: if processed > 0 { (total_ms / processed as f64) as f32 } else { 0.0 },
                 };
                 let header = Header { seq: status_seq, source_id: did.clone(), frame_id: "world".into(), ..Header::default() };
-                status_pub.publish(&header, &Message::DetectorStatus(status)).await?;
+                status_pub.publish(&header, &status).await?;
             }
             received = frame_rx.recv() => {
-                let Some(Received { header, message: Message::RgbdFrame(frame), .. }) = received else {
+                let Some(Received { header, message: frame, .. }) = received else {
                     continue;
                 };
                 let tid = header.trolley_id.clone();
@@ -184,12 +183,12 @@ pub async fn run(
                 let publisher = match clouds.entry(tid.clone()) {
                     std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
                     std::collections::hash_map::Entry::Vacant(e) => e.insert(
-                        TypedPublisher::declare(&session, keys::trolley(&tid, TrolleyTopic::Roi)?, Delivery::Reliable, counters.drops.clone()).await?,
+                        Publisher::declare(&session, &keys::roi(&tid)?, counters.drops.clone()).await?,
                     ),
                 };
                 let out = Header { seq, stamp_ns: header.stamp_ns, trolley_id: tid, source_id: did.clone(), frame_id: "world".into() };
                 tracing::debug!(seq, points = cloud.points_in_world.len(), "cloud published");
-                publisher.publish(&out, &Message::RoiCloud(cloud)).await?;
+                publisher.publish(&out, &cloud).await?;
             }
         }
         if membership_changed {
@@ -206,13 +205,9 @@ pub async fn run(
                 if frame_tasks.contains_key(tid) {
                     continue;
                 }
-                let frames = TypedSubscriber::declare(
-                    &session,
-                    &keys::trolley(tid, TrolleyTopic::Rgbd)?,
-                    Delivery::Stream,
-                    counters.drops.clone(),
-                )
-                .await?;
+                let frames =
+                    Subscriber::declare(&session, &keys::rgbd(tid)?, counters.drops.clone())
+                        .await?;
                 let (tx, drops) = (frame_tx.clone(), counters.drops.clone());
                 let task = tokio::spawn(async move {
                     while let Some(received) = frames.recv().await {

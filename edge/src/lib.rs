@@ -16,14 +16,12 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use glasshouse_bus::{
-    declare_alive, Delivery, DropCounters, Received, Shutdown, TypedPublisher, TypedSubscriber,
-};
+use glasshouse_bus::{declare_alive, DropCounters, Publisher, Received, Shutdown, Subscriber};
 use glasshouse_pipeline::{
     EdgeAction, EdgeInput, EdgeNode, EdgeSettings, SimTrolley, SimTrolleySettings, TrolleySource,
 };
-use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
-use glasshouse_proto::{FruitEstimates, Header, Message};
+use glasshouse_proto::keys::{self, MemberKind};
+use glasshouse_proto::{ArmState, FruitEstimates, Header, RgbdFrame, TrolleyInfo, TrolleyStatus};
 use glasshouse_sim::ScenarioKind;
 use serde::Deserialize;
 use source::{FrameRecorder, ReplaySource};
@@ -140,11 +138,11 @@ pub struct EdgeCounters {
 
 /// The edge's publishers.
 struct Outputs {
-    rgbd: TypedPublisher,
-    arm: TypedPublisher,
-    info: TypedPublisher,
-    status: TypedPublisher,
-    truth: TypedPublisher,
+    rgbd: Publisher<RgbdFrame>,
+    arm: Publisher<ArmState>,
+    info: Publisher<TrolleyInfo>,
+    status: Publisher<TrolleyStatus>,
+    truth: Publisher<FruitEstimates>,
 }
 
 impl Outputs {
@@ -153,32 +151,29 @@ impl Outputs {
         tid: &str,
         drops: &Arc<DropCounters>,
     ) -> anyhow::Result<Self> {
-        let declare = |topic, delivery| {
-            let (session, drops) = (session.clone(), drops.clone());
-            let key = keys::trolley(tid, topic);
-            async move { TypedPublisher::declare(&session, key?, delivery, drops).await }
-        };
         Ok(Self {
-            rgbd: declare(TrolleyTopic::Rgbd, Delivery::Stream).await?,
-            arm: declare(TrolleyTopic::Arm, Delivery::Stream).await?,
-            info: declare(TrolleyTopic::Info, Delivery::Reliable).await?,
-            status: declare(TrolleyTopic::Status, Delivery::Reliable).await?,
-            truth: declare(TrolleyTopic::Truth, Delivery::Reliable).await?,
+            rgbd: Publisher::declare(session, &keys::rgbd(tid)?, drops.clone()).await?,
+            arm: Publisher::declare(session, &keys::arm(tid)?, drops.clone()).await?,
+            info: Publisher::declare(session, &keys::info(tid)?, drops.clone()).await?,
+            status: Publisher::declare(session, &keys::status(tid)?, drops.clone()).await?,
+            truth: Publisher::declare(session, &keys::truth(tid)?, drops.clone()).await?,
         })
     }
 
     async fn close(self) {
-        for p in [self.rgbd, self.arm, self.info, self.status, self.truth] {
-            p.close().await;
-        }
+        self.rgbd.close().await;
+        self.arm.close().await;
+        self.info.close().await;
+        self.status.close().await;
+        self.truth.close().await;
     }
 }
 
 /// The messages that announce the latest frame (published again on a re-announce).
 struct Announcement {
-    info: Message,
-    arm: Message,
-    frame: Message,
+    info: TrolleyInfo,
+    arm: ArmState,
+    frame: RgbdFrame,
 }
 
 /// Performs the node's actions on the bus and the source.
@@ -188,7 +183,7 @@ struct Driver {
     out: Outputs,
     drops: Arc<DropCounters>,
     recorder: Option<FrameRecorder>,
-    truth: Option<Message>,
+    truth: Option<FruitEstimates>,
     announcement: Option<Announcement>,
     views_deadline: Option<Instant>,
     next_capture: Instant,
@@ -242,11 +237,7 @@ impl Driver {
             tracing::info!(trolley = %self.config.trolley_id, "the source has no more frames");
             return Ok(EdgeInput::Captured { frame: false });
         };
-        let announcement = Announcement {
-            info: Message::TrolleyInfo(info),
-            arm: Message::ArmState(arm),
-            frame: Message::RgbdFrame(frame),
-        };
+        let announcement = Announcement { info, arm, frame };
         if let Some(recorder) = &self.recorder {
             let h = self.header(frame_seq, 0.0);
             recorder.write(&h, &announcement.info)?;
@@ -312,8 +303,7 @@ impl Driver {
             } => {
                 status.dropped_messages = self.drops.total();
                 let header = self.header(frame_seq, sim_time_s);
-                let message = Message::TrolleyStatus(status);
-                self.out.status.publish(&header, &message).await?;
+                self.out.status.publish(&header, &status).await?;
                 None
             }
             EdgeAction::Execute { goals } => Some(EdgeInput::Executed(
@@ -328,10 +318,7 @@ impl Driver {
                     .on_source(move |s| s.arm_state(true, views_done))
                     .await?;
                 let header = self.header(frame_seq, sim_time_s);
-                self.out
-                    .arm
-                    .publish(&header, &Message::ArmState(arm))
-                    .await?;
+                self.out.arm.publish(&header, &arm).await?;
                 None
             }
             EdgeAction::MoveToNextSegment => Some(EdgeInput::SegmentMoved(
@@ -369,17 +356,13 @@ pub async fn run(
     let tid = config.trolley_id.clone();
     let drops = counters.drops.clone();
     let out = Outputs::declare(&session, &tid, &drops).await?;
-    let views_key = keys::trolley(&tid, TrolleyTopic::Views)?;
-    let views =
-        TypedSubscriber::declare(&session, &views_key, Delivery::Reliable, drops.clone()).await?;
+    let views = Subscriber::declare(&session, &keys::views(&tid)?, drops.clone()).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
     let source = config.open_source()?;
-    let truth = source.ground_truth().map(|fruits| {
-        Message::FruitEstimates(FruitEstimates {
-            fruits,
-            based_on_seq: 0,
-            planner_id: format!("truth-{tid}"),
-        })
+    let truth = source.ground_truth().map(|fruits| FruitEstimates {
+        fruits,
+        based_on_seq: 0,
+        planner_id: format!("truth-{tid}"),
     });
     let recorder = config
         .record_frames_dir
@@ -407,10 +390,9 @@ pub async fn run(
         let input = tokio::select! {
             _ = shutdown.wait() => break,
             received = views.recv() => match received {
-                Some(Received { header, message: Message::RankedViews(views), .. }) => {
-                    EdgeInput::Views { trolley_id: header.trolley_id, views }
+                Some(Received { header, message, .. }) => {
+                    EdgeInput::Views { trolley_id: header.trolley_id, views: message }
                 }
-                Some(_) => continue,
                 None => break,
             },
             _ = tokio::time::sleep_until(deadline), if node.is_waiting_for_views() => EdgeInput::ViewsTimedOut,

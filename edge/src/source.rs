@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use glasshouse_pipeline::{Executed, TrolleySource};
 use glasshouse_proto::{
-    decode_as, encode, ArmState, Fruit, Header, Message, MessageKind, RgbdFrame, TrolleyInfo,
+    decode_typed, encode, ArmState, Fruit, Header, MessageKind, RgbdFrame, TrolleyInfo, Wire,
 };
 use nalgebra::Isometry3;
 
@@ -26,10 +26,10 @@ impl FrameRecorder {
         })
     }
 
-    pub fn write(&self, header: &Header, message: &Message) -> anyhow::Result<()> {
-        let name = match message {
-            Message::TrolleyInfo(_) => "info.ghw".to_string(),
-            Message::RgbdFrame(_) => format!("frame-{:08}.ghw", header.seq),
+    pub fn write<M: Wire>(&self, header: &Header, message: &M) -> anyhow::Result<()> {
+        let name = match M::KIND {
+            MessageKind::TrolleyInfo => "info.ghw".to_string(),
+            MessageKind::RgbdFrame => format!("frame-{:08}.ghw", header.seq),
             _ => anyhow::bail!("only frames and trolley info are recorded"),
         };
         let path = self.dir.join(name);
@@ -52,11 +52,8 @@ impl ReplaySource {
         let info_path = dir.join("info.ghw");
         let bytes = fs::read(&info_path)
             .with_context(|| format!("cannot read {} (not a recording?)", info_path.display()))?;
-        let (_, message) = decode_as(&bytes, MessageKind::TrolleyInfo)
+        let (_, info) = decode_typed::<TrolleyInfo>(&bytes)
             .with_context(|| format!("{} is not a TrolleyInfo", info_path.display()))?;
-        let Message::TrolleyInfo(info) = message else {
-            anyhow::bail!("{} is not a TrolleyInfo", info_path.display());
-        };
         let mut frames: Vec<PathBuf> = fs::read_dir(dir)
             .with_context(|| format!("cannot list {}", dir.display()))?
             .filter_map(|e| e.ok().map(|e| e.path()))
@@ -81,11 +78,8 @@ impl ReplaySource {
             return Ok(None);
         };
         let bytes = fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-        let (_, message) = decode_as(&bytes, MessageKind::RgbdFrame)
+        let (_, frame) = decode_typed::<RgbdFrame>(&bytes)
             .with_context(|| format!("{} is not an RgbdFrame", path.display()))?;
-        let Message::RgbdFrame(frame) = message else {
-            anyhow::bail!("{} is not an RgbdFrame", path.display());
-        };
         self.last_pose = frame.world_from_camera;
         Ok(Some(frame))
     }

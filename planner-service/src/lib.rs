@@ -25,15 +25,16 @@ use std::time::Duration;
 
 use anyhow::Context;
 use glasshouse_bus::{
-    ask, declare_alive, reply, Delivery, DropCounters, MemberEvent, MemberWatch, Received,
-    Responder, Shutdown, TypedPublisher, TypedSubscriber,
+    ask, declare_alive, Delivery, DropCounters, MemberEvent, MemberWatch, Publisher, Received,
+    Responder, Shutdown, Subscriber,
 };
 use glasshouse_fleet::{merge_fruits, FleetFruitInput};
-use glasshouse_geom::look_along;
 use glasshouse_pipeline::PlanningSettings;
-use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic};
-use glasshouse_proto::{FleetFruit, FleetFruits, FruitEstimates, Message, RoiCloud};
-use nalgebra::{Isometry3, Vector3};
+use glasshouse_proto::keys::{self, MemberKind};
+use glasshouse_proto::{
+    FleetFruit, FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus,
+    RankedViews, RoiCloud, TrolleyInfo,
+};
 use node::{PlannerAction, PlannerEvent, PlannerNode, TrolleyOutput};
 use serde::Deserialize;
 use zenoh::Session;
@@ -82,23 +83,21 @@ pub struct PlannerCounters {
     pub views_published: AtomicU64,
 }
 
-/// The camera pose a cloud was captured from.
-pub(crate) fn camera_pose_of(cloud: &RoiCloud) -> Isometry3<f64> {
-    look_along(&cloud.sensor_origin_in_world, &Vector3::x())
-}
-
 /// Snapshots are asked of each candidate in turn for this long: a row's map is hundreds of MB and
 /// takes seconds to write and send; a candidate without the map declines at once.
 const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// The bus side of a planner: what it listens to.
 struct Inputs {
-    clouds: TypedSubscriber,
-    infos: TypedSubscriber,
-    fruit_reports: TypedSubscriber,
+    clouds: Subscriber<RoiCloud>,
+    infos: Subscriber<TrolleyInfo>,
+    fruit_reports: Subscriber<FruitEstimates>,
     planner_watch: MemberWatch,
     trolley_watch: MemberWatch,
-    snapshots: Responder,
+    snapshots: Responder<MapSnapshot>,
+    /// Snapshot queries waiting for the node's answer.
+    queries: HashMap<u64, zenoh::query::Query>,
+    next_query: u64,
     /// Events from tasks the driver started (snapshot answers).
     events: tokio::sync::mpsc::UnboundedReceiver<PlannerEvent>,
     status_tick: tokio::time::Interval,
@@ -111,29 +110,34 @@ impl Inputs {
         drops: &Arc<DropCounters>,
         events: tokio::sync::mpsc::UnboundedReceiver<PlannerEvent>,
     ) -> anyhow::Result<Self> {
-        let sub = |topic, delivery| {
-            let (session, drops) = (session.clone(), drops.clone());
-            async move {
-                TypedSubscriber::declare(&session, &keys::all_trolleys(topic), delivery, drops)
-                    .await
-            }
-        };
         let period = Duration::from_millis(settings.status_period_ms.max(50));
+        let snapshots_key = keys::planner_snapshots(&settings.planner_id)?;
         Ok(Self {
-            clouds: sub(TrolleyTopic::Roi, Delivery::Reliable).await?,
-            infos: sub(TrolleyTopic::Info, Delivery::Reliable).await?,
-            fruit_reports: sub(TrolleyTopic::Fruits, Delivery::Monitor).await?,
+            clouds: Subscriber::declare(session, &keys::all_roi(), drops.clone()).await?,
+            infos: Subscriber::declare(session, &keys::all_info(), drops.clone()).await?,
+            fruit_reports: Subscriber::declare_with(
+                session,
+                &keys::all_fruits(),
+                Delivery::Monitor,
+                drops.clone(),
+            )
+            .await?,
             planner_watch: MemberWatch::declare(session, MemberKind::Planner).await?,
             trolley_watch: MemberWatch::declare(session, MemberKind::Trolley).await?,
-            snapshots: Responder::declare(session, keys::planner_snapshots(&settings.planner_id)?)
-                .await?,
+            snapshots: Responder::declare(session, &snapshots_key).await?,
+            queries: HashMap::new(),
+            next_query: 0,
             events,
             status_tick: tokio::time::interval(period),
         })
     }
 
     /// The next event for the node; None when shutdown fired or an input closed.
-    async fn next(&mut self, shutdown: &mut Shutdown, out: &mut Outputs) -> Option<PlannerEvent> {
+    async fn next(
+        &mut self,
+        shutdown: &mut Shutdown,
+        drops: &DropCounters,
+    ) -> Option<PlannerEvent> {
         loop {
             let event = tokio::select! {
                 _ = shutdown.wait() => return None,
@@ -145,72 +149,31 @@ impl Inputs {
                     MemberEvent::Joined(id) => PlannerEvent::TrolleyJoined(id),
                     MemberEvent::Left(id) => PlannerEvent::TrolleyLeft(id),
                 },
-                query = self.snapshots.recv() => match out.snapshot_query(query?).await {
+                query = self.snapshots.recv() => match self.snapshot_query(query?).await {
                     Some(event) => event,
                     None => continue,
                 },
                 e = self.events.recv() => e?,
-                _ = self.status_tick.tick() => PlannerEvent::StatusTick { dropped_messages: out.drops.total() },
-                r = self.fruit_reports.recv() => match r? {
-                    Received { header, message: Message::FruitEstimates(fruits), .. } => PlannerEvent::Fruits { header, fruits },
-                    _ => continue,
-                },
-                r = self.infos.recv() => match r? {
-                    Received { header, message: Message::TrolleyInfo(info), .. } => PlannerEvent::Info { header, info },
-                    _ => continue,
-                },
-                r = self.clouds.recv() => match r? {
-                    Received { header, message: Message::RoiCloud(cloud), .. } => PlannerEvent::Cloud { header, cloud },
-                    _ => continue,
-                },
+                _ = self.status_tick.tick() => PlannerEvent::StatusTick { dropped_messages: drops.total() },
+                r = self.fruit_reports.recv() => {
+                    let Received { header, message, .. } = r?;
+                    PlannerEvent::Fruits { header, fruits: message }
+                }
+                r = self.infos.recv() => {
+                    let Received { header, message, .. } = r?;
+                    PlannerEvent::Info { header, info: message }
+                }
+                r = self.clouds.recv() => {
+                    let Received { header, message, .. } = r?;
+                    PlannerEvent::Cloud { header, cloud: message }
+                }
             };
             return Some(event);
         }
     }
 }
 
-/// One trolley's result publishers.
-struct TrolleyPublishers {
-    views: TypedPublisher,
-    fruits: TypedPublisher,
-    map: TypedPublisher,
-}
-
-/// The bus side of a planner: what it publishes and the queries it answers.
-struct Outputs {
-    session: Session,
-    pid: String,
-    drops: Arc<DropCounters>,
-    status: TypedPublisher,
-    fleet: TypedPublisher,
-    trolleys: HashMap<String, TrolleyPublishers>,
-    queries: HashMap<u64, zenoh::query::Query>,
-    next_query: u64,
-    events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
-}
-
-impl Outputs {
-    async fn declare(
-        session: &Session,
-        pid: &str,
-        drops: &Arc<DropCounters>,
-        events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
-    ) -> anyhow::Result<Self> {
-        let declare =
-            |key: String| TypedPublisher::declare(session, key, Delivery::Reliable, drops.clone());
-        Ok(Self {
-            session: session.clone(),
-            pid: pid.to_owned(),
-            drops: drops.clone(),
-            status: declare(keys::planner_status(pid)?).await?,
-            fleet: declare(keys::FLEET_FRUITS.to_owned()).await?,
-            trolleys: HashMap::new(),
-            queries: HashMap::new(),
-            next_query: 0,
-            events,
-        })
-    }
-
+impl Inputs {
     /// A snapshot query becomes an event; a query on a key that is not a snapshot is refused.
     async fn snapshot_query(&mut self, query: zenoh::query::Query) -> Option<PlannerEvent> {
         match keys::parse(query.key_expr().as_str()) {
@@ -223,23 +186,65 @@ impl Outputs {
                 })
             }
             _ => {
-                reply(&query, Err("not a snapshot key".into())).await;
+                let refusal = Err("not a snapshot key".to_string());
+                self.snapshots.reply(&query, refusal).await;
                 None
             }
         }
     }
 
+    /// Answers query `query_id` (the node's `ReplySnapshot`).
+    async fn reply(&mut self, query_id: u64, answer: Result<(Header, Box<MapSnapshot>), String>) {
+        if let Some(query) = self.queries.remove(&query_id) {
+            let answer = answer.map(|(header, snapshot)| (header, *snapshot));
+            self.snapshots.reply(&query, answer).await;
+        }
+    }
+}
+
+/// One trolley's result publishers.
+struct TrolleyPublishers {
+    views: Publisher<RankedViews>,
+    fruits: Publisher<FruitEstimates>,
+    map: Publisher<MapUpdate>,
+}
+
+/// The bus side of a planner: what it publishes and the snapshots it asks for.
+struct Outputs {
+    session: Session,
+    pid: String,
+    drops: Arc<DropCounters>,
+    status: Publisher<PlannerStatus>,
+    fleet: Publisher<FleetFruits>,
+    trolleys: HashMap<String, TrolleyPublishers>,
+    events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
+}
+
+impl Outputs {
+    async fn declare(
+        session: &Session,
+        pid: &str,
+        drops: &Arc<DropCounters>,
+        events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
+    ) -> anyhow::Result<Self> {
+        Ok(Self {
+            session: session.clone(),
+            pid: pid.to_owned(),
+            drops: drops.clone(),
+            status: Publisher::declare(session, &keys::planner_status(pid)?, drops.clone()).await?,
+            fleet: Publisher::declare(session, &keys::fleet_fruits(), drops.clone()).await?,
+            trolleys: HashMap::new(),
+            events,
+        })
+    }
+
     async fn trolley(&mut self, tid: &str) -> anyhow::Result<&TrolleyPublishers> {
         if !self.trolleys.contains_key(tid) {
-            let declare = |topic| {
-                let (session, drops) = (self.session.clone(), self.drops.clone());
-                let key = keys::trolley(tid, topic);
-                async move { TypedPublisher::declare(&session, key?, Delivery::Reliable, drops).await }
-            };
+            let (session, drops) = (&self.session, &self.drops);
             let publishers = TrolleyPublishers {
-                views: declare(TrolleyTopic::Views).await?,
-                fruits: declare(TrolleyTopic::Fruits).await?,
-                map: declare(TrolleyTopic::Map).await?,
+                views: Publisher::declare(session, &keys::views(tid)?, drops.clone()).await?,
+                fruits: Publisher::declare(session, &keys::fruits(tid)?, drops.clone()).await?,
+                map: Publisher::declare(session, &keys::map(tid)?, drops.clone()).await?,
             };
             self.trolleys.insert(tid.to_owned(), publishers);
         }
@@ -248,9 +253,9 @@ impl Outputs {
 
     async fn release(&mut self, tid: &str) {
         if let Some(p) = self.trolleys.remove(tid) {
-            for publisher in [p.views, p.fruits, p.map] {
-                publisher.close().await;
-            }
+            p.views.close().await;
+            p.fruits.close().await;
+            p.map.close().await;
         }
     }
 
@@ -264,11 +269,10 @@ impl Outputs {
                     continue;
                 };
                 match ask(&session, &key, SNAPSHOT_TIMEOUT).await {
-                    Ok((_, Message::MapSnapshot(m))) => {
-                        loaded = Some(Box::new(m));
+                    Ok((_, snapshot)) => {
+                        loaded = Some(Box::new(snapshot));
                         break;
                     }
-                    Ok(_) => {}
                     Err(e) => {
                         tracing::debug!(planner = %pid, trolley = %tid, %source, error = %e, "no snapshot")
                     }
@@ -281,37 +285,17 @@ impl Outputs {
         });
     }
 
-    async fn perform(&mut self, action: PlannerAction) -> anyhow::Result<()> {
-        match action {
-            PlannerAction::Publish {
-                tid,
-                header,
-                output,
-            } => {
-                let p = self.trolley(&tid).await?;
-                let (publisher, message) = match output {
-                    TrolleyOutput::Views(v) => (&p.views, Message::RankedViews(v)),
-                    TrolleyOutput::Fruits(f) => (&p.fruits, Message::FruitEstimates(f)),
-                    TrolleyOutput::Map(m) => (&p.map, Message::MapUpdate(m)),
-                };
-                publisher.publish(&header, &message).await?;
-            }
-            PlannerAction::PublishStatus { header, status } => {
-                let message = Message::PlannerStatus(status);
-                self.status.publish(&header, &message).await?;
-            }
-            PlannerAction::PublishFleet { header, fruits } => {
-                let message = Message::FleetFruits(fruits);
-                self.fleet.publish(&header, &message).await?;
-            }
-            PlannerAction::AskSnapshot { tid, sources } => self.ask_snapshot(tid, sources),
-            PlannerAction::ReplySnapshot { query_id, answer } => {
-                if let Some(query) = self.queries.remove(&query_id) {
-                    let answer = answer.map(|(h, m)| (h, Message::MapSnapshot(*m)));
-                    reply(&query, answer).await;
-                }
-            }
-            PlannerAction::Release { tid } => self.release(&tid).await,
+    async fn publish(
+        &mut self,
+        tid: &str,
+        header: &Header,
+        output: TrolleyOutput,
+    ) -> anyhow::Result<()> {
+        let p = self.trolley(tid).await?;
+        match output {
+            TrolleyOutput::Views(v) => p.views.publish(header, &v).await?,
+            TrolleyOutput::Fruits(f) => p.fruits.publish(header, &f).await?,
+            TrolleyOutput::Map(m) => p.map.publish(header, &m).await?,
         }
         Ok(())
     }
@@ -324,6 +308,31 @@ impl Outputs {
         self.status.close().await;
         self.fleet.close().await;
     }
+}
+
+/// Performs one of the node's actions.
+async fn perform(
+    action: PlannerAction,
+    inputs: &mut Inputs,
+    out: &mut Outputs,
+) -> anyhow::Result<()> {
+    match action {
+        PlannerAction::Publish {
+            tid,
+            header,
+            output,
+        } => out.publish(&tid, &header, output).await?,
+        PlannerAction::PublishStatus { header, status } => {
+            out.status.publish(&header, &status).await?
+        }
+        PlannerAction::PublishFleet { header, fruits } => {
+            out.fleet.publish(&header, &fruits).await?
+        }
+        PlannerAction::AskSnapshot { tid, sources } => out.ask_snapshot(tid, sources),
+        PlannerAction::ReplySnapshot { query_id, answer } => inputs.reply(query_id, answer).await,
+        PlannerAction::Release { tid } => out.release(&tid).await,
+    }
+    Ok(())
 }
 
 /// Runs the planner until `shutdown` fires.
@@ -342,7 +351,7 @@ pub async fn run(
     let _alive = declare_alive(&session, MemberKind::Planner, &pid).await?;
     let mut node = Box::new(PlannerNode::new(&pid, settings.planning.clone()));
     tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
-    while let Some(event) = inputs.next(&mut shutdown, &mut out).await {
+    while let Some(event) = inputs.next(&mut shutdown, &drops).await {
         // Integration, fits and planning are heavy: the node works on a blocking thread.
         let (back, actions) = tokio::task::spawn_blocking(move || {
             let actions = node.handle(event);
@@ -362,7 +371,7 @@ pub async fn run(
             .views_published
             .store(stats.views_published, Ordering::Relaxed);
         for action in actions {
-            out.perform(action).await?;
+            perform(action, &mut inputs, &mut out).await?;
         }
     }
     out.close().await;

@@ -255,7 +255,9 @@ impl PlannerNode {
     fn on_info(&mut self, tid: &str, info: TrolleyInfo) -> Vec<PlannerAction> {
         let actions = self.introduce(tid);
         if let Some(slot) = self.slots.get_mut(tid) {
-            slot.planner.set_info(info);
+            if let Err(e) = slot.planner.set_info(info) {
+                tracing::warn!(planner = %self.pid, trolley = %tid, error = %e, "views are not filtered by reach");
+            }
         }
         actions
     }
@@ -352,9 +354,9 @@ impl PlannerNode {
                 Ok(mut loaded) => {
                     tracing::info!(planner = %pid, trolley = %tid, from = %snapshot.planner_id, seq = snapshot.based_on_seq, voxels = loaded.map().len(), "snapshot loaded");
                     if let Some(info) = slot.planner.info() {
-                        loaded.set_info(info.clone());
+                        let _ = loaded.set_info(info.clone());
                     }
-                    slot.planner = Box::new(loaded);
+                    *slot.planner = loaded;
                 }
                 Err(e) => {
                     tracing::warn!(planner = %pid, trolley = %tid, error = %e, "snapshot unusable: starting from the buffered clouds")
@@ -420,7 +422,7 @@ impl PlannerNode {
         self.stats.clouds_integrated += 1;
         let seq = cloud.source_frame_seq;
         let map = slot.planner.map_update(seq, &pid);
-        let camera = crate::camera_pose_of(&cloud);
+        let camera = cloud.world_from_camera;
         slot.last_cloud = Some((header.clone(), cloud));
         if !plan {
             return Vec::new();

@@ -2,8 +2,11 @@
 
 use std::time::{Duration, Instant};
 
-use glasshouse_proto::keys::{self, TrolleyTopic};
-use glasshouse_proto::{Message, TrolleyState};
+use std::sync::Arc;
+
+use glasshouse_bus::{Delivery, DropCounters, Subscriber};
+use glasshouse_proto::keys;
+use glasshouse_proto::TrolleyState;
 use glasshouse_tests::procs::{build_binaries, Proc};
 use glasshouse_tests::{client, free_port, within};
 
@@ -45,12 +48,15 @@ async fn real_binaries_close_the_loop() {
     );
 
     let observer = client(&endpoint).await;
-    let status_sub = observer
-        .declare_subscriber(keys::trolley("t1", TrolleyTopic::Status).expect("key"))
-        .await
-        .expect("subscriber");
-    let fruits_sub = observer
-        .declare_subscriber(keys::trolley("t1", TrolleyTopic::Fruits).expect("key"))
+    // Drop-oldest queues: the observer reads the fruits only at the end.
+    let drops = Arc::new(DropCounters::default());
+    let status_key = keys::status("t1").expect("key");
+    let status_sub =
+        Subscriber::declare_with(&observer, &status_key, Delivery::Monitor, drops.clone())
+            .await
+            .expect("subscriber");
+    let fruits_key = keys::fruits("t1").expect("key");
+    let fruits_sub = Subscriber::declare_with(&observer, &fruits_key, Delivery::Monitor, drops)
         .await
         .expect("subscriber");
     let args = with(&["--max-views", "6", "--width", "160"]);
@@ -64,16 +70,12 @@ async fn real_binaries_close_the_loop() {
     // The edge exits by itself once its six views are done.
     let done = within(240, "edge to finish six views", async {
         loop {
-            match status_sub.recv_async().await {
-                Ok(sample) => {
-                    let bytes = sample.payload().to_bytes();
-                    if let Ok((_, Message::TrolleyStatus(s))) = glasshouse_proto::decode(&bytes) {
-                        if s.state == TrolleyState::Done {
-                            return s;
-                        }
-                    }
+            match status_sub.recv().await {
+                Some(received) if received.message.state == TrolleyState::Done => {
+                    return received.message
                 }
-                Err(e) => panic!("status subscriber closed: {e}"),
+                Some(_) => {}
+                None => panic!("status subscriber closed"),
             }
         }
     })
@@ -99,12 +101,8 @@ async fn real_binaries_close_the_loop() {
     );
 
     let mut fruits = 0;
-    while let Ok(Some(sample)) = fruits_sub.try_recv() {
-        if let Ok((_, Message::FruitEstimates(f))) =
-            glasshouse_proto::decode(&sample.payload().to_bytes())
-        {
-            fruits = f.fruits.len();
-        }
+    while let Some(received) = fruits_sub.try_recv() {
+        fruits = received.message.fruits.len();
     }
     assert!(fruits > 0, "no fruit estimates from the planner process");
     drop(status_sub);

@@ -4,17 +4,17 @@
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use glasshouse_bus::{Delivery, DropCounters, TypedPublisher};
+use glasshouse_bus::{Delivery, DropCounters, RawPublisher};
 use glasshouse_edge::EdgeEvent;
 use glasshouse_proto::keys::{self, TrolleyTopic};
-use glasshouse_proto::{encode, samples, MessageKind};
+use glasshouse_proto::{encode_any, samples, MessageKind};
 use glasshouse_tests::{client, test_edge_config, within, Pipeline};
 use rand::{Rng, SeedableRng};
 use std::sync::Arc;
 
 /// Bad payloads for a key that expects `kind`: garbage, every kind truncated, another kind.
 fn bad_payloads(kind: MessageKind, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<Vec<u8>> {
-    let valid = encode(&samples::header(1), &samples::message(kind));
+    let valid = encode_any(&samples::header(1), &samples::message(kind));
     let other = if kind == MessageKind::ArmState {
         MessageKind::TrolleyStatus
     } else {
@@ -30,7 +30,7 @@ fn bad_payloads(kind: MessageKind, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<Vec
         valid[..valid.len() / 2].to_vec(),
         valid[..9].to_vec(),
         flipped,
-        encode(&samples::header(1), &samples::message(other)),
+        encode_any(&samples::header(1), &samples::message(other)),
     ]
 }
 
@@ -45,20 +45,19 @@ async fn bad_payloads_on_every_key_are_dropped_and_the_loop_goes_on() {
         .map(|t| (keys::trolley("t1", *t).expect("key"), t.message_kind()))
         .collect();
     targets.push((
-        keys::planner_status("p9").expect("key"),
+        keys::planner_status("p9").expect("key").to_string(),
         MessageKind::PlannerStatus,
     ));
     targets.push((
-        keys::detector_status("d9").expect("key"),
+        keys::detector_status("d9").expect("key").to_string(),
         MessageKind::DetectorStatus,
     ));
-    targets.push((keys::FLEET_FRUITS.to_owned(), MessageKind::FleetFruits));
+    targets.push((keys::fleet_fruits().to_string(), MessageKind::FleetFruits));
     let mut publishers = Vec::new();
     for (key, kind) in &targets {
-        let p =
-            TypedPublisher::declare(&attacker, key.clone(), Delivery::Reliable, counters.clone())
-                .await
-                .expect("publisher");
+        let p = RawPublisher::declare(&attacker, key, Delivery::Reliable, counters.clone())
+            .await
+            .expect("publisher");
         publishers.push((p, *kind));
     }
     // Let subscriptions propagate through the router before injecting.

@@ -5,18 +5,23 @@
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
+use std::sync::Arc;
+
+use glasshouse_bus::{Delivery, DropCounters, Subscriber};
 use glasshouse_planner::PlannerSettings;
-use glasshouse_proto::keys::{self, TrolleyTopic};
-use glasshouse_proto::{Message, RoiCloud};
+use glasshouse_proto::keys::{self, Key};
+use glasshouse_proto::{RoiCloud, Wire};
 use glasshouse_roimap::RoiMap;
 use glasshouse_tests::procs::{build_binaries, Proc};
 use glasshouse_tests::{client, free_port, within};
-use zenoh::handlers::FifoChannel;
 
-/// Decodes a sample of a key of the tree, as the services do.
-fn decode(sample: &zenoh::sample::Sample) -> Option<(glasshouse_proto::Header, Message)> {
-    let kind = keys::parse(sample.key_expr().as_str())?.message_kind()?;
-    glasshouse_proto::decode_as(&sample.payload().to_bytes(), kind).ok()
+/// An observer's subscriber: a deep drop-oldest queue, so phases that do not read it never
+/// push back on the fleet (a test that loses what it needs fails on the map comparison).
+async fn observe<M: Wire>(observer: &zenoh::Session, key: &Key<M>) -> Subscriber<M> {
+    let drops = Arc::new(DropCounters::default());
+    Subscriber::declare_with(observer, key, Delivery::Monitor, drops)
+        .await
+        .expect("subscriber")
 }
 
 /// The map a planner with default settings builds from these clouds, integrating each frame
@@ -78,19 +83,9 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     };
     let _router = Proc::start("router", "glasshouse", &["router", "-l", &endpoint], &logs);
     let observer = client(&endpoint).await;
-    let subscribe = |key: String| {
-        let observer = observer.clone();
-        async move {
-            observer
-                .declare_subscriber(key)
-                .with(FifoChannel::new(100_000))
-                .await
-                .expect("subscriber")
-        }
-    };
-    let clouds_sub = subscribe(keys::trolley("t1", TrolleyTopic::Roi).expect("key")).await;
-    let views_sub = subscribe(keys::trolley("t1", TrolleyTopic::Views).expect("key")).await;
-    let status_sub = subscribe("gh/planner/*/status".to_owned()).await;
+    let clouds_sub = observe(&observer, &keys::roi("t1").expect("key")).await;
+    let views_sub = observe(&observer, &keys::views("t1").expect("key")).await;
+    let status_sub = observe(&observer, &keys::all_planner_status()).await;
     let _detector = start("detector", "detector-service", &[]);
     let mut planners: Vec<(String, Proc)> = ["p1", "p2", "p3"]
         .into_iter()
@@ -111,10 +106,8 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     within(60, "three planners report", async {
         let mut seen = BTreeSet::new();
         while seen.len() < 3 {
-            let sample = status_sub.recv_async().await.expect("status");
-            if let Some((_, Message::PlannerStatus(s))) = decode(&sample) {
-                seen.insert(s.planner_id);
-            }
+            let status = status_sub.recv().await.expect("status");
+            seen.insert(status.message.planner_id);
         }
     })
     .await;
@@ -126,31 +119,32 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     );
 
     // Owner: the planner the views come from; replica: the planner reporting t1 on standby.
-    let (owner, replica) = within(180, "views from the owner and a replica on standby", async {
-        let (mut owner, mut replica, mut views) = (None::<String>, None::<String>, 0);
-        loop {
-            tokio::select! {
-                sample = views_sub.recv_async() => {
-                    if let Some((h, Message::RankedViews(_))) = decode(&sample.expect("views")) {
+    let (owner, replica) = within(
+        180,
+        "views from the owner and a replica on standby",
+        async {
+            let (mut owner, mut replica, mut views) = (None::<String>, None::<String>, 0);
+            loop {
+                tokio::select! {
+                    received = views_sub.recv() => {
                         views += 1;
-                        owner = Some(h.source_id);
+                        owner = Some(received.expect("views").header.source_id);
                     }
-                }
-                sample = status_sub.recv_async() => {
-                    if let Some((_, Message::PlannerStatus(s))) = decode(&sample.expect("status")) {
+                    received = status_sub.recv() => {
+                        let s = received.expect("status").message;
                         if s.standby_trolleys.iter().any(|t| t == "t1") {
                             replica = Some(s.planner_id);
                         }
                     }
                 }
-            }
-            if let (Some(o), Some(r)) = (&owner, &replica) {
-                if views >= 3 && o != r {
-                    return (o.clone(), r.clone());
+                if let (Some(o), Some(r)) = (&owner, &replica) {
+                    if views >= 3 && o != r {
+                        return (o.clone(), r.clone());
+                    }
                 }
             }
-        }
-    })
+        },
+    )
     .await;
 
     let killed = Instant::now();
@@ -168,18 +162,17 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
             let mut frames = BTreeSet::new();
             let mut first = None;
             loop {
-                let sample = views_sub.recv_async().await.expect("views");
-                if let Some((h, Message::RankedViews(v))) = decode(&sample) {
-                    if h.source_id != owner {
-                        assert_eq!(
-                            h.source_id, replica,
-                            "views from a planner that was not the replica"
-                        );
-                        first.get_or_insert_with(|| killed.elapsed());
-                        frames.insert(v.based_on_seq);
-                        if frames.len() >= 3 {
-                            return first.unwrap_or_default();
-                        }
+                let received = views_sub.recv().await.expect("views");
+                let (h, v) = (received.header, received.message);
+                if h.source_id != owner {
+                    assert_eq!(
+                        h.source_id, replica,
+                        "views from a planner that was not the replica"
+                    );
+                    first.get_or_insert_with(|| killed.elapsed());
+                    frames.insert(v.based_on_seq);
+                    if frames.len() >= 3 {
+                        return first.unwrap_or_default();
                     }
                 }
             }
@@ -193,10 +186,8 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
 
     edge.terminate();
     let mut clouds = Vec::new();
-    while let Ok(Some(sample)) = clouds_sub.try_recv() {
-        if let Some((_, Message::RoiCloud(c))) = decode(&sample) {
-            clouds.push(c);
-        }
+    while let Some(received) = clouds_sub.try_recv() {
+        clouds.push(received.message);
     }
     let last_seq = clouds
         .iter()
@@ -210,13 +201,10 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     let survivor = within(60, "the survivor's snapshot at the last cloud", async {
         loop {
             match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
-                Ok((_, Message::MapSnapshot(s))) if s.based_on_seq >= last_seq => {
+                Ok((_, s)) if s.based_on_seq >= last_seq => {
                     return RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
                 }
-                Ok((_, Message::MapSnapshot(s))) => {
-                    eprintln!("survivor at seq {} of {last_seq}", s.based_on_seq)
-                }
-                Ok(_) => eprintln!("unexpected reply"),
+                Ok((_, s)) => eprintln!("survivor at seq {} of {last_seq}", s.based_on_seq),
                 Err(e) => eprintln!("no snapshot yet: {e}"),
             }
             tokio::time::sleep(Duration::from_millis(200)).await;

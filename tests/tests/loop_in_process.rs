@@ -1,8 +1,10 @@
 //! (a) The four services as tasks with separate Zenoh sessions over loopback TCP: the loop closes.
 
 use glasshouse_edge::EdgeEvent;
-use glasshouse_proto::keys::{self, TrolleyTopic};
-use glasshouse_proto::Message;
+use std::sync::Arc;
+
+use glasshouse_bus::{Delivery, DropCounters, Subscriber};
+use glasshouse_proto::keys;
 use glasshouse_tests::{client, test_edge_config, within, Pipeline};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -10,10 +12,16 @@ async fn loop_closes_for_six_views_and_fruits_are_published() {
     let mut pipeline = Pipeline::start(test_edge_config(6)).await;
     // An independent observer on its own session sees the fruit estimates on the bus.
     let observer = client(&pipeline.endpoint).await;
-    let fruits_sub = observer
-        .declare_subscriber(keys::trolley("t1", TrolleyTopic::Fruits).expect("key"))
-        .await
-        .expect("subscriber");
+    // A drop-oldest queue: the observer reads the fruits only at the end.
+    let observer_drops = Arc::new(DropCounters::default());
+    let fruits_sub = Subscriber::declare_with(
+        &observer,
+        &keys::fruits("t1").expect("key"),
+        Delivery::Monitor,
+        observer_drops.clone(),
+    )
+    .await
+    .expect("subscriber");
 
     let events = pipeline.run_to_end(180).await;
     let views: Vec<(u32, u64)> = events
@@ -47,12 +55,15 @@ async fn loop_closes_for_six_views_and_fruits_are_published() {
     ));
 
     let mut last_fruit_count = 0;
-    while let Ok(Some(sample)) = fruits_sub.try_recv() {
-        let (_, message) = glasshouse_proto::decode(&sample.payload().to_bytes()).expect("valid");
-        if let Message::FruitEstimates(f) = message {
-            last_fruit_count = f.fruits.len();
-        }
+    while let Some(received) = fruits_sub.try_recv() {
+        last_fruit_count = received.message.fruits.len();
     }
+    assert_eq!(
+        observer_drops
+            .corrupt
+            .load(std::sync::atomic::Ordering::Relaxed),
+        0
+    );
     assert!(
         last_fruit_count > 0,
         "no fruit estimates reached the observer"

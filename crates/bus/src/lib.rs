@@ -5,7 +5,11 @@
 //! binary knows them all. Multicast scouting is off unless a config file turns it on: endpoints are
 //! explicit.
 //!
-//! Publishing never awaits the network on the caller's path: [`TypedPublisher::publish`] encodes and
+//! Publishers and subscribers are typed by their key: [`Publisher<M>`] and [`Subscriber<M>`] are
+//! declared from a [`Key<M>`] and carry only `M`; [`AnySubscriber`] receives every kind as a
+//! [`Message`] (the dashboard); [`ask`] and [`Responder`] are typed the same way.
+//!
+//! Publishing never awaits the network on the caller's path: [`Publisher::publish`] encodes and
 //! queues, and a task per publisher drains the queue into Zenoh. Streams (frames, arm state) use a
 //! small queue that drops the oldest entry under load and Zenoh's `CongestionControl::Drop` at
 //! priority `DataLow`;
@@ -15,12 +19,16 @@
 
 mod queue;
 
+use std::marker::PhantomData;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use glasshouse_proto::{decode, decode_as, encode, keys, Header, Message, MessageKind};
+use glasshouse_proto::keys::{self, Key};
+use glasshouse_proto::{
+    decode, decode_as, decode_typed, encode, Header, Message, MessageKind, Wire,
+};
 use queue::{Overflow, SampleQueue};
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::Session;
@@ -206,18 +214,28 @@ impl DropCounters {
     }
 }
 
-/// A publisher of one key whose network writes happen on its own task.
-pub struct TypedPublisher {
+impl From<keys::Qos> for Delivery {
+    fn from(qos: keys::Qos) -> Self {
+        match qos {
+            keys::Qos::Stream => Delivery::Stream,
+            keys::Qos::Reliable => Delivery::Reliable,
+        }
+    }
+}
+
+/// A publisher of raw payloads on one key expression, whose network writes happen on its own
+/// task. [`Publisher`] wraps it; used directly only to inject faults.
+pub struct RawPublisher {
     key: String,
     queue: Arc<SampleQueue<Vec<u8>>>,
     task: tokio::task::JoinHandle<()>,
 }
 
-impl TypedPublisher {
+impl RawPublisher {
     /// Declares a publisher on `key` and starts its task.
     pub async fn declare(
         session: &Session,
-        key: String,
+        key: &str,
         delivery: Delivery,
         counters: Arc<DropCounters>,
     ) -> Result<Self> {
@@ -235,18 +253,18 @@ impl TypedPublisher {
             }
         };
         let publisher = session
-            .declare_publisher(key.clone())
+            .declare_publisher(key.to_owned())
             .congestion_control(congestion)
             .priority(priority)
             .await
             .map_err(|e| BusError::Declare {
                 what: "publisher",
-                key: key.clone(),
+                key: key.to_owned(),
                 reason: e.to_string(),
             })?;
         let queue = Arc::new(SampleQueue::new(capacity, overflow, counters));
         let task_queue = queue.clone();
-        let task_key = key.clone();
+        let task_key = key.to_owned();
         let task = tokio::spawn(async move {
             while let Some(bytes) = task_queue.pop().await {
                 if let Err(e) = publisher.put(bytes).await {
@@ -254,19 +272,18 @@ impl TypedPublisher {
                 }
             }
         });
-        Ok(Self { key, queue, task })
+        Ok(Self {
+            key: key.to_owned(),
+            queue,
+            task,
+        })
     }
 
     pub fn key(&self) -> &str {
         &self.key
     }
 
-    /// Encodes and queues one message. Streams never wait; reliable publishers wait for space.
-    pub async fn publish(&self, header: &Header, message: &Message) -> Result<()> {
-        self.publish_bytes(encode(header, message)).await
-    }
-
-    /// Queues an already encoded payload (also used to inject faults in tests).
+    /// Queues an encoded payload. Streams never wait; reliable publishers wait for space.
     pub async fn publish_bytes(&self, bytes: Vec<u8>) -> Result<()> {
         if self.queue.push(bytes).await {
             Ok(())
@@ -282,26 +299,66 @@ impl TypedPublisher {
     }
 }
 
-/// One received, verified and decoded message.
+/// A publisher of `M` on one key.
+pub struct Publisher<M> {
+    raw: RawPublisher,
+    _message: PhantomData<fn(M)>,
+}
+
+impl<M: Wire> Publisher<M> {
+    /// Declares a publisher on `key` with the key's delivery ([`Key::qos`]).
+    pub async fn declare(
+        session: &Session,
+        key: &Key<M>,
+        counters: Arc<DropCounters>,
+    ) -> Result<Self> {
+        let delivery = key.qos().into();
+        let raw = RawPublisher::declare(session, key.as_str(), delivery, counters).await?;
+        Ok(Self {
+            raw,
+            _message: PhantomData,
+        })
+    }
+
+    pub fn key(&self) -> &str {
+        self.raw.key()
+    }
+
+    /// Encodes and queues one message. Streams never wait; reliable publishers wait for space.
+    pub async fn publish(&self, header: &Header, message: &M) -> Result<()> {
+        self.raw.publish_bytes(encode(header, message)).await
+    }
+
+    /// Queues an already encoded payload (also used to inject faults in tests).
+    pub async fn publish_bytes(&self, bytes: Vec<u8>) -> Result<()> {
+        self.raw.publish_bytes(bytes).await
+    }
+
+    /// Sends what is queued, then stops the task.
+    pub async fn close(self) {
+        self.raw.close().await;
+    }
+}
+
+/// One received, verified and decoded message: `M` for a typed [`Subscriber`], [`Message`] for
+/// an [`AnySubscriber`].
 #[derive(Clone, Debug)]
-pub struct Received {
+pub struct Received<M> {
     pub key: String,
     pub header: Header,
-    pub message: Message,
+    pub message: M,
     pub payload_bytes: usize,
 }
 
-/// A subscriber that decodes every payload and counts the ones it rejects.
-pub struct TypedSubscriber {
+/// The queue between a Zenoh subscriber callback and the decoding `recv` of both subscribers.
+struct Inbox {
     queue: Arc<SampleQueue<(String, Vec<u8>)>>,
     counters: Arc<DropCounters>,
     _subscriber: zenoh::pubsub::Subscriber<()>,
 }
 
-impl TypedSubscriber {
-    /// Subscribes to `key_expr`. The expected message kind comes from each key (see
-    /// [`keys::parse`]); payloads on keys outside the tree must decode as any kind.
-    pub async fn declare(
+impl Inbox {
+    async fn declare(
         session: &Session,
         key_expr: &str,
         delivery: Delivery,
@@ -334,33 +391,125 @@ impl TypedSubscriber {
         })
     }
 
-    /// The next message that decodes; `None` once the subscriber is closed.
-    pub async fn recv(&self) -> Option<Received> {
+    /// The next payload that `decode` accepts; the others are counted and skipped.
+    async fn recv<T>(
+        &self,
+        decode: impl Fn(&str, &[u8]) -> DecodeResult<T>,
+    ) -> Option<Received<T>> {
         loop {
             let (key, bytes) = self.queue.pop().await?;
-            let expected = keys::parse(&key).and_then(|k| k.message_kind());
-            let decoded = match expected {
-                Some(kind) => decode_as(&bytes, kind),
-                None => decode(&bytes),
-            };
-            match decoded {
-                Ok((header, message)) => {
-                    return Some(Received {
-                        key,
-                        header,
-                        message,
-                        payload_bytes: bytes.len(),
-                    })
-                }
-                Err(e) => {
-                    let n = self.counters.corrupt.fetch_add(1, Ordering::Relaxed) + 1;
-                    // Log the first few and then every hundredth: a flood must not flood the log.
-                    if n <= 5 || n.is_multiple_of(100) {
-                        tracing::warn!(%key, bytes = bytes.len(), error = %e, dropped = n, "dropped a bad payload");
-                    }
-                }
+            if let Some(received) = self.accept(key, bytes, &decode) {
+                return Some(received);
             }
         }
+    }
+
+    /// Like [`Inbox::recv`], but only from what has already arrived.
+    fn try_recv<T>(&self, decode: impl Fn(&str, &[u8]) -> DecodeResult<T>) -> Option<Received<T>> {
+        loop {
+            let (key, bytes) = self.queue.try_pop()?;
+            if let Some(received) = self.accept(key, bytes, &decode) {
+                return Some(received);
+            }
+        }
+    }
+
+    /// Decodes one payload, or counts and logs it as corrupt.
+    fn accept<T>(
+        &self,
+        key: String,
+        bytes: Vec<u8>,
+        decode: &impl Fn(&str, &[u8]) -> DecodeResult<T>,
+    ) -> Option<Received<T>> {
+        match decode(&key, &bytes) {
+            Ok((header, message)) => Some(Received {
+                key,
+                header,
+                message,
+                payload_bytes: bytes.len(),
+            }),
+            Err(e) => {
+                let n = self.counters.corrupt.fetch_add(1, Ordering::Relaxed) + 1;
+                // Log the first few and then every hundredth: a flood must not flood the log.
+                if n <= 5 || n.is_multiple_of(100) {
+                    tracing::warn!(%key, bytes = bytes.len(), error = %e, dropped = n, "dropped a bad payload");
+                }
+                None
+            }
+        }
+    }
+}
+
+type DecodeResult<T> = glasshouse_proto::Result<(Header, T)>;
+
+/// A subscriber of `M` on a key (or a wildcard of such keys): every payload must decode as `M`,
+/// the others are counted in [`DropCounters::corrupt`] and skipped.
+pub struct Subscriber<M> {
+    inbox: Inbox,
+    _message: PhantomData<fn() -> M>,
+}
+
+impl<M: Wire> Subscriber<M> {
+    /// Subscribes to `key` with the key's default delivery.
+    pub async fn declare(
+        session: &Session,
+        key: &Key<M>,
+        counters: Arc<DropCounters>,
+    ) -> Result<Self> {
+        Self::declare_with(session, key, key.qos().into(), counters).await
+    }
+
+    /// Subscribes to `key` with an explicit delivery (e.g. [`Delivery::Monitor`]).
+    pub async fn declare_with(
+        session: &Session,
+        key: &Key<M>,
+        delivery: Delivery,
+        counters: Arc<DropCounters>,
+    ) -> Result<Self> {
+        let inbox = Inbox::declare(session, key.as_str(), delivery, counters).await?;
+        Ok(Self {
+            inbox,
+            _message: PhantomData,
+        })
+    }
+
+    /// The next message that decodes; `None` once the subscriber is closed.
+    pub async fn recv(&self) -> Option<Received<M>> {
+        self.inbox.recv(|_, bytes| decode_typed::<M>(bytes)).await
+    }
+
+    /// The next message that decodes among those already received, without waiting.
+    pub fn try_recv(&self) -> Option<Received<M>> {
+        self.inbox.try_recv(|_, bytes| decode_typed::<M>(bytes))
+    }
+}
+
+/// A subscriber of every kind on a key expression (the dashboard's `gh/**`, recorders).
+pub struct AnySubscriber {
+    inbox: Inbox,
+}
+
+impl AnySubscriber {
+    /// Subscribes to `key_expr`. The expected message kind comes from each key (see
+    /// [`keys::parse`]); payloads on keys outside the tree must decode as any kind.
+    pub async fn declare(
+        session: &Session,
+        key_expr: &str,
+        delivery: Delivery,
+        counters: Arc<DropCounters>,
+    ) -> Result<Self> {
+        let inbox = Inbox::declare(session, key_expr, delivery, counters).await?;
+        Ok(Self { inbox })
+    }
+
+    /// The next message that decodes; `None` once the subscriber is closed.
+    pub async fn recv(&self) -> Option<Received<Message>> {
+        self.inbox
+            .recv(|key, bytes| match Self::expected_kind(key) {
+                Some(kind) => decode_as(bytes, kind),
+                None => decode(bytes),
+            })
+            .await
     }
 
     /// The kind expected on a key of this project's tree.
@@ -434,39 +583,43 @@ impl MemberWatch {
     }
 }
 
-/// Answers queries on a key expression with encoded messages (a planner's map snapshots).
-pub struct Responder {
+/// Answers queries for `M` on a key expression (a planner's map snapshots).
+pub struct Responder<M> {
     queryable: zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>,
+    _message: PhantomData<fn(M)>,
 }
 
-impl Responder {
-    pub async fn declare(session: &Session, key_expr: String) -> Result<Self> {
+impl<M: Wire> Responder<M> {
+    pub async fn declare(session: &Session, key: &Key<M>) -> Result<Self> {
         let queryable = session
-            .declare_queryable(key_expr.clone())
+            .declare_queryable(key.as_str().to_owned())
             .await
             .map_err(|e| BusError::Declare {
                 what: "queryable",
-                key: key_expr,
+                key: key.as_str().to_owned(),
                 reason: e.to_string(),
             })?;
-        Ok(Self { queryable })
+        Ok(Self {
+            queryable,
+            _message: PhantomData,
+        })
     }
 
     /// The next query; `None` once the session is closed.
     pub async fn recv(&self) -> Option<zenoh::query::Query> {
         self.queryable.recv_async().await.ok()
     }
-}
 
-/// Replies to `query` with one encoded message, or with an error text the asker can log.
-pub async fn reply(query: &zenoh::query::Query, answer: Result<(Header, Message), String>) {
-    let key = query.key_expr().clone();
-    let outcome = match answer {
-        Ok((header, message)) => query.reply(key, encode(&header, &message)).await,
-        Err(reason) => query.reply_err(reason).await,
-    };
-    if let Err(e) = outcome {
-        tracing::warn!(key = %query.key_expr(), error = %e, "reply failed");
+    /// Replies to `query` with one message, or with an error text the asker can log.
+    pub async fn reply(&self, query: &zenoh::query::Query, answer: Result<(Header, M), String>) {
+        let key = query.key_expr().clone();
+        let outcome = match answer {
+            Ok((header, message)) => query.reply(key, encode(&header, &message)).await,
+            Err(reason) => query.reply_err(reason).await,
+        };
+        if let Err(e) = outcome {
+            tracing::warn!(key = %query.key_expr(), error = %e, "reply failed");
+        }
     }
 }
 
@@ -483,16 +636,14 @@ pub enum AskError {
     Query(String),
 }
 
-/// Queries `key` (a concrete key of the tree) and returns the first reply, verified as the kind
-/// the key carries.
-pub async fn ask(
+/// Queries `key` (a concrete key of the tree) and returns the first reply, verified as `M`.
+pub async fn ask<M: Wire>(
     session: &Session,
-    key: &str,
+    key: &Key<M>,
     timeout: Duration,
-) -> Result<(Header, Message), AskError> {
-    let expected = keys::parse(key).and_then(|k| k.message_kind());
+) -> Result<(Header, M), AskError> {
     let replies = session
-        .get(key.to_owned())
+        .get(key.as_str().to_owned())
         .timeout(timeout)
         .await
         .map_err(|e| AskError::Query(e.to_string()))?;
@@ -501,14 +652,8 @@ pub async fn ask(
         .await
         .map_err(|_| AskError::NoReply(timeout))?;
     match reply.result() {
-        Ok(sample) => {
-            let bytes = sample.payload().to_bytes();
-            let decoded = match expected {
-                Some(kind) => decode_as(&bytes, kind),
-                None => decode(&bytes),
-            };
-            decoded.map_err(|e| AskError::Corrupt(e.to_string()))
-        }
+        Ok(sample) => decode_typed::<M>(&sample.payload().to_bytes())
+            .map_err(|e| AskError::Corrupt(e.to_string())),
         Err(err) => Err(AskError::Declined(
             String::from_utf8_lossy(&err.payload().to_bytes()).into_owned(),
         )),

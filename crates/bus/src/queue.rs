@@ -103,6 +103,14 @@ impl<T> SampleQueue<T> {
         }
     }
 
+    /// The next item if one is waiting, without waiting.
+    pub(crate) fn try_pop(&self) -> Option<T> {
+        let item = self.lock().items.pop_front()?;
+        self.space.notify_one();
+        self.space_async.notify_one();
+        Some(item)
+    }
+
     /// Next item; `None` once closed and drained.
     pub(crate) async fn pop(&self) -> Option<T> {
         loop {

@@ -342,7 +342,8 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         }
         out.push('\n');
     }
-    let rows: [(&str, fn(&TrialResult) -> Option<f64>); 3] = [
+    type PerTrial = fn(&TrialResult) -> Option<f64>;
+    let rows: [(&str, PerTrial); 3] = [
         ("views executed", |t| Some(f64::from(t.views))),
         ("planner compute per frame (ms)", |t| {
             (t.frames > 0).then(|| 1e3 * t.compute_time_s / t.frames as f64)

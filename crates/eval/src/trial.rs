@@ -418,7 +418,7 @@ impl<S: TrolleySource> Trial<S> {
         };
         let cloud = detect_frame(&frame, frame_seq, "eval", &self.detector)?;
         let started = Instant::now();
-        self.planner.set_info(self.source.info());
+        self.planner.set_info(self.source.info())?;
         self.planner.integrate(&cloud)?;
         let plan = self.planner.plan(&frame.world_from_camera, frame_seq)?;
         let compute_s = match self.config.compute_time {

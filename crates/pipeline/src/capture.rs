@@ -175,6 +175,7 @@ impl TrolleySource for SimTrolley {
             scenario: self.settings.scenario.to_string(),
             scene_seed: self.settings.seed,
             intrinsics: self.camera.intrinsics,
+            robot_json: serde_json::to_string(robot).unwrap_or_default(),
         }
     }
 

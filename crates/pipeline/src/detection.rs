@@ -22,6 +22,7 @@ pub fn detect_frame(
         points_in_world: cloud.points_in_world,
         roi: cloud.roi,
         sensor_origin_in_world: cloud.sensor_origin_in_world,
+        world_from_camera: frame.world_from_camera,
         source_frame_seq: frame_seq,
         invalid_pixels: cloud.invalid_pixels.min(u32::MAX as usize) as u32,
         detector_id: detector_id.to_owned(),

@@ -211,8 +211,27 @@ impl TrolleyPlanner {
     }
 
     /// The trolley's latest workspace and arm (TrolleyInfo); planning waits for the first one.
-    pub fn set_info(&mut self, info: TrolleyInfo) {
+    /// Its robot description switches the reach filter on; one that does not parse is an error
+    /// and leaves the filter off (the info itself is kept: the edge still checks every view).
+    pub fn set_info(&mut self, info: TrolleyInfo) -> Result<(), PlanningError> {
+        let same_robot = self.info.as_ref().map(|i| &i.robot_json) == Some(&info.robot_json);
+        if same_robot {
+            self.info = Some(info);
+            return Ok(());
+        }
+        let robot = match info.robot_json.as_str() {
+            "" => None,
+            json => match serde_json::from_str::<Robot>(json) {
+                Ok(robot) => Some(robot),
+                Err(e) => {
+                    self.info = Some(info);
+                    self.reach = None;
+                    return Err(PlanningError::Settings(format!("the trolley's robot: {e}")));
+                }
+            },
+        };
         self.info = Some(info);
+        self.set_robot(robot)
     }
 
     /// Inserts the cloud into the map (each frame sequence once: a re-announced frame comes back

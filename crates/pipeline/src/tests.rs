@@ -270,7 +270,8 @@ fn the_steps_capture_detect_integrate_plan_and_fit() {
     // No info yet: the cloud is integrated, planning waits.
     assert!(planner.integrate(&cloud).unwrap());
     assert!(planner.plan(&frame.world_from_camera, 1).unwrap().is_none());
-    planner.set_info(trolley.info());
+    planner.set_info(trolley.info()).unwrap();
+    assert!(planner.filters_reach());
     // The same frame again is not inserted twice.
     let known = planner.map().len();
     assert!(!planner.integrate(&cloud).unwrap());
@@ -343,4 +344,14 @@ fn bad_settings_are_rejected() {
         }),
         Err(CaptureError::ImageSize(8, 8))
     ));
+}
+
+#[test]
+fn the_cloud_carries_the_frame_camera_pose() {
+    let frame = glasshouse_proto::samples::rgbd_frame();
+    let cloud = detect_frame(&frame, 7, "d1", &DetectorConfig::default()).unwrap();
+    assert_eq!(cloud.world_from_camera, frame.world_from_camera);
+    assert_eq!(cloud.source_frame_seq, 7);
+    let origin = frame.world_from_camera.translation.vector;
+    assert!((cloud.sensor_origin_in_world.coords - origin).norm() < 1e-9);
 }

@@ -8,8 +8,17 @@
 //!   copy of trolley `tid`'s map (MapSnapshot replies);
 //! - `gh/fleet/fruits`: the merged fruit map;
 //! - `gh/alive/{trolley|planner|detector}/{id}`: liveliness tokens (membership), outside the data tree.
+//!
+//! A data key is a [`Key<M>`]: it names the message type `M` published on it and how that data
+//! travels by default ([`Qos`]), so a publisher or subscriber declared from it can only carry `M`.
+//! Untyped expressions (`String`) remain for observers of many kinds and for [`parse`].
 
-use crate::MessageKind;
+use std::marker::PhantomData;
+
+use crate::{
+    ArmState, DetectorStatus, FleetFruits, FruitEstimates, MapSnapshot, MapUpdate, MessageKind,
+    PlannerStatus, RankedViews, RgbdFrame, RoiCloud, TrolleyInfo, TrolleyStatus, Wire,
+};
 
 /// Root of every key of this project.
 pub const ROOT: &str = "gh";
@@ -37,6 +46,73 @@ pub fn validate_id(id: &str) -> Result<(), KeyError> {
         Ok(())
     } else {
         Err(KeyError::InvalidId(id.to_owned()))
+    }
+}
+
+/// How a key's data travels unless its user says otherwise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Qos {
+    /// Sensor streams: newer samples replace older ones under load.
+    Stream,
+    /// Results and control: never dropped.
+    Reliable,
+}
+
+/// A key expression that carries messages of type `M`.
+pub struct Key<M> {
+    expr: String,
+    qos: Qos,
+    _message: PhantomData<fn() -> M>,
+}
+
+impl<M: Wire> Key<M> {
+    fn new(expr: String, qos: Qos) -> Self {
+        Self {
+            expr,
+            qos,
+            _message: PhantomData,
+        }
+    }
+
+    /// The Zenoh key expression.
+    pub fn as_str(&self) -> &str {
+        &self.expr
+    }
+
+    /// How this key's data travels by default.
+    pub fn qos(&self) -> Qos {
+        self.qos
+    }
+
+    /// The message kind published on this key.
+    pub fn kind(&self) -> MessageKind {
+        M::KIND
+    }
+}
+
+// Manual impls: a key is cloneable and printable whatever `M` is.
+impl<M> Clone for Key<M> {
+    fn clone(&self) -> Self {
+        Self {
+            expr: self.expr.clone(),
+            qos: self.qos,
+            _message: PhantomData,
+        }
+    }
+}
+
+impl<M> std::fmt::Debug for Key<M> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Key")
+            .field("expr", &self.expr)
+            .field("qos", &self.qos)
+            .finish()
+    }
+}
+
+impl<M> std::fmt::Display for Key<M> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.expr)
     }
 }
 
@@ -105,45 +181,130 @@ impl TrolleyTopic {
         }
     }
 
+    /// How the topic's data travels by default.
+    pub fn qos(self) -> Qos {
+        match self {
+            TrolleyTopic::Rgbd | TrolleyTopic::Arm => Qos::Stream,
+            _ => Qos::Reliable,
+        }
+    }
+
     fn parse(s: &str) -> Option<Self> {
         Self::ALL.into_iter().find(|t| t.as_str() == s)
     }
 }
 
-/// `gh/trolley/{tid}/{topic}`.
+fn trolley_key<M: Wire>(tid: &str, topic: TrolleyTopic) -> Result<Key<M>, KeyError> {
+    debug_assert_eq!(M::KIND, topic.message_kind());
+    Ok(Key::new(trolley(tid, topic)?, topic.qos()))
+}
+
+fn all_trolleys_key<M: Wire>(topic: TrolleyTopic) -> Key<M> {
+    debug_assert_eq!(M::KIND, topic.message_kind());
+    Key::new(all_trolleys(topic), topic.qos())
+}
+
+/// One constructor for trolley `tid`'s key of a topic and one for that topic of every trolley.
+macro_rules! trolley_keys {
+    ($($(#[$doc:meta])* $one:ident, $all:ident: $topic:ident => $message:ty;)+) => {
+        $(
+            $(#[$doc])*
+            #[doc = concat!("\n\n`gh/trolley/{tid}/", stringify!($one), "`.")]
+            pub fn $one(tid: &str) -> Result<Key<$message>, KeyError> {
+                trolley_key(tid, TrolleyTopic::$topic)
+            }
+
+            #[doc = concat!("`gh/trolley/*/", stringify!($one), "`: [`", stringify!($one), "`] of every trolley.")]
+            pub fn $all() -> Key<$message> {
+                all_trolleys_key(TrolleyTopic::$topic)
+            }
+        )+
+    };
+}
+
+trolley_keys! {
+    /// RgbdFrame, edge → detectors (stream).
+    rgbd, all_rgbd: Rgbd => RgbdFrame;
+    /// ArmState, edge → planners, dashboard (stream).
+    arm, all_arm: Arm => ArmState;
+    /// TrolleyInfo, edge → planners, dashboard (reliable, periodic).
+    info, all_info: Info => TrolleyInfo;
+    /// RoiCloud, detector → planners, dashboard (reliable).
+    roi, all_roi: Roi => RoiCloud;
+    /// RankedViews, owning planner → edge, dashboard (reliable).
+    views, all_views: Views => RankedViews;
+    /// FruitEstimates, owning planner → dashboard (reliable).
+    fruits, all_fruits: Fruits => FruitEstimates;
+    /// MapUpdate, owning planner → dashboard, replicas (reliable).
+    map, all_map: Map => MapUpdate;
+    /// TrolleyStatus, edge → dashboard (reliable, periodic).
+    status, all_status: Status => TrolleyStatus;
+    /// FruitEstimates holding the ground truth, simulated edges → dashboard (reliable).
+    truth, all_truth: Truth => FruitEstimates;
+}
+
+/// `gh/trolley/{tid}/{topic}` untyped, for observers of many topics; publishers and subscribers
+/// of one message type use the typed constructors ([`roi`], [`views`], ...).
 pub fn trolley(tid: &str, topic: TrolleyTopic) -> Result<String, KeyError> {
     validate_id(tid)?;
     Ok(format!("{ROOT}/trolley/{tid}/{}", topic.as_str()))
 }
 
-/// `gh/trolley/*/{topic}`: one topic of every trolley.
+/// `gh/trolley/*/{topic}` untyped: one topic of every trolley (typed: [`all_roi`], ...).
 pub fn all_trolleys(topic: TrolleyTopic) -> String {
     format!("{ROOT}/trolley/*/{}", topic.as_str())
 }
 
-/// `gh/planner/{pid}/status`: PlannerStatus.
-pub fn planner_status(pid: &str) -> Result<String, KeyError> {
+/// `gh/planner/{pid}/status`: PlannerStatus (reliable).
+pub fn planner_status(pid: &str) -> Result<Key<PlannerStatus>, KeyError> {
     validate_id(pid)?;
-    Ok(format!("{ROOT}/planner/{pid}/status"))
+    Ok(Key::new(
+        format!("{ROOT}/planner/{pid}/status"),
+        Qos::Reliable,
+    ))
+}
+
+/// `gh/planner/*/status`: every planner's status.
+pub fn all_planner_status() -> Key<PlannerStatus> {
+    Key::new(format!("{ROOT}/planner/*/status"), Qos::Reliable)
 }
 
 /// `gh/planner/{pid}/snapshot/{tid}`: planner `pid`'s MapSnapshot of trolley `tid` (a query).
-pub fn planner_snapshot(pid: &str, tid: &str) -> Result<String, KeyError> {
+pub fn planner_snapshot(pid: &str, tid: &str) -> Result<Key<MapSnapshot>, KeyError> {
     validate_id(pid)?;
     validate_id(tid)?;
-    Ok(format!("{ROOT}/planner/{pid}/snapshot/{tid}"))
+    Ok(Key::new(
+        format!("{ROOT}/planner/{pid}/snapshot/{tid}"),
+        Qos::Reliable,
+    ))
 }
 
 /// `gh/planner/{pid}/snapshot/*`: what planner `pid`'s snapshot queryable answers.
-pub fn planner_snapshots(pid: &str) -> Result<String, KeyError> {
+pub fn planner_snapshots(pid: &str) -> Result<Key<MapSnapshot>, KeyError> {
     validate_id(pid)?;
-    Ok(format!("{ROOT}/planner/{pid}/snapshot/*"))
+    Ok(Key::new(
+        format!("{ROOT}/planner/{pid}/snapshot/*"),
+        Qos::Reliable,
+    ))
 }
 
-/// `gh/detector/{did}/status`: DetectorStatus.
-pub fn detector_status(did: &str) -> Result<String, KeyError> {
+/// `gh/detector/{did}/status`: DetectorStatus (reliable).
+pub fn detector_status(did: &str) -> Result<Key<DetectorStatus>, KeyError> {
     validate_id(did)?;
-    Ok(format!("{ROOT}/detector/{did}/status"))
+    Ok(Key::new(
+        format!("{ROOT}/detector/{did}/status"),
+        Qos::Reliable,
+    ))
+}
+
+/// `gh/detector/*/status`: every detector's status.
+pub fn all_detector_status() -> Key<DetectorStatus> {
+    Key::new(format!("{ROOT}/detector/*/status"), Qos::Reliable)
+}
+
+/// `gh/fleet/fruits`: the merged fruit map of the fleet (reliable).
+pub fn fleet_fruits() -> Key<FleetFruits> {
+    Key::new(FLEET_FRUITS.to_owned(), Qos::Reliable)
 }
 
 /// Kinds of member that announce themselves with a liveliness token.
@@ -257,7 +418,7 @@ mod tests {
             );
         }
         assert_eq!(
-            parse(&planner_status("p1").expect("valid")),
+            parse(planner_status("p1").expect("valid").as_str()),
             Some(ParsedKey::PlannerStatus { pid: "p1".into() })
         );
         assert_eq!(
@@ -269,7 +430,7 @@ mod tests {
         );
         assert_eq!(parse(FLEET_FRUITS), Some(ParsedKey::FleetFruits));
         assert_eq!(
-            parse(&planner_snapshot("p1", "t2").expect("valid")),
+            parse(planner_snapshot("p1", "t2").expect("valid").as_str()),
             Some(ParsedKey::PlannerSnapshot {
                 pid: "p1".into(),
                 tid: "t2".into()
@@ -289,5 +450,64 @@ mod tests {
             );
         }
         assert!(validate_id("trolley_07-b").is_ok());
+    }
+
+    fn parsed_kind<M: Wire>(key: &Key<M>) -> Option<MessageKind> {
+        parse(key.as_str()).and_then(|k| k.message_kind())
+    }
+
+    #[test]
+    fn typed_keys_name_the_kind_their_key_carries() {
+        assert_eq!(
+            parsed_kind(&rgbd("t1").expect("valid")),
+            Some(MessageKind::RgbdFrame)
+        );
+        assert_eq!(
+            parsed_kind(&arm("t1").expect("valid")),
+            Some(MessageKind::ArmState)
+        );
+        assert_eq!(
+            parsed_kind(&info("t1").expect("valid")),
+            Some(MessageKind::TrolleyInfo)
+        );
+        assert_eq!(
+            parsed_kind(&roi("t1").expect("valid")),
+            Some(MessageKind::RoiCloud)
+        );
+        assert_eq!(
+            parsed_kind(&views("t1").expect("valid")),
+            Some(MessageKind::RankedViews)
+        );
+        assert_eq!(
+            parsed_kind(&fruits("t1").expect("valid")),
+            Some(MessageKind::FruitEstimates)
+        );
+        assert_eq!(
+            parsed_kind(&map("t1").expect("valid")),
+            Some(MessageKind::MapUpdate)
+        );
+        assert_eq!(
+            parsed_kind(&status("t1").expect("valid")),
+            Some(MessageKind::TrolleyStatus)
+        );
+        assert_eq!(
+            parsed_kind(&truth("t1").expect("valid")),
+            Some(MessageKind::FruitEstimates)
+        );
+        assert_eq!(
+            parsed_kind(&detector_status("d1").expect("valid")),
+            Some(MessageKind::DetectorStatus)
+        );
+        assert_eq!(parsed_kind(&fleet_fruits()), Some(MessageKind::FleetFruits));
+        assert_eq!(rgbd("t1").expect("valid").qos(), Qos::Stream);
+        assert_eq!(roi("t1").expect("valid").qos(), Qos::Reliable);
+        assert_eq!(all_roi().as_str(), "gh/trolley/*/roi");
+        assert_eq!(all_planner_status().as_str(), "gh/planner/*/status");
+        assert_eq!(all_detector_status().as_str(), "gh/detector/*/status");
+        assert_eq!(
+            planner_snapshots("p1").expect("valid").as_str(),
+            "gh/planner/p1/snapshot/*"
+        );
+        assert!(roi("a/b").is_err());
     }
 }

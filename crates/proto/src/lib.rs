@@ -2,8 +2,9 @@
 //!
 //! Every Zenoh payload is one FlatBuffers [`Envelope`](fb::Envelope) (file identifier `GHW1`) holding
 //! a protocol version, a [`Header`] and one [`Message`]. Services work with the owned Rust types of
-//! this crate; [`encode`] writes them and [`decode`] / [`decode_as`] read them back. Decoding
-//! always runs the FlatBuffers verifier with a per-message size limit ([`MessageKind::max_bytes`])
+//! this crate, one module per kind implementing [`Wire`]: [`encode`] writes one, [`decode_typed`]
+//! reads back an expected kind, and [`decode`] / [`decode_as`] read any kind as a [`Message`].
+//! Decoding always runs the FlatBuffers verifier with a per-message size limit ([`MessageKind::max_bytes`])
 //! and then checks the content (lengths that must agree, finite poses), so a corrupt, truncated
 //! or oversized payload is a typed [`ProtoError`], never a panic.
 //!
@@ -22,6 +23,8 @@ mod generated;
 /// The flatc-generated types, for readers that want zero-copy access.
 pub use generated::glasshouse::wire as fb;
 pub use messages::*;
+
+use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 
 /// Version written into every envelope; readers reject other versions.
 pub const PROTOCOL_VERSION: u16 = 1;
@@ -57,99 +60,24 @@ pub enum ProtoError {
 
 pub type Result<T, E = ProtoError> = std::result::Result<T, E>;
 
-/// Which message an envelope holds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum MessageKind {
-    RgbdFrame,
-    ArmState,
-    TrolleyInfo,
-    RoiCloud,
-    RankedViews,
-    FruitEstimates,
-    MapUpdate,
-    PlannerStatus,
-    TrolleyStatus,
-    DetectorStatus,
-    MapSnapshot,
-    FleetFruits,
-}
+/// One message kind's owned type with its encoder and decoder (one module of `messages/` each).
+///
+/// [`encode`] and [`decode_typed`] wrap a `Wire` type in the envelope; [`Message`] holds any of
+/// them for consumers of every kind.
+pub trait Wire: Sized + Clone + Send + Sync + 'static + Into<Message> {
+    /// The kind this type is sent as.
+    const KIND: MessageKind;
 
-impl MessageKind {
-    pub const ALL: [MessageKind; 12] = [
-        MessageKind::RgbdFrame,
-        MessageKind::ArmState,
-        MessageKind::TrolleyInfo,
-        MessageKind::RoiCloud,
-        MessageKind::RankedViews,
-        MessageKind::FruitEstimates,
-        MessageKind::MapUpdate,
-        MessageKind::PlannerStatus,
-        MessageKind::TrolleyStatus,
-        MessageKind::DetectorStatus,
-        MessageKind::MapSnapshot,
-        MessageKind::FleetFruits,
-    ];
-
-    /// Largest accepted payload in bytes. Frames allow a 1280x960 RGB-D image; point clouds and
-    /// map updates a few hundred thousand entries; control messages stay small.
-    pub fn max_bytes(self) -> usize {
-        const MIB: usize = 1 << 20;
-        match self {
-            MessageKind::RgbdFrame => 8 * MIB,
-            MessageKind::RoiCloud => 16 * MIB,
-            MessageKind::MapUpdate => 64 * MIB,
-            // A whole row segment's map.
-            MessageKind::MapSnapshot => 512 * MIB,
-            MessageKind::FruitEstimates => 2 * MIB,
-            MessageKind::FleetFruits => 16 * MIB,
-            MessageKind::RankedViews | MessageKind::TrolleyInfo => 256 * 1024,
-            MessageKind::ArmState
-            | MessageKind::PlannerStatus
-            | MessageKind::TrolleyStatus
-            | MessageKind::DetectorStatus => 64 * 1024,
-        }
+    /// Initial builder capacity in bytes (large messages say how large they are).
+    fn size_hint(&self) -> usize {
+        1024
     }
 
-    pub fn name(self) -> &'static str {
-        match self {
-            MessageKind::RgbdFrame => "RgbdFrame",
-            MessageKind::ArmState => "ArmState",
-            MessageKind::TrolleyInfo => "TrolleyInfo",
-            MessageKind::RoiCloud => "RoiCloud",
-            MessageKind::RankedViews => "RankedViews",
-            MessageKind::FruitEstimates => "FruitEstimates",
-            MessageKind::MapUpdate => "MapUpdate",
-            MessageKind::PlannerStatus => "PlannerStatus",
-            MessageKind::TrolleyStatus => "TrolleyStatus",
-            MessageKind::DetectorStatus => "DetectorStatus",
-            MessageKind::MapSnapshot => "MapSnapshot",
-            MessageKind::FleetFruits => "FleetFruits",
-        }
-    }
+    /// Writes the payload table; [`encode`] wraps it in the envelope.
+    fn write_payload(&self, fbb: &mut FlatBufferBuilder<'_>) -> WIPOffset<UnionWIPOffset>;
 
-    fn from_payload_type(t: fb::Payload) -> Option<Self> {
-        Some(match t {
-            fb::Payload::RgbdFrame => MessageKind::RgbdFrame,
-            fb::Payload::ArmState => MessageKind::ArmState,
-            fb::Payload::TrolleyInfo => MessageKind::TrolleyInfo,
-            fb::Payload::RoiCloud => MessageKind::RoiCloud,
-            fb::Payload::RankedViews => MessageKind::RankedViews,
-            fb::Payload::FruitEstimates => MessageKind::FruitEstimates,
-            fb::Payload::MapUpdate => MessageKind::MapUpdate,
-            fb::Payload::PlannerStatus => MessageKind::PlannerStatus,
-            fb::Payload::TrolleyStatus => MessageKind::TrolleyStatus,
-            fb::Payload::DetectorStatus => MessageKind::DetectorStatus,
-            fb::Payload::MapSnapshot => MessageKind::MapSnapshot,
-            fb::Payload::FleetFruits => MessageKind::FleetFruits,
-            _ => return None,
-        })
-    }
-}
-
-impl std::fmt::Display for MessageKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
+    /// Reads and checks the payload of a verified envelope that holds [`Self::KIND`].
+    fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self>;
 }
 
 /// The envelope fields around every message.
@@ -198,8 +126,19 @@ fn envelope_kind(envelope: &fb::Envelope<'_>) -> Result<MessageKind> {
     MessageKind::from_payload_type(envelope.payload_type()).ok_or(ProtoError::NoPayload)
 }
 
-/// Decodes a payload that must hold a message of `expected` kind, with that kind's size limit.
-pub fn decode_as(bytes: &[u8], expected: MessageKind) -> Result<(Header, Message)> {
+fn read_header(envelope: &fb::Envelope<'_>) -> Header {
+    let text = |s: Option<&str>| s.unwrap_or_default().to_owned();
+    Header {
+        seq: envelope.seq(),
+        stamp_ns: envelope.stamp_ns(),
+        trolley_id: text(envelope.trolley_id()),
+        source_id: text(envelope.source_id()),
+        frame_id: text(envelope.frame_id()),
+    }
+}
+
+/// Verifies a payload that must hold a message of `expected` kind, with that kind's size limit.
+fn verify_as(bytes: &[u8], expected: MessageKind) -> Result<fb::Envelope<'_>> {
     let limit = expected.max_bytes();
     if bytes.len() > limit {
         return Err(ProtoError::TooLarge {
@@ -213,7 +152,19 @@ pub fn decode_as(bytes: &[u8], expected: MessageKind) -> Result<(Header, Message
     if found != expected {
         return Err(ProtoError::UnexpectedKind { expected, found });
     }
-    messages::read_envelope(&envelope, found)
+    Ok(envelope)
+}
+
+/// Decodes a payload that must hold an `M`, with `M`'s size limit.
+pub fn decode_typed<M: Wire>(bytes: &[u8]) -> Result<(Header, M)> {
+    let envelope = verify_as(bytes, M::KIND)?;
+    Ok((read_header(&envelope), M::read_payload(&envelope)?))
+}
+
+/// Decodes a payload that must hold a message of `expected` kind, with that kind's size limit.
+pub fn decode_as(bytes: &[u8], expected: MessageKind) -> Result<(Header, Message)> {
+    let envelope = verify_as(bytes, expected)?;
+    Ok((read_header(&envelope), Message::read(&envelope, expected)?))
 }
 
 /// Decodes a payload of any kind (the dashboard's view), applying the limit of the kind it holds.
@@ -227,10 +178,34 @@ pub fn decode(bytes: &[u8]) -> Result<(Header, Message)> {
             limit: kind.max_bytes(),
         });
     }
-    messages::read_envelope(&envelope, kind)
+    Ok((read_header(&envelope), Message::read(&envelope, kind)?))
 }
 
 /// Encodes one message in an envelope.
-pub fn encode(header: &Header, message: &Message) -> Vec<u8> {
-    messages::write_envelope(header, message)
+pub fn encode<M: Wire>(header: &Header, message: &M) -> Vec<u8> {
+    let mut fbb = FlatBufferBuilder::with_capacity(message.size_hint());
+    let payload = message.write_payload(&mut fbb);
+    let trolley_id = fbb.create_string(&header.trolley_id);
+    let source_id = fbb.create_string(&header.source_id);
+    let frame_id = fbb.create_string(&header.frame_id);
+    let envelope = fb::Envelope::create(
+        &mut fbb,
+        &fb::EnvelopeArgs {
+            version: PROTOCOL_VERSION,
+            seq: header.seq,
+            stamp_ns: header.stamp_ns,
+            trolley_id: Some(trolley_id),
+            source_id: Some(source_id),
+            frame_id: Some(frame_id),
+            payload_type: M::KIND.payload_type(),
+            payload: Some(payload),
+        },
+    );
+    fb::finish_envelope_buffer(&mut fbb, envelope);
+    fbb.finished_data().to_vec()
+}
+
+/// Encodes a message of any kind (recorders, fault injection).
+pub fn encode_any(header: &Header, message: &Message) -> Vec<u8> {
+    message.encode(header)
 }

@@ -26,147 +26,214 @@ pub fn header(seq: u64) -> Header {
 
 /// A small valid message of `kind`.
 pub fn message(kind: MessageKind) -> Message {
-    let intrinsics = CameraIntrinsics::from_horizontal_fov(8, 6, 80f64.to_radians());
     match kind {
-        MessageKind::RgbdFrame => Message::RgbdFrame(RgbdFrame {
-            intrinsics,
-            world_from_camera: pose(),
-            depth_scale_m: 0.001,
-            min_range_m: 0.15,
-            max_range_m: 3.0,
-            depth: (0..48).map(|i| 500 + i * 10).collect(),
-            rgb: (0..144).map(|i| (i * 7 % 256) as u8).collect(),
-        }),
-        MessageKind::ArmState => Message::ArmState(ArmState {
-            joint_angles_rad: vec![0.0, -1.57, 1.2, 0.3, 1.57, 0.0],
-            world_from_camera: pose(),
-            rail_position_m: 1.5,
-            lift_height_m: 0.2,
-            moving: true,
-            views_done: 3,
-        }),
-        MessageKind::TrolleyInfo => Message::TrolleyInfo(TrolleyInfo {
-            arm_model: ArmModel::Ur5e,
-            mount: MountKind::RailLift,
-            world_from_base: Isometry3::translation(0.0, -0.7, 0.3),
-            joint_min_rad: vec![-std::f64::consts::TAU; 6],
-            joint_max_rad: vec![std::f64::consts::TAU; 6],
-            rail_min_m: 0.0,
-            rail_max_m: 20.0,
-            lift_min_m: 0.0,
-            lift_max_m: 3.0,
-            camera_workspace: region(),
-            sampling_region: region().inflated(0.1),
-            scenario: "row".into(),
-            scene_seed: 7,
-            intrinsics,
-        }),
-        MessageKind::RoiCloud => Message::RoiCloud(RoiCloud {
-            points_in_world: vec![
-                Point3::new(0.1, 0.2, 0.3),
-                Point3::new(0.4, 0.5, 0.6),
-                Point3::new(f32::NAN, 0.0, 0.0),
-            ],
-            roi: vec![true, false, false],
-            sensor_origin_in_world: Point3::new(0.0, -0.5, 1.0),
-            source_frame_seq: 42,
-            invalid_pixels: 5,
-            detector_id: "d1".into(),
-        }),
-        MessageKind::RankedViews => Message::RankedViews(RankedViews {
-            views: vec![
-                RankedView {
-                    world_from_camera: pose(),
-                    utility: 0.5,
-                    gain: 0.6,
-                    cost_m: 0.5,
-                    kind: ViewKind::Roi,
-                },
-                RankedView {
-                    world_from_camera: Isometry3::translation(0.2, 0.0, 1.0),
-                    utility: 0.3,
-                    gain: 0.35,
-                    cost_m: 0.25,
-                    kind: ViewKind::Exploration,
-                },
-            ],
-            based_on_seq: 42,
-            planning_time_ms: 12.5,
-            planner_id: "p1".into(),
-        }),
-        MessageKind::FruitEstimates => Message::FruitEstimates(FruitEstimates {
-            fruits: vec![sample_fruit()],
-            based_on_seq: 42,
-            planner_id: "p1".into(),
-        }),
-        MessageKind::MapUpdate => Message::MapUpdate(MapUpdate {
-            resolution_m: 0.01,
-            map_seq: 9,
-            based_on_seq: 42,
-            full: false,
-            voxels: vec![
-                VoxelChange {
-                    key: [1, -2, 3],
-                    occupancy_logodds: 0.8473,
-                    roi_logodds: 0.8473,
-                    state: VoxelState::Occupied,
-                },
-                VoxelChange {
-                    key: [-4, 5, 6],
-                    occupancy_logodds: -0.4055,
-                    roi_logodds: 0.0,
-                    state: VoxelState::Free,
-                },
-            ],
-            planner_id: "p1".into(),
-        }),
-        MessageKind::PlannerStatus => Message::PlannerStatus(PlannerStatus {
-            planner_id: "p1".into(),
-            owned_trolleys: vec!["t1".into(), "t2".into()],
-            standby_trolleys: vec!["t3".into()],
-            clouds_integrated: 10,
-            views_published: 9,
-            last_planning_time_ms: 30.0,
-            mean_planning_time_ms: 28.0,
-            dropped_messages: 1,
-            map_voxels: 12345,
-        }),
-        MessageKind::TrolleyStatus => Message::TrolleyStatus(TrolleyStatus {
-            state: TrolleyState::Moving,
-            views_done: 4,
-            frames_published: 5,
-            unreachable_views: 1,
-            reannounces: 0,
-            dropped_messages: 2,
-            last_views_seq: 4,
-            message: "moving".into(),
-        }),
-        MessageKind::DetectorStatus => Message::DetectorStatus(DetectorStatus {
-            detector_id: "d1".into(),
-            frames_processed: 7,
-            dropped_messages: 0,
-            mean_detect_time_ms: 8.0,
-        }),
-        MessageKind::MapSnapshot => Message::MapSnapshot(MapSnapshot {
-            trolley_id: "t1".into(),
-            planner_id: "p2".into(),
-            based_on_seq: 42,
-            map: vec![1, 2, 3, 4, 5],
-            tracked_fruits: vec![TrackedFruit {
-                id: 3,
-                centre_in_world: Point3::new(0.1, 0.2, 0.9),
-            }],
-            next_fruit_id: 4,
-        }),
-        MessageKind::FleetFruits => Message::FleetFruits(FleetFruits {
-            fruits: vec![FleetFruit {
-                fleet_id: "t1/3".into(),
-                fruit: sample_fruit(),
-                sources: vec!["t1/3".into(), "t2/8".into()],
-            }],
-            planner_id: "p1".into(),
-            trolleys: 2,
-        }),
+        MessageKind::RgbdFrame => rgbd_frame().into(),
+        MessageKind::ArmState => arm_state().into(),
+        MessageKind::TrolleyInfo => trolley_info().into(),
+        MessageKind::RoiCloud => roi_cloud().into(),
+        MessageKind::RankedViews => ranked_views().into(),
+        MessageKind::FruitEstimates => fruit_estimates().into(),
+        MessageKind::MapUpdate => map_update().into(),
+        MessageKind::PlannerStatus => planner_status().into(),
+        MessageKind::TrolleyStatus => trolley_status().into(),
+        MessageKind::DetectorStatus => detector_status().into(),
+        MessageKind::MapSnapshot => map_snapshot().into(),
+        MessageKind::FleetFruits => fleet_fruits().into(),
+    }
+}
+
+fn intrinsics() -> CameraIntrinsics {
+    CameraIntrinsics::from_horizontal_fov(8, 6, 80f64.to_radians())
+}
+
+/// A small valid RgbdFrame.
+pub fn rgbd_frame() -> RgbdFrame {
+    let intrinsics = intrinsics();
+    RgbdFrame {
+        intrinsics,
+        world_from_camera: pose(),
+        depth_scale_m: 0.001,
+        min_range_m: 0.15,
+        max_range_m: 3.0,
+        depth: (0..48).map(|i| 500 + i * 10).collect(),
+        rgb: (0..144).map(|i| (i * 7 % 256) as u8).collect(),
+    }
+}
+
+/// A small valid ArmState.
+pub fn arm_state() -> ArmState {
+    ArmState {
+        joint_angles_rad: vec![0.0, -1.57, 1.2, 0.3, 1.57, 0.0],
+        world_from_camera: pose(),
+        rail_position_m: 1.5,
+        lift_height_m: 0.2,
+        moving: true,
+        views_done: 3,
+    }
+}
+
+/// A small valid TrolleyInfo.
+pub fn trolley_info() -> TrolleyInfo {
+    let intrinsics = intrinsics();
+    TrolleyInfo {
+        arm_model: ArmModel::Ur5e,
+        mount: MountKind::RailLift,
+        world_from_base: Isometry3::translation(0.0, -0.7, 0.3),
+        joint_min_rad: vec![-std::f64::consts::TAU; 6],
+        joint_max_rad: vec![std::f64::consts::TAU; 6],
+        rail_min_m: 0.0,
+        rail_max_m: 20.0,
+        lift_min_m: 0.0,
+        lift_max_m: 3.0,
+        camera_workspace: region(),
+        sampling_region: region().inflated(0.1),
+        scenario: "row".into(),
+        scene_seed: 7,
+        intrinsics,
+        robot_json: r#"{"arm":"ur5e"}"#.into(),
+    }
+}
+
+/// A small valid RoiCloud.
+pub fn roi_cloud() -> RoiCloud {
+    RoiCloud {
+        points_in_world: vec![
+            Point3::new(0.1, 0.2, 0.3),
+            Point3::new(0.4, 0.5, 0.6),
+            Point3::new(f32::NAN, 0.0, 0.0),
+        ],
+        roi: vec![true, false, false],
+        sensor_origin_in_world: Point3::new(0.0, -0.5, 1.0),
+        world_from_camera: look_at(&Point3::new(0.0, -0.5, 1.0), &Point3::new(0.0, 0.3, 0.8)),
+        source_frame_seq: 42,
+        invalid_pixels: 5,
+        detector_id: "d1".into(),
+    }
+}
+
+/// A small valid RankedViews.
+pub fn ranked_views() -> RankedViews {
+    RankedViews {
+        views: vec![
+            RankedView {
+                world_from_camera: pose(),
+                utility: 0.5,
+                gain: 0.6,
+                cost_m: 0.5,
+                kind: ViewKind::Roi,
+            },
+            RankedView {
+                world_from_camera: Isometry3::translation(0.2, 0.0, 1.0),
+                utility: 0.3,
+                gain: 0.35,
+                cost_m: 0.25,
+                kind: ViewKind::Exploration,
+            },
+        ],
+        based_on_seq: 42,
+        planning_time_ms: 12.5,
+        planner_id: "p1".into(),
+    }
+}
+
+/// A small valid FruitEstimates.
+pub fn fruit_estimates() -> FruitEstimates {
+    FruitEstimates {
+        fruits: vec![sample_fruit()],
+        based_on_seq: 42,
+        planner_id: "p1".into(),
+    }
+}
+
+/// A small valid MapUpdate.
+pub fn map_update() -> MapUpdate {
+    MapUpdate {
+        resolution_m: 0.01,
+        map_seq: 9,
+        based_on_seq: 42,
+        full: false,
+        voxels: vec![
+            VoxelChange {
+                key: [1, -2, 3],
+                occupancy_logodds: 0.8473,
+                roi_logodds: 0.8473,
+                state: VoxelState::Occupied,
+            },
+            VoxelChange {
+                key: [-4, 5, 6],
+                occupancy_logodds: -0.4055,
+                roi_logodds: 0.0,
+                state: VoxelState::Free,
+            },
+        ],
+        planner_id: "p1".into(),
+    }
+}
+
+/// A small valid PlannerStatus.
+pub fn planner_status() -> PlannerStatus {
+    PlannerStatus {
+        planner_id: "p1".into(),
+        owned_trolleys: vec!["t1".into(), "t2".into()],
+        standby_trolleys: vec!["t3".into()],
+        clouds_integrated: 10,
+        views_published: 9,
+        last_planning_time_ms: 30.0,
+        mean_planning_time_ms: 28.0,
+        dropped_messages: 1,
+        map_voxels: 12345,
+    }
+}
+
+/// A small valid TrolleyStatus.
+pub fn trolley_status() -> TrolleyStatus {
+    TrolleyStatus {
+        state: TrolleyState::Moving,
+        views_done: 4,
+        frames_published: 5,
+        unreachable_views: 1,
+        reannounces: 0,
+        dropped_messages: 2,
+        last_views_seq: 4,
+        message: "moving".into(),
+    }
+}
+
+/// A small valid DetectorStatus.
+pub fn detector_status() -> DetectorStatus {
+    DetectorStatus {
+        detector_id: "d1".into(),
+        frames_processed: 7,
+        dropped_messages: 0,
+        mean_detect_time_ms: 8.0,
+    }
+}
+
+/// A small valid MapSnapshot.
+pub fn map_snapshot() -> MapSnapshot {
+    MapSnapshot {
+        trolley_id: "t1".into(),
+        planner_id: "p2".into(),
+        based_on_seq: 42,
+        map: vec![1, 2, 3, 4, 5],
+        tracked_fruits: vec![TrackedFruit {
+            id: 3,
+            centre_in_world: Point3::new(0.1, 0.2, 0.9),
+        }],
+        next_fruit_id: 4,
+    }
+}
+
+/// A small valid FleetFruits.
+pub fn fleet_fruits() -> FleetFruits {
+    FleetFruits {
+        fruits: vec![FleetFruit {
+            fleet_id: "t1/3".into(),
+            fruit: sample_fruit(),
+            sources: vec!["t1/3".into(), "t2/8".into()],
+        }],
+        planner_id: "p1".into(),
+        trolleys: 2,
     }
 }
 

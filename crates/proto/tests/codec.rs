@@ -1,6 +1,8 @@
 //! Round trips and hostile input for the wire codec.
 
-use glasshouse_proto::{decode, decode_as, encode, samples, MessageKind, ProtoError};
+use glasshouse_proto::{
+    decode, decode_as, decode_typed, encode, encode_any, samples, MessageKind, ProtoError, RoiCloud,
+};
 use rand::{Rng, SeedableRng};
 
 #[test]
@@ -8,11 +10,11 @@ fn every_kind_round_trips() {
     for kind in MessageKind::ALL {
         let header = samples::header(7);
         let message = samples::message(kind);
-        let bytes = encode(&header, &message);
+        let bytes = encode_any(&header, &message);
         let (h, m) = decode_as(&bytes, kind).expect("decodes");
         assert_eq!(h, header);
         // NaN != NaN, so compare the re-encoding instead of the values.
-        assert_eq!(encode(&h, &m), bytes, "{kind}");
+        assert_eq!(encode_any(&h, &m), bytes, "{kind}");
         assert_eq!(decode(&bytes).expect("decodes").1.kind(), kind);
     }
 }
@@ -20,14 +22,14 @@ fn every_kind_round_trips() {
 #[test]
 fn every_truncation_is_an_error_or_loses_only_padding() {
     for kind in MessageKind::ALL {
-        let bytes = encode(&samples::header(1), &samples::message(kind));
+        let bytes = encode_any(&samples::header(1), &samples::message(kind));
         let mut rejected = 0;
         for len in 0..bytes.len() {
             match decode_as(&bytes[..len], kind) {
                 Err(_) => rejected += 1,
                 // Trailing alignment padding may go without losing content.
                 Ok((h, m)) => assert_eq!(
-                    encode(&h, &m),
+                    encode_any(&h, &m),
                     bytes,
                     "{kind} truncated to {len} bytes decoded to something else"
                 ),
@@ -46,7 +48,7 @@ fn random_corruption_never_panics() {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
     let mut rejected = 0;
     for kind in MessageKind::ALL {
-        let clean = encode(&samples::header(1), &samples::message(kind));
+        let clean = encode_any(&samples::header(1), &samples::message(kind));
         for _ in 0..400 {
             let mut bytes = clean.clone();
             for _ in 0..rng.gen_range(1..8) {
@@ -73,7 +75,7 @@ fn garbage_and_wrong_kind_are_typed_errors() {
         Err(ProtoError::WrongIdentifier) | Err(ProtoError::Invalid(_))
     ));
     assert!(decode_as(&[], MessageKind::ArmState).is_err());
-    let bytes = encode(
+    let bytes = encode_any(
         &samples::header(1),
         &samples::message(MessageKind::ArmState),
     );
@@ -98,14 +100,14 @@ fn inconsistent_frame_sizes_are_rejected() {
     if let glasshouse_proto::Message::RgbdFrame(frame) = &mut message {
         frame.depth.pop();
     }
-    let bytes = encode(&samples::header(1), &message);
+    let bytes = encode_any(&samples::header(1), &message);
     let err = decode_as(&bytes, MessageKind::RgbdFrame).expect_err("short depth accepted");
     assert!(err.to_string().contains("depth has 47 values"), "{err}");
 }
 
 #[test]
 fn other_protocol_versions_are_rejected() {
-    let mut bytes = encode(
+    let mut bytes = encode_any(
         &samples::header(1),
         &samples::message(MessageKind::ArmState),
     );
@@ -126,4 +128,60 @@ fn other_protocol_versions_are_rejected() {
         }
     }
     assert!(saw_version_error);
+}
+
+#[test]
+fn typed_encode_matches_the_untyped_envelope() {
+    let header = samples::header(3);
+    let cloud = samples::roi_cloud();
+    let bytes = encode(&header, &cloud);
+    assert_eq!(bytes, encode_any(&header, &cloud.clone().into()));
+    let (h, back) = decode_typed::<RoiCloud>(&bytes).expect("decodes");
+    assert_eq!(h, header);
+    assert_eq!(back.world_from_camera, cloud.world_from_camera);
+    assert_eq!(back.points_in_world.len(), cloud.points_in_world.len());
+}
+
+#[test]
+fn typed_decode_rejects_another_kind() {
+    let bytes = encode(&samples::header(1), &samples::arm_state());
+    assert!(matches!(
+        decode_typed::<RoiCloud>(&bytes),
+        Err(ProtoError::UnexpectedKind {
+            expected: MessageKind::RoiCloud,
+            found: MessageKind::ArmState
+        })
+    ));
+}
+
+#[test]
+fn a_cloud_with_a_non_finite_camera_pose_is_rejected() {
+    let mut cloud = samples::roi_cloud();
+    cloud.world_from_camera.translation.vector.x = f64::NAN;
+    let bytes = encode(&samples::header(1), &cloud);
+    let err = decode_typed::<RoiCloud>(&bytes).expect_err("NaN pose accepted");
+    assert!(err.to_string().contains("world_from_camera"), "{err}");
+}
+
+#[test]
+fn the_kind_list_names_and_limits_every_kind() {
+    for kind in MessageKind::ALL {
+        assert_eq!(kind.to_string(), kind.name());
+        assert!(kind.max_bytes() >= 64 * 1024, "{kind}");
+        assert_eq!(samples::message(kind).kind(), kind);
+    }
+    assert_eq!(MessageKind::ALL.len(), 12);
+}
+
+#[test]
+fn a_pose_reads_back_bit_for_bit() {
+    let mut cloud = glasshouse_proto::samples::roi_cloud();
+    for (i, yaw) in [0.1f64, 1.3, 2.9, -2.2].into_iter().enumerate() {
+        let rotation = nalgebra::UnitQuaternion::from_euler_angles(0.3 * i as f64, -0.7, yaw);
+        cloud.world_from_camera =
+            nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(0.1, -2.5, 1.7), rotation);
+        let bytes = encode(&glasshouse_proto::samples::header(1), &cloud);
+        let (_, back) = decode_typed::<RoiCloud>(&bytes).expect("decodes");
+        assert_eq!(back.world_from_camera, cloud.world_from_camera);
+    }
 }

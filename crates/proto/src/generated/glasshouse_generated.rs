@@ -2520,6 +2520,7 @@ impl<'a> TrolleyInfo<'a> {
   pub const VT_SCENARIO: ::flatbuffers::VOffsetT = 26;
   pub const VT_SCENE_SEED: ::flatbuffers::VOffsetT = 28;
   pub const VT_INTRINSICS: ::flatbuffers::VOffsetT = 30;
+  pub const VT_ROBOT_JSON: ::flatbuffers::VOffsetT = 32;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2536,6 +2537,7 @@ impl<'a> TrolleyInfo<'a> {
     builder.add_lift_min_m(args.lift_min_m);
     builder.add_rail_max_m(args.rail_max_m);
     builder.add_rail_min_m(args.rail_min_m);
+    if let Some(x) = args.robot_json { builder.add_robot_json(x); }
     if let Some(x) = args.intrinsics { builder.add_intrinsics(x); }
     if let Some(x) = args.scenario { builder.add_scenario(x); }
     if let Some(x) = args.sampling_region { builder.add_sampling_region(x); }
@@ -2647,6 +2649,13 @@ impl<'a> TrolleyInfo<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<Intrinsics>(TrolleyInfo::VT_INTRINSICS, None)}
   }
+  #[inline]
+  pub fn robot_json(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(TrolleyInfo::VT_ROBOT_JSON, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
@@ -2669,6 +2678,7 @@ impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("scenario", Self::VT_SCENARIO, false)?
      .visit_field::<u64>("scene_seed", Self::VT_SCENE_SEED, false)?
      .visit_field::<Intrinsics>("intrinsics", Self::VT_INTRINSICS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("robot_json", Self::VT_ROBOT_JSON, false)?
      .finish();
     Ok(())
   }
@@ -2688,6 +2698,7 @@ pub struct TrolleyInfoArgs<'a> {
     pub scenario: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub scene_seed: u64,
     pub intrinsics: Option<&'a Intrinsics>,
+    pub robot_json: Option<::flatbuffers::WIPOffset<&'a str>>,
 }
 impl<'a> Default for TrolleyInfoArgs<'a> {
   #[inline]
@@ -2707,6 +2718,7 @@ impl<'a> Default for TrolleyInfoArgs<'a> {
       scenario: None,
       scene_seed: 0,
       intrinsics: None,
+      robot_json: None,
     }
   }
 }
@@ -2773,6 +2785,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyInfoBuilder<'a, 'b, A>
     self.fbb_.push_slot_always::<&Intrinsics>(TrolleyInfo::VT_INTRINSICS, intrinsics);
   }
   #[inline]
+  pub fn add_robot_json(&mut self, robot_json: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyInfo::VT_ROBOT_JSON, robot_json);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> TrolleyInfoBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     TrolleyInfoBuilder {
@@ -2804,6 +2820,7 @@ impl ::core::fmt::Debug for TrolleyInfo<'_> {
       ds.field("scenario", &self.scenario());
       ds.field("scene_seed", &self.scene_seed());
       ds.field("intrinsics", &self.intrinsics());
+      ds.field("robot_json", &self.robot_json());
       ds.finish()
   }
 }
@@ -2830,6 +2847,7 @@ impl<'a> RoiCloud<'a> {
   pub const VT_SOURCE_FRAME_SEQ: ::flatbuffers::VOffsetT = 10;
   pub const VT_INVALID_PIXELS: ::flatbuffers::VOffsetT = 12;
   pub const VT_DETECTOR_ID: ::flatbuffers::VOffsetT = 14;
+  pub const VT_WORLD_FROM_CAMERA: ::flatbuffers::VOffsetT = 16;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2842,6 +2860,7 @@ impl<'a> RoiCloud<'a> {
   ) -> ::flatbuffers::WIPOffset<RoiCloud<'bldr>> {
     let mut builder = RoiCloudBuilder::new(_fbb);
     builder.add_source_frame_seq(args.source_frame_seq);
+    if let Some(x) = args.world_from_camera { builder.add_world_from_camera(x); }
     if let Some(x) = args.detector_id { builder.add_detector_id(x); }
     builder.add_invalid_pixels(args.invalid_pixels);
     if let Some(x) = args.sensor_origin { builder.add_sensor_origin(x); }
@@ -2893,6 +2912,14 @@ impl<'a> RoiCloud<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(RoiCloud::VT_DETECTOR_ID, None)}
   }
+  /// The camera pose of the frame the points come from.
+  #[inline]
+  pub fn world_from_camera(&self) -> Option<&'a Pose> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Pose>(RoiCloud::VT_WORLD_FROM_CAMERA, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for RoiCloud<'_> {
@@ -2907,6 +2934,7 @@ impl ::flatbuffers::Verifiable for RoiCloud<'_> {
      .visit_field::<u64>("source_frame_seq", Self::VT_SOURCE_FRAME_SEQ, false)?
      .visit_field::<u32>("invalid_pixels", Self::VT_INVALID_PIXELS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("detector_id", Self::VT_DETECTOR_ID, false)?
+     .visit_field::<Pose>("world_from_camera", Self::VT_WORLD_FROM_CAMERA, false)?
      .finish();
     Ok(())
   }
@@ -2918,6 +2946,7 @@ pub struct RoiCloudArgs<'a> {
     pub source_frame_seq: u64,
     pub invalid_pixels: u32,
     pub detector_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub world_from_camera: Option<&'a Pose>,
 }
 impl<'a> Default for RoiCloudArgs<'a> {
   #[inline]
@@ -2929,6 +2958,7 @@ impl<'a> Default for RoiCloudArgs<'a> {
       source_frame_seq: 0,
       invalid_pixels: 0,
       detector_id: None,
+      world_from_camera: None,
     }
   }
 }
@@ -2963,6 +2993,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> RoiCloudBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RoiCloud::VT_DETECTOR_ID, detector_id);
   }
   #[inline]
+  pub fn add_world_from_camera(&mut self, world_from_camera: &Pose) {
+    self.fbb_.push_slot_always::<&Pose>(RoiCloud::VT_WORLD_FROM_CAMERA, world_from_camera);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> RoiCloudBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     RoiCloudBuilder {
@@ -2986,6 +3020,7 @@ impl ::core::fmt::Debug for RoiCloud<'_> {
       ds.field("source_frame_seq", &self.source_frame_seq());
       ds.field("invalid_pixels", &self.invalid_pixels());
       ds.field("detector_id", &self.detector_id());
+      ds.field("world_from_camera", &self.world_from_camera());
       ds.finish()
   }
 }

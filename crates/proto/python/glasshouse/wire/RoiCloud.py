@@ -5,6 +5,7 @@
 import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
+from glasshouse.wire.Pose import Pose
 from glasshouse.wire.Vec3 import Vec3
 from glasshouse.wire.Vec3d import Vec3d
 from typing import Optional
@@ -114,8 +115,19 @@ class RoiCloud(object):
             return self._tab.String(o + self._tab.Pos)
         return None
 
+    # The camera pose of the frame the points come from.
+    # RoiCloud
+    def WorldFromCamera(self) -> Optional[Pose]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            x = o + self._tab.Pos
+            obj = Pose()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
 def RoiCloudStart(builder: flatbuffers.Builder):
-    builder.StartObject(6)
+    builder.StartObject(7)
 
 def Start(builder: flatbuffers.Builder):
     RoiCloudStart(builder)
@@ -167,6 +179,12 @@ def RoiCloudAddDetectorId(builder: flatbuffers.Builder, detectorId: int):
 
 def AddDetectorId(builder: flatbuffers.Builder, detectorId: int):
     RoiCloudAddDetectorId(builder, detectorId)
+
+def RoiCloudAddWorldFromCamera(builder: flatbuffers.Builder, worldFromCamera: Any):
+    builder.PrependStructSlot(6, flatbuffers.number_types.UOffsetTFlags.py_type(worldFromCamera), 0)
+
+def AddWorldFromCamera(builder: flatbuffers.Builder, worldFromCamera: Any):
+    RoiCloudAddWorldFromCamera(builder, worldFromCamera)
 
 def RoiCloudEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

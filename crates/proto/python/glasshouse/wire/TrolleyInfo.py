@@ -183,8 +183,15 @@ class TrolleyInfo(object):
             return obj
         return None
 
+    # TrolleyInfo
+    def RobotJson(self) -> Optional[str]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(32))
+        if o != 0:
+            return self._tab.String(o + self._tab.Pos)
+        return None
+
 def TrolleyInfoStart(builder: flatbuffers.Builder):
-    builder.StartObject(14)
+    builder.StartObject(15)
 
 def Start(builder: flatbuffers.Builder):
     TrolleyInfoStart(builder)
@@ -284,6 +291,12 @@ def TrolleyInfoAddIntrinsics(builder: flatbuffers.Builder, intrinsics: Any):
 
 def AddIntrinsics(builder: flatbuffers.Builder, intrinsics: Any):
     TrolleyInfoAddIntrinsics(builder, intrinsics)
+
+def TrolleyInfoAddRobotJson(builder: flatbuffers.Builder, robotJson: int):
+    builder.PrependUOffsetTRelativeSlot(14, flatbuffers.number_types.UOffsetTFlags.py_type(robotJson), 0)
+
+def AddRobotJson(builder: flatbuffers.Builder, robotJson: int):
+    TrolleyInfoAddRobotJson(builder, robotJson)
 
 def TrolleyInfoEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

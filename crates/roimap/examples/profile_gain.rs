@@ -2,12 +2,14 @@
 //! quick CPU-time check on a busy machine; the benches are the measurement.
 use std::time::Instant;
 
-use glasshouse_roimap::testdata::{ray_fan, unobserved_gain, Workload};
+use glasshouse_roimap::testdata::{ray_fan, unobserved_gain, unobserved_gain_batch, Workload};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // Arguments: number of runs, `--batch` for the batch walk.
+    let batch = std::env::args().any(|a| a == "--batch");
     let runs: usize = std::env::args()
-        .nth(1)
-        .and_then(|a| a.parse().ok())
+        .filter_map(|a| a.parse().ok())
+        .next()
         .unwrap_or(5);
     let w = Workload::standard(1);
     let m = w.filtered_map()?;
@@ -24,7 +26,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut gain = 0.0;
     for _ in 0..runs {
         let t = Instant::now();
-        gain = unobserved_gain(&m, &origin, &fan, 1.5);
+        gain = if batch {
+            unobserved_gain_batch(&m, &origin, &fan, 1.5)
+        } else {
+            unobserved_gain(&m, &origin, &fan, 1.5)
+        };
         times.push(t.elapsed().as_secs_f64() * 1e3);
     }
     times.sort_by(f64::total_cmp);

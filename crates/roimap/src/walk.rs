@@ -215,7 +215,6 @@ impl PlaneGeometry {
     }
 
     /// Every key inside, no plane (strides zero): for walks that only need the keys.
-    #[allow(dead_code)] // used by the batch query walk
     pub(crate) fn unbounded() -> Self {
         Self {
             lo: [i32::MIN; 3],

@@ -70,6 +70,8 @@ impl<'m> BlockCache<'m> {
 struct Probe<F>(F);
 
 impl<F: FnMut(usize, usize, VoxelKey) -> bool> LaneVisitor for Probe<F> {
+    const PLANE: bool = false;
+
     #[inline(always)]
     fn voxel(&mut self, lane: usize, ray: u32, c: [i32; 3], _: i32, _: bool) -> bool {
         (self.0)(lane, ray as usize, VoxelKey::new(c[0], c[1], c[2]))

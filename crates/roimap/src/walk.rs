@@ -244,6 +244,8 @@ impl PlaneGeometry {
 
 /// What a lane walk does with its voxels.
 pub(crate) trait LaneVisitor {
+    /// False when the visitor ignores bit indices and boxes (the walk then skips them).
+    const PLANE: bool = true;
     /// Voxel `c` of ray `ray`, walked in lane `lane`; `index` is its bit index in the plane when
     /// `inside` the plane's box. Returns false to stop the ray (no [`LaneVisitor::end`] then).
     fn voxel(&mut self, lane: usize, ray: u32, c: [i32; 3], index: i32, inside: bool) -> bool;
@@ -309,7 +311,7 @@ impl Lanes {
     /// a free voxel) and lanes whose new voxel is outside the plane's box.
     #[inline(always)]
     #[allow(clippy::needless_range_loop)] // one index over many arrays
-    fn advance(&mut self, g: &PlaneGeometry) -> (u32, u32) {
+    fn advance(&mut self, g: &PlaneGeometry, plane: bool) -> (u32, u32) {
         // Separate simple loops over the lanes, selects as bit masks: each loop becomes vector
         // code (one loop with everything in it stays scalar).
         let mut mask = [[0u64; LANES]; 3];
@@ -330,7 +332,9 @@ impl Lanes {
                 self.t[i][j] += add;
                 let m = mask[i][j] as i32;
                 self.c[i][j] = self.c[i][j].wrapping_add(self.step[i][j] & m);
-                self.index[j] = self.index[j].wrapping_add(self.stride[i][j] & m);
+                if plane {
+                    self.index[j] = self.index[j].wrapping_add(self.stride[i][j] & m);
+                }
             }
         }
         let mut done = [false; LANES];
@@ -346,9 +350,10 @@ impl Lanes {
             let m01 = if n0 < n1 { n0 } else { n1 };
             let t_min = if m01 < n2 { m01 } else { n2 };
             done[j] = at_end | (t_min > self.length[j]);
-            outside[j] = ((self.c[0][j].wrapping_sub(g.lo[0]) as u32) >= g.n[0])
-                | ((self.c[1][j].wrapping_sub(g.lo[1]) as u32) >= g.n[1])
-                | ((self.c[2][j].wrapping_sub(g.lo[2]) as u32) >= g.n[2]);
+            outside[j] = plane
+                & (((self.c[0][j].wrapping_sub(g.lo[0]) as u32) >= g.n[0])
+                    | ((self.c[1][j].wrapping_sub(g.lo[1]) as u32) >= g.n[1])
+                    | ((self.c[2][j].wrapping_sub(g.lo[2]) as u32) >= g.n[2]));
         }
         let bits = |v: &[bool; LANES]| {
             v.iter()
@@ -371,10 +376,10 @@ impl Lanes {
 /// independent rays side by side keep the core busy and let the steps run as vector code).
 /// Gives `v` every free voxel of every ray, exactly as [`RaySetup::walk`] would, interleaved
 /// between rays but in order within a ray, with its bit index in `g`'s plane.
-pub(crate) fn walk_lanes(
+pub(crate) fn walk_lanes<V: LaneVisitor>(
     mut rays: impl Iterator<Item = (u32, RaySetup)>,
     g: &PlaneGeometry,
-    v: &mut impl LaneVisitor,
+    v: &mut V,
 ) {
     let mut lanes = Lanes::new();
     let mut active = 0u32;
@@ -384,7 +389,8 @@ pub(crate) fn walk_lanes(
         }
     }
     while active != 0 {
-        let (done, outside) = lanes.advance(g);
+        // A constant per visitor type: the unused plane arithmetic is compiled out.
+        let (done, outside) = lanes.advance(g, V::PLANE);
         let mut finished = done & active;
         for j in 0..LANES {
             if (active & !done) >> j & 1 != 0 {

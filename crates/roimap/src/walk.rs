@@ -355,10 +355,10 @@ impl Lanes {
                     | ((self.c[1][j].wrapping_sub(g.lo[1]) as u32) >= g.n[1])
                     | ((self.c[2][j].wrapping_sub(g.lo[2]) as u32) >= g.n[2]));
         }
+        // Eight 0/1 bytes to eight bits with one multiply (lane j's byte lands in bit j).
         let bits = |v: &[bool; LANES]| {
-            v.iter()
-                .enumerate()
-                .fold(0u32, |acc, (j, &d)| acc | u32::from(d) << j)
+            let bytes = v.map(u8::from);
+            (u64::from_le_bytes(bytes).wrapping_mul(0x0102_0408_1020_4080) >> 56) as u32
         };
         (bits(&done), bits(&outside))
     }

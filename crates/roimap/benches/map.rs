@@ -11,7 +11,9 @@ use std::hint::black_box;
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use glasshouse_geom::Aabb;
-use glasshouse_roimap::testdata::{ray_fan, unobserved_gain, Scan, Workload};
+use glasshouse_roimap::testdata::{
+    ray_fan, unobserved_gain, unobserved_gain_batch, Scan, Workload,
+};
 use glasshouse_roimap::{Neighbourhood, Occupancy, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
@@ -86,6 +88,9 @@ fn queries(c: &mut Criterion) {
     g.sample_size(20);
     g.bench_function("gain_fan_200x150", |b| {
         b.iter(|| unobserved_gain(&m, black_box(&origin), &fan, 1.5))
+    });
+    g.bench_function("gain_fan_200x150/batch", |b| {
+        b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &fan, 1.5))
     });
     let region = Aabb::new(Point3::new(0.3, -1.0, -1.0), Point3::new(1.6, 1.0, 1.0));
     g.bench_function("frontiers/incremental_query", |b| {

@@ -4,18 +4,20 @@
 //!    maximum range); their keys give the scan's key box.
 //! 2. Rays are walked into a *free* bit plane over that box (one plane per thread; a ray revisits
 //!    the same voxels as its neighbours, and a bit plane over the scan's extent stays in cache where
-//!    a hash set would miss on almost every insert). The planes are laid out block by block with
-//!    the storage's 8×8×8 layout, so step 3 is word operations. Keys outside the box (rounding
-//!    overshoot by more than the margin, or a box too large for a dense grid) go to hash sets.
-//! 3. End points mark *occupied*, *ROI* and *non-ROI* planes; then block by block: occupied wins
-//!    over free, ROI over non-ROI, and each marked voxel is updated once, with one hash lookup per
-//!    block. Planes are zeroed block by block as they are consumed, ready for the next scan.
+//!    a hash set would miss on almost every insert). The free plane is x-fastest, so the walk
+//!    steps its bit index by a fixed stride per axis. Keys outside the box (rounding overshoot by
+//!    more than the margin, or a box too large for a dense grid) go to hash sets.
+//! 3. End points mark *occupied*, *ROI* and *non-ROI* planes laid out block by block with the
+//!    storage's 8×8×8 layout; the free plane is gathered into the same layout one row of blocks at
+//!    a time. Then block by block: occupied wins over free, ROI over non-ROI, and each marked voxel
+//!    is updated once, with one hash lookup per block. Planes are zeroed as they are consumed,
+//!    ready for the next scan.
 
 use nalgebra::Point3;
 
 use crate::grid::{Mask, BLOCK_EDGE, BLOCK_SHIFT, EMPTY};
 use crate::values::Step;
-use crate::walk::{key_of_f32, norm_f32, walk_interleaved, RaySetup};
+use crate::walk::{key_of_f32, norm_f32, walk_lanes, LaneVisitor, PlaneGeometry, RaySetup};
 use crate::{ChangeLog, KeySet, MapError, RoiMap, ScanStats, VoxelKey};
 
 /// Largest dense grid in blocks (2^17 blocks = 64M voxels, 8 MB per bit plane).
@@ -38,8 +40,32 @@ struct RayEnd {
 /// One thread's free marks.
 #[derive(Clone, Default)]
 struct Worker {
+    /// x-fastest bit plane over the grid's box.
     free: Vec<u64>,
     overflow: KeySet,
+}
+
+/// Marks the walk's voxels in a free plane (keys outside the box in a set).
+struct FreeMarker<'a> {
+    free: &'a mut [u64],
+    overflow: &'a mut KeySet,
+}
+
+impl LaneVisitor for FreeMarker<'_> {
+    #[inline(always)]
+    fn voxel(&mut self, _: usize, _: u32, c: [i32; 3], index: i32, inside: bool) -> bool {
+        if inside {
+            let i = index as u32 as usize;
+            if let Some(w) = self.free.get_mut(i >> 6) {
+                *w |= 1 << (i & 63);
+            }
+        } else {
+            self.overflow.insert(VoxelKey::new(c[0], c[1], c[2]));
+        }
+        true
+    }
+
+    fn end(&mut self, _: u32, _: [i32; 3]) {}
 }
 
 /// Dense bit grid over a block-aligned key box.
@@ -49,9 +75,8 @@ struct ScanGrid {
     lo: [i32; 3],
     /// Box size in blocks.
     nb: [usize; 3],
-    /// Per axis: bit-index contribution of each local coordinate, so that the bit index of a
-    /// voxel is `tables[0][x] + tables[1][y] + tables[2][z]`.
-    tables: [Vec<u64>; 3],
+    /// The box in voxels, for the free planes.
+    geometry: PlaneGeometry,
     occ: Vec<u64>,
     roi: Vec<u64>,
     non_roi: Vec<u64>,
@@ -74,17 +99,10 @@ impl ScanGrid {
         let nb = if total > MAX_GRID_BLOCKS { [0; 3] } else { nb };
         self.lo = lo_k.map(|b| b << BLOCK_SHIFT);
         self.nb = nb;
-        let per_block = [1u64, nb[0] as u64, (nb[0] * nb[1]) as u64];
         let edge = BLOCK_EDGE as usize;
-        for (axis, table) in self.tables.iter_mut().enumerate() {
-            table.clear();
-            // Within-block bit offset of the axis: x -> 1, y -> 8, z -> 64 (the word).
-            let unit = 1u64 << (3 * axis);
-            for u in 0..nb[axis] * edge {
-                let (block, local) = ((u / edge) as u64, (u % edge) as u64);
-                table.push(block * per_block[axis] * 512 + local * unit);
-            }
-        }
+        // At most MAX_GRID_BLOCKS blocks, far below i32::MAX voxels.
+        self.geometry =
+            PlaneGeometry::new(self.lo, nb.map(|b| (b * edge) as u32)).unwrap_or_default();
         let words = self.blocks() * 8;
         for plane in [&mut self.occ, &mut self.roi, &mut self.non_roi] {
             plane.resize(words, 0);
@@ -98,16 +116,30 @@ impl ScanGrid {
         self.overflow_non_roi.clear();
     }
 
-    /// Bit index of a voxel, if inside the grid.
-    #[inline(always)]
+    /// Bit index of a voxel in the block-by-block planes, if inside the grid.
     fn bit(&self, c: [i32; 3]) -> Option<usize> {
-        let u = |i: usize| c[i].wrapping_sub(self.lo[i]) as u32 as usize;
-        let (a, b, d) = (
-            self.tables[0].get(u(0))?,
-            self.tables[1].get(u(1))?,
-            self.tables[2].get(u(2))?,
-        );
-        Some((a + b + d) as usize)
+        self.geometry.index(c)?;
+        let u = [0, 1, 2].map(|i| c[i].wrapping_sub(self.lo[i]) as usize);
+        let block = (u[0] >> 3) + self.nb[0] * ((u[1] >> 3) + self.nb[1] * (u[2] >> 3));
+        Some(block * 512 + ((u[2] & 7) << 6 | (u[1] & 7) << 3 | (u[0] & 7)))
+    }
+
+    /// ORs the free plane's voxels of the block row `(by, bz)` into `out` (one mask per block
+    /// along x), in the storage's block layout.
+    fn gather_block_row(&self, plane: &[u64], by: usize, bz: usize, out: &mut [Mask]) {
+        let g = &self.geometry;
+        let (nx, ny) = (g.n[0] as usize, g.n[1] as usize);
+        for z in 0..8 {
+            for y in 0..8 {
+                // Rows start on a byte: the box is a whole number of blocks wide.
+                let row = nx * (by * 8 + y + ny * (bz * 8 + z));
+                for (bx, m) in out.iter_mut().enumerate() {
+                    let bit = row + bx * 8;
+                    let byte = plane.get(bit >> 6).map_or(0, |w| w >> (bit & 63) & 0xff);
+                    m[z] |= byte << (y * 8);
+                }
+            }
+        }
     }
 
     fn set(&self, plane: &mut [u64], overflow: &mut KeySet, key: VoxelKey) {
@@ -131,17 +163,9 @@ impl ScanGrid {
         let Worker { free, overflow } = worker;
         let rays = ends
             .iter()
-            .filter_map(|e| RaySetup::octomap(origin, e.end, key_origin, e.key_end, res));
-        walk_interleaved(rays, |c| match self.bit(c) {
-            Some(i) => {
-                if let Some(w) = free.get_mut(i >> 6) {
-                    *w |= 1 << (i & 63);
-                }
-            }
-            None => {
-                overflow.insert(VoxelKey::new(c[0], c[1], c[2]));
-            }
-        });
+            .filter_map(|e| RaySetup::octomap(origin, e.end, key_origin, e.key_end, res))
+            .map(|s| (0, s));
+        walk_lanes(rays, &self.geometry, &mut FreeMarker { free, overflow });
     }
 }
 
@@ -158,7 +182,6 @@ impl Scratch {
         let g = &self.grid;
         let set = |s: &KeySet| s.capacity() * (std::mem::size_of::<VoxelKey>() + 1);
         self.ends.capacity() * std::mem::size_of::<RayEnd>()
-            + g.tables.iter().map(|t| t.capacity() * 8).sum::<usize>()
             + (g.occ.capacity() + g.roi.capacity() + g.non_roi.capacity()) * 8
             + set(&g.overflow_occ)
             + set(&g.overflow_roi)
@@ -321,41 +344,7 @@ impl RoiMap {
 
         // Pass 4: apply block by block.
         let mut log = ChangeLog::default();
-        let nb = s.grid.nb;
-        let lo_block = [0, 1, 2].map(|i| s.grid.lo[i] >> BLOCK_SHIFT);
-        let mut b = 0usize;
-        for bz in 0..nb[2] {
-            for by in 0..nb[1] {
-                for bx in 0..nb[0] {
-                    let words = b * 8..b * 8 + 8;
-                    b += 1;
-                    let mut free = EMPTY;
-                    for w in &mut s.workers[..threads] {
-                        let part = &mut w.free[words.clone()];
-                        for (f, p) in free.iter_mut().zip(part.iter_mut()) {
-                            *f |= *p;
-                            *p = 0;
-                        }
-                    }
-                    let g = &mut s.grid;
-                    let occ = or_words(&g.occ[words.clone()]);
-                    if occ == EMPTY && free == EMPTY {
-                        continue;
-                    }
-                    let roi_m = or_words(&g.roi[words.clone()]);
-                    let non_roi = or_words(&g.non_roi[words.clone()]);
-                    g.occ[words.clone()].fill(0);
-                    g.roi[words.clone()].fill(0);
-                    g.non_roi[words].fill(0);
-                    let key = VoxelKey::new(
-                        lo_block[0] + bx as i32,
-                        lo_block[1] + by as i32,
-                        lo_block[2] + bz as i32,
-                    );
-                    self.apply_block(key, &free, &occ, &roi_m, &non_roi, &mut stats, &mut log);
-                }
-            }
-        }
+        self.apply_planes(&mut s, threads, &mut stats, &mut log);
         // Keys outside the dense grid, one by one.
         let mut free_keys: Vec<VoxelKey> = Vec::new();
         for w in &mut s.workers[..threads] {
@@ -397,6 +386,51 @@ impl RoiMap {
         self.refresh_derived(&log);
         self.scans_inserted += 1;
         Ok(stats)
+    }
+
+    /// Applies the dense planes block by block in memory order and zeroes them.
+    fn apply_planes(
+        &mut self,
+        s: &mut Scratch,
+        threads: usize,
+        stats: &mut ScanStats,
+        log: &mut ChangeLog,
+    ) {
+        let nb = s.grid.nb;
+        let lo_block = [0, 1, 2].map(|i| s.grid.lo[i] >> BLOCK_SHIFT);
+        let mut row_free = vec![EMPTY; nb[0]];
+        let mut b = 0usize;
+        for bz in 0..nb[2] {
+            for by in 0..nb[1] {
+                row_free.fill(EMPTY);
+                for w in &s.workers[..threads] {
+                    s.grid.gather_block_row(&w.free, by, bz, &mut row_free);
+                }
+                for (bx, free) in row_free.iter().enumerate() {
+                    let words = b * 8..b * 8 + 8;
+                    b += 1;
+                    let g = &mut s.grid;
+                    let occ = or_words(&g.occ[words.clone()]);
+                    if occ == EMPTY && *free == EMPTY {
+                        continue;
+                    }
+                    let roi_m = or_words(&g.roi[words.clone()]);
+                    let non_roi = or_words(&g.non_roi[words.clone()]);
+                    g.occ[words.clone()].fill(0);
+                    g.roi[words.clone()].fill(0);
+                    g.non_roi[words].fill(0);
+                    let key = VoxelKey::new(
+                        lo_block[0] + bx as i32,
+                        lo_block[1] + by as i32,
+                        lo_block[2] + bz as i32,
+                    );
+                    self.apply_block(key, free, &occ, &roi_m, &non_roi, stats, log);
+                }
+            }
+        }
+        for w in &mut s.workers[..threads] {
+            w.free.fill(0);
+        }
     }
 
     /// Applies one block's marks: each marked voxel updated once, occupied over free and ROI over

@@ -36,6 +36,7 @@
 //! compressed checksummed snapshot ([`RoiMap::write_snapshot`]) and a PLY export
 //! ([`RoiMap::write_ply`]) persist and exchange the map.
 
+mod batch;
 mod derived;
 mod grid;
 mod insert;
@@ -57,6 +58,7 @@ use crate::grid::{
 };
 use crate::walk::{axis_key, RaySetup, KEY_LIMIT};
 
+pub use crate::batch::RayCount;
 pub use crate::snapshot::SnapshotError;
 
 /// Offsets of the 6-neighbourhood (face neighbours).

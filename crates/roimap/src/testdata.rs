@@ -331,3 +331,23 @@ pub fn unobserved_gain(
     }
     total / fan.len() as f64
 }
+
+/// [`unobserved_gain`] through the batch walk ([`RoiMap::count_unknown_until_occupied`]): the
+/// same value, the rays walked eight at a time.
+pub fn unobserved_gain_batch(
+    map: &RoiMap,
+    origin: &Point3<f64>,
+    fan: &[Vector3<f64>],
+    range_m: f64,
+) -> f64 {
+    if fan.is_empty() {
+        return 0.0;
+    }
+    let total: f64 = map
+        .count_unknown_until_occupied(origin, fan, range_m)
+        .iter()
+        .filter(|c| c.visited > 0)
+        .map(|c| f64::from(c.unknown) / f64::from(c.visited))
+        .sum();
+    total / fan.len() as f64
+}

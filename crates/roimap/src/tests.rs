@@ -1184,3 +1184,82 @@ fn compact_layout_reads_back_the_plain_reference() {
         assert_eq!(back.roi_keys(), m.roi_keys());
     }
 }
+
+type RayTrace = Vec<(VoxelKey, Option<(u32, u32)>)>;
+
+fn voxel_value_bits(v: Option<Voxel>) -> Option<(u32, u32)> {
+    v.map(|v| (v.occupancy_logodds.to_bits(), v.roi_logodds.to_bits()))
+}
+
+/// Per ray, what `walk_ray` visits; `stop_at_occupied` ends a ray at its first occupied voxel.
+fn traces_one_by_one(
+    m: &RoiMap,
+    origin: &Point3<f64>,
+    dirs: &[Vector3<f64>],
+    range: f64,
+    stop_at_occupied: bool,
+) -> Vec<RayTrace> {
+    dirs.iter()
+        .map(|d| {
+            let mut trace = Vec::new();
+            m.walk_ray(origin, d, range, |k, v| {
+                trace.push((k, voxel_value_bits(v)));
+                !(stop_at_occupied && v.is_some_and(|v| v.occupancy_logodds > 0.0))
+            });
+            trace
+        })
+        .collect()
+}
+
+/// The batch walk gives every ray exactly what `walk_ray` gives it (keys, values, order within
+/// the ray, early exit), and the unknown counts equal counting ray by ray; on seeded maps with
+/// seeded fans, degenerate directions, zero range and fewer rays than lanes.
+#[test]
+fn batch_walk_equals_walking_each_ray_alone() {
+    for seed in 1..=3u64 {
+        let w = testdata::Workload::small(seed, 160, 120, 10, 3);
+        let m = w.filtered_map().expect("valid scans");
+        assert!(m.counts().occupied > 0);
+        let mut rng = TestRng(seed);
+        let (view, target) = w.gain_view();
+        let mut dirs = testdata::ray_fan(&view, &target, 40, 30, 1.0, 0.8);
+        for _ in 0..200 {
+            dirs.push(Vector3::new(
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+            ));
+        }
+        dirs.push(Vector3::zeros());
+        dirs.push(Vector3::new(f64::NAN, 0.0, 1.0));
+        dirs.push(Vector3::new(1.0, 0.0, 0.0));
+        let origins = [view, Point3::new(0.0, 0.0, 0.0), w.origins[0]];
+        for (origin, range) in origins.iter().zip([1.5, 0.0, 0.4]) {
+            for n in [dirs.len(), 3, 0] {
+                let dirs = &dirs[..n];
+                for stop in [true, false] {
+                    let expected = traces_one_by_one(&m, origin, dirs, range, stop);
+                    let mut got = vec![RayTrace::new(); dirs.len()];
+                    m.walk_rays_from(origin, dirs, range, |ray, k, v| {
+                        got[ray].push((k, voxel_value_bits(v)));
+                        !(stop && v.is_some_and(|v| v.occupancy_logodds > 0.0))
+                    });
+                    assert_eq!(got, expected, "seed {seed}, range {range}, {n} rays");
+                }
+                let counts = m.count_unknown_until_occupied(origin, dirs, range);
+                let expected: Vec<RayCount> = traces_one_by_one(&m, origin, dirs, range, true)
+                    .iter()
+                    .map(|t| RayCount {
+                        visited: t.len() as u32,
+                        unknown: t.iter().filter(|(_, v)| v.is_none()).count() as u32,
+                    })
+                    .collect();
+                assert_eq!(counts, expected, "seed {seed}, range {range}, {n} rays");
+                assert_eq!(
+                    testdata::unobserved_gain(&m, origin, dirs, range).to_bits(),
+                    testdata::unobserved_gain_batch(&m, origin, dirs, range).to_bits()
+                );
+            }
+        }
+    }
+}

@@ -189,70 +189,72 @@ fn argmin(t: &[f64; 3]) -> (usize, f64) {
     }
 }
 
-/// One ray in flight in [`walk_interleaved`].
-#[derive(Clone, Copy)]
-struct Lane {
-    t: [f64; 3],
-    td: [f64; 3],
-    c: [i32; 3],
-    e: [i32; 3],
-    step: [i32; 3],
-    left: u64,
-    length: f64,
+/// Where the walk's voxels live in a dense bit plane over a key box (x fastest): the bit index
+/// of a voxel moves by a fixed stride per axis step, so the walk carries it instead of computing
+/// it from the key at every voxel.
+/// The default is an empty box (every key outside).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct PlaneGeometry {
+    /// Key of the box's low corner.
+    pub lo: [i32; 3],
+    /// Box size in voxels per axis.
+    pub n: [u32; 3],
+    /// Bit-index change of one voxel step along each axis: `[1, n_x, n_x * n_y]`.
+    pub stride: [i32; 3],
 }
 
-impl Lane {
-    fn start(s: &RaySetup) -> Self {
-        let c = [s.key_origin.x, s.key_origin.y, s.key_origin.z];
-        let e = [s.key_end.x, s.key_end.y, s.key_end.z];
+impl PlaneGeometry {
+    /// A box over `lo` with `n` voxels per axis; `None` when it has more than `i32::MAX` voxels.
+    pub(crate) fn new(lo: [i32; 3], n: [u32; 3]) -> Option<Self> {
+        let total = u64::from(n[0]) * u64::from(n[1]) * u64::from(n[2]);
+        (total <= i32::MAX as u64).then(|| Self {
+            lo,
+            n,
+            stride: [1, n[0] as i32, (n[0] * n[1]) as i32],
+        })
+    }
+
+    /// Every key inside, no plane (strides zero): for walks that only need the keys.
+    pub(crate) fn unbounded() -> Self {
         Self {
-            t: s.t_max,
-            td: s.t_delta,
-            c,
-            e,
-            step: s.step,
-            left: (0..3).map(|i| u64::from(c[i].abs_diff(e[i]))).sum(),
-            length: s.length,
+            lo: [i32::MIN; 3],
+            n: [u32::MAX; 3],
+            stride: [0; 3],
         }
     }
 
-    /// One step of [`RaySetup::walk`] without dynamic indexing (the axis choice becomes
-    /// selects): the next free voxel, or `None` when the ray is done.
     #[inline(always)]
-    fn advance(&mut self) -> Option<[i32; 3]> {
-        let [t0, t1, t2] = self.t;
-        let a = t0 < t1;
-        let x = a & (t0 < t2);
-        let y = !a & (t1 < t2);
-        let z = !(x | y);
-        self.t = [
-            t0 + if x { self.td[0] } else { 0.0 },
-            t1 + if y { self.td[1] } else { 0.0 },
-            t2 + if z { self.td[2] } else { 0.0 },
-        ];
-        self.c[0] += self.step[0] & -i32::from(x);
-        self.c[1] += self.step[1] & -i32::from(y);
-        self.c[2] += self.step[2] & -i32::from(z);
-        self.left = self.left.wrapping_sub(1);
-        if self.left == 0 && self.c == self.e {
-            return None;
-        }
-        // min(t) as OctoMap's std::min chain (no NaN handling needed: t is never NaN).
-        let m01 = if self.t[0] < self.t[1] {
-            self.t[0]
-        } else {
-            self.t[1]
-        };
-        let t_min = if m01 < self.t[2] { m01 } else { self.t[2] };
-        if t_min > self.length {
-            return None;
-        }
-        Some(self.c)
+    fn inside(&self, c: [i32; 3]) -> bool {
+        (0..3).all(|i| (c[i].wrapping_sub(self.lo[i]) as u32) < self.n[i])
+    }
+
+    /// Bit index of a voxel, if inside the box.
+    #[inline(always)]
+    pub(crate) fn index(&self, c: [i32; 3]) -> Option<usize> {
+        self.inside(c).then(|| self.index_unchecked(c) as usize)
+    }
+
+    /// Bit index as the walk carries it (meaningless outside the box).
+    fn index_unchecked(&self, c: [i32; 3]) -> i32 {
+        (0..3).fold(0i32, |acc, i| {
+            acc.wrapping_add(c[i].wrapping_sub(self.lo[i]).wrapping_mul(self.stride[i]))
+        })
     }
 }
 
-/// Rays walked side by side by [`walk_interleaved`].
-const LANES: usize = 8;
+/// What a lane walk does with its voxels.
+pub(crate) trait LaneVisitor {
+    /// False when the visitor ignores bit indices and boxes (the walk then skips them).
+    const PLANE: bool = true;
+    /// Voxel `c` of ray `ray`, walked in lane `lane`; `index` is its bit index in the plane when
+    /// `inside` the plane's box. Returns false to stop the ray (no [`LaneVisitor::end`] then).
+    fn voxel(&mut self, lane: usize, ray: u32, c: [i32; 3], index: i32, inside: bool) -> bool;
+    /// Ray `ray` has walked all its free voxels; `key_end` is its end voxel.
+    fn end(&mut self, ray: u32, key_end: [i32; 3]);
+}
+
+/// Rays walked side by side by [`walk_lanes`].
+pub(crate) const LANES: usize = 8;
 
 /// [`LANES`] rays in flight, one array per field, so that one step of every lane is the same
 /// arithmetic on arrays (the compiler turns the loop in [`Lanes::advance`] into vector code).
@@ -263,148 +265,167 @@ struct Lanes {
     c: [[i32; LANES]; 3],
     e: [[i32; LANES]; 3],
     step: [[i32; LANES]; 3],
-    left: [u64; LANES],
+    /// Plane stride of one step along each axis, signed like the step.
+    stride: [[i32; LANES]; 3],
+    index: [i32; LANES],
+    left: [u32; LANES],
     length: [f64; LANES],
+    ray: [u32; LANES],
 }
 
 impl Lanes {
-    fn new(first: &[Lane; LANES]) -> Self {
-        let mut out = Self {
+    fn new() -> Self {
+        Self {
             t: [[0.0; LANES]; 3],
             td: [[0.0; LANES]; 3],
             c: [[0; LANES]; 3],
             e: [[0; LANES]; 3],
             step: [[0; LANES]; 3],
+            stride: [[0; LANES]; 3],
+            index: [0; LANES],
             left: [0; LANES],
             length: [0.0; LANES],
-        };
-        for (j, l) in first.iter().enumerate() {
-            out.load(j, l);
+            ray: [0; LANES],
         }
-        out
     }
 
-    fn load(&mut self, j: usize, l: &Lane) {
+    fn load(&mut self, j: usize, ray: u32, s: &RaySetup, g: &PlaneGeometry) {
+        let c = [s.key_origin.x, s.key_origin.y, s.key_origin.z];
+        let e = [s.key_end.x, s.key_end.y, s.key_end.z];
         for i in 0..3 {
-            self.t[i][j] = l.t[i];
-            self.td[i][j] = l.td[i];
-            self.c[i][j] = l.c[i];
-            self.e[i][j] = l.e[i];
-            self.step[i][j] = l.step[i];
+            self.t[i][j] = s.t_max[i];
+            self.td[i][j] = s.t_delta[i];
+            self.c[i][j] = c[i];
+            self.e[i][j] = e[i];
+            self.step[i][j] = s.step[i];
+            self.stride[i][j] = s.step[i].wrapping_mul(g.stride[i]);
         }
-        self.left[j] = l.left;
-        self.length[j] = l.length;
+        self.index[j] = g.index_unchecked(c);
+        self.left[j] = (0..3).fold(0u32, |acc, i| acc.wrapping_add(c[i].abs_diff(e[i])));
+        self.length[j] = s.length;
+        self.ray[j] = ray;
     }
 
-    fn lane(&self, j: usize) -> Lane {
-        Lane {
-            t: [0, 1, 2].map(|i| self.t[i][j]),
-            td: [0, 1, 2].map(|i| self.td[i][j]),
-            c: [0, 1, 2].map(|i| self.c[i][j]),
-            e: [0, 1, 2].map(|i| self.e[i][j]),
-            step: [0, 1, 2].map(|i| self.step[i][j]),
-            left: self.left[j],
-            length: self.length[j],
-        }
-    }
-
-    /// [`Lane::advance`] for every lane at once; bit `j` of the result is set when lane `j`'s
-    /// ray is done (its new voxel is then not a free voxel).
+    /// One step of [`RaySetup::walk`] in every lane, without dynamic indexing (the axis choice
+    /// becomes selects). Returns two lane masks: rays that are done (their new voxel is then not
+    /// a free voxel) and lanes whose new voxel is outside the plane's box.
     #[inline(always)]
-    #[allow(clippy::needless_range_loop)] // one index over seven arrays
-    fn advance(&mut self) -> u32 {
-        let mut done = [false; LANES];
+    #[allow(clippy::needless_range_loop)] // one index over many arrays
+    fn advance(&mut self, g: &PlaneGeometry, plane: bool) -> (u32, u32) {
+        // Separate simple loops over the lanes, selects as bit masks: each loop becomes vector
+        // code (one loop with everything in it stays scalar).
+        let mut mask = [[0u64; LANES]; 3];
         for j in 0..LANES {
             let (t0, t1, t2) = (self.t[0][j], self.t[1][j], self.t[2][j]);
             let a = t0 < t1;
             let x = a & (t0 < t2);
             let y = !a & (t1 < t2);
             let z = !(x | y);
-            let n0 = t0 + if x { self.td[0][j] } else { 0.0 };
-            let n1 = t1 + if y { self.td[1][j] } else { 0.0 };
-            let n2 = t2 + if z { self.td[2][j] } else { 0.0 };
-            self.t[0][j] = n0;
-            self.t[1][j] = n1;
-            self.t[2][j] = n2;
-            self.c[0][j] += self.step[0][j] & -i32::from(x);
-            self.c[1][j] += self.step[1][j] & -i32::from(y);
-            self.c[2][j] += self.step[2][j] & -i32::from(z);
+            mask[0][j] = 0u64.wrapping_sub(u64::from(x));
+            mask[1][j] = 0u64.wrapping_sub(u64::from(y));
+            mask[2][j] = 0u64.wrapping_sub(u64::from(z));
+        }
+        for i in 0..3 {
+            for j in 0..LANES {
+                // t + (td or +0.0): adding +0.0 leaves t as it is, so this is OctoMap's update.
+                let add = f64::from_bits(self.td[i][j].to_bits() & mask[i][j]);
+                self.t[i][j] += add;
+                let m = mask[i][j] as i32;
+                self.c[i][j] = self.c[i][j].wrapping_add(self.step[i][j] & m);
+                if plane {
+                    self.index[j] = self.index[j].wrapping_add(self.stride[i][j] & m);
+                }
+            }
+        }
+        let mut done = [false; LANES];
+        let mut outside = [false; LANES];
+        for j in 0..LANES {
             self.left[j] = self.left[j].wrapping_sub(1);
             let at_end = (self.left[j] == 0)
                 & (self.c[0][j] == self.e[0][j])
                 & (self.c[1][j] == self.e[1][j])
                 & (self.c[2][j] == self.e[2][j]);
+            // min(t) as OctoMap's std::min chain (no NaN handling needed: t is never NaN).
+            let (n0, n1, n2) = (self.t[0][j], self.t[1][j], self.t[2][j]);
             let m01 = if n0 < n1 { n0 } else { n1 };
             let t_min = if m01 < n2 { m01 } else { n2 };
             done[j] = at_end | (t_min > self.length[j]);
+            outside[j] = plane
+                & (((self.c[0][j].wrapping_sub(g.lo[0]) as u32) >= g.n[0])
+                    | ((self.c[1][j].wrapping_sub(g.lo[1]) as u32) >= g.n[1])
+                    | ((self.c[2][j].wrapping_sub(g.lo[2]) as u32) >= g.n[2]));
         }
-        done.iter()
-            .enumerate()
-            .fold(0u32, |acc, (j, &d)| acc | u32::from(d) << j)
+        // Eight 0/1 bytes to eight bits with one multiply (lane j's byte lands in bit j).
+        let bits = |v: &[bool; LANES]| {
+            let bytes = v.map(u8::from);
+            (u64::from_le_bytes(bytes).wrapping_mul(0x0102_0408_1020_4080) >> 56) as u32
+        };
+        (bits(&done), bits(&outside))
+    }
+
+    fn key(&self, j: usize) -> [i32; 3] {
+        [self.c[0][j], self.c[1][j], self.c[2][j]]
+    }
+
+    fn key_end(&self, j: usize) -> [i32; 3] {
+        [self.e[0][j], self.e[1][j], self.e[2][j]]
     }
 }
 
 /// Walks many rays, [`LANES`] at a time (each walk is a chain of dependent floating-point steps;
 /// independent rays side by side keep the core busy and let the steps run as vector code).
-/// Calls `visit` with every free voxel of every ray, exactly as [`RaySetup::walk`] would, in an
-/// interleaved order.
-pub(crate) fn walk_interleaved(
-    mut rays: impl Iterator<Item = RaySetup>,
-    mut visit: impl FnMut([i32; 3]),
+/// Gives `v` every free voxel of every ray, exactly as [`RaySetup::walk`] would, interleaved
+/// between rays but in order within a ray, with its bit index in `g`'s plane.
+pub(crate) fn walk_lanes<V: LaneVisitor>(
+    mut rays: impl Iterator<Item = (u32, RaySetup)>,
+    g: &PlaneGeometry,
+    v: &mut V,
 ) {
-    let mut start = |visit: &mut dyn FnMut([i32; 3])| {
-        rays.next().map(|s| {
-            visit([s.key_origin.x, s.key_origin.y, s.key_origin.z]);
-            Lane::start(&s)
-        })
-    };
-    let mut first = Vec::with_capacity(LANES);
-    while first.len() < LANES {
-        match start(&mut visit) {
-            Some(l) => first.push(l),
-            None => break,
+    let mut lanes = Lanes::new();
+    let mut active = 0u32;
+    for j in 0..LANES {
+        if refill(&mut rays, &mut lanes, j, g, v) {
+            active |= 1 << j;
         }
     }
-    let Ok(first) = <[Lane; LANES]>::try_from(first.as_slice()) else {
-        // Fewer rays than lanes: one at a time.
-        for mut l in first {
-            while let Some(c) = l.advance() {
-                visit(c);
-            }
-        }
-        return;
-    };
-    let mut lanes = Lanes::new(&first);
-    // Every lane busy; a finished lane takes the next ray. When there is none, the lanes still
-    // running are finished one by one.
-    let mut rest: Vec<Lane> = Vec::new();
-    'steps: loop {
-        let done = lanes.advance();
+    while active != 0 {
+        // A constant per visitor type: the unused plane arithmetic is compiled out.
+        let (done, outside) = lanes.advance(g, V::PLANE);
+        let mut finished = done & active;
         for j in 0..LANES {
-            if done >> j & 1 == 0 {
-                visit([lanes.c[0][j], lanes.c[1][j], lanes.c[2][j]]);
-                continue;
-            }
-            match start(&mut visit) {
-                Some(next) => lanes.load(j, &next),
-                None => {
-                    // Lanes before `j` are up to date; lanes after it have stepped but not
-                    // yet visited their new voxel.
-                    rest.extend((0..j).map(|k| lanes.lane(k)));
-                    for k in j + 1..LANES {
-                        if done >> k & 1 == 0 {
-                            visit([lanes.c[0][k], lanes.c[1][k], lanes.c[2][k]]);
-                            rest.push(lanes.lane(k));
-                        }
-                    }
-                    break 'steps;
+            if (active & !done) >> j & 1 != 0 {
+                let inside = outside >> j & 1 == 0;
+                if !v.voxel(j, lanes.ray[j], lanes.key(j), lanes.index[j], inside) {
+                    finished |= 1 << j;
                 }
+            } else if finished >> j & 1 != 0 {
+                v.end(lanes.ray[j], lanes.key_end(j));
+            }
+        }
+        while finished != 0 {
+            let j = finished.trailing_zeros() as usize;
+            finished &= finished - 1;
+            if !refill(&mut rays, &mut lanes, j, g, v) {
+                active &= !(1 << j);
             }
         }
     }
-    for mut l in rest {
-        while let Some(c) = l.advance() {
-            visit(c);
+}
+
+/// Puts the next ray whose origin voxel does not stop it into lane `j`; false when none is left.
+fn refill(
+    rays: &mut impl Iterator<Item = (u32, RaySetup)>,
+    lanes: &mut Lanes,
+    j: usize,
+    g: &PlaneGeometry,
+    v: &mut impl LaneVisitor,
+) -> bool {
+    for (ray, s) in rays {
+        let c = [s.key_origin.x, s.key_origin.y, s.key_origin.z];
+        if v.voxel(j, ray, c, g.index_unchecked(c), g.inside(c)) {
+            lanes.load(j, ray, &s, g);
+            return true;
         }
     }
+    false
 }

@@ -1,0 +1,42 @@
+//! Runs the gain ray fan (`query/gain_fan_200x150`'s workload) a few times, for callgrind and a
+//! quick CPU-time check on a busy machine; the benches are the measurement.
+use std::time::Instant;
+
+use glasshouse_roimap::testdata::{ray_fan, unobserved_gain, unobserved_gain_batch, Workload};
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // Arguments: number of runs, `--batch` for the batch walk.
+    let batch = std::env::args().any(|a| a == "--batch");
+    let runs: usize = std::env::args()
+        .filter_map(|a| a.parse().ok())
+        .next()
+        .unwrap_or(5);
+    let w = Workload::standard(1);
+    let m = w.filtered_map()?;
+    let (origin, target) = w.gain_view();
+    let fan = ray_fan(
+        &origin,
+        &target,
+        200,
+        150,
+        60f64.to_radians(),
+        45f64.to_radians(),
+    );
+    let mut times = Vec::new();
+    let mut gain = 0.0;
+    for _ in 0..runs {
+        let t = Instant::now();
+        gain = if batch {
+            unobserved_gain_batch(&m, &origin, &fan, 1.5)
+        } else {
+            unobserved_gain(&m, &origin, &fan, 1.5)
+        };
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    println!(
+        "gain {gain:.6}, median wall {:.1} ms over {runs} runs",
+        times[times.len() / 2]
+    );
+    Ok(())
+}

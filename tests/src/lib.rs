@@ -66,6 +66,7 @@ pub struct Pipeline {
     pub dashboard_counters: Arc<DashboardCounters>,
     pub fleet: Arc<Mutex<FleetState>>,
     pub events: tokio::sync::mpsc::UnboundedReceiver<EdgeEvent>,
+    events_tx: Option<tokio::sync::mpsc::UnboundedSender<EdgeEvent>>,
     services: Vec<(&'static str, JoinHandle<anyhow::Result<()>>)>,
     triggers: Vec<ShutdownTrigger>,
 }
@@ -78,6 +79,17 @@ impl Pipeline {
 
     /// Like [`Pipeline::start`] with dashboard settings (web page, recording).
     pub async fn start_with(edge_config: EdgeConfig, dashboard: DashboardSettings) -> Pipeline {
+        let mut pipeline = Self::start_services(dashboard, PlannerSettings::default()).await;
+        pipeline.start_edge(edge_config).await;
+        pipeline
+    }
+
+    /// Starts router, dashboard, detector and planner; the edge comes with
+    /// [`Pipeline::start_edge`] (observers can subscribe before the first frame).
+    pub async fn start_services(
+        dashboard: DashboardSettings,
+        planner: PlannerSettings,
+    ) -> Pipeline {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let router = within(
             10,
@@ -86,69 +98,65 @@ impl Pipeline {
         )
         .await
         .expect("router opens");
-        let mut triggers = Vec::new();
-        let mut shutdown = || {
-            let (trigger, shutdown) = Shutdown::new();
-            triggers.push(trigger);
-            shutdown
-        };
-        let fleet = Arc::new(Mutex::new(FleetState::default()));
-        let dashboard_counters = Arc::new(DashboardCounters::default());
-        let detector_counters = Arc::new(DetectorCounters::default());
-        let planner_counters = Arc::new(PlannerCounters::default());
-        let edge_counters = Arc::new(EdgeCounters::default());
-        let mut services = Vec::new();
-        services.push((
-            "dashboard",
-            tokio::spawn(glasshouse_dashboard::run(
-                client(&endpoint).await,
-                dashboard,
-                shutdown(),
-                fleet.clone(),
-                dashboard_counters.clone(),
-            )),
-        ));
-        services.push((
-            "detector",
-            tokio::spawn(glasshouse_detector::run(
-                client(&endpoint).await,
-                DetectorSettings::default(),
-                shutdown(),
-                detector_counters.clone(),
-            )),
-        ));
-        services.push((
-            "planner",
-            tokio::spawn(glasshouse_planner::run(
-                client(&endpoint).await,
-                PlannerSettings::default(),
-                shutdown(),
-                planner_counters.clone(),
-            )),
-        ));
-        let (tx, events) = tokio::sync::mpsc::unbounded_channel();
-        services.push((
-            "edge",
-            tokio::spawn(glasshouse_edge::run(
-                client(&endpoint).await,
-                edge_config,
-                shutdown(),
-                Some(tx),
-                edge_counters.clone(),
-            )),
-        ));
-        Pipeline {
+        let (events_tx, events) = tokio::sync::mpsc::unbounded_channel();
+        let mut pipeline = Pipeline {
             endpoint,
             router,
-            edge_counters,
-            detector_counters,
-            planner_counters,
-            dashboard_counters,
-            fleet,
+            edge_counters: Arc::new(EdgeCounters::default()),
+            detector_counters: Arc::new(DetectorCounters::default()),
+            planner_counters: Arc::new(PlannerCounters::default()),
+            dashboard_counters: Arc::new(DashboardCounters::default()),
+            fleet: Arc::new(Mutex::new(FleetState::default())),
             events,
-            services,
-            triggers,
-        }
+            events_tx: Some(events_tx),
+            services: Vec::new(),
+            triggers: Vec::new(),
+        };
+        let session = client(&pipeline.endpoint).await;
+        let task = glasshouse_dashboard::run(
+            session,
+            dashboard,
+            pipeline.shutdown(),
+            pipeline.fleet.clone(),
+            pipeline.dashboard_counters.clone(),
+        );
+        pipeline.services.push(("dashboard", tokio::spawn(task)));
+        let session = client(&pipeline.endpoint).await;
+        let task = glasshouse_detector::run(
+            session,
+            DetectorSettings::default(),
+            pipeline.shutdown(),
+            pipeline.detector_counters.clone(),
+        );
+        pipeline.services.push(("detector", tokio::spawn(task)));
+        let session = client(&pipeline.endpoint).await;
+        let task = glasshouse_planner::run(
+            session,
+            planner,
+            pipeline.shutdown(),
+            pipeline.planner_counters.clone(),
+        );
+        pipeline.services.push(("planner", tokio::spawn(task)));
+        pipeline
+    }
+
+    /// Starts the edge; its events arrive on `events`.
+    pub async fn start_edge(&mut self, edge_config: EdgeConfig) {
+        let session = client(&self.endpoint).await;
+        let task = glasshouse_edge::run(
+            session,
+            edge_config,
+            self.shutdown(),
+            self.events_tx.take(),
+            self.edge_counters.clone(),
+        );
+        self.services.push(("edge", tokio::spawn(task)));
+    }
+
+    fn shutdown(&mut self) -> Shutdown {
+        let (trigger, shutdown) = Shutdown::new();
+        self.triggers.push(trigger);
+        shutdown
     }
 
     /// Collects edge events until the edge finishes (or `secs` pass).

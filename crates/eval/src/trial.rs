@@ -300,6 +300,16 @@ impl<S: TrolleySource> Trial<S> {
         self.source.arm_state(false, 0).world_from_camera
     }
 
+    /// The views planned on every frame so far, in order.
+    pub fn plans(&self) -> &[RankedViews] {
+        &self.plans
+    }
+
+    /// The fruits of the latest frame whose estimates are available.
+    pub fn fruits(&self) -> &[FruitRecord] {
+        &self.published.fruits
+    }
+
     /// The latest frame sequence.
     pub fn frame_seq(&self) -> u64 {
         self.edge.frame_seq()

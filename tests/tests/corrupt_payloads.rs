@@ -2,7 +2,6 @@
 //! pipeline keeps running.
 
 use std::sync::atomic::Ordering;
-use std::time::Duration;
 
 use glasshouse_bus::{Delivery, DropCounters, RawPublisher};
 use glasshouse_edge::EdgeEvent;
@@ -60,17 +59,15 @@ async fn bad_payloads_on_every_key_are_dropped_and_the_loop_goes_on() {
             .expect("publisher");
         publishers.push((p, *kind));
     }
-    // Let subscriptions propagate through the router before injecting.
-    tokio::time::sleep(Duration::from_millis(500)).await;
-
-    // Inject while the loop runs: at the start, after the first view and after the second, so
-    // the edge (six views) is still running when the last round arrives.
+    // Inject while the loop runs: after the first view (every service has subscribed by then:
+    // the loop went round once), after the second and after the third, so the edge (six views)
+    // is still running when the last round arrives.
     let mut sent = 0;
     let mut views = 0;
     let mut rounds = 0;
     within(240, "the loop to finish under fire", async {
         loop {
-            if rounds <= views && rounds < 3 {
+            if rounds < views && rounds < 3 {
                 for (p, kind) in &publishers {
                     for bytes in bad_payloads(*kind, &mut rng) {
                         p.publish_bytes(bytes).await.expect("queued");

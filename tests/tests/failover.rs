@@ -2,7 +2,7 @@
 //! mid-run, the hot replica takes over, views resume, and the survivor's map equals the map
 //! rebuilt offline from every ROI cloud the trolley's detector published: no scan is lost.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
 use std::sync::Arc;
@@ -111,34 +111,44 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
         }
     })
     .await;
-    tokio::time::sleep(Duration::from_millis(1500)).await;
     let edge = start(
         "edge",
         "edge",
         &["--trolley-id", "t1", "--scenario", "2", "--width", "160"],
     );
 
-    // Owner: the planner the views come from; replica: the planner reporting t1 on standby.
+    // Owner: the planner the views come from, which its own status reports as owner; replica:
+    // the one planner reporting t1 on standby. Waiting for statuses that agree (rather than for
+    // a fixed time) lets the planners' membership settle first.
     let (owner, replica) = within(
         180,
         "views from the owner and a replica on standby",
         async {
-            let (mut owner, mut replica, mut views) = (None::<String>, None::<String>, 0);
+            let mut latest: BTreeMap<String, (bool, bool)> = BTreeMap::new();
+            let (mut views_from, mut views) = (None::<String>, 0);
             loop {
                 tokio::select! {
                     received = views_sub.recv() => {
                         views += 1;
-                        owner = Some(received.expect("views").header.source_id);
+                        views_from = Some(received.expect("views").header.source_id);
                     }
                     received = status_sub.recv() => {
                         let s = received.expect("status").message;
-                        if s.standby_trolleys.iter().any(|t| t == "t1") {
-                            replica = Some(s.planner_id);
-                        }
+                        let holds = |list: &[String]| list.iter().any(|t| t == "t1");
+                        let roles = (holds(&s.owned_trolleys), holds(&s.standby_trolleys));
+                        latest.insert(s.planner_id, roles);
                     }
                 }
-                if let (Some(o), Some(r)) = (&owner, &replica) {
-                    if views >= 3 && o != r {
+                let of_role = |want: fn(&(bool, bool)) -> bool| -> Vec<String> {
+                    latest
+                        .iter()
+                        .filter(|(_, r)| want(r))
+                        .map(|(p, _)| p.clone())
+                        .collect()
+                };
+                let (owners, replicas) = (of_role(|r| r.0), of_role(|r| r.1));
+                if let ([o], [r], Some(v)) = (&owners[..], &replicas[..], &views_from) {
+                    if views >= 3 && o == v && o != r {
                         return (o.clone(), r.clone());
                     }
                 }

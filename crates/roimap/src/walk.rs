@@ -59,9 +59,6 @@ impl RaySetup {
         key_end: VoxelKey,
         res: f64,
     ) -> Option<Self> {
-        if key_origin == key_end {
-            return None;
-        }
         let mut direction = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
         let length = norm_f32(direction) as f32;
         for d in &mut direction {
@@ -73,14 +70,7 @@ impl RaySetup {
         ];
         let (o, d) = (origin.map(f64::from), direction.map(f64::from));
         let offset = |step: i32| f64::from(if step > 0 { half[0] } else { half[1] });
-        Some(Self::from_axes(
-            [key_origin, key_end],
-            o,
-            d,
-            f64::from(length),
-            res,
-            offset,
-        ))
+        Self::from_axes([key_origin, key_end], o, d, f64::from(length), res, offset)
     }
 
     /// The same walk from `f64` inputs: `direction` a finite unit vector, `length` the segment
@@ -93,28 +83,19 @@ impl RaySetup {
         key_end: VoxelKey,
         res: f64,
     ) -> Option<Self> {
-        if key_origin == key_end {
-            return None;
-        }
         let (o, d) = (
             [origin.x, origin.y, origin.z],
             [direction.x, direction.y, direction.z],
         );
         let offset = |step: i32| f64::from(step) * res * 0.5;
-        Some(Self::from_axes(
-            [key_origin, key_end],
-            o,
-            d,
-            length,
-            res,
-            offset,
-        ))
+        Self::from_axes([key_origin, key_end], o, d, length, res, offset)
     }
 
     /// The walk from `keys` (origin, end) along the unit `direction`: per axis the step, the ray
     /// parameter of the first voxel border crossed and the parameter between two borders
     /// (`f64::MAX` where the ray is parallel to the axis). `border_offset(step)` is the distance
     /// from the origin voxel's centre to that first border, so each caller keeps its rounding.
+    /// `None` when the two keys are equal (no free voxel).
     #[inline(always)]
     fn from_axes(
         [key_origin, key_end]: [VoxelKey; 2],
@@ -123,7 +104,10 @@ impl RaySetup {
         length: f64,
         res: f64,
         border_offset: impl Fn(i32) -> f64,
-    ) -> Self {
+    ) -> Option<Self> {
+        if key_origin == key_end {
+            return None;
+        }
         let mut step = [0i32; 3];
         let mut t_max = [f64::MAX; 3];
         let mut t_delta = [f64::MAX; 3];
@@ -141,14 +125,14 @@ impl RaySetup {
             t_max[i] = (border - origin[i]) / d;
             t_delta[i] = res / d.abs();
         }
-        Self {
+        Some(Self {
             key_origin,
             key_end,
             step,
             t_max,
             t_delta,
             length,
-        }
+        })
     }
 
     /// Visits the free voxels of the ray: the origin voxel, then every voxel entered before the

@@ -65,6 +65,21 @@ pub fn run(args: BenchMapArgs) -> anyhow::Result<()> {
         ..MapConfig::default()
     };
     config.validate()?;
+    let clouds = read_clouds(&args)?;
+    let timed = time_insertion(&args, config, &clouds)?;
+    if let Some(path) = &args.export_voxels {
+        let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+        timed.map.write_ply(BufWriter::new(file))?;
+    }
+    if args.json {
+        print_json(&args, &clouds, &timed);
+    } else {
+        print_text(&args, config, &clouds, &timed);
+    }
+    Ok(())
+}
+
+fn read_clouds(args: &BenchMapArgs) -> anyhow::Result<Vec<Cloud>> {
     let mut clouds = Vec::with_capacity(args.clouds.len());
     for path in &args.clouds {
         let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
@@ -83,72 +98,88 @@ pub fn run(args: BenchMapArgs) -> anyhow::Result<()> {
             roi,
         });
     }
+    Ok(clouds)
+}
 
+/// Insertion times over all runs, the last scan's statistics and the last run's map.
+struct Timed {
+    median_ms: f64,
+    min_ms: f64,
+    max_ms: f64,
+    last: ScanStats,
+    map: RoiMap,
+}
+
+fn time_insertion(
+    args: &BenchMapArgs,
+    config: MapConfig,
+    clouds: &[Cloud],
+) -> anyhow::Result<Timed> {
     let mut times_ms = Vec::with_capacity(args.runs * clouds.len());
     let mut last = ScanStats::default();
     let mut map = RoiMap::new(config)?;
     for _ in 0..args.runs {
         map = RoiMap::new(config)?;
-        for c in &clouds {
+        for c in clouds {
             let start = Instant::now();
             last = map.insert_scan_threaded(&c.origin, &c.points, &c.roi, args.threads.max(1))?;
             times_ms.push(start.elapsed().as_secs_f64() * 1e3);
         }
     }
     times_ms.sort_by(f64::total_cmp);
-    let median_ms = times_ms[times_ms.len() / 2];
-    let (min_ms, max_ms) = (times_ms[0], times_ms[times_ms.len() - 1]);
-    let known = map.len();
-    let memory = map.memory_bytes();
+    Ok(Timed {
+        median_ms: times_ms[times_ms.len() / 2],
+        min_ms: times_ms[0],
+        max_ms: times_ms[times_ms.len() - 1],
+        last,
+        map,
+    })
+}
 
+fn print_json(args: &BenchMapArgs, clouds: &[Cloud], t: &Timed) {
+    println!(
+        "{}",
+        serde_json::json!({
+            "median_ms": t.median_ms,
+            "min_ms": t.min_ms,
+            "max_ms": t.max_ms,
+            "free_voxels": t.last.free_updates,
+            "occupied_voxels": t.last.occupied_updates,
+            "known_voxels": t.map.len(),
+            "memory_bytes": t.map.memory_bytes(),
+            "scans": clouds.len(),
+            "runs": args.runs,
+            "threads": args.threads.max(1),
+            "skipped_non_finite": t.last.skipped_non_finite,
+        })
+    );
+}
+
+fn print_text(args: &BenchMapArgs, config: MapConfig, clouds: &[Cloud], t: &Timed) {
+    let points: usize = clouds.iter().map(|c| c.points.len()).sum();
+    println!(
+        "{} scans ({} points), {} runs, {} thread(s), {} m voxels, max range {}",
+        clouds.len(),
+        points,
+        args.runs,
+        args.threads.max(1),
+        args.resolution,
+        config
+            .max_range_m
+            .map_or("unlimited".to_string(), |r| format!("{r} m"))
+    );
+    let (median_ms, min_ms, max_ms) = (t.median_ms, t.min_ms, t.max_ms);
+    println!("insert per scan: median {median_ms:.2} ms, min {min_ms:.2} ms, max {max_ms:.2} ms");
+    println!(
+        "last scan: {} unique free voxels, {} unique occupied voxels ({} non-finite points skipped)",
+        t.last.free_updates, t.last.occupied_updates, t.last.skipped_non_finite
+    );
+    println!(
+        "map: {} known voxels, memory {:.1} MB",
+        t.map.len(),
+        t.map.memory_bytes() as f64 / 1e6
+    );
     if let Some(path) = &args.export_voxels {
-        let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
-        map.write_ply(BufWriter::new(file))?;
+        println!("voxels written to {}", path.display());
     }
-    if args.json {
-        println!(
-            "{}",
-            serde_json::json!({
-                "median_ms": median_ms,
-                "min_ms": min_ms,
-                "max_ms": max_ms,
-                "free_voxels": last.free_updates,
-                "occupied_voxels": last.occupied_updates,
-                "known_voxels": known,
-                "memory_bytes": memory,
-                "scans": clouds.len(),
-                "runs": args.runs,
-                "threads": args.threads.max(1),
-                "skipped_non_finite": last.skipped_non_finite,
-            })
-        );
-    } else {
-        let points: usize = clouds.iter().map(|c| c.points.len()).sum();
-        println!(
-            "{} scans ({} points), {} runs, {} thread(s), {} m voxels, max range {}",
-            clouds.len(),
-            points,
-            args.runs,
-            args.threads.max(1),
-            args.resolution,
-            config
-                .max_range_m
-                .map_or("unlimited".to_string(), |r| format!("{r} m"))
-        );
-        println!(
-            "insert per scan: median {median_ms:.2} ms, min {min_ms:.2} ms, max {max_ms:.2} ms"
-        );
-        println!(
-            "last scan: {} unique free voxels, {} unique occupied voxels ({} non-finite points skipped)",
-            last.free_updates, last.occupied_updates, last.skipped_non_finite
-        );
-        println!(
-            "map: {known} known voxels, memory {:.1} MB",
-            memory as f64 / 1e6
-        );
-        if let Some(path) = &args.export_voxels {
-            println!("voxels written to {}", path.display());
-        }
-    }
-    Ok(())
 }

@@ -238,6 +238,26 @@ pub async fn run(args: DashboardBenchArgs) -> anyhow::Result<()> {
         args.width * 3 / 4,
         args.minutes
     );
+    let samples_rss = sample_memory(&args, &fleet, &counters).await;
+    trigger.fire();
+    let mut frames = 0;
+    for t in trolleys {
+        frames += t.await??;
+    }
+    dashboard.await??;
+    let _ = router.close().await;
+    let messages = fleet.lock().map(|f| f.messages).unwrap_or(0);
+    print_totals(&args, frames, messages, &counters, rss_start, &samples_rss);
+    Ok(())
+}
+
+/// Prints memory and throughput every 10 s for the run's length; returns (seconds, RSS bytes)
+/// of every sample.
+async fn sample_memory(
+    args: &DashboardBenchArgs,
+    fleet: &Mutex<FleetState>,
+    counters: &DashboardCounters,
+) -> Vec<(f64, u64)> {
     println!(
         "{:>7}  {:>9}  {:>10}  {:>10}  {:>9}",
         "time s", "RSS MiB", "messages", "msg/s", "dropped"
@@ -261,20 +281,23 @@ pub async fn run(args: DashboardBenchArgs) -> anyhow::Result<()> {
         );
         (last_messages, last_t) = (messages, t);
     }
-    trigger.fire();
-    let mut frames = 0;
-    for t in trolleys {
-        frames += t.await??;
-    }
-    dashboard.await??;
-    let _ = router.close().await;
+    samples_rss
+}
+
+fn print_totals(
+    args: &DashboardBenchArgs,
+    frames: u64,
+    messages: u64,
+    counters: &DashboardCounters,
+    rss_start: u64,
+    samples_rss: &[(f64, u64)],
+) {
     let half = samples_rss
         .iter()
         .find(|(t, _)| *t >= args.minutes * 30.0)
         .map_or(0, |s| s.1);
     let end = samples_rss.last().map_or(0, |s| s.1);
     let peak = samples_rss.iter().map(|s| s.1).max().unwrap_or(0);
-    let messages = fleet.lock().map(|f| f.messages).unwrap_or(0);
     println!(
         "published {frames} frames; dashboard handled {messages} messages, dropped {} (overflow {}, corrupt {})",
         counters.drops.total(),
@@ -289,5 +312,4 @@ pub async fn run(args: DashboardBenchArgs) -> anyhow::Result<()> {
         mib(peak),
         mib(end) - mib(half)
     );
-    Ok(())
 }

@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_bus::{BusArgs, Shutdown, ShutdownTrigger};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
@@ -110,200 +110,20 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     planner_settings.planning.seed = args.seed;
     planner_settings.validate()?;
 
-    // An in-process router on a free loopback port; every component is a client of it.
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
-    let router = glasshouse_bus::open(&BusArgs::router(&endpoint)).await?;
-    let client_args = BusArgs::client(&endpoint);
-    let client = || glasshouse_bus::open(&client_args);
-    let (trigger, shutdown) = Shutdown::new();
-    let (edge_trigger, edge_shutdown) = Shutdown::new();
-
-    let state = Arc::new(Mutex::new(FleetState::default()));
-    let serve = args.serve.then(|| ServeSettings {
-        bind_ip: "127.0.0.1".into(),
-        ..ServeSettings::default()
-    });
-    if let Some(serve) = &serve {
-        println!("fleet web page:   http://{}/", args.http);
-        println!("live 3D view:     {}", serve.web_viewer_url());
-        println!("Rerun viewer:     rerun {}", serve.grpc_url());
-    }
-    let dashboard = tokio::spawn(glasshouse_dashboard::run(
-        client().await?,
-        DashboardSettings {
-            record: args.record.clone(),
-            serve: serve.clone(),
-            http_listen: args.serve.then(|| args.http.clone()),
-        },
-        shutdown.clone(),
-        state.clone(),
-        Arc::new(DashboardCounters::default()),
-    ));
-    let detector = tokio::spawn(glasshouse_detector::run(
-        client().await?,
-        DetectorSettings::default(),
-        shutdown.clone(),
-        Arc::new(DetectorCounters::default()),
-    ));
-    let planner = tokio::spawn(glasshouse_planner::run(
-        client().await?,
-        planner_settings,
-        shutdown.clone(),
-        Arc::new(PlannerCounters::default()),
-    ));
-    let (events_tx, mut events) = tokio::sync::mpsc::unbounded_channel();
-    let tid = edge_config.trolley_id.clone();
-    let edge = tokio::spawn(glasshouse_edge::run(
-        client().await?,
-        edge_config,
-        edge_shutdown,
-        Some(events_tx),
-        Arc::new(EdgeCounters::default()),
-    ));
-    let mut ctrl_c = tokio::spawn(async move {
-        glasshouse_bus::shutdown_signal().await;
-    });
-
-    println!(
-        "glasshouse demo: scenario {} seed {} views {} method {} (router + 4 Zenoh sessions over {endpoint})",
-        args.scenario, args.seed, args.views, args.method
-    );
-    let mut frames = 0u64;
-    let mut views_done = 0u32;
-    let mut no_reachable = 0u64;
-    let mut sim_time_s = 0.0;
-    let stall = Duration::from_secs(args.stall_timeout_s.max(5));
-    let mut interrupted = false;
-    loop {
-        let event = tokio::select! {
-            _ = async { while !ctrl_c.is_finished() { tokio::time::sleep(Duration::from_millis(100)).await } } => {
-                interrupted = true;
-                break;
-            }
-            e = tokio::time::timeout(stall, events.recv()) => e,
-        };
-        match event {
-            Err(_) => {
-                edge_trigger.fire();
-                trigger.fire();
-                anyhow::bail!(
-                    "no progress for {} s: is a component stuck?",
-                    stall.as_secs()
-                );
-            }
-            Ok(None) => break,
-            Ok(Some(EdgeEvent::ViewDone {
-                views_done: n,
-                frame_seq,
-                view,
-                sim_time_s: t,
-            })) => {
-                views_done = n;
-                sim_time_s = t;
-                let fruits = state
-                    .lock()
-                    .map(|s| s.trolleys.get(&tid).map_or(0, |t| t.fruits.len()))
-                    .unwrap_or(0);
-                let kind = match view.kind {
-                    ViewKind::Roi => "roi",
-                    ViewKind::Exploration => "exploration",
-                };
-                println!(
-                    "view {n:>3}/{}  frame {frame_seq:>3}  {kind:<11} utility {:>6.3} gain {:>5.3} move {:>4.2} m  fruits {fruits:>3}  sim {t:>6.1} s  wall {:>5.1} s",
-                    args.views,
-                    view.utility,
-                    view.gain,
-                    view.cost_m,
-                    started.elapsed().as_secs_f64()
-                );
-            }
-            Ok(Some(EdgeEvent::NoReachableView { frame_seq, offered })) => {
-                no_reachable += 1;
-                println!("frame {frame_seq}: none of {offered} views reachable, capturing again");
-            }
-            Ok(Some(EdgeEvent::Reannounced { frame_seq })) => {
-                println!("frame {frame_seq}: no views yet, re-announced");
-            }
-            Ok(Some(EdgeEvent::SegmentDone {
-                segments_done,
-                sim_time_s,
-            })) => {
-                println!(
-                    "segment {segments_done} done: moving along the row  sim {sim_time_s:6.1} s"
-                );
-            }
-            Ok(Some(EdgeEvent::Finished {
-                views_done: n,
-                frames: f,
-            })) => {
-                views_done = n;
-                frames = f;
-                break;
-            }
-        }
-    }
-    edge_trigger.fire();
-    edge.await.context("edge task")??;
-    if args.serve && args.linger && !interrupted {
-        println!("run finished; still serving (Ctrl-C to stop)");
-        let _ = (&mut ctrl_c).await;
-    }
-    // The planner answered the last frame before the edge finished; let the dashboard catch up.
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    trigger.fire();
-    for (name, task) in [
-        ("planner", planner),
-        ("detector", detector),
-        ("dashboard", dashboard),
-    ] {
-        tokio::time::timeout(Duration::from_secs(20), task)
-            .await
-            .with_context(|| format!("{name} did not stop"))?
-            .with_context(|| format!("{name} task"))??;
-    }
-    ctrl_c.abort();
-    let _ = router.close().await;
-
-    let fruits: Vec<Fruit> = state
-        .lock()
-        .map(|s| {
-            s.trolleys
-                .get(&tid)
-                .map(|t| t.fruits.clone())
-                .unwrap_or_default()
-        })
-        .unwrap_or_default();
+    let mut pipeline = Pipeline::start(&args, edge_config, planner_settings).await?;
+    let mut progress = Progress::default();
+    progress.follow(&args, &mut pipeline, started).await?;
+    let fruits = pipeline.stop(&args, progress.interrupted).await?;
     print_fruit_table(&fruits);
     let summary = Summary {
         scenario: args.scenario.to_string(),
         seed: args.seed,
-        views: views_done,
-        frames,
-        frames_without_reachable_view: no_reachable,
+        views: progress.views_done,
+        frames: progress.frames,
+        frames_without_reachable_view: progress.no_reachable,
         wall_time_s: started.elapsed().as_secs_f64(),
-        sim_time_s,
-        fruits: fruits
-            .iter()
-            .map(|f| {
-                let size = f.box_max - f.box_min;
-                FruitSummary {
-                    id: f.id,
-                    centre_m: f.centre_in_world.into(),
-                    size_m: size.into(),
-                    volume_m3: f.volume_m3,
-                    voxel_count: f.voxel_count,
-                    confidence: f.confidence,
-                    fitted: f.fitted.as_ref().map(|e| FittedSummary {
-                        centre_m: e.centre_in_world.into(),
-                        semi_axes_m: e.semi_axes_m.into(),
-                        volume_m3: e.volume_m3,
-                        box_volume_m3: e.box_volume_m3,
-                        confidence: e.confidence,
-                        is_fit: e.is_fit,
-                    }),
-                }
-            })
-            .collect(),
+        sim_time_s: progress.sim_time_s,
+        fruits: fruits.iter().map(FruitSummary::of).collect(),
     };
     println!(
         "{} views, {} frames ({} with no reachable view), {} fruits in {:.1} s wall ({:.1} s simulated)",
@@ -322,10 +142,283 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.record {
         println!("recording written to {}", path.display());
     }
-    if interrupted {
+    if progress.interrupted {
         anyhow::bail!("interrupted");
     }
     Ok(())
+}
+
+type ServiceTask = tokio::task::JoinHandle<anyhow::Result<()>>;
+
+/// The running loop: a router, the four components as tasks, and the edge's events.
+struct Pipeline {
+    router: glasshouse_bus::zenoh::Session,
+    /// Stops the services; the edge has a trigger of its own so it can finish first.
+    trigger: ShutdownTrigger,
+    edge_trigger: ShutdownTrigger,
+    state: Arc<Mutex<FleetState>>,
+    tid: String,
+    dashboard: ServiceTask,
+    detector: ServiceTask,
+    planner: ServiceTask,
+    edge: ServiceTask,
+    events: tokio::sync::mpsc::UnboundedReceiver<EdgeEvent>,
+    ctrl_c: tokio::task::JoinHandle<()>,
+}
+
+impl Pipeline {
+    async fn start(
+        args: &DemoArgs,
+        edge_config: EdgeConfig,
+        planner_settings: PlannerSettings,
+    ) -> anyhow::Result<Self> {
+        // An in-process router on a free loopback port; every component is a client of it.
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
+        let router = glasshouse_bus::open(&BusArgs::router(&endpoint)).await?;
+        let client_args = BusArgs::client(&endpoint);
+        let client = || glasshouse_bus::open(&client_args);
+        let (trigger, shutdown) = Shutdown::new();
+        let (edge_trigger, edge_shutdown) = Shutdown::new();
+
+        let state = Arc::new(Mutex::new(FleetState::default()));
+        let dashboard_settings = dashboard_settings(args);
+        let dashboard = tokio::spawn(glasshouse_dashboard::run(
+            client().await?,
+            dashboard_settings,
+            shutdown.clone(),
+            state.clone(),
+            Arc::new(DashboardCounters::default()),
+        ));
+        let detector = tokio::spawn(glasshouse_detector::run(
+            client().await?,
+            DetectorSettings::default(),
+            shutdown.clone(),
+            Arc::new(DetectorCounters::default()),
+        ));
+        let planner = tokio::spawn(glasshouse_planner::run(
+            client().await?,
+            planner_settings,
+            shutdown.clone(),
+            Arc::new(PlannerCounters::default()),
+        ));
+        let (events_tx, events) = tokio::sync::mpsc::unbounded_channel();
+        let tid = edge_config.trolley_id.clone();
+        let edge = tokio::spawn(glasshouse_edge::run(
+            client().await?,
+            edge_config,
+            edge_shutdown,
+            Some(events_tx),
+            Arc::new(EdgeCounters::default()),
+        ));
+        let ctrl_c = tokio::spawn(async move {
+            glasshouse_bus::shutdown_signal().await;
+        });
+        println!(
+            "glasshouse demo: scenario {} seed {} views {} method {} (router + 4 Zenoh sessions over {endpoint})",
+            args.scenario, args.seed, args.views, args.method
+        );
+        Ok(Pipeline {
+            router,
+            trigger,
+            edge_trigger,
+            state,
+            tid,
+            dashboard,
+            detector,
+            planner,
+            edge,
+            events,
+            ctrl_c,
+        })
+    }
+
+    fn fruit_count(&self) -> usize {
+        self.state
+            .lock()
+            .map(|s| s.trolleys.get(&self.tid).map_or(0, |t| t.fruits.len()))
+            .unwrap_or(0)
+    }
+
+    /// Stops the edge, then (after lingering if asked) the services and the router; returns the
+    /// fruits the dashboard holds for the trolley.
+    async fn stop(mut self, args: &DemoArgs, interrupted: bool) -> anyhow::Result<Vec<Fruit>> {
+        self.edge_trigger.fire();
+        self.edge.await.context("edge task")??;
+        if args.serve && args.linger && !interrupted {
+            println!("run finished; still serving (Ctrl-C to stop)");
+            let _ = (&mut self.ctrl_c).await;
+        }
+        // The planner answered the last frame before the edge finished; let the dashboard catch up.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        self.trigger.fire();
+        for (name, task) in [
+            ("planner", self.planner),
+            ("detector", self.detector),
+            ("dashboard", self.dashboard),
+        ] {
+            tokio::time::timeout(Duration::from_secs(20), task)
+                .await
+                .with_context(|| format!("{name} did not stop"))?
+                .with_context(|| format!("{name} task"))??;
+        }
+        self.ctrl_c.abort();
+        let _ = self.router.close().await;
+        Ok(self
+            .state
+            .lock()
+            .map(|s| {
+                s.trolleys
+                    .get(&self.tid)
+                    .map(|t| t.fruits.clone())
+                    .unwrap_or_default()
+            })
+            .unwrap_or_default())
+    }
+}
+
+fn dashboard_settings(args: &DemoArgs) -> DashboardSettings {
+    let serve = args.serve.then(|| ServeSettings {
+        bind_ip: "127.0.0.1".into(),
+        ..ServeSettings::default()
+    });
+    if let Some(serve) = &serve {
+        println!("fleet web page:   http://{}/", args.http);
+        println!("live 3D view:     {}", serve.web_viewer_url());
+        println!("Rerun viewer:     rerun {}", serve.grpc_url());
+    }
+    DashboardSettings {
+        record: args.record.clone(),
+        serve,
+        http_listen: args.serve.then(|| args.http.clone()),
+    }
+}
+
+/// What the edge reported so far.
+#[derive(Default)]
+struct Progress {
+    frames: u64,
+    views_done: u32,
+    no_reachable: u64,
+    sim_time_s: f64,
+    interrupted: bool,
+}
+
+impl Progress {
+    /// Prints the edge's events until it finishes, Ctrl-C, or no progress for the stall timeout.
+    async fn follow(
+        &mut self,
+        args: &DemoArgs,
+        pipeline: &mut Pipeline,
+        started: Instant,
+    ) -> anyhow::Result<()> {
+        let stall = Duration::from_secs(args.stall_timeout_s.max(5));
+        loop {
+            let ctrl_c = &pipeline.ctrl_c;
+            let event = tokio::select! {
+                _ = async { while !ctrl_c.is_finished() { tokio::time::sleep(Duration::from_millis(100)).await } } => {
+                    self.interrupted = true;
+                    return Ok(());
+                }
+                e = tokio::time::timeout(stall, pipeline.events.recv()) => e,
+            };
+            match event {
+                Err(_) => {
+                    pipeline.edge_trigger.fire();
+                    pipeline.trigger.fire();
+                    anyhow::bail!(
+                        "no progress for {} s: is a component stuck?",
+                        stall.as_secs()
+                    );
+                }
+                Ok(None) => return Ok(()),
+                Ok(Some(event)) => {
+                    if self.on_event(args, pipeline, event, started) {
+                        return Ok(());
+                    }
+                }
+            }
+        }
+    }
+
+    /// Takes in one event; true once the edge has finished.
+    fn on_event(
+        &mut self,
+        args: &DemoArgs,
+        pipeline: &Pipeline,
+        event: EdgeEvent,
+        started: Instant,
+    ) -> bool {
+        match event {
+            EdgeEvent::ViewDone {
+                views_done: n,
+                frame_seq,
+                view,
+                sim_time_s: t,
+            } => {
+                self.views_done = n;
+                self.sim_time_s = t;
+                let fruits = pipeline.fruit_count();
+                let kind = match view.kind {
+                    ViewKind::Roi => "roi",
+                    ViewKind::Exploration => "exploration",
+                };
+                println!(
+                    "view {n:>3}/{}  frame {frame_seq:>3}  {kind:<11} utility {:>6.3} gain {:>5.3} move {:>4.2} m  fruits {fruits:>3}  sim {t:>6.1} s  wall {:>5.1} s",
+                    args.views,
+                    view.utility,
+                    view.gain,
+                    view.cost_m,
+                    started.elapsed().as_secs_f64()
+                );
+            }
+            EdgeEvent::NoReachableView { frame_seq, offered } => {
+                self.no_reachable += 1;
+                println!("frame {frame_seq}: none of {offered} views reachable, capturing again");
+            }
+            EdgeEvent::Reannounced { frame_seq } => {
+                println!("frame {frame_seq}: no views yet, re-announced");
+            }
+            EdgeEvent::SegmentDone {
+                segments_done,
+                sim_time_s,
+            } => {
+                println!(
+                    "segment {segments_done} done: moving along the row  sim {sim_time_s:6.1} s"
+                );
+            }
+            EdgeEvent::Finished {
+                views_done: n,
+                frames: f,
+            } => {
+                self.views_done = n;
+                self.frames = f;
+                return true;
+            }
+        }
+        false
+    }
+}
+
+impl FruitSummary {
+    fn of(f: &Fruit) -> Self {
+        let size = f.box_max - f.box_min;
+        FruitSummary {
+            id: f.id,
+            centre_m: f.centre_in_world.into(),
+            size_m: size.into(),
+            volume_m3: f.volume_m3,
+            voxel_count: f.voxel_count,
+            confidence: f.confidence,
+            fitted: f.fitted.as_ref().map(|e| FittedSummary {
+                centre_m: e.centre_in_world.into(),
+                semi_axes_m: e.semi_axes_m.into(),
+                volume_m3: e.volume_m3,
+                box_volume_m3: e.box_volume_m3,
+                confidence: e.confidence,
+                is_fit: e.is_fit,
+            }),
+        }
+    }
 }
 
 fn print_fruit_table(fruits: &[Fruit]) {

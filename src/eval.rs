@@ -118,120 +118,12 @@ fn write(path: &Path, bytes: impl AsRef<[u8]>) -> anyhow::Result<()> {
 /// Runs the experiment; see the module docs.
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let plan = check(&args)?;
-    // Fail on an unusable output directory before hours of simulation.
-    let trials_dir = args.out.join("trials");
-    std::fs::create_dir_all(&trials_dir)
-        .with_context(|| format!("cannot create {}", trials_dir.display()))?;
-    let probe = args.out.join(".write-test");
-    write(&probe, b"")?;
-    let _ = std::fs::remove_file(&probe);
-
+    let trials_dir = prepare_out(&args.out)?;
     let height = args.width * 3 / 4;
-    let configs: Vec<TrialConfig> = plan
-        .methods
-        .iter()
-        .flat_map(|&method| {
-            (0..args.trials).map(move |t| TrialConfig {
-                width: args.width,
-                height,
-                budget_s: args.budget_s,
-                compute_time: plan.compute_time,
-                ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
-            })
-        })
-        .collect();
-    for config in &configs {
-        config.validate()?;
-    }
-
-    // Progress in simulated seconds over all trials; the message counts finished trials.
-    let total_s = args.budget_s * configs.len() as f64;
-    let bar = ProgressBar::new((total_s * 10.0).round() as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{bar:40} {msg} trials done, {elapsed_precise} elapsed, {eta_precise} left",
-        )
-        .context("progress bar template")?,
-    );
-    bar.set_message(format!("0/{}", configs.len()));
-    bar.enable_steady_tick(Duration::from_millis(500));
+    let configs = trial_configs(&args, &plan, height)?;
     let started = Instant::now();
-    let next = AtomicUsize::new(0);
-    let done = AtomicUsize::new(0);
-    let results: Mutex<Vec<Option<(TrialResult, f64)>>> =
-        Mutex::new((0..configs.len()).map(|_| None).collect());
-    let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
-    std::thread::scope(|scope| {
-        for _ in 0..plan.jobs.min(configs.len()) {
-            scope.spawn(|| loop {
-                let index = next.fetch_add(1, Ordering::Relaxed);
-                let Some(config) = configs.get(index) else {
-                    break;
-                };
-                if first_error.lock().map(|e| e.is_some()).unwrap_or(true) {
-                    break;
-                }
-                let trial_started = Instant::now();
-                let mut reported = 0.0;
-                let outcome = run_trial(*config, |clock_s| {
-                    let step = ((clock_s - reported) * 10.0).max(0.0);
-                    bar.inc(step.round() as u64);
-                    reported += step.round() / 10.0;
-                });
-                match outcome {
-                    Ok(result) => {
-                        let wall_s = trial_started.elapsed().as_secs_f64();
-                        if let Ok(mut r) = results.lock() {
-                            r[index] = Some((result, wall_s));
-                        }
-                        let n = done.fetch_add(1, Ordering::Relaxed) + 1;
-                        bar.set_message(format!("{n}/{}", configs.len()));
-                    }
-                    Err(e) => {
-                        if let Ok(mut slot) = first_error.lock() {
-                            slot.get_or_insert(anyhow::Error::new(e).context(format!(
-                                "trial {} seed {} failed",
-                                config.method, config.seed
-                            )));
-                        }
-                        break;
-                    }
-                }
-            });
-        }
-    });
-    bar.finish_and_clear();
-    if let Some(e) = first_error
-        .into_inner()
-        .map_err(|_| anyhow::anyhow!("a trial thread panicked"))?
-    {
-        return Err(e);
-    }
-    let results = results
-        .into_inner()
-        .map_err(|_| anyhow::anyhow!("a trial thread panicked"))?;
-    let mut runs: Vec<MethodRuns> = plan
-        .methods
-        .iter()
-        .map(|&method| MethodRuns {
-            method,
-            trials: Vec::new(),
-        })
-        .collect();
-    let mut wall_times = Vec::new();
-    for (config, result) in configs.iter().zip(results) {
-        let Some((result, wall_s)) = result else {
-            bail!(
-                "trial {} seed {} did not finish",
-                config.method,
-                config.seed
-            );
-        };
-        wall_times.push(wall_s);
-        if let Some(run) = runs.iter_mut().find(|r| r.method == config.method) {
-            run.trials.push(result);
-        }
-    }
+    let results = run_trials(&configs, plan.jobs, args.budget_s)?;
+    let (runs, wall_times) = group_by_method(&plan, &configs, results)?;
     let wall_s = started.elapsed().as_secs_f64();
 
     // Outputs.
@@ -274,6 +166,165 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     );
     print!("{table}");
     Ok(())
+}
+
+/// Creates `out/trials` and checks `out` is writable, so an unusable output directory fails
+/// before hours of simulation.
+fn prepare_out(out: &Path) -> anyhow::Result<PathBuf> {
+    let trials_dir = out.join("trials");
+    std::fs::create_dir_all(&trials_dir)
+        .with_context(|| format!("cannot create {}", trials_dir.display()))?;
+    let probe = out.join(".write-test");
+    write(&probe, b"")?;
+    let _ = std::fs::remove_file(&probe);
+    Ok(trials_dir)
+}
+
+/// Every trial of every method, method by method; trial `t` uses seed `--seed + t`.
+fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Vec<TrialConfig>> {
+    let configs: Vec<TrialConfig> = plan
+        .methods
+        .iter()
+        .flat_map(|&method| {
+            (0..args.trials).map(move |t| TrialConfig {
+                width: args.width,
+                height,
+                budget_s: args.budget_s,
+                compute_time: plan.compute_time,
+                ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
+            })
+        })
+        .collect();
+    for config in &configs {
+        config.validate()?;
+    }
+    Ok(configs)
+}
+
+/// What the trial threads share: the next trial to take, the results and the first error.
+struct TrialQueue<'a> {
+    configs: &'a [TrialConfig],
+    next: AtomicUsize,
+    done: AtomicUsize,
+    results: Mutex<Vec<Option<(TrialResult, f64)>>>,
+    first_error: Mutex<Option<anyhow::Error>>,
+    bar: ProgressBar,
+}
+
+/// Runs the trials on `jobs` threads; returns (result, wall seconds) per config, in order.
+fn run_trials(
+    configs: &[TrialConfig],
+    jobs: usize,
+    budget_s: f64,
+) -> anyhow::Result<Vec<Option<(TrialResult, f64)>>> {
+    // Progress in simulated seconds over all trials; the message counts finished trials.
+    let total_s = budget_s * configs.len() as f64;
+    let bar = ProgressBar::new((total_s * 10.0).round() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{bar:40} {msg} trials done, {elapsed_precise} elapsed, {eta_precise} left",
+        )
+        .context("progress bar template")?,
+    );
+    bar.set_message(format!("0/{}", configs.len()));
+    bar.enable_steady_tick(Duration::from_millis(500));
+    let queue = TrialQueue {
+        configs,
+        next: AtomicUsize::new(0),
+        done: AtomicUsize::new(0),
+        results: Mutex::new((0..configs.len()).map(|_| None).collect()),
+        first_error: Mutex::new(None),
+        bar,
+    };
+    std::thread::scope(|scope| {
+        for _ in 0..jobs.min(configs.len()) {
+            scope.spawn(|| queue.work());
+        }
+    });
+    queue.bar.finish_and_clear();
+    if let Some(e) = queue
+        .first_error
+        .into_inner()
+        .map_err(|_| anyhow::anyhow!("a trial thread panicked"))?
+    {
+        return Err(e);
+    }
+    queue
+        .results
+        .into_inner()
+        .map_err(|_| anyhow::anyhow!("a trial thread panicked"))
+}
+
+impl TrialQueue<'_> {
+    /// One thread: takes trials until none is left or one has failed.
+    fn work(&self) {
+        loop {
+            let index = self.next.fetch_add(1, Ordering::Relaxed);
+            let Some(config) = self.configs.get(index) else {
+                break;
+            };
+            if self.first_error.lock().map(|e| e.is_some()).unwrap_or(true) {
+                break;
+            }
+            let trial_started = Instant::now();
+            let mut reported = 0.0;
+            let outcome = run_trial(*config, |clock_s| {
+                let step = ((clock_s - reported) * 10.0).max(0.0);
+                self.bar.inc(step.round() as u64);
+                reported += step.round() / 10.0;
+            });
+            match outcome {
+                Ok(result) => {
+                    let wall_s = trial_started.elapsed().as_secs_f64();
+                    if let Ok(mut r) = self.results.lock() {
+                        r[index] = Some((result, wall_s));
+                    }
+                    let n = self.done.fetch_add(1, Ordering::Relaxed) + 1;
+                    self.bar.set_message(format!("{n}/{}", self.configs.len()));
+                }
+                Err(e) => {
+                    if let Ok(mut slot) = self.first_error.lock() {
+                        slot.get_or_insert(anyhow::Error::new(e).context(format!(
+                            "trial {} seed {} failed",
+                            config.method, config.seed
+                        )));
+                    }
+                    break;
+                }
+            }
+        }
+    }
+}
+
+/// The trials of each method, and every trial's wall time.
+fn group_by_method(
+    plan: &Plan,
+    configs: &[TrialConfig],
+    results: Vec<Option<(TrialResult, f64)>>,
+) -> anyhow::Result<(Vec<MethodRuns>, Vec<f64>)> {
+    let mut runs: Vec<MethodRuns> = plan
+        .methods
+        .iter()
+        .map(|&method| MethodRuns {
+            method,
+            trials: Vec::new(),
+        })
+        .collect();
+    let mut wall_times = Vec::new();
+    for (config, result) in configs.iter().zip(results) {
+        let Some((result, wall_s)) = result else {
+            bail!(
+                "trial {} seed {} did not finish",
+                config.method,
+                config.seed
+            );
+        };
+        wall_times.push(wall_s);
+        if let Some(run) = runs.iter_mut().find(|r| r.method == config.method) {
+            run.trials.push(result);
+        }
+    }
+    Ok((runs, wall_times))
 }
 
 /// The legend of the plots in words (the PNGs carry it in colour).

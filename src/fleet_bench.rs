@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::{ensure, Context};
 use glasshouse_bus::BusArgs;
 use glasshouse_proto::keys::{self, ParsedKey, TrolleyTopic};
-use glasshouse_proto::{decode_as, Message};
+use glasshouse_proto::{decode_as, Header, Message};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -210,6 +210,43 @@ fn free_port() -> anyhow::Result<u16> {
 }
 
 pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
+    validate(&args)?;
+    let measured = Duration::from_secs_f64(args.minutes * 60.0);
+    let kill_at = Duration::from_secs_f64(
+        args.kill_at_s
+            .unwrap_or(measured.as_secs_f64() / 2.0)
+            .max(0.0),
+    );
+    let kill_enabled = args.kill_at_s != Some(0.0) && args.planners >= 2;
+
+    let mut fleet = Fleet::new(&args)?;
+    fleet.spawn_router()?;
+    let observer = glasshouse_bus::open(&BusArgs::client(&fleet.endpoint)).await?;
+    let observed = Arc::new(Mutex::new(Observed::default()));
+    let subscriber = subscribe_observer(&observer, observed.clone()).await?;
+    fleet.spawn_services(&args).await?;
+    warm_up(&observed, &args, &fleet.logs).await?;
+    let measurement = measure(&mut fleet.procs, &observed, measured, kill_enabled, kill_at).await;
+    let per_kind = per_kind_usage(&fleet.procs, &measurement);
+    let report = {
+        let o = observed
+            .lock()
+            .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
+        build_report(&args, &o, &measurement, per_kind)
+    };
+    print_report(&report);
+    if let Some(path) = &args.json {
+        std::fs::write(path, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        println!("report written to {}", path.display());
+    }
+    drop(subscriber);
+    let _ = observer.close().await;
+    fleet.stop();
+    Ok(())
+}
+
+fn validate(args: &FleetBenchArgs) -> anyhow::Result<()> {
     ensure!(
         (1..=64).contains(&args.trolleys),
         "--trolleys must be 1..=64"
@@ -238,47 +275,141 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
         .contains(&args.scenario.as_str())
         .then_some(())
         .context("--scenario must be 1, 2 or row")?;
-    let measured = Duration::from_secs_f64(args.minutes * 60.0);
-    let kill_at = Duration::from_secs_f64(
-        args.kill_at_s
-            .unwrap_or(measured.as_secs_f64() / 2.0)
-            .max(0.0),
-    );
-    let kill_enabled = args.kill_at_s != Some(0.0) && args.planners >= 2;
+    Ok(())
+}
 
-    let temp_logs = args.logs.is_none();
-    let logs = args.logs.clone().unwrap_or_else(|| {
-        std::env::temp_dir().join(format!("glasshouse-fleet-bench-{}", std::process::id()))
-    });
-    std::fs::create_dir_all(&logs).with_context(|| format!("log folder {}", logs.display()))?;
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
-    let lease = args.lease_ms.to_string();
-    let client_args = |extra: &[String]| -> Vec<String> {
-        let mut a: Vec<String> = ["-e", &endpoint, "--mode", "client", "--lease-ms", &lease]
-            .iter()
-            .map(|s| s.to_string())
-            .collect();
-        a.extend_from_slice(extra);
-        a
-    };
-    let mut procs: Vec<Proc> = Vec::new();
-    procs.push(spawn(
-        "router",
-        "router".into(),
-        &sibling("glasshouse")?,
-        &[
+/// The fleet's processes, the router they all reach and the folder of their logs.
+struct Fleet {
+    procs: Vec<Proc>,
+    endpoint: String,
+    lease: String,
+    logs: PathBuf,
+    /// The logs folder is temporary (no `--logs`): removed at the end.
+    temp_logs: bool,
+}
+
+impl Fleet {
+    fn new(args: &FleetBenchArgs) -> anyhow::Result<Self> {
+        let temp_logs = args.logs.is_none();
+        let logs = args.logs.clone().unwrap_or_else(|| {
+            std::env::temp_dir().join(format!("glasshouse-fleet-bench-{}", std::process::id()))
+        });
+        std::fs::create_dir_all(&logs).with_context(|| format!("log folder {}", logs.display()))?;
+        Ok(Fleet {
+            procs: Vec::new(),
+            endpoint: format!("tcp/127.0.0.1:{}", free_port()?),
+            lease: args.lease_ms.to_string(),
+            logs,
+            temp_logs,
+        })
+    }
+
+    fn spawn_router(&mut self) -> anyhow::Result<()> {
+        let args = [
             "router".into(),
             "-l".into(),
-            endpoint.clone(),
+            self.endpoint.clone(),
             "--lease-ms".into(),
-            lease.clone(),
-        ],
-        &logs,
-    )?);
-    let observer = glasshouse_bus::open(&BusArgs::client(&endpoint)).await?;
-    let observed = Arc::new(Mutex::new(Observed::default()));
-    let sink = observed.clone();
-    let _subscriber = observer
+            self.lease.clone(),
+        ];
+        let router = spawn(
+            "router",
+            "router".into(),
+            &sibling("glasshouse")?,
+            &args,
+            &self.logs,
+        )?;
+        self.procs.push(router);
+        Ok(())
+    }
+
+    /// Starts one client process of the fleet: the session flags, then `extra`.
+    fn spawn_client(
+        &mut self,
+        kind: &'static str,
+        name: String,
+        bin: &str,
+        extra: &[String],
+    ) -> anyhow::Result<()> {
+        let mut a: Vec<String> = [
+            "-e",
+            &self.endpoint,
+            "--mode",
+            "client",
+            "--lease-ms",
+            &self.lease,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        a.extend_from_slice(extra);
+        let proc = spawn(kind, name, &sibling(bin)?, &a, &self.logs)?;
+        self.procs.push(proc);
+        Ok(())
+    }
+
+    /// Detectors and planners first, the trolleys once they have found each other.
+    async fn spawn_services(&mut self, args: &FleetBenchArgs) -> anyhow::Result<()> {
+        for i in 1..=args.detectors {
+            let extra = ["--detector-id".into(), format!("d{i}")];
+            self.spawn_client("detector", format!("d{i}"), "detector-service", &extra)?;
+        }
+        for i in 1..=args.planners {
+            let extra = ["--planner-id".into(), format!("p{i}")];
+            self.spawn_client("planner", format!("p{i}"), "planner-service", &extra)?;
+        }
+        // Let the planners and detectors find each other before the trolleys appear.
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        let interval_ms = (1000.0 / args.fps).round() as u64;
+        for i in 1..=args.trolleys {
+            let extra = [
+                "--trolley-id".into(),
+                format!("t{i}"),
+                "--scenario".into(),
+                args.scenario.clone(),
+                "--seed".into(),
+                i.to_string(),
+                "--width".into(),
+                args.width.to_string(),
+                "--frame-interval-ms".into(),
+                interval_ms.to_string(),
+            ];
+            self.spawn_client("edge", format!("t{i}"), "edge", &extra)?;
+        }
+        Ok(())
+    }
+
+    /// Stops every process still running (edges and services first, the router last), then
+    /// removes a temporary logs folder.
+    fn stop(mut self) {
+        for p in self.procs.iter_mut().rev() {
+            if !p.killed {
+                let _ = Command::new("kill")
+                    .args(["-TERM", &p.child.id().to_string()])
+                    .status();
+            }
+        }
+        let deadline = Instant::now() + Duration::from_secs(10);
+        for p in self.procs.iter_mut() {
+            while p.child.try_wait().ok().flatten().is_none() && Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+        self.procs.clear();
+        if self.temp_logs {
+            let _ = std::fs::remove_dir_all(&self.logs);
+        } else {
+            println!("logs in {}", self.logs.display());
+        }
+    }
+}
+
+/// Records every message on the bus into `observed`, stamped with its arrival.
+async fn subscribe_observer(
+    observer: &glasshouse_bus::zenoh::Session,
+    observed: Arc<Mutex<Observed>>,
+) -> anyhow::Result<glasshouse_bus::zenoh::pubsub::Subscriber<()>> {
+    observer
         .declare_subscriber(keys::EVERYTHING)
         .callback(move |sample| {
             let now = Instant::now();
@@ -289,104 +420,83 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
                 return;
             };
             let bytes = sample.payload().to_bytes();
-            let Ok(mut o) = sink.lock() else { return };
+            let Ok(mut o) = observed.lock() else { return };
             let Ok((header, message)) = decode_as(&bytes, kind) else {
                 o.corrupt += 1;
                 return;
             };
-            match (&key, message) {
-                (ParsedKey::Trolley { tid, topic }, message) => {
-                    let t = o.trolleys.entry(tid.clone()).or_default();
-                    match (topic, message) {
-                        (TrolleyTopic::Rgbd, _) => {
-                            t.frame_at.entry(header.seq).or_insert(now);
-                        }
-                        (TrolleyTopic::Roi, Message::RoiCloud(c)) => {
-                            let seq = c.source_frame_seq;
-                            if let std::collections::hash_map::Entry::Vacant(e) =
-                                t.cloud_at.entry(seq)
-                            {
-                                e.insert(now);
-                                if let Some(f) = t.frame_at.get(&seq) {
-                                    t.frame_to_cloud_ms
-                                        .push(now.duration_since(*f).as_secs_f64() * 1e3);
-                                }
-                            }
-                        }
-                        (TrolleyTopic::Views, Message::RankedViews(v)) => {
-                            t.views += 1;
-                            t.views_from.push((now, header.source_id.clone()));
-                            // The first views on a frame: the loop's latency.
-                            if let Some(f) = t.frame_at.remove(&v.based_on_seq) {
-                                t.frame_to_views_ms
-                                    .push(now.duration_since(f).as_secs_f64() * 1e3);
-                            }
-                        }
-                        (TrolleyTopic::Status, Message::TrolleyStatus(s)) => {
-                            o.drops.insert(format!("trolley/{tid}"), s.dropped_messages);
-                        }
-                        _ => {}
-                    }
-                }
-                (ParsedKey::PlannerStatus { pid }, Message::PlannerStatus(s)) => {
-                    o.drops.insert(format!("planner/{pid}"), s.dropped_messages);
-                    o.owned.insert(pid.clone(), s.owned_trolleys);
-                }
-                (ParsedKey::DetectorStatus { did }, Message::DetectorStatus(s)) => {
-                    o.drops
-                        .insert(format!("detector/{did}"), s.dropped_messages);
-                }
-                _ => {}
-            }
+            o.record(&key, &header, message, now);
         })
         .await
-        .map_err(|e| anyhow::anyhow!("observer subscriber: {e}"))?;
+        .map_err(|e| anyhow::anyhow!("observer subscriber: {e}"))
+}
 
-    for i in 1..=args.detectors {
-        let a = client_args(&["--detector-id".into(), format!("d{i}")]);
-        procs.push(spawn(
-            "detector",
-            format!("d{i}"),
-            &sibling("detector-service")?,
-            &a,
-            &logs,
-        )?);
+impl Observed {
+    fn record(&mut self, key: &ParsedKey, header: &Header, message: Message, now: Instant) {
+        match (key, message) {
+            (ParsedKey::Trolley { tid, topic }, message) => {
+                self.record_trolley(tid, topic, header, message, now);
+            }
+            (ParsedKey::PlannerStatus { pid }, Message::PlannerStatus(s)) => {
+                self.drops
+                    .insert(format!("planner/{pid}"), s.dropped_messages);
+                self.owned.insert(pid.clone(), s.owned_trolleys);
+            }
+            (ParsedKey::DetectorStatus { did }, Message::DetectorStatus(s)) => {
+                self.drops
+                    .insert(format!("detector/{did}"), s.dropped_messages);
+            }
+            _ => {}
+        }
     }
-    for i in 1..=args.planners {
-        let a = client_args(&["--planner-id".into(), format!("p{i}")]);
-        procs.push(spawn(
-            "planner",
-            format!("p{i}"),
-            &sibling("planner-service")?,
-            &a,
-            &logs,
-        )?);
+
+    fn record_trolley(
+        &mut self,
+        tid: &str,
+        topic: &TrolleyTopic,
+        header: &Header,
+        message: Message,
+        now: Instant,
+    ) {
+        let t = self.trolleys.entry(tid.to_owned()).or_default();
+        match (topic, message) {
+            (TrolleyTopic::Rgbd, _) => {
+                t.frame_at.entry(header.seq).or_insert(now);
+            }
+            (TrolleyTopic::Roi, Message::RoiCloud(c)) => {
+                let seq = c.source_frame_seq;
+                if let std::collections::hash_map::Entry::Vacant(e) = t.cloud_at.entry(seq) {
+                    e.insert(now);
+                    if let Some(f) = t.frame_at.get(&seq) {
+                        t.frame_to_cloud_ms
+                            .push(now.duration_since(*f).as_secs_f64() * 1e3);
+                    }
+                }
+            }
+            (TrolleyTopic::Views, Message::RankedViews(v)) => {
+                t.views += 1;
+                t.views_from.push((now, header.source_id.clone()));
+                // The first views on a frame: the loop's latency.
+                if let Some(f) = t.frame_at.remove(&v.based_on_seq) {
+                    t.frame_to_views_ms
+                        .push(now.duration_since(f).as_secs_f64() * 1e3);
+                }
+            }
+            (TrolleyTopic::Status, Message::TrolleyStatus(s)) => {
+                self.drops
+                    .insert(format!("trolley/{tid}"), s.dropped_messages);
+            }
+            _ => {}
+        }
     }
-    // Let the planners and detectors find each other before the trolleys appear.
-    tokio::time::sleep(Duration::from_secs(2)).await;
-    let interval_ms = (1000.0 / args.fps).round() as u64;
-    for i in 1..=args.trolleys {
-        let a = client_args(&[
-            "--trolley-id".into(),
-            format!("t{i}"),
-            "--scenario".into(),
-            args.scenario.clone(),
-            "--seed".into(),
-            i.to_string(),
-            "--width".into(),
-            args.width.to_string(),
-            "--frame-interval-ms".into(),
-            interval_ms.to_string(),
-        ]);
-        procs.push(spawn(
-            "edge",
-            format!("t{i}"),
-            &sibling("edge")?,
-            &a,
-            &logs,
-        )?);
-    }
-    // Warm-up: every trolley has views once before measuring.
+}
+
+/// Waits until every trolley has had views once (at most 120 s).
+async fn warm_up(
+    observed: &Mutex<Observed>,
+    args: &FleetBenchArgs,
+    logs: &Path,
+) -> anyhow::Result<()> {
     let warm_up_until = Instant::now() + Duration::from_secs(120);
     loop {
         let ready = observed
@@ -394,7 +504,7 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
             .map(|o| o.trolleys.values().filter(|t| t.views > 0).count())
             .unwrap_or(0);
         if ready >= args.trolleys as usize {
-            break;
+            return Ok(());
         }
         ensure!(
             Instant::now() < warm_up_until,
@@ -404,6 +514,26 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
+}
+
+/// What the measured run itself yields, beside what the observer saw.
+struct Measurement {
+    elapsed_s: f64,
+    drops_at_start: BTreeMap<String, u64>,
+    /// The planner killed and when.
+    killed: Option<(String, Instant)>,
+    /// CPU seconds of each killed process at its kill.
+    cpu_at_kill: HashMap<String, f64>,
+}
+
+/// The measured run: resets the observer's logs, samples memory, kills t1's owner at `kill_at`.
+async fn measure(
+    procs: &mut [Proc],
+    observed: &Mutex<Observed>,
+    measured: Duration,
+    kill_enabled: bool,
+    kill_at: Duration,
+) -> Measurement {
     // Measure from here: reset the logs.
     if let Ok(mut o) = observed.lock() {
         for t in o.trolleys.values_mut() {
@@ -433,40 +563,56 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
             }
         }
         if kill_enabled && killed.is_none() && started.elapsed() >= kill_at {
-            let owner = observed.lock().ok().and_then(|o| {
-                o.owned
-                    .iter()
-                    .find(|(_, trolleys)| trolleys.iter().any(|t| t == "t1"))
-                    .map(|(pid, _)| pid.clone())
-            });
-            if let Some(pid) = owner {
-                if let Some(p) = procs
-                    .iter_mut()
-                    .find(|p| p.kind == "planner" && p.name == pid)
-                {
-                    cpu_at_kill.insert(
-                        pid.clone(),
-                        cpu_seconds(p.child.id()).unwrap_or(p.cpu_at_start_s),
-                    );
-                    let _ = p.child.kill();
-                    let _ = p.child.wait();
-                    p.killed = true;
-                    bar.println(format!(
-                        "killed {pid}, the owner of t1, at {:.1} s",
-                        started.elapsed().as_secs_f64()
-                    ));
-                    killed = Some((pid, Instant::now()));
-                }
+            killed = kill_owner_of_t1(procs, observed, &mut cpu_at_kill);
+            if let Some((pid, _)) = &killed {
+                bar.println(format!(
+                    "killed {pid}, the owner of t1, at {:.1} s",
+                    started.elapsed().as_secs_f64()
+                ));
             }
         }
         bar.set_position(started.elapsed().as_secs().min(measured.as_secs()));
     }
     bar.finish_and_clear();
-    let elapsed_s = started.elapsed().as_secs_f64();
+    Measurement {
+        elapsed_s: started.elapsed().as_secs_f64(),
+        drops_at_start,
+        killed,
+        cpu_at_kill,
+    }
+}
+
+/// Kills the planner that owns t1 with SIGKILL, noting its CPU time; `None` if no planner owns it.
+fn kill_owner_of_t1(
+    procs: &mut [Proc],
+    observed: &Mutex<Observed>,
+    cpu_at_kill: &mut HashMap<String, f64>,
+) -> Option<(String, Instant)> {
+    let pid = observed.lock().ok().and_then(|o| {
+        o.owned
+            .iter()
+            .find(|(_, trolleys)| trolleys.iter().any(|t| t == "t1"))
+            .map(|(pid, _)| pid.clone())
+    })?;
+    let p = procs
+        .iter_mut()
+        .find(|p| p.kind == "planner" && p.name == pid)?;
+    cpu_at_kill.insert(
+        pid.clone(),
+        cpu_seconds(p.child.id()).unwrap_or(p.cpu_at_start_s),
+    );
+    let _ = p.child.kill();
+    let _ = p.child.wait();
+    p.killed = true;
+    Some((pid, Instant::now()))
+}
+
+/// CPU and peak memory per process kind over the measured run.
+fn per_kind_usage(procs: &[Proc], m: &Measurement) -> BTreeMap<String, KindReport> {
     let mut per_kind: BTreeMap<String, (usize, f64, u64)> = BTreeMap::new();
-    for p in &procs {
+    for p in procs {
         let cpu_end = if p.killed {
-            cpu_at_kill
+            m.cpu_at_kill
                 .get(&p.name)
                 .copied()
                 .unwrap_or(p.cpu_at_start_s)
@@ -478,98 +624,74 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
         e.1 += cpu_end - p.cpu_at_start_s;
         e.2 = e.2.max(p.peak_rss_kib);
     }
-    let report = {
-        let o = observed
-            .lock()
-            .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
-        let all_cloud: Vec<f64> = o
-            .trolleys
-            .values()
-            .flat_map(|t| t.frame_to_cloud_ms.iter().copied())
-            .collect();
-        let all_views: Vec<f64> = o
-            .trolleys
-            .values()
-            .flat_map(|t| t.frame_to_views_ms.iter().copied())
-            .collect();
-        let frames: usize = o.trolleys.values().map(|t| t.cloud_at.len()).sum();
-        let views: u64 = o.trolleys.values().map(|t| t.views).sum();
-        let takeover_s = killed.as_ref().and_then(|(pid, at)| {
-            o.trolleys.get("t1").and_then(|t| {
-                t.views_from
-                    .iter()
-                    .find(|(when, from)| when > at && from != pid)
-                    .map(|(when, _)| when.duration_since(*at).as_secs_f64())
-            })
-        });
-        let dropped: u64 = o
-            .drops
-            .iter()
-            .map(|(k, v)| v.saturating_sub(drops_at_start.get(k).copied().unwrap_or(0)))
-            .sum();
-        let n = f64::from(args.trolleys);
-        Report {
-            trolleys: args.trolleys,
-            planners: args.planners,
-            detectors: args.detectors,
-            scenario: args.scenario.clone(),
-            width: args.width,
-            fps_per_trolley_max: args.fps,
-            measured_s: elapsed_s,
-            frames_per_s_per_trolley: frames as f64 / elapsed_s / n,
-            views_per_minute_per_trolley: views as f64 / (elapsed_s / 60.0) / n,
-            frame_to_cloud_ms_p50: percentile(&all_cloud, 50.0),
-            frame_to_cloud_ms_p99: percentile(&all_cloud, 99.0),
-            frame_to_views_ms_p50: percentile(&all_views, 50.0),
-            frame_to_views_ms_p99: percentile(&all_views, 99.0),
-            messages_dropped: dropped,
-            observer_corrupt: o.corrupt,
-            killed_planner: killed.as_ref().map(|(p, _)| p.clone()),
-            takeover_s,
-            per_kind: per_kind
-                .into_iter()
-                .map(|(k, (count, cpu, rss))| {
-                    (
-                        k,
-                        KindReport {
-                            processes: count,
-                            cpu_percent_of_one_core: 100.0 * cpu / elapsed_s,
-                            peak_rss_mib_per_process: rss as f64 / 1024.0,
-                        },
-                    )
-                })
-                .collect(),
-        }
-    };
-    print_report(&report);
-    if let Some(path) = &args.json {
-        std::fs::write(path, serde_json::to_string_pretty(&report)?)
-            .with_context(|| format!("writing {}", path.display()))?;
-        println!("report written to {}", path.display());
+    per_kind
+        .into_iter()
+        .map(|(k, (count, cpu, rss))| {
+            (
+                k,
+                KindReport {
+                    processes: count,
+                    cpu_percent_of_one_core: 100.0 * cpu / m.elapsed_s,
+                    peak_rss_mib_per_process: rss as f64 / 1024.0,
+                },
+            )
+        })
+        .collect()
+}
+
+fn build_report(
+    args: &FleetBenchArgs,
+    o: &Observed,
+    m: &Measurement,
+    per_kind: BTreeMap<String, KindReport>,
+) -> Report {
+    let all_cloud: Vec<f64> = o
+        .trolleys
+        .values()
+        .flat_map(|t| t.frame_to_cloud_ms.iter().copied())
+        .collect();
+    let all_views: Vec<f64> = o
+        .trolleys
+        .values()
+        .flat_map(|t| t.frame_to_views_ms.iter().copied())
+        .collect();
+    let frames: usize = o.trolleys.values().map(|t| t.cloud_at.len()).sum();
+    let views: u64 = o.trolleys.values().map(|t| t.views).sum();
+    let takeover_s = m.killed.as_ref().and_then(|(pid, at)| {
+        o.trolleys.get("t1").and_then(|t| {
+            t.views_from
+                .iter()
+                .find(|(when, from)| when > at && from != pid)
+                .map(|(when, _)| when.duration_since(*at).as_secs_f64())
+        })
+    });
+    let dropped: u64 = o
+        .drops
+        .iter()
+        .map(|(k, v)| v.saturating_sub(m.drops_at_start.get(k).copied().unwrap_or(0)))
+        .sum();
+    let n = f64::from(args.trolleys);
+    let elapsed_s = m.elapsed_s;
+    Report {
+        trolleys: args.trolleys,
+        planners: args.planners,
+        detectors: args.detectors,
+        scenario: args.scenario.clone(),
+        width: args.width,
+        fps_per_trolley_max: args.fps,
+        measured_s: elapsed_s,
+        frames_per_s_per_trolley: frames as f64 / elapsed_s / n,
+        views_per_minute_per_trolley: views as f64 / (elapsed_s / 60.0) / n,
+        frame_to_cloud_ms_p50: percentile(&all_cloud, 50.0),
+        frame_to_cloud_ms_p99: percentile(&all_cloud, 99.0),
+        frame_to_views_ms_p50: percentile(&all_views, 50.0),
+        frame_to_views_ms_p99: percentile(&all_views, 99.0),
+        messages_dropped: dropped,
+        observer_corrupt: o.corrupt,
+        killed_planner: m.killed.as_ref().map(|(p, _)| p.clone()),
+        takeover_s,
+        per_kind,
     }
-    drop(_subscriber);
-    let _ = observer.close().await;
-    // Edges and services first, the router last.
-    for p in procs.iter_mut().rev() {
-        if !p.killed {
-            let _ = Command::new("kill")
-                .args(["-TERM", &p.child.id().to_string()])
-                .status();
-        }
-    }
-    let deadline = Instant::now() + Duration::from_secs(10);
-    for p in procs.iter_mut() {
-        while p.child.try_wait().ok().flatten().is_none() && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-    drop(procs);
-    if temp_logs {
-        let _ = std::fs::remove_dir_all(&logs);
-    } else {
-        println!("logs in {}", logs.display());
-    }
-    Ok(())
 }
 
 fn ms(v: Option<f64>) -> String {

@@ -303,65 +303,11 @@ pub async fn run(
     } else {
         None
     };
-    let viewer_url = settings.serve.as_ref().map(ServeSettings::web_viewer_url);
     let http = match &settings.http_listen {
-        Some(addr) => {
-            let listener = tokio::net::TcpListener::bind(addr)
-                .await
-                .map_err(|e| anyhow::anyhow!("cannot listen on {addr}: {e}"))?;
-            let bound = listener.local_addr()?;
-            if let Ok(mut a) = counters.http_addr.lock() {
-                *a = Some(bound);
-            }
-            tracing::info!(url = %format!("http://{bound}/"), "fleet web page");
-            let app = web::router(web::WebState {
-                fleet: state.clone(),
-                counters: counters.clone(),
-                rerun_viewer_url: viewer_url.clone(),
-            });
-            let mut stop = shutdown.clone();
-            Some(tokio::spawn(async move {
-                axum::serve(listener, app)
-                    .with_graceful_shutdown(async move { stop.wait().await })
-                    .await
-            }))
-        }
+        Some(addr) => Some(serve_web(addr, &settings, &shutdown, &state, &counters).await?),
         None => None,
     };
-    // Frames and arm states are streams (keep the newest); everything else a deep monitor queue.
-    let mut key_exprs: Vec<(String, Delivery)> = TrolleyTopic::ALL
-        .into_iter()
-        .map(|topic| {
-            let delivery = match topic.qos() {
-                Qos::Stream => Delivery::Stream,
-                Qos::Reliable => Delivery::Monitor,
-            };
-            (keys::all_trolleys(topic), delivery)
-        })
-        .collect();
-    let services = [
-        keys::all_planner_status().to_string(),
-        keys::all_detector_status().to_string(),
-        keys::fleet_fruits().to_string(),
-    ];
-    key_exprs.extend(services.map(|key| (key, Delivery::Monitor)));
-    let (tx, mut rx) = tokio::sync::mpsc::channel::<Received<Message>>(64);
-    let mut subscribers = Vec::new();
-    for (key_expr, delivery) in key_exprs {
-        let sub = Arc::new(
-            AnySubscriber::declare(&session, &key_expr, delivery, counters.drops.clone()).await?,
-        );
-        subscribers.push(sub.clone());
-        let tx = tx.clone();
-        tokio::spawn(async move {
-            while let Some(received) = sub.recv().await {
-                if tx.send(received).await.is_err() {
-                    break;
-                }
-            }
-        });
-    }
-    drop(tx);
+    let (_subscribers, mut rx) = subscribe_all(&session, &counters).await?;
     tracing::info!(record = ?settings.record, "dashboard started");
     loop {
         tokio::select! {
@@ -398,11 +344,7 @@ pub async fn run(
         recorder.finish()?;
     }
     if let Some(http) = http {
-        match tokio::time::timeout(std::time::Duration::from_secs(5), http).await {
-            Ok(Ok(Err(e))) => tracing::warn!(error = %e, "web server stopped with an error"),
-            Err(_) => tracing::warn!("web server did not stop in time"),
-            _ => {}
-        }
+        stop_web(http).await;
     }
     let messages = state.lock().map(|s| s.messages).unwrap_or(0);
     tracing::info!(
@@ -411,4 +353,90 @@ pub async fn run(
         "dashboard stopped"
     );
     Ok(())
+}
+
+type WebTask = tokio::task::JoinHandle<std::io::Result<()>>;
+
+/// Serves the fleet web page on `addr` until `shutdown` fires.
+async fn serve_web(
+    addr: &str,
+    settings: &DashboardSettings,
+    shutdown: &Shutdown,
+    state: &Arc<Mutex<FleetState>>,
+    counters: &Arc<DashboardCounters>,
+) -> anyhow::Result<WebTask> {
+    let viewer_url = settings.serve.as_ref().map(ServeSettings::web_viewer_url);
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot listen on {addr}: {e}"))?;
+    let bound = listener.local_addr()?;
+    if let Ok(mut a) = counters.http_addr.lock() {
+        *a = Some(bound);
+    }
+    tracing::info!(url = %format!("http://{bound}/"), "fleet web page");
+    let app = web::router(web::WebState {
+        fleet: state.clone(),
+        counters: counters.clone(),
+        rerun_viewer_url: viewer_url,
+    });
+    let mut stop = shutdown.clone();
+    Ok(tokio::spawn(async move {
+        axum::serve(listener, app)
+            .with_graceful_shutdown(async move { stop.wait().await })
+            .await
+    }))
+}
+
+/// Waits (at most 5 s) for the web server to stop.
+async fn stop_web(http: WebTask) {
+    match tokio::time::timeout(std::time::Duration::from_secs(5), http).await {
+        Ok(Ok(Err(e))) => tracing::warn!(error = %e, "web server stopped with an error"),
+        Err(_) => tracing::warn!("web server did not stop in time"),
+        _ => {}
+    }
+}
+
+/// Subscribes to every trolley topic and the services' keys; all messages arrive on one queue.
+/// The subscribers must be kept for as long as messages are wanted.
+async fn subscribe_all(
+    session: &Session,
+    counters: &DashboardCounters,
+) -> anyhow::Result<(
+    Vec<Arc<AnySubscriber>>,
+    tokio::sync::mpsc::Receiver<Received<Message>>,
+)> {
+    // Frames and arm states are streams (keep the newest); everything else a deep monitor queue.
+    let mut key_exprs: Vec<(String, Delivery)> = TrolleyTopic::ALL
+        .into_iter()
+        .map(|topic| {
+            let delivery = match topic.qos() {
+                Qos::Stream => Delivery::Stream,
+                Qos::Reliable => Delivery::Monitor,
+            };
+            (keys::all_trolleys(topic), delivery)
+        })
+        .collect();
+    let services = [
+        keys::all_planner_status().to_string(),
+        keys::all_detector_status().to_string(),
+        keys::fleet_fruits().to_string(),
+    ];
+    key_exprs.extend(services.map(|key| (key, Delivery::Monitor)));
+    let (tx, rx) = tokio::sync::mpsc::channel::<Received<Message>>(64);
+    let mut subscribers = Vec::new();
+    for (key_expr, delivery) in key_exprs {
+        let sub = Arc::new(
+            AnySubscriber::declare(session, &key_expr, delivery, counters.drops.clone()).await?,
+        );
+        subscribers.push(sub.clone());
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            while let Some(received) = sub.recv().await {
+                if tx.send(received).await.is_err() {
+                    break;
+                }
+            }
+        });
+    }
+    Ok((subscribers, rx))
 }

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use clap::Parser;
-use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_bus::BusArgs;
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
 
 /// Read-only monitor of the fleet: a web page with fleet, planner and fruit tables (JSON API at
@@ -73,18 +73,10 @@ async fn main() -> anyhow::Result<()> {
         println!("live 3D view: {}", serve.web_viewer_url());
         println!("Rerun viewer: rerun {}", serve.grpc_url());
     }
-    let session = glasshouse_bus::open(&cli.bus).await?;
-    let (trigger, shutdown) = Shutdown::new();
-    trigger.fire_on_signal();
     let state = Arc::new(Mutex::new(FleetState::default()));
-    let result = glasshouse_dashboard::run(
-        session.clone(),
-        settings,
-        shutdown,
-        state,
-        Arc::new(DashboardCounters::default()),
-    )
-    .await;
-    let _ = session.close().await;
-    result
+    let counters = Arc::new(DashboardCounters::default());
+    glasshouse_bus::run_service(&cli.bus, |session, shutdown| {
+        glasshouse_dashboard::run(session, settings, shutdown, state, counters)
+    })
+    .await
 }

@@ -4,7 +4,10 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use glasshouse_proto::keys::{ParsedKey, TrolleyTopic};
-use glasshouse_proto::{Header, Message, ViewKind, VoxelState};
+use glasshouse_proto::{
+    ArmState, Fruit, FruitEstimates, Header, Message, PlannerStatus, RankedViews, RgbdFrame,
+    RoiCloud, ViewKind, VoxelState,
+};
 use nalgebra::{Isometry3, Vector3};
 use rerun::RecordingStream;
 
@@ -130,14 +133,7 @@ impl Recorder {
             ParsedKey::Trolley { tid, topic } => (tid.as_str(), *topic),
             ParsedKey::PlannerStatus { pid } => {
                 if let Message::PlannerStatus(s) = message {
-                    rec.log(
-                        format!("planners/{pid}/planning_time_ms"),
-                        &rerun::Scalars::single(s.last_planning_time_ms as f64),
-                    )?;
-                    rec.log(
-                        format!("planners/{pid}/dropped"),
-                        &rerun::Scalars::single(s.dropped_messages as f64),
-                    )?;
+                    log_planner_status(rec, pid, s)?;
                 }
                 return Ok(());
             }
@@ -145,184 +141,21 @@ impl Recorder {
         };
         let base = format!("world/trolleys/{tid}");
         match (topic, message) {
-            (TrolleyTopic::Rgbd, Message::RgbdFrame(f)) => {
-                let k = f.intrinsics;
-                rec.log(format!("{base}/camera"), &transform(&f.world_from_camera))?;
-                rec.log(
-                    format!("{base}/camera/image"),
-                    &rerun::Pinhole::from_focal_length_and_resolution(
-                        [k.fx as f32, k.fy as f32],
-                        [k.width as f32, k.height as f32],
-                    )
-                    .with_principal_point([k.cx as f32, k.cy as f32])
-                    .with_camera_xyz(rerun::components::ViewCoordinates::RDF),
-                )?;
-                rec.log(
-                    format!("{base}/camera/image/rgb"),
-                    &rerun::Image::from_rgb24(f.rgb.clone(), [k.width, k.height]),
-                )?;
-                let depth_bytes: Vec<u8> = f.depth.iter().flat_map(|d| d.to_le_bytes()).collect();
-                rec.log(
-                    format!("{base}/camera/image/depth"),
-                    &rerun::DepthImage::from_gray16(depth_bytes, [k.width, k.height])
-                        .with_meter(1.0 / f.depth_scale_m),
-                )?;
+            (TrolleyTopic::Rgbd, Message::RgbdFrame(f)) => log_frame(rec, &base, f)?,
+            (TrolleyTopic::Roi, Message::RoiCloud(c)) => log_cloud(rec, &base, c)?,
+            (TrolleyTopic::Views, Message::RankedViews(v)) => log_views(rec, &base, tid, v)?,
+            // The truth is static: log it once per trolley.
+            (TrolleyTopic::Truth, Message::FruitEstimates(f)) if self.first_truth(sink, tid) => {
+                log_truth(rec, &base, f)?
             }
-            (TrolleyTopic::Roi, Message::RoiCloud(c)) => {
-                let points: Vec<[f32; 3]> = c
-                    .points_in_world
-                    .iter()
-                    .filter(|p| p.iter().all(|v| v.is_finite()))
-                    .map(|p| [p.x, p.y, p.z])
-                    .collect();
-                let colors: Vec<rerun::Color> = c
-                    .points_in_world
-                    .iter()
-                    .zip(&c.roi)
-                    .filter(|(p, _)| p.iter().all(|v| v.is_finite()))
-                    .map(|(_, &roi)| {
-                        if roi {
-                            rerun::Color::from_rgb(230, 40, 40)
-                        } else {
-                            rerun::Color::from_rgb(90, 160, 90)
-                        }
-                    })
-                    .collect();
-                rec.log(
-                    format!("{base}/roi_cloud"),
-                    &rerun::Points3D::new(points)
-                        .with_colors(colors)
-                        .with_radii([0.003]),
-                )?;
-            }
-            (TrolleyTopic::Views, Message::RankedViews(v)) => {
-                let origins: Vec<[f32; 3]> = v
-                    .views
-                    .iter()
-                    .map(|v| v.world_from_camera.translation.vector.cast::<f32>().into())
-                    .collect();
-                let vectors: Vec<[f32; 3]> = v
-                    .views
-                    .iter()
-                    .map(|v| {
-                        (v.world_from_camera.rotation * Vector3::z() * 0.15)
-                            .cast::<f32>()
-                            .into()
-                    })
-                    .collect();
-                let colors: Vec<rerun::Color> = v
-                    .views
-                    .iter()
-                    .map(|view| match view.kind {
-                        ViewKind::Roi => rerun::Color::from_rgb(220, 80, 80),
-                        ViewKind::Exploration => rerun::Color::from_rgb(80, 120, 220),
-                    })
-                    .collect();
-                rec.log(
-                    format!("{base}/views"),
-                    &rerun::Arrows3D::from_vectors(vectors)
-                        .with_origins(origins)
-                        .with_colors(colors),
-                )?;
-                rec.log(
-                    format!("trolleys/{tid}/planning_time_ms"),
-                    &rerun::Scalars::single(v.planning_time_ms as f64),
-                )?;
-            }
-            (TrolleyTopic::Truth, Message::FruitEstimates(f)) => {
-                // The truth is static: log it once per trolley.
-                if !self
-                    .truth_logged
-                    .lock()
-                    .map(|mut t| t.insert((sink, tid.to_owned())))
-                    .unwrap_or(false)
-                {
-                    return Ok(());
-                }
-                let centres: Vec<[f32; 3]> = f
-                    .fruits
-                    .iter()
-                    .map(|f| nalgebra::center(&f.box_min, &f.box_max).into())
-                    .collect();
-                let half_sizes: Vec<[f32; 3]> = f
-                    .fruits
-                    .iter()
-                    .map(|f| ((f.box_max - f.box_min) * 0.5).into())
-                    .collect();
-                rec.log_static(
-                    format!("{base}/truth"),
-                    &rerun::Boxes3D::from_centers_and_half_sizes(centres, half_sizes)
-                        .with_labels(f.fruits.iter().map(|f| format!("truth #{}", f.id)))
-                        .with_colors([rerun::Color::from_rgb(40, 160, 255)]),
-                )?;
-            }
-            (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => {
-                let centres: Vec<[f32; 3]> = f
-                    .fruits
-                    .iter()
-                    .map(|f| nalgebra::center(&f.box_min, &f.box_max).into())
-                    .collect();
-                let half_sizes: Vec<[f32; 3]> = f
-                    .fruits
-                    .iter()
-                    .map(|f| ((f.box_max - f.box_min) * 0.5).into())
-                    .collect();
-                let labels: Vec<String> = f
-                    .fruits
-                    .iter()
-                    .map(|f| {
-                        let s = (f.box_max - f.box_min) * 100.0;
-                        format!(
-                            "#{} {:.1}x{:.1}x{:.1} cm {:.0} cm³ conf {:.2}",
-                            f.id,
-                            s.x,
-                            s.y,
-                            s.z,
-                            f.volume_m3 * 1e6,
-                            f.confidence
-                        )
-                    })
-                    .collect();
-                rec.log(
-                    format!("{base}/fruits"),
-                    &rerun::Boxes3D::from_centers_and_half_sizes(centres, half_sizes)
-                        .with_labels(labels)
-                        .with_colors([rerun::Color::from_rgb(220, 20, 60)]),
-                )?;
-                rec.log(
-                    format!("trolleys/{tid}/fruits_found"),
-                    &rerun::Scalars::single(f.fruits.len() as f64),
-                )?;
-            }
+            (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => log_fruits(rec, &base, tid, f)?,
             (TrolleyTopic::Map, Message::MapUpdate(_)) => {
                 if let Some(snapshot) = &self.voxel_snapshot {
-                    rec.log(
-                        format!("{base}/map/roi_voxels"),
-                        &rerun::Points3D::new(snapshot.roi.clone())
-                            .with_colors([rerun::Color::from_rgb(255, 30, 30)])
-                            .with_radii([snapshot.resolution_m * 0.5]),
-                    )?;
-                    rec.log(
-                        format!("{base}/map/occupied_voxels"),
-                        &rerun::Points3D::new(snapshot.occupied.clone())
-                            .with_colors([rerun::Color::from_rgb(120, 120, 120)])
-                            .with_radii([snapshot.resolution_m * 0.4]),
-                    )?;
+                    log_voxels(rec, &base, snapshot)?;
                 }
             }
             (TrolleyTopic::Arm, Message::ArmState(a)) if a.moving => {
-                // The edge announces the view it executes as a moving arm state with that pose.
-                let origin: [f32; 3] = a.world_from_camera.translation.vector.cast::<f32>().into();
-                let axis: [f32; 3] = (a.world_from_camera.rotation * Vector3::z() * 0.2)
-                    .cast::<f32>()
-                    .into();
-                rec.log(
-                    format!("{base}/executed_view"),
-                    &rerun::Arrows3D::from_vectors([axis])
-                        .with_origins([origin])
-                        .with_colors([rerun::Color::from_rgb(255, 215, 0)])
-                        .with_radii([0.006]),
-                )?;
+                log_executed_view(rec, &base, a)?;
             }
             (TrolleyTopic::Status, Message::TrolleyStatus(s)) => {
                 rec.log(
@@ -337,6 +170,14 @@ impl Recorder {
             _ => {}
         }
         Ok(())
+    }
+
+    /// True the first time the ground truth of `tid` reaches `sink` (and only then).
+    fn first_truth(&self, sink: usize, tid: &str) -> bool {
+        self.truth_logged
+            .lock()
+            .map(|mut t| t.insert((sink, tid.to_owned())))
+            .unwrap_or(false)
     }
 
     /// Logs one value of a time series to every sink (at the current times).
@@ -400,4 +241,189 @@ impl Recorder {
         }
         Ok(())
     }
+}
+
+type LogResult = Result<(), rerun::RecordingStreamError>;
+
+fn log_planner_status(rec: &RecordingStream, pid: &str, s: &PlannerStatus) -> LogResult {
+    rec.log(
+        format!("planners/{pid}/planning_time_ms"),
+        &rerun::Scalars::single(s.last_planning_time_ms as f64),
+    )?;
+    rec.log(
+        format!("planners/{pid}/dropped"),
+        &rerun::Scalars::single(s.dropped_messages as f64),
+    )
+}
+
+/// The camera pose, its pinhole, and the colour and depth images.
+fn log_frame(rec: &RecordingStream, base: &str, f: &RgbdFrame) -> LogResult {
+    let k = f.intrinsics;
+    rec.log(format!("{base}/camera"), &transform(&f.world_from_camera))?;
+    rec.log(
+        format!("{base}/camera/image"),
+        &rerun::Pinhole::from_focal_length_and_resolution(
+            [k.fx as f32, k.fy as f32],
+            [k.width as f32, k.height as f32],
+        )
+        .with_principal_point([k.cx as f32, k.cy as f32])
+        .with_camera_xyz(rerun::components::ViewCoordinates::RDF),
+    )?;
+    rec.log(
+        format!("{base}/camera/image/rgb"),
+        &rerun::Image::from_rgb24(f.rgb.clone(), [k.width, k.height]),
+    )?;
+    let depth_bytes: Vec<u8> = f.depth.iter().flat_map(|d| d.to_le_bytes()).collect();
+    rec.log(
+        format!("{base}/camera/image/depth"),
+        &rerun::DepthImage::from_gray16(depth_bytes, [k.width, k.height])
+            .with_meter(1.0 / f.depth_scale_m),
+    )
+}
+
+/// The finite points of a cloud, ROI points red, the rest green.
+fn log_cloud(rec: &RecordingStream, base: &str, c: &RoiCloud) -> LogResult {
+    let points: Vec<[f32; 3]> = c
+        .points_in_world
+        .iter()
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .map(|p| [p.x, p.y, p.z])
+        .collect();
+    let colors: Vec<rerun::Color> = c
+        .points_in_world
+        .iter()
+        .zip(&c.roi)
+        .filter(|(p, _)| p.iter().all(|v| v.is_finite()))
+        .map(|(_, &roi)| {
+            if roi {
+                rerun::Color::from_rgb(230, 40, 40)
+            } else {
+                rerun::Color::from_rgb(90, 160, 90)
+            }
+        })
+        .collect();
+    rec.log(
+        format!("{base}/roi_cloud"),
+        &rerun::Points3D::new(points)
+            .with_colors(colors)
+            .with_radii([0.003]),
+    )
+}
+
+/// Ranked views as arrows along the camera axis (ROI views red, exploration blue).
+fn log_views(rec: &RecordingStream, base: &str, tid: &str, v: &RankedViews) -> LogResult {
+    let origins: Vec<[f32; 3]> = v
+        .views
+        .iter()
+        .map(|v| v.world_from_camera.translation.vector.cast::<f32>().into())
+        .collect();
+    let vectors: Vec<[f32; 3]> = v
+        .views
+        .iter()
+        .map(|v| {
+            (v.world_from_camera.rotation * Vector3::z() * 0.15)
+                .cast::<f32>()
+                .into()
+        })
+        .collect();
+    let colors: Vec<rerun::Color> = v
+        .views
+        .iter()
+        .map(|view| match view.kind {
+            ViewKind::Roi => rerun::Color::from_rgb(220, 80, 80),
+            ViewKind::Exploration => rerun::Color::from_rgb(80, 120, 220),
+        })
+        .collect();
+    rec.log(
+        format!("{base}/views"),
+        &rerun::Arrows3D::from_vectors(vectors)
+            .with_origins(origins)
+            .with_colors(colors),
+    )?;
+    rec.log(
+        format!("trolleys/{tid}/planning_time_ms"),
+        &rerun::Scalars::single(v.planning_time_ms as f64),
+    )
+}
+
+/// The fruits' boxes as Rerun boxes (centres and half sizes), unlabelled and uncoloured.
+fn fruit_boxes(fruits: &[Fruit]) -> rerun::Boxes3D {
+    let centres: Vec<[f32; 3]> = fruits
+        .iter()
+        .map(|f| nalgebra::center(&f.box_min, &f.box_max).into())
+        .collect();
+    let half_sizes: Vec<[f32; 3]> = fruits
+        .iter()
+        .map(|f| ((f.box_max - f.box_min) * 0.5).into())
+        .collect();
+    rerun::Boxes3D::from_centers_and_half_sizes(centres, half_sizes)
+}
+
+fn log_truth(rec: &RecordingStream, base: &str, f: &FruitEstimates) -> LogResult {
+    rec.log_static(
+        format!("{base}/truth"),
+        &fruit_boxes(&f.fruits)
+            .with_labels(f.fruits.iter().map(|f| format!("truth #{}", f.id)))
+            .with_colors([rerun::Color::from_rgb(40, 160, 255)]),
+    )
+}
+
+/// Fruit boxes labelled with size, volume and confidence, and the count as a time series.
+fn log_fruits(rec: &RecordingStream, base: &str, tid: &str, f: &FruitEstimates) -> LogResult {
+    let labels: Vec<String> = f
+        .fruits
+        .iter()
+        .map(|f| {
+            let s = (f.box_max - f.box_min) * 100.0;
+            format!(
+                "#{} {:.1}x{:.1}x{:.1} cm {:.0} cm³ conf {:.2}",
+                f.id,
+                s.x,
+                s.y,
+                s.z,
+                f.volume_m3 * 1e6,
+                f.confidence
+            )
+        })
+        .collect();
+    rec.log(
+        format!("{base}/fruits"),
+        &fruit_boxes(&f.fruits)
+            .with_labels(labels)
+            .with_colors([rerun::Color::from_rgb(220, 20, 60)]),
+    )?;
+    rec.log(
+        format!("trolleys/{tid}/fruits_found"),
+        &rerun::Scalars::single(f.fruits.len() as f64),
+    )
+}
+
+fn log_voxels(rec: &RecordingStream, base: &str, snapshot: &VoxelSnapshot) -> LogResult {
+    rec.log(
+        format!("{base}/map/roi_voxels"),
+        &rerun::Points3D::new(snapshot.roi.clone())
+            .with_colors([rerun::Color::from_rgb(255, 30, 30)])
+            .with_radii([snapshot.resolution_m * 0.5]),
+    )?;
+    rec.log(
+        format!("{base}/map/occupied_voxels"),
+        &rerun::Points3D::new(snapshot.occupied.clone())
+            .with_colors([rerun::Color::from_rgb(120, 120, 120)])
+            .with_radii([snapshot.resolution_m * 0.4]),
+    )
+}
+
+/// The edge announces the view it executes as a moving arm state with that pose.
+fn log_executed_view(rec: &RecordingStream, base: &str, a: &ArmState) -> LogResult {
+    let origin: [f32; 3] = a.world_from_camera.translation.vector.cast::<f32>().into();
+    let axis: [f32; 3] = (a.world_from_camera.rotation * Vector3::z() * 0.2)
+        .cast::<f32>()
+        .into();
+    rec.log(
+        format!("{base}/executed_view"),
+        &rerun::Arrows3D::from_vectors([axis])
+            .with_origins([origin])
+            .with_colors([rerun::Color::from_rgb(255, 215, 0)])
+            .with_radii([0.006]),
+    )
 }

@@ -89,6 +89,216 @@ pub fn served_trolleys<'a>(
 /// Frames waiting for detection, over all served trolleys.
 const FRAME_QUEUE: usize = 4;
 
+/// What wakes the detector up.
+enum DetectorEvent {
+    Detector(MemberEvent),
+    Trolley(MemberEvent),
+    StatusTick,
+    Frame(Box<Received<RgbdFrame>>),
+}
+
+/// The bus side the detector listens to: who is alive, the status clock and the served frames.
+struct Inputs {
+    detector_watch: MemberWatch,
+    trolley_watch: MemberWatch,
+    status_tick: tokio::time::Interval,
+    frames: tokio::sync::mpsc::Receiver<Received<RgbdFrame>>,
+}
+
+impl Inputs {
+    /// The next event; `None` once `shutdown` fires or a membership watch ends.
+    async fn next(&mut self, shutdown: &mut Shutdown) -> Option<DetectorEvent> {
+        loop {
+            let event = tokio::select! {
+                _ = shutdown.wait() => return None,
+                event = self.detector_watch.recv() => DetectorEvent::Detector(event?),
+                event = self.trolley_watch.recv() => DetectorEvent::Trolley(event?),
+                _ = self.status_tick.tick() => DetectorEvent::StatusTick,
+                received = self.frames.recv() => match received {
+                    Some(received) => DetectorEvent::Frame(Box::new(received)),
+                    None => continue,
+                },
+            };
+            return Some(event);
+        }
+    }
+}
+
+/// A running detector: the live members, the served trolleys' frame forwarders, the publishers.
+struct Detector {
+    did: String,
+    session: Session,
+    config: Arc<DetectorConfig>,
+    counters: Arc<DetectorCounters>,
+    /// Where the forwarders put the served trolleys' frames.
+    frame_tx: tokio::sync::mpsc::Sender<Received<RgbdFrame>>,
+    /// One subscriber (and forwarding task) per served trolley.
+    frame_tasks: HashMap<String, tokio::task::JoinHandle<()>>,
+    live_detectors: BTreeSet<String>,
+    live_trolleys: BTreeSet<String>,
+    status_pub: Publisher<DetectorStatus>,
+    clouds: HashMap<String, Publisher<RoiCloud>>,
+    total_ms: f64,
+    status_seq: u64,
+}
+
+impl Detector {
+    /// Takes in one event; true when the live members changed.
+    async fn handle(&mut self, event: DetectorEvent) -> anyhow::Result<bool> {
+        let changed = match event {
+            DetectorEvent::Detector(MemberEvent::Joined(id)) => self.live_detectors.insert(id),
+            DetectorEvent::Detector(MemberEvent::Left(id)) if id != self.did => {
+                self.live_detectors.remove(&id)
+            }
+            DetectorEvent::Detector(MemberEvent::Left(_)) => false,
+            DetectorEvent::Trolley(MemberEvent::Joined(id)) => self.live_trolleys.insert(id),
+            DetectorEvent::Trolley(MemberEvent::Left(id)) => self.live_trolleys.remove(&id),
+            DetectorEvent::StatusTick => {
+                self.publish_status().await?;
+                false
+            }
+            DetectorEvent::Frame(received) => {
+                self.detect(received).await?;
+                false
+            }
+        };
+        Ok(changed)
+    }
+
+    async fn publish_status(&mut self) -> anyhow::Result<()> {
+        self.status_seq += 1;
+        let counters = &self.counters;
+        let processed = counters.frames_processed.load(Ordering::Relaxed);
+        let status = DetectorStatus {
+            detector_id: self.did.clone(),
+            frames_processed: processed,
+            dropped_messages: counters.drops.total()
+                + counters.frames_rejected.load(Ordering::Relaxed),
+            mean_detect_time_ms: if processed > 0 {
+                (self.total_ms / processed as f64) as f32
+            } else {
+                0.0
+            },
+        };
+        let header = Header {
+            seq: self.status_seq,
+            source_id: self.did.clone(),
+            frame_id: "world".into(),
+            ..Header::default()
+        };
+        self.status_pub.publish(&header, &status).await?;
+        Ok(())
+    }
+
+    /// Detects the ROI in one frame and publishes its cloud; a bad frame is counted and dropped.
+    async fn detect(&mut self, received: Box<Received<RgbdFrame>>) -> anyhow::Result<()> {
+        let Received {
+            header,
+            message: frame,
+            ..
+        } = *received;
+        let tid = header.trolley_id.clone();
+        if keys::validate_id(&tid).is_err() {
+            self.counters
+                .frames_rejected
+                .fetch_add(1, Ordering::Relaxed);
+            tracing::warn!(trolley = %tid, "frame with an invalid trolley id dropped");
+            return Ok(());
+        }
+        let started = Instant::now();
+        let cfg = self.config.clone();
+        let detector_id = self.did.clone();
+        let seq = header.seq;
+        let result =
+            tokio::task::spawn_blocking(move || detect_frame(&frame, seq, &detector_id, &cfg))
+                .await
+                .context("detection task failed")?;
+        let cloud = match result {
+            Ok(cloud) => cloud,
+            Err(e) => {
+                self.counters
+                    .frames_rejected
+                    .fetch_add(1, Ordering::Relaxed);
+                tracing::warn!(trolley = %tid, seq, error = %e, "frame rejected");
+                return Ok(());
+            }
+        };
+        self.total_ms += started.elapsed().as_secs_f64() * 1e3;
+        self.counters
+            .frames_processed
+            .fetch_add(1, Ordering::Relaxed);
+        let publisher = match self.clouds.entry(tid.clone()) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => e.insert(
+                Publisher::declare(
+                    &self.session,
+                    &keys::roi(&tid)?,
+                    self.counters.drops.clone(),
+                )
+                .await?,
+            ),
+        };
+        let out = Header {
+            seq,
+            stamp_ns: header.stamp_ns,
+            trolley_id: tid,
+            source_id: self.did.clone(),
+            frame_id: "world".into(),
+        };
+        tracing::debug!(seq, points = cloud.points_in_world.len(), "cloud published");
+        publisher.publish(&out, &cloud).await?;
+        Ok(())
+    }
+
+    /// Follows the served trolleys after a membership change: drops the frames of trolleys handed
+    /// to another detector, subscribes to those newly served.
+    async fn update_served(&mut self) -> anyhow::Result<()> {
+        let did = &self.did;
+        let served = served_trolleys(did, &self.live_detectors, &self.live_trolleys);
+        self.frame_tasks.retain(|tid, task| {
+            let keep = served.contains(tid.as_str());
+            if !keep {
+                task.abort();
+                tracing::info!(detector = %did, trolley = %tid, "trolley handed to another detector");
+            }
+            keep
+        });
+        for tid in served {
+            if self.frame_tasks.contains_key(tid) {
+                continue;
+            }
+            let drops = self.counters.drops.clone();
+            let frames =
+                Subscriber::declare(&self.session, &keys::rgbd(tid)?, drops.clone()).await?;
+            let tx = self.frame_tx.clone();
+            let task = tokio::spawn(async move {
+                while let Some(received) = frames.recv().await {
+                    // A full queue means this detector is behind: the frame is stale anyway.
+                    if tx.try_send(received).is_err() {
+                        drops.overflow.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            });
+            tracing::info!(detector = %did, trolley = %tid, "serving trolley");
+            self.frame_tasks.insert(tid.to_owned(), task);
+        }
+        self.counters
+            .trolleys_served
+            .store(self.frame_tasks.len() as u64, Ordering::Relaxed);
+        Ok(())
+    }
+
+    async fn close(mut self) {
+        for (_, task) in self.frame_tasks.drain() {
+            task.abort();
+        }
+        for (_, p) in self.clouds.drain() {
+            p.close().await;
+        }
+        self.status_pub.close().await;
+    }
+}
+
 /// Runs the detector until `shutdown` fires.
 pub async fn run(
     session: Session,
@@ -98,17 +308,15 @@ pub async fn run(
 ) -> anyhow::Result<()> {
     settings.validate()?;
     let did = settings.detector_id.clone();
-    let config = Arc::new(DetectorConfig {
-        voxel_size_m: settings.voxel_size_m,
-        ..DetectorConfig::default()
-    });
-    // Frames of the served trolleys, one subscriber (and forwarding task) per trolley.
-    let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel::<Received<RgbdFrame>>(FRAME_QUEUE);
-    let mut frame_tasks: HashMap<String, tokio::task::JoinHandle<()>> = HashMap::new();
-    let detector_watch = MemberWatch::declare(&session, MemberKind::Detector).await?;
-    let trolley_watch = MemberWatch::declare(&session, MemberKind::Trolley).await?;
-    let mut live_detectors: BTreeSet<String> = BTreeSet::from([did.clone()]);
-    let mut live_trolleys: BTreeSet<String> = BTreeSet::new();
+    let (frame_tx, frame_rx) = tokio::sync::mpsc::channel::<Received<RgbdFrame>>(FRAME_QUEUE);
+    let mut inputs = Inputs {
+        detector_watch: MemberWatch::declare(&session, MemberKind::Detector).await?,
+        trolley_watch: MemberWatch::declare(&session, MemberKind::Trolley).await?,
+        status_tick: tokio::time::interval(Duration::from_millis(
+            settings.status_period_ms.max(50),
+        )),
+        frames: frame_rx,
+    };
     let status_pub = Publisher::declare(
         &session,
         &keys::detector_status(&did)?,
@@ -116,122 +324,30 @@ pub async fn run(
     )
     .await?;
     let _alive = declare_alive(&session, MemberKind::Detector, &did).await?;
-    let mut clouds: HashMap<String, Publisher<RoiCloud>> = HashMap::new();
-    let mut status_tick =
-        tokio::time::interval(Duration::from_millis(settings.status_period_ms.max(50)));
-    let mut total_ms = 0.0f64;
-    let mut status_seq = 0u64;
+    let mut detector = Detector {
+        did: did.clone(),
+        session: session.clone(),
+        config: Arc::new(DetectorConfig {
+            voxel_size_m: settings.voxel_size_m,
+            ..DetectorConfig::default()
+        }),
+        counters: counters.clone(),
+        frame_tx,
+        frame_tasks: HashMap::new(),
+        live_detectors: BTreeSet::from([did.clone()]),
+        live_trolleys: BTreeSet::new(),
+        status_pub,
+        clouds: HashMap::new(),
+        total_ms: 0.0,
+        status_seq: 0,
+    };
     tracing::info!(detector = %did, "detector started");
-    loop {
-        let mut membership_changed = false;
-        tokio::select! {
-            _ = shutdown.wait() => break,
-            event = detector_watch.recv() => {
-                match event {
-                    Some(MemberEvent::Joined(id)) => membership_changed = live_detectors.insert(id),
-                    Some(MemberEvent::Left(id)) if id != did => membership_changed = live_detectors.remove(&id),
-                    Some(MemberEvent::Left(_)) => {}
-                    None => break,
-                }
-            }
-            event = trolley_watch.recv() => {
-                match event {
-                    Some(MemberEvent::Joined(id)) => membership_changed = live_trolleys.insert(id),
-                    Some(MemberEvent::Left(id)) => membership_changed = live_trolleys.remove(&id),
-                    None => break,
-                }
-            }
-            _ = status_tick.tick() => {
-                status_seq += 1;
-                let processed = counters.frames_processed.load(Ordering::Relaxed);
-                let status = DetectorStatus {
-                    detector_id: did.clone(),
-                    frames_processed: processed,
-                    dropped_messages: counters.drops.total() + counters.frames_rejected.load(Ordering::Relaxed),
-                    mean_detect_time_ms: if processed > 0 { (total_ms / processed as f64) as f32 } else { 0.0 },
-                };
-                let header = Header { seq: status_seq, source_id: did.clone(), frame_id: "world".into(), ..Header::default() };
-                status_pub.publish(&header, &status).await?;
-            }
-            received = frame_rx.recv() => {
-                let Some(Received { header, message: frame, .. }) = received else {
-                    continue;
-                };
-                let tid = header.trolley_id.clone();
-                if keys::validate_id(&tid).is_err() {
-                    counters.frames_rejected.fetch_add(1, Ordering::Relaxed);
-                    tracing::warn!(trolley = %tid, "frame with an invalid trolley id dropped");
-                    continue;
-                }
-                let started = Instant::now();
-                let cfg = config.clone();
-                let detector_id = did.clone();
-                let seq = header.seq;
-                let result = tokio::task::spawn_blocking(move || detect_frame(&frame, seq, &detector_id, &cfg))
-                    .await
-                    .context("detection task failed")?;
-                let cloud = match result {
-                    Ok(cloud) => cloud,
-                    Err(e) => {
-                        counters.frames_rejected.fetch_add(1, Ordering::Relaxed);
-                        tracing::warn!(trolley = %tid, seq, error = %e, "frame rejected");
-                        continue;
-                    }
-                };
-                total_ms += started.elapsed().as_secs_f64() * 1e3;
-                counters.frames_processed.fetch_add(1, Ordering::Relaxed);
-                let publisher = match clouds.entry(tid.clone()) {
-                    std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-                    std::collections::hash_map::Entry::Vacant(e) => e.insert(
-                        Publisher::declare(&session, &keys::roi(&tid)?, counters.drops.clone()).await?,
-                    ),
-                };
-                let out = Header { seq, stamp_ns: header.stamp_ns, trolley_id: tid, source_id: did.clone(), frame_id: "world".into() };
-                tracing::debug!(seq, points = cloud.points_in_world.len(), "cloud published");
-                publisher.publish(&out, &cloud).await?;
-            }
-        }
-        if membership_changed {
-            let served = served_trolleys(&did, &live_detectors, &live_trolleys);
-            frame_tasks.retain(|tid, task| {
-                let keep = served.contains(tid.as_str());
-                if !keep {
-                    task.abort();
-                    tracing::info!(detector = %did, trolley = %tid, "trolley handed to another detector");
-                }
-                keep
-            });
-            for tid in served {
-                if frame_tasks.contains_key(tid) {
-                    continue;
-                }
-                let frames =
-                    Subscriber::declare(&session, &keys::rgbd(tid)?, counters.drops.clone())
-                        .await?;
-                let (tx, drops) = (frame_tx.clone(), counters.drops.clone());
-                let task = tokio::spawn(async move {
-                    while let Some(received) = frames.recv().await {
-                        // A full queue means this detector is behind: the frame is stale anyway.
-                        if tx.try_send(received).is_err() {
-                            drops.overflow.fetch_add(1, Ordering::Relaxed);
-                        }
-                    }
-                });
-                tracing::info!(detector = %did, trolley = %tid, "serving trolley");
-                frame_tasks.insert(tid.to_owned(), task);
-            }
-            counters
-                .trolleys_served
-                .store(frame_tasks.len() as u64, Ordering::Relaxed);
+    while let Some(event) = inputs.next(&mut shutdown).await {
+        if detector.handle(event).await? {
+            detector.update_served().await?;
         }
     }
-    for (_, task) in frame_tasks.drain() {
-        task.abort();
-    }
-    for (_, p) in clouds.drain() {
-        p.close().await;
-    }
-    status_pub.close().await;
+    detector.close().await;
     tracing::info!(detector = %did, frames = counters.frames_processed.load(Ordering::Relaxed), dropped = counters.drops.total(), "detector stopped");
     Ok(())
 }

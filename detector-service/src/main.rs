@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use clap::Parser;
-use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_bus::BusArgs;
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 
 /// Turns the RGB-D frames of every trolley into ROI-labelled world point clouds (HSI rule).
@@ -33,16 +33,9 @@ async fn main() -> anyhow::Result<()> {
         settings.detector_id = v;
     }
     settings.validate()?;
-    let session = glasshouse_bus::open(&cli.bus).await?;
-    let (trigger, shutdown) = Shutdown::new();
-    trigger.fire_on_signal();
-    let result = glasshouse_detector::run(
-        session.clone(),
-        settings,
-        shutdown,
-        Arc::new(DetectorCounters::default()),
-    )
-    .await;
-    let _ = session.close().await;
-    result
+    let counters = Arc::new(DetectorCounters::default());
+    glasshouse_bus::run_service(&cli.bus, |session, shutdown| {
+        glasshouse_detector::run(session, settings, shutdown, counters)
+    })
+    .await
 }

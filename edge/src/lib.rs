@@ -84,12 +84,7 @@ impl Default for EdgeConfig {
 impl EdgeConfig {
     pub fn validate(&self) -> anyhow::Result<()> {
         keys::validate_id(&self.trolley_id)?;
-        anyhow::ensure!(
-            (16..=1280).contains(&self.width) && (12..=960).contains(&self.height),
-            "image size {}x{} outside 16x12..1280x960",
-            self.width,
-            self.height
-        );
+        self.sim().validate_image_size()?;
         anyhow::ensure!(
             self.capture_time_s.is_finite() && self.capture_time_s >= 0.0,
             "capture time must be finite and >= 0"

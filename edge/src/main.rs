@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use clap::Parser;
-use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_bus::BusArgs;
 use glasshouse_edge::{EdgeConfig, EdgeCounters};
 
 /// Streams RGB-D frames and arm state of one trolley and executes the views planners send.
@@ -84,17 +84,9 @@ async fn main() -> anyhow::Result<()> {
         config.record_frames_dir = cli.record_frames;
     }
     config.validate()?;
-    let session = glasshouse_bus::open(&cli.bus).await?;
-    let (trigger, shutdown) = Shutdown::new();
-    trigger.fire_on_signal();
-    let result = glasshouse_edge::run(
-        session.clone(),
-        config,
-        shutdown,
-        None,
-        Arc::new(EdgeCounters::default()),
-    )
-    .await;
-    let _ = session.close().await;
-    result
+    let counters = Arc::new(EdgeCounters::default());
+    glasshouse_bus::run_service(&cli.bus, |session, shutdown| {
+        glasshouse_edge::run(session, config, shutdown, None, counters)
+    })
+    .await
 }

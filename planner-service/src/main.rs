@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use clap::Parser;
-use glasshouse_bus::{BusArgs, Shutdown};
+use glasshouse_bus::BusArgs;
 use glasshouse_planner::{PlannerCounters, PlannerSettings};
 
 /// Integrates ROI clouds into a voxel map per trolley, publishes ranked next best views and
@@ -47,16 +47,9 @@ async fn main() -> anyhow::Result<()> {
         settings.planning.seed = v;
     }
     settings.validate()?;
-    let session = glasshouse_bus::open(&cli.bus).await?;
-    let (trigger, shutdown) = Shutdown::new();
-    trigger.fire_on_signal();
-    let result = glasshouse_planner::run(
-        session.clone(),
-        settings,
-        shutdown,
-        Arc::new(PlannerCounters::default()),
-    )
-    .await;
-    let _ = session.close().await;
-    result
+    let counters = Arc::new(PlannerCounters::default());
+    glasshouse_bus::run_service(&cli.bus, |session, shutdown| {
+        glasshouse_planner::run(session, settings, shutdown, counters)
+    })
+    .await
 }

@@ -787,3 +787,20 @@ pub fn load_settings<T: serde::de::DeserializeOwned + Default>(
         .map_err(|e| BusError::Config(format!("{}: {e}", path.display())))?;
     json5::from_str(&text).map_err(|e| BusError::Config(format!("{}: {e}", path.display())))
 }
+
+/// Runs a service binary's loop on its own session: opens the session from `args`, hands it
+/// and a [`Shutdown`] that fires on Ctrl-C or SIGTERM to `service`, and closes the session once
+/// the service returns.
+pub async fn run_service<F, Fut, E>(args: &BusArgs, service: F) -> Result<(), E>
+where
+    F: FnOnce(Session, Shutdown) -> Fut,
+    Fut: std::future::Future<Output = Result<(), E>>,
+    E: From<BusError>,
+{
+    let session = open(args).await?;
+    let (trigger, shutdown) = Shutdown::new();
+    trigger.fire_on_signal();
+    let result = service(session.clone(), shutdown).await;
+    let _ = session.close().await;
+    result
+}

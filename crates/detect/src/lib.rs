@@ -363,6 +363,16 @@ mod tests {
     use glasshouse_geom::look_along;
     use nalgebra::Vector3;
 
+    /// A frame of intrinsics `k` with depth in millimetres.
+    fn mm_frame<'a>(k: CameraIntrinsics, depth: &'a [u16], rgb: &'a [u8]) -> DepthFrame<'a> {
+        DepthFrame {
+            intrinsics: k,
+            depth,
+            depth_scale_m: 0.001,
+            rgb,
+        }
+    }
+
     #[test]
     fn hsi_of_known_colours() {
         let rule = HsiRule::default();
@@ -418,12 +428,7 @@ mod tests {
         // Camera 1.5 m above the floor looking straight down sees a plane at depth 1.5 m:
         // every point must land at z = 0 within the footprint of the field of view.
         let (k, depth, rgb) = flat_frame(64, 48, 1500, [200, 30, 20]);
-        let frame = DepthFrame {
-            intrinsics: k,
-            depth: &depth,
-            depth_scale_m: 0.001,
-            rgb: &rgb,
-        };
+        let frame = mm_frame(k, &depth, &rgb);
         let pose = look_along(&Point3::new(0.3, -0.2, 1.5), &(-Vector3::z()));
         let config = DetectorConfig {
             voxel_size_m: 0.05,
@@ -464,12 +469,7 @@ mod tests {
         let mut depth = vec![0u16; 9];
         depth[4] = 2000;
         let rgb = vec![10u8; 27];
-        let frame = DepthFrame {
-            intrinsics: k,
-            depth: &depth,
-            depth_scale_m: 0.001,
-            rgb: &rgb,
-        };
+        let frame = mm_frame(k, &depth, &rgb);
         let pose = look_along(&Point3::new(1.0, 2.0, 0.5), &Vector3::x());
         let cloud = detect(&frame, &pose, &DetectorConfig::default()).unwrap();
         assert_eq!(cloud.invalid_pixels, 8);
@@ -487,12 +487,7 @@ mod tests {
         let rgb: Vec<u8> = (0..16)
             .flat_map(|i| [200 + (i % 2) as u8, 10, 20])
             .collect();
-        let frame = DepthFrame {
-            intrinsics: k,
-            depth: &depth,
-            depth_scale_m: 0.001,
-            rgb: &rgb,
-        };
+        let frame = mm_frame(k, &depth, &rgb);
         let pose = look_along(&Point3::new(0.5, 0.5, 0.5), &Vector3::x());
         let config = DetectorConfig {
             voxel_size_m: 1.0,
@@ -517,12 +512,7 @@ mod tests {
         depth[0] = 0;
         depth[1] = 100; // 0.1 m: below the minimum
         depth[2] = 3500; // 3.5 m: beyond the maximum
-        let frame = DepthFrame {
-            intrinsics: k,
-            depth: &depth,
-            depth_scale_m: 0.001,
-            rgb: &rgb,
-        };
+        let frame = mm_frame(k, &depth, &rgb);
         let cloud = detect(&frame, &Isometry3::identity(), &DetectorConfig::default()).unwrap();
         assert_eq!(cloud.invalid_pixels, 3);
         assert!(cloud
@@ -537,22 +527,12 @@ mod tests {
         let (k, depth, rgb) = flat_frame(8, 6, 1000, [200, 0, 0]);
         let id = Isometry3::identity();
         let cfg = DetectorConfig::default();
-        let short = DepthFrame {
-            intrinsics: k,
-            depth: &depth[1..],
-            depth_scale_m: 0.001,
-            rgb: &rgb,
-        };
+        let short = mm_frame(k, &depth[1..], &rgb);
         assert!(matches!(
             detect(&short, &id, &cfg),
             Err(DetectError::SizeMismatch { .. })
         ));
-        let short_rgb = DepthFrame {
-            intrinsics: k,
-            depth: &depth,
-            depth_scale_m: 0.001,
-            rgb: &rgb[3..],
-        };
+        let short_rgb = mm_frame(k, &depth, &rgb[3..]);
         assert!(matches!(
             detect(&short_rgb, &id, &cfg),
             Err(DetectError::SizeMismatch { .. })
@@ -569,12 +549,7 @@ mod tests {
                 Err(DetectError::InvalidDepthScale(_))
             ));
         }
-        let good = DepthFrame {
-            intrinsics: k,
-            depth: &depth,
-            depth_scale_m: 0.001,
-            rgb: &rgb,
-        };
+        let good = mm_frame(k, &depth, &rgb);
         let nan_pose = Isometry3::translation(f64::NAN, 0.0, 0.0);
         assert_eq!(
             detect(&good, &nan_pose, &cfg),
@@ -632,12 +607,7 @@ mod tests {
         let rgb: Vec<u8> = (0..3600u32)
             .map(|i| (i.wrapping_mul(2654435761) >> 24) as u8)
             .collect();
-        let frame = DepthFrame {
-            intrinsics: k,
-            depth: &depth,
-            depth_scale_m: 0.001,
-            rgb: &rgb,
-        };
+        let frame = mm_frame(k, &depth, &rgb);
         let pose = look_along(&Point3::new(-0.3, 0.4, 1.2), &Vector3::new(1.0, 0.5, -0.3));
         let config = DetectorConfig {
             voxel_size_m: 0.03,

@@ -236,6 +236,19 @@ fn p_values_of(
     out
 }
 
+/// `{"<metric>": {"<pair>": p}}`.
+fn p_values_json(p: BTreeMap<&'static str, BTreeMap<String, f64>>) -> Value {
+    let p_json: Map<String, Value> = p
+        .into_iter()
+        .map(|(metric, pairs)| {
+            let pairs: Map<String, Value> =
+                pairs.into_iter().map(|(k, v)| (k, number(v))).collect();
+            (metric.to_string(), Value::Object(pairs))
+        })
+        .collect();
+    Value::Object(p_json)
+}
+
 fn number(v: f64) -> Value {
     serde_json::Number::from_f64(v).map_or(Value::Null, Value::Number)
 }
@@ -271,16 +284,7 @@ pub fn summary_json(runs: &[MethodRuns], settings: Value) -> Value {
         None => json!(0),
     };
     root.insert("fruits_total".into(), fruits_total);
-    let p = p_values(runs);
-    let p_json: Map<String, Value> = p
-        .into_iter()
-        .map(|(metric, pairs)| {
-            let pairs: Map<String, Value> =
-                pairs.into_iter().map(|(k, v)| (k, number(v))).collect();
-            (metric.to_string(), Value::Object(pairs))
-        })
-        .collect();
-    root.insert("p_values".into(), Value::Object(p_json));
+    root.insert("p_values".into(), p_values_json(p_values(runs)));
     let budget_s = runs
         .iter()
         .flat_map(|r| &r.trials)
@@ -289,15 +293,8 @@ pub fn summary_json(runs: &[MethodRuns], settings: Value) -> Value {
     let over_time: Map<String, Value> = checkpoints(budget_s)
         .into_iter()
         .map(|t| {
-            let per_metric: Map<String, Value> = p_values_at(runs, &OVER_TIME_METRICS, t)
-                .into_iter()
-                .map(|(metric, pairs)| {
-                    let pairs: Map<String, Value> =
-                        pairs.into_iter().map(|(k, v)| (k, number(v))).collect();
-                    (metric.to_string(), Value::Object(pairs))
-                })
-                .collect();
-            (t.to_string(), Value::Object(per_metric))
+            let per_metric = p_values_json(p_values_at(runs, &OVER_TIME_METRICS, t));
+            (t.to_string(), per_metric)
         })
         .collect();
     root.insert("p_values_at_s".into(), Value::Object(over_time));

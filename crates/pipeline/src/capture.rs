@@ -79,6 +79,17 @@ pub struct SimTrolleySettings {
     pub segment_length_m: f64,
 }
 
+impl SimTrolleySettings {
+    /// The image must be 16x12 to 1280x960 pixels.
+    pub fn validate_image_size(&self) -> Result<(), CaptureError> {
+        let (w, h) = (self.width, self.height);
+        if !((16..=1280).contains(&w) && (12..=960).contains(&h)) {
+            return Err(CaptureError::ImageSize(w, h));
+        }
+        Ok(())
+    }
+}
+
 /// The simulated glasshouse: renders the scene at the camera pose of the scene's UR5e, which
 /// executes views (IK, then a collision-free joint path) and moves along the row's segments.
 #[derive(Clone, Debug)]
@@ -93,10 +104,8 @@ pub struct SimTrolley {
 
 impl SimTrolley {
     pub fn new(settings: SimTrolleySettings) -> Result<Self, CaptureError> {
+        settings.validate_image_size()?;
         let (w, h) = (settings.width, settings.height);
-        if !((16..=1280).contains(&w) && (12..=960).contains(&h)) {
-            return Err(CaptureError::ImageSize(w, h));
-        }
         let scene = Scene::generate(settings.scenario, settings.seed);
         let arm = SimArm::new(&scene).map_err(|e| CaptureError::InitialView(e.to_string()))?;
         let segments = scene.segments(settings.segment_length_m);

@@ -11,9 +11,7 @@ use std::hint::black_box;
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use glasshouse_geom::Aabb;
-use glasshouse_roimap::testdata::{
-    ray_fan, unobserved_gain, unobserved_gain_batch, Scan, Workload,
-};
+use glasshouse_roimap::testdata::{unobserved_gain, unobserved_gain_batch, Scan, Workload};
 use glasshouse_roimap::{Neighbourhood, Occupancy, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
@@ -46,28 +44,18 @@ fn insertion(c: &mut Criterion) {
     let mut g = c.benchmark_group("insert");
     g.sample_size(20);
     for threads in [1usize, 2] {
-        let s = &filtered[9];
-        g.bench_function(format!("filtered_scan/{threads}_thread"), |b| {
-            b.iter_batched_ref(
-                || nine.clone(),
-                |m| {
-                    m.insert_scan_threaded(&s.origin, &s.points, &s.roi, threads)
-                        .expect("valid")
-                },
-                BatchSize::LargeInput,
-            )
-        });
-        let s = &raw_last;
-        g.bench_function(format!("raw_scan/{threads}_thread"), |b| {
-            b.iter_batched_ref(
-                || nine.clone(),
-                |m| {
-                    m.insert_scan_threaded(&s.origin, &s.points, &s.roi, threads)
-                        .expect("valid")
-                },
-                BatchSize::LargeInput,
-            )
-        });
+        for (name, s) in [("filtered_scan", &filtered[9]), ("raw_scan", &raw_last)] {
+            g.bench_function(format!("{name}/{threads}_thread"), |b| {
+                b.iter_batched_ref(
+                    || nine.clone(),
+                    |m| {
+                        m.insert_scan_threaded(&s.origin, &s.points, &s.roi, threads)
+                            .expect("valid")
+                    },
+                    BatchSize::LargeInput,
+                )
+            });
+        }
     }
     g.finish();
 }
@@ -75,15 +63,7 @@ fn insertion(c: &mut Criterion) {
 fn queries(c: &mut Criterion) {
     let w = Workload::standard(SEED);
     let m = w.filtered_map().expect("valid");
-    let (origin, target) = w.gain_view();
-    let fan = ray_fan(
-        &origin,
-        &target,
-        200,
-        150,
-        60f64.to_radians(),
-        45f64.to_radians(),
-    );
+    let (origin, fan) = w.gain_fan();
     let mut g = c.benchmark_group("query");
     g.sample_size(20);
     g.bench_function("gain_fan_200x150", |b| {

@@ -2,7 +2,7 @@
 //! quick CPU-time check on a busy machine; the benches are the measurement.
 use std::time::Instant;
 
-use glasshouse_roimap::testdata::{ray_fan, unobserved_gain, unobserved_gain_batch, Workload};
+use glasshouse_roimap::testdata::{unobserved_gain, unobserved_gain_batch, Workload};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Arguments: number of runs, `--batch` for the batch walk.
@@ -13,15 +13,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .unwrap_or(5);
     let w = Workload::standard(1);
     let m = w.filtered_map()?;
-    let (origin, target) = w.gain_view();
-    let fan = ray_fan(
-        &origin,
-        &target,
-        200,
-        150,
-        60f64.to_radians(),
-        45f64.to_radians(),
-    );
+    let (origin, fan) = w.gain_fan();
     let mut times = Vec::new();
     let mut gain = 0.0;
     for _ in 0..runs {

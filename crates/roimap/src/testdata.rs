@@ -12,6 +12,7 @@
 
 use std::collections::BTreeMap;
 
+use glasshouse_geom::CameraIntrinsics;
 use nalgebra::{Point3, Vector3};
 
 use crate::{MapConfig, MapError, RoiMap, VoxelKey};
@@ -35,28 +36,15 @@ impl SplitMix64 {
     }
 }
 
-/// Pinhole intrinsics.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Pinhole {
-    pub width: u32,
-    pub height: u32,
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-}
-
-impl Pinhole {
-    /// The workload's camera: 640×480, f = 525, centre (319.5, 239.5).
-    pub const STANDARD: Pinhole = Pinhole {
-        width: 640,
-        height: 480,
-        fx: 525.0,
-        fy: 525.0,
-        cx: 319.5,
-        cy: 239.5,
-    };
-}
+/// The workload's camera: 640×480, f = 525, centre (319.5, 239.5).
+pub const STANDARD_CAMERA: CameraIntrinsics = CameraIntrinsics {
+    width: 640,
+    height: 480,
+    fx: 525.0,
+    fy: 525.0,
+    cx: 319.5,
+    cy: 239.5,
+};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sphere {
@@ -75,7 +63,7 @@ pub struct Scan {
 /// A seeded scene and camera.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Workload {
-    pub camera: Pinhole,
+    pub camera: CameraIntrinsics,
     pub spheres: Vec<Sphere>,
     pub plane_x_m: f64,
     pub max_range_m: f64,
@@ -98,14 +86,14 @@ pub fn camera_axes(origin: &Point3<f64>, target: &Point3<f64>) -> [Vector3<f64>;
 impl Workload {
     /// The benchmark workload (30 spheres, 640×480, ten origins).
     pub fn standard(seed: u64) -> Self {
-        Self::generate(seed, Pinhole::STANDARD, 30, 10)
+        Self::generate(seed, STANDARD_CAMERA, 30, 10)
     }
 
     /// A small variant for tests: the same scene layout seen by a `width`×`height` camera with
     /// the same field of view.
     pub fn small(seed: u64, width: u32, height: u32, spheres: usize, scans: usize) -> Self {
         let s = f64::from(width) / 640.0;
-        let camera = Pinhole {
+        let camera = CameraIntrinsics {
             width,
             height,
             fx: 525.0 * s,
@@ -116,7 +104,7 @@ impl Workload {
         Self::generate(seed, camera, spheres, scans)
     }
 
-    fn generate(seed: u64, camera: Pinhole, n_spheres: usize, n_scans: usize) -> Self {
+    fn generate(seed: u64, camera: CameraIntrinsics, n_spheres: usize, n_scans: usize) -> Self {
         let mut rng = SplitMix64(seed);
         let half_w = f64::from(camera.width) / 2.0 / camera.fx;
         let half_h = f64::from(camera.height) / 2.0 / camera.fy;
@@ -248,6 +236,20 @@ impl Workload {
     pub fn gain_view(&self) -> (Point3<f64>, Point3<f64>) {
         (Point3::new(0.05, -0.25, 0.12), self.look_at)
     }
+
+    /// The gain benchmark's camera origin and its 200×150 ray fan (60°×45°).
+    pub fn gain_fan(&self) -> (Point3<f64>, Vec<Vector3<f64>>) {
+        let (origin, target) = self.gain_view();
+        let fan = ray_fan(
+            &origin,
+            &target,
+            200,
+            150,
+            60f64.to_radians(),
+            45f64.to_radians(),
+        );
+        (origin, fan)
+    }
 }
 
 /// One averaged point per voxel of `resolution_m`, ROI by majority, sorted by voxel key.
@@ -309,11 +311,7 @@ pub fn unobserved_gain(
     fan: &[Vector3<f64>],
     range_m: f64,
 ) -> f64 {
-    if fan.is_empty() {
-        return 0.0;
-    }
-    let mut total = 0.0;
-    for dir in fan {
+    let counts = fan.iter().map(|dir| {
         let (mut visited, mut unknown) = (0u32, 0u32);
         map.walk_ray(origin, dir, range_m, |_, v| {
             visited += 1;
@@ -325,11 +323,9 @@ pub fn unobserved_gain(
                 Some(v) => v.occupancy_logodds <= 0.0,
             }
         });
-        if visited > 0 {
-            total += f64::from(unknown) / f64::from(visited);
-        }
-    }
-    total / fan.len() as f64
+        (visited, unknown)
+    });
+    mean_unknown_share(counts, fan.len())
 }
 
 /// [`unobserved_gain`] through the batch walk ([`RoiMap::count_unknown_until_occupied`]): the
@@ -343,11 +339,20 @@ pub fn unobserved_gain_batch(
     if fan.is_empty() {
         return 0.0;
     }
-    let total: f64 = map
-        .count_unknown_until_occupied(origin, fan, range_m)
-        .iter()
-        .filter(|c| c.visited > 0)
-        .map(|c| f64::from(c.unknown) / f64::from(c.visited))
-        .sum();
-    total / fan.len() as f64
+    let counts = map.count_unknown_until_occupied(origin, fan, range_m);
+    mean_unknown_share(counts.iter().map(|c| (c.visited, c.unknown)), fan.len())
+}
+
+/// Mean over `rays` rays of unknown / visited, from each ray's (visited, unknown) count; a ray
+/// that visited nothing counts 0.
+fn mean_unknown_share(counts: impl Iterator<Item = (u32, u32)>, rays: usize) -> f64 {
+    if rays == 0 {
+        return 0.0;
+    }
+    let total = counts
+        .filter(|&(visited, _)| visited > 0)
+        .fold(0.0, |total, (visited, unknown)| {
+            total + f64::from(unknown) / f64::from(visited)
+        });
+    total / rays as f64
 }

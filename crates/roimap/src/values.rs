@@ -266,26 +266,16 @@ fn update_palette(
     for (h, &v) in holds.iter_mut().zip(&p.values) {
         *h = pred(v);
     }
-    let (mut changed, mut satisfied) = (EMPTY, EMPTY);
-    for w in 0..8 {
-        let mut bits = touched[w];
-        while bits != 0 {
-            let b = bits.trailing_zeros() as usize;
-            bits &= bits - 1;
-            let l = w * 64 + b;
-            let old = usize::from(p.idx[l]);
-            let new = if hits[w] >> b & 1 != 0 {
-                to_hit[old]
-            } else {
-                to_miss[old]
-            };
-            p.idx[l] = new;
-            let new = usize::from(new);
-            changed[w] |= u64::from(p.values[new].to_bits() != p.values[old].to_bits()) << b;
-            satisfied[w] |= u64::from(holds[new]) << b;
-        }
-    }
-    (changed, satisfied)
+    for_each_touched(touched, hits, |l, hit| {
+        let old = usize::from(p.idx[l]);
+        let new = if hit { to_hit[old] } else { to_miss[old] };
+        p.idx[l] = new;
+        let new = usize::from(new);
+        (
+            p.values[new].to_bits() != p.values[old].to_bits(),
+            holds[new],
+        )
+    })
 }
 
 fn update_flat(
@@ -295,18 +285,31 @@ fn update_flat(
     step: Step,
     pred: &impl Fn(f32) -> bool,
 ) -> (Mask, Mask) {
+    for_each_touched(touched, hits, |l, hit| {
+        let v = a[l];
+        let nv = step.apply(v, hit);
+        a[l] = nv;
+        (nv.to_bits() != v.to_bits(), pred(nv))
+    })
+}
+
+/// Calls `update(voxel, hit)` for every touched voxel of a block and gathers the
+/// (changed, satisfies the predicate) pair it returns into two masks.
+#[inline(always)]
+fn for_each_touched(
+    touched: &Mask,
+    hits: &Mask,
+    mut update: impl FnMut(usize, bool) -> (bool, bool),
+) -> (Mask, Mask) {
     let (mut changed, mut satisfied) = (EMPTY, EMPTY);
     for w in 0..8 {
         let mut bits = touched[w];
         while bits != 0 {
             let b = bits.trailing_zeros() as usize;
             bits &= bits - 1;
-            let l = w * 64 + b;
-            let v = a[l];
-            let nv = step.apply(v, hits[w] >> b & 1 != 0);
-            a[l] = nv;
-            changed[w] |= u64::from(nv.to_bits() != v.to_bits()) << b;
-            satisfied[w] |= u64::from(pred(nv)) << b;
+            let (c, s) = update(w * 64 + b, hits[w] >> b & 1 != 0);
+            changed[w] |= u64::from(c) << b;
+            satisfied[w] |= u64::from(s) << b;
         }
     }
     (changed, satisfied)

@@ -59,9 +59,6 @@ impl RaySetup {
         key_end: VoxelKey,
         res: f64,
     ) -> Option<Self> {
-        if key_origin == key_end {
-            return None;
-        }
         let mut direction = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
         let length = norm_f32(direction) as f32;
         for d in &mut direction {
@@ -71,32 +68,9 @@ impl RaySetup {
             (res * 0.5) as f32,
             (-res * 0.5) as f32, // (float)(step * res * 0.5) for step = -1
         ];
-        let mut step = [0i32; 3];
-        let mut t_max = [f64::MAX; 3];
-        let mut t_delta = [f64::MAX; 3];
-        let ko = [key_origin.x, key_origin.y, key_origin.z];
-        for i in 0..3 {
-            let d = direction[i];
-            if d > 0.0 {
-                step[i] = 1;
-            } else if d < 0.0 {
-                step[i] = -1;
-            } else {
-                continue;
-            }
-            let border = (f64::from(ko[i]) + 0.5) * res
-                + f64::from(if step[i] > 0 { half[0] } else { half[1] });
-            t_max[i] = (border - f64::from(origin[i])) / f64::from(d);
-            t_delta[i] = res / f64::from(d).abs();
-        }
-        Some(Self {
-            key_origin,
-            key_end,
-            step,
-            t_max,
-            t_delta,
-            length: f64::from(length),
-        })
+        let (o, d) = (origin.map(f64::from), direction.map(f64::from));
+        let offset = |step: i32| f64::from(if step > 0 { half[0] } else { half[1] });
+        Self::from_axes([key_origin, key_end], o, d, f64::from(length), res, offset)
     }
 
     /// The same walk from `f64` inputs: `direction` a finite unit vector, `length` the segment
@@ -108,6 +82,28 @@ impl RaySetup {
         key_origin: VoxelKey,
         key_end: VoxelKey,
         res: f64,
+    ) -> Option<Self> {
+        let (o, d) = (
+            [origin.x, origin.y, origin.z],
+            [direction.x, direction.y, direction.z],
+        );
+        let offset = |step: i32| f64::from(step) * res * 0.5;
+        Self::from_axes([key_origin, key_end], o, d, length, res, offset)
+    }
+
+    /// The walk from `keys` (origin, end) along the unit `direction`: per axis the step, the ray
+    /// parameter of the first voxel border crossed and the parameter between two borders
+    /// (`f64::MAX` where the ray is parallel to the axis). `border_offset(step)` is the distance
+    /// from the origin voxel's centre to that first border, so each caller keeps its rounding.
+    /// `None` when the two keys are equal (no free voxel).
+    #[inline(always)]
+    fn from_axes(
+        [key_origin, key_end]: [VoxelKey; 2],
+        origin: [f64; 3],
+        direction: [f64; 3],
+        length: f64,
+        res: f64,
+        border_offset: impl Fn(i32) -> f64,
     ) -> Option<Self> {
         if key_origin == key_end {
             return None;
@@ -125,7 +121,7 @@ impl RaySetup {
             } else {
                 continue;
             }
-            let border = (f64::from(ko[i]) + 0.5) * res + f64::from(step[i]) * res * 0.5;
+            let border = (f64::from(ko[i]) + 0.5) * res + border_offset(step[i]);
             t_max[i] = (border - origin[i]) / d;
             t_delta[i] = res / d.abs();
         }

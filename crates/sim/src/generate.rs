@@ -5,7 +5,7 @@ use nalgebra::{Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::shapes::{Bounds, Shape};
+use crate::shapes::{Bounds, Cylinder, Shape};
 use crate::{FruitTruth, ScenarioKind};
 
 /// Albedos (linear 0-255). Chosen so that, under every shading factor in [0.45, 1], red fruit passes
@@ -112,12 +112,12 @@ pub(crate) fn build(kind: ScenarioKind, seed: u64) -> Built {
             );
             // The arm's static pole: the arm base sits on top at 0.86 m.
             solids.push(Solid {
-                shape: Shape::Cylinder {
+                shape: Shape::Cylinder(Cylinder {
                     base: Vector3::zeros(),
                     axis: Vector3::z(),
                     length_m: 0.86,
                     radius_m: 0.05,
-                },
+                }),
                 albedo: STRUCTURE_ALBEDO,
                 fruit_index: None,
                 is_plant: false,
@@ -156,12 +156,12 @@ pub(crate) fn build(kind: ScenarioKind, seed: u64) -> Built {
             // Pipe rails of the trolley, centred on y = -0.7.
             for rail_y in [-0.425, -0.975] {
                 solids.push(Solid {
-                    shape: Shape::Cylinder {
+                    shape: Shape::Cylinder(Cylinder {
                         base: Vector3::new(-1.0, rail_y, 0.1),
                         axis: Vector3::x(),
                         length_m: x + 2.0,
                         radius_m: 0.025,
-                    },
+                    }),
                     albedo: STRUCTURE_ALBEDO,
                     fruit_index: None,
                     is_plant: false,
@@ -299,12 +299,12 @@ fn add_plant(
     let base = plant.base_in_world.coords;
     let stem_radius_m = uniform(rng, STEM_RADIUS_M);
     solids.push(Solid {
-        shape: Shape::Cylinder {
+        shape: Shape::Cylinder(Cylinder {
             base,
             axis: Vector3::z(),
             length_m: plant.height_m,
             radius_m: stem_radius_m,
-        },
+        }),
         albedo: STEM_ALBEDO,
         fruit_index: None,
         is_plant: true,

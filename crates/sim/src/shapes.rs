@@ -110,13 +110,67 @@ pub(crate) enum Shape {
         half_u_m: f64,
         half_v_m: f64,
     },
-    /// Capped cylinder from `base` along the unit `axis` (stems, poles, pipes).
-    Cylinder {
-        base: Vector3<f64>,
-        axis: Vector3<f64>,
-        length_m: f64,
-        radius_m: f64,
-    },
+    /// Capped cylinder (stems, poles, pipes).
+    Cylinder(Cylinder),
+}
+
+/// Capped cylinder from `base` along the unit `axis`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Cylinder {
+    pub base: Vector3<f64>,
+    pub axis: Vector3<f64>,
+    pub length_m: f64,
+    pub radius_m: f64,
+}
+
+impl Cylinder {
+    fn bounds(&self) -> Bounds {
+        let (base, axis, radius_m) = (&self.base, &self.axis, self.radius_m);
+        let top = base + axis * self.length_m;
+        let half = Vector3::from_fn(|i, _| radius_m * (1.0 - axis[i] * axis[i]).max(0.0).sqrt());
+        Bounds::from_centre_half(base, &half).union(&Bounds::from_centre_half(&top, &half))
+    }
+
+    /// Height of `p` along the axis from the base, and its offset from the axis.
+    fn axial(&self, p: &Vector3<f64>) -> (f64, Vector3<f64>) {
+        let rel = p - self.base;
+        let h = rel.dot(&self.axis);
+        (h, rel - self.axis * h)
+    }
+
+    fn normal_at(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        let (h, radial) = self.axial(p);
+        let side_gap = (radial.norm() - self.radius_m).abs();
+        let cap_gap = h.abs().min((h - self.length_m).abs());
+        if cap_gap < side_gap {
+            if h < 0.5 * self.length_m {
+                -self.axis
+            } else {
+                self.axis
+            }
+        } else {
+            radial.try_normalize(1e-15).unwrap_or(self.axis)
+        }
+    }
+
+    fn is_within(&self, p: &Vector3<f64>, clearance_m: f64) -> bool {
+        let (h, radial) = self.axial(p);
+        let dh = (-h).max(h - self.length_m).max(0.0);
+        let dr = (radial.norm() - self.radius_m).max(0.0);
+        dh * dh + dr * dr <= clearance_m * clearance_m
+    }
+
+    #[inline(always)]
+    fn intersect(&self, ray: &Ray, t_max: f64) -> Option<f64> {
+        intersect_cylinder(
+            ray,
+            t_max,
+            &self.base,
+            &self.axis,
+            self.length_m,
+            self.radius_m,
+        )
+    }
 }
 
 impl Shape {
@@ -136,17 +190,7 @@ impl Shape {
                 });
                 Bounds::from_centre_half(centre, &half)
             }
-            Shape::Cylinder {
-                base,
-                axis,
-                length_m,
-                radius_m,
-            } => {
-                let top = base + axis * *length_m;
-                let half =
-                    Vector3::from_fn(|i, _| radius_m * (1.0 - axis[i] * axis[i]).max(0.0).sqrt());
-                Bounds::from_centre_half(base, &half).union(&Bounds::from_centre_half(&top, &half))
-            }
+            Shape::Cylinder(c) => c.bounds(),
         }
     }
 
@@ -158,27 +202,7 @@ impl Shape {
                 .try_normalize(1e-15)
                 .unwrap_or_else(Vector3::z),
             Shape::Disc { normal, .. } => *normal,
-            Shape::Cylinder {
-                base,
-                axis,
-                length_m,
-                radius_m,
-            } => {
-                let rel = p - base;
-                let h = rel.dot(axis);
-                let radial = rel - axis * h;
-                let side_gap = (radial.norm() - radius_m).abs();
-                let cap_gap = h.abs().min((h - length_m).abs());
-                if cap_gap < side_gap {
-                    if h < 0.5 * length_m {
-                        -axis
-                    } else {
-                        *axis
-                    }
-                } else {
-                    radial.try_normalize(1e-15).unwrap_or(*axis)
-                }
-            }
+            Shape::Cylinder(c) => c.normal_at(p),
         }
     }
 
@@ -214,19 +238,7 @@ impl Shape {
                 };
                 off_plane * off_plane + in_plane_gap * in_plane_gap <= clearance_m * clearance_m
             }
-            Shape::Cylinder {
-                base,
-                axis,
-                length_m,
-                radius_m,
-            } => {
-                let rel = p - base;
-                let h = rel.dot(axis);
-                let radial = (rel - axis * h).norm();
-                let dh = (-h).max(h - length_m).max(0.0);
-                let dr = (radial - radius_m).max(0.0);
-                dh * dh + dr * dr <= clearance_m * clearance_m
-            }
+            Shape::Cylinder(c) => c.is_within(p, clearance_m),
         }
     }
 }
@@ -346,12 +358,7 @@ enum Prim {
         u_scaled: Vector3<f64>,
         v_scaled: Vector3<f64>,
     },
-    Cylinder {
-        base: Vector3<f64>,
-        axis: Vector3<f64>,
-        length_m: f64,
-        radius_m: f64,
-    },
+    Cylinder(Cylinder),
 }
 
 impl Prim {
@@ -374,17 +381,7 @@ impl Prim {
                 u_scaled: u / *half_u_m,
                 v_scaled: v / *half_v_m,
             },
-            Shape::Cylinder {
-                base,
-                axis,
-                length_m,
-                radius_m,
-            } => Prim::Cylinder {
-                base: *base,
-                axis: *axis,
-                length_m: *length_m,
-                radius_m: *radius_m,
-            },
+            Shape::Cylinder(c) => Prim::Cylinder(*c),
         }
     }
 
@@ -401,12 +398,7 @@ impl Prim {
             Prim::Ellipsoid { centre, inv_radii } => {
                 intersect_ellipsoid(ray, t_max, centre, inv_radii)
             }
-            Prim::Cylinder {
-                base,
-                axis,
-                length_m,
-                radius_m,
-            } => intersect_cylinder(ray, t_max, base, axis, *length_m, *radius_m),
+            Prim::Cylinder(c) => c.intersect(ray, t_max),
         }
     }
 }
@@ -505,22 +497,6 @@ impl NodeBox {
 
     #[inline(always)]
     fn hit(&self, ray: &Ray, t_max: f32) -> Option<f32> {
-        #[inline(always)]
-        fn min(a: f32, b: f32) -> f32 {
-            if a < b {
-                a
-            } else {
-                b
-            }
-        }
-        #[inline(always)]
-        fn max(a: f32, b: f32) -> f32 {
-            if a > b {
-                a
-            } else {
-                b
-            }
-        }
         let inv = &ray.inv_dir_f32;
         let oi = &ray.origin_times_inv_f32;
         let x0 = self.min[0] * inv[0] - oi[0];
@@ -529,8 +505,8 @@ impl NodeBox {
         let y1 = self.max[1] * inv[1] - oi[1];
         let z0 = self.min[2] * inv[2] - oi[2];
         let z1 = self.max[2] * inv[2] - oi[2];
-        let t_near = max(max(min(x0, x1), min(y0, y1)), max(min(z0, z1), 0.0));
-        let t_far = min(min(max(x0, x1), max(y0, y1)), min(max(z0, z1), t_max));
+        let t_near = fmax(fmax(fmin(x0, x1), fmin(y0, y1)), fmax(fmin(z0, z1), 0.0));
+        let t_far = fmin(fmin(fmax(x0, x1), fmax(y0, y1)), fmin(fmax(z0, z1), t_max));
         (t_near <= t_far).then_some(t_near)
     }
 }
@@ -833,7 +809,7 @@ impl Bvh {
                                 intersect_ellipsoid(ray, t_max, centre, inv_radii)
                             })
                         }
-                        Prim::Cylinder { .. } => {
+                        Prim::Cylinder(_) => {
                             packet.each_lane(&hits, &mut best_f32, index, |ray, t_max| {
                                 prim.intersect(ray, t_max)
                             })

@@ -6,17 +6,9 @@ use generate::{
     YELLOW_FRUIT_ALBEDO,
 };
 
-/// PCL's integer HSI and the paper's default rule (a copy of glasshouse-detect's, which this
-/// crate may not depend on), to check that albedos are chosen right.
+/// The detector's default HSI rule, to check that albedos are chosen right.
 fn is_roi(r: u8, g: u8, b: u8) -> bool {
-    let (r, g, b) = (r as i32, g as i32, b as i32);
-    let hx = (2.0 * r as f32 - g as f32 - b as f32) / 4.0;
-    let hy = (g - b) as f32 * 111.0 / 255.0;
-    let h = ((hy.atan2(hx) * 128.0 / std::f32::consts::PI) as i32).clamp(-128, 127);
-    let i = (r + g + b) / 3;
-    let m = r.min(g).min(b);
-    let s = if i == 0 { 0 } else { 255 - (m * 255) / i };
-    (-20..=35).contains(&h) && s >= 30 && i >= 30
+    glasshouse_detect::HsiRule::default().is_roi(r, g, b)
 }
 
 fn corners(range: [(f32, f32); 3]) -> Vec<[f32; 3]> {

@@ -108,13 +108,8 @@ impl EdgeConfig {
 
     /// The simulated trolley these settings describe.
     pub fn sim(&self) -> SimTrolleySettings {
-        SimTrolleySettings {
-            scenario: self.scenario,
-            seed: self.seed,
-            width: self.width,
-            height: self.height,
-            segment_length_m: self.segment_length_m,
-        }
+        let size = (self.width, self.height);
+        SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
     }
 
     fn open_source(&self) -> anyhow::Result<Box<dyn TrolleySource>> {

@@ -33,6 +33,17 @@ pub struct BoxEstimate {
     pub volume_m3: f64,
 }
 
+impl BoxEstimate {
+    pub fn new(centre: Point3<f64>, min: Point3<f64>, max: Point3<f64>, volume_m3: f64) -> Self {
+        Self {
+            centre,
+            min,
+            max,
+            volume_m3,
+        }
+    }
+}
+
 /// A matched estimate-truth pair (indices into the inputs).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Match {

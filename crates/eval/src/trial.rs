@@ -134,13 +134,8 @@ impl TrialConfig {
     }
 
     fn sim(&self) -> SimTrolleySettings {
-        SimTrolleySettings {
-            scenario: self.scenario,
-            seed: self.seed,
-            width: self.width,
-            height: self.height,
-            segment_length_m: self.segment_length_m,
-        }
+        let size = (self.width, self.height);
+        SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
     }
 }
 
@@ -164,22 +159,12 @@ pub struct Sample {
 
 fn box_estimate(record: &FruitRecord) -> BoxEstimate {
     let e = &record.estimate;
-    BoxEstimate {
-        centre: e.centre,
-        min: e.min,
-        max: e.max,
-        volume_m3: e.volume_m3,
-    }
+    BoxEstimate::new(e.centre, e.min, e.max, e.volume_m3)
 }
 
 fn fitted_estimate(record: &FruitRecord) -> BoxEstimate {
     let f = &record.fitted;
-    BoxEstimate {
-        centre: f.centre,
-        min: f.box_min,
-        max: f.box_max,
-        volume_m3: f.box_volume_m3,
-    }
+    BoxEstimate::new(f.centre, f.box_min, f.box_max, f.box_volume_m3)
 }
 
 /// What a finished trial reports.

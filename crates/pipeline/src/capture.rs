@@ -90,6 +90,21 @@ impl SimTrolleySettings {
     }
 }
 
+impl SimTrolleySettings {
+    /// Scene `scenario` seeded with `seed`, images of `size` (width, height) pixels, row
+    /// segments `segment_length_m` long.
+    pub fn new(scenario: ScenarioKind, seed: u64, size: (u32, u32), segment_length_m: f64) -> Self {
+        let (width, height) = size;
+        Self {
+            scenario,
+            seed,
+            width,
+            height,
+            segment_length_m,
+        }
+    }
+}
+
 /// The simulated glasshouse: renders the scene at the camera pose of the scene's UR5e, which
 /// executes views (IK, then a collision-free joint path) and moves along the row's segments.
 #[derive(Clone, Debug)]

@@ -164,6 +164,8 @@ struct Announcement {
     info: TrolleyInfo,
     arm: ArmState,
     frame: RgbdFrame,
+    /// Written to the recording (once, at its first announcement, with its capture time).
+    recorded: bool,
 }
 
 /// Performs the node's actions on the bus and the source.
@@ -227,20 +229,24 @@ impl Driver {
             tracing::info!(trolley = %self.config.trolley_id, "the source has no more frames");
             return Ok(EdgeInput::Captured { frame: false });
         };
-        let announcement = Announcement { info, arm, frame };
-        if let Some(recorder) = &self.recorder {
-            let h = self.header(frame_seq, 0.0);
-            recorder.write(&h, &announcement.info)?;
-            recorder.write(&h, &announcement.frame)?;
-        }
-        self.announcement = Some(announcement);
+        self.announcement = Some(Announcement {
+            info,
+            arm,
+            frame,
+            recorded: false,
+        });
         Ok(EdgeInput::Captured { frame: true })
     }
 
-    async fn announce(&self, header: &Header) -> anyhow::Result<()> {
-        let Some(a) = &self.announcement else {
+    async fn announce(&mut self, header: &Header) -> anyhow::Result<()> {
+        let Some(a) = &mut self.announcement else {
             return Ok(());
         };
+        if let (Some(recorder), false) = (&self.recorder, a.recorded) {
+            recorder.write(header, &a.info)?;
+            recorder.write(header, &a.frame)?;
+            a.recorded = true;
+        }
         self.out.info.publish(header, &a.info).await?;
         if let Some(truth) = &self.truth {
             self.out.truth.publish(header, truth).await?;

@@ -354,7 +354,9 @@ impl PlannerNode {
                 Ok(mut loaded) => {
                     tracing::info!(planner = %pid, trolley = %tid, from = %snapshot.planner_id, seq = snapshot.based_on_seq, voxels = loaded.map().len(), "snapshot loaded");
                     if let Some(info) = slot.planner.info() {
-                        let _ = loaded.set_info(info.clone());
+                        if let Err(e) = loaded.set_info(info.clone()) {
+                            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "views are not filtered by reach");
+                        }
                     }
                     *slot.planner = loaded;
                 }

@@ -103,7 +103,7 @@ fn pair() -> (PlannerNode, PlannerNode) {
 }
 
 /// (owner, replica) of t1.
-fn roles(a: PlannerNode, b: PlannerNode) -> (PlannerNode, PlannerNode) {
+fn roles((a, b): (PlannerNode, PlannerNode)) -> (PlannerNode, PlannerNode) {
     match (a.role("t1"), b.role("t1")) {
         (Some(Role::Owner), Some(Role::Replica)) => (a, b),
         (Some(Role::Replica), Some(Role::Owner)) => (b, a),
@@ -114,7 +114,7 @@ fn roles(a: PlannerNode, b: PlannerNode) -> (PlannerNode, PlannerNode) {
 #[test]
 fn the_owner_plans_and_publishes_the_replica_only_integrates() {
     let (info, clouds) = trolley_clouds(2);
-    let (mut owner, mut replica) = roles(pair().0, pair().1);
+    let (mut owner, mut replica) = roles(pair());
     for n in [&mut owner, &mut replica] {
         n.handle(info_event(&info));
     }
@@ -137,7 +137,7 @@ fn the_owner_plans_and_publishes_the_replica_only_integrates() {
 #[test]
 fn planning_waits_for_the_trolley_info() {
     let (info, clouds) = trolley_clouds(2);
-    let (mut owner, _) = roles(pair().0, pair().1);
+    let (mut owner, _) = roles(pair());
     let actions = owner.handle(cloud_event(&clouds[0]));
     assert!(views_of(&actions).is_empty());
     assert_eq!(owner.stats().clouds_integrated, 1);
@@ -148,7 +148,7 @@ fn planning_waits_for_the_trolley_info() {
 #[test]
 fn the_replica_takes_over_and_plans_on_the_latest_cloud_at_once() {
     let (info, clouds) = trolley_clouds(1);
-    let (mut owner, mut replica) = roles(pair().0, pair().1);
+    let (mut owner, mut replica) = roles(pair());
     for n in [&mut owner, &mut replica] {
         n.handle(info_event(&info));
         n.handle(cloud_event(&clouds[0]));
@@ -168,7 +168,7 @@ fn the_replica_takes_over_and_plans_on_the_latest_cloud_at_once() {
 }
 
 #[test]
-fn a_planner_that_leaves_the_owner_demotes_nobody_else() {
+fn our_own_token_going_away_changes_nothing() {
     let (mut a, _) = pair();
     // Our own token going away is not news.
     assert!(a.handle(PlannerEvent::PlannerLeft("p1".into())).is_empty());
@@ -251,7 +251,7 @@ fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
 #[test]
 fn a_trolley_that_leaves_and_returns_keeps_its_map() {
     let (info, clouds) = trolley_clouds(2);
-    let (mut owner, _) = roles(pair().0, pair().1);
+    let (mut owner, _) = roles(pair());
     owner.handle(info_event(&info));
     owner.handle(cloud_event(&clouds[0]));
     let known = owner.planner("t1").unwrap().map().len();
@@ -268,7 +268,7 @@ fn a_trolley_that_leaves_and_returns_keeps_its_map() {
 #[test]
 fn bad_clouds_are_counted_and_leave_the_map_alone() {
     let (info, clouds) = trolley_clouds(1);
-    let (mut owner, _) = roles(pair().0, pair().1);
+    let (mut owner, _) = roles(pair());
     owner.handle(info_event(&info));
     let mut bad_id = cloud_event(&clouds[0]);
     if let PlannerEvent::Cloud { header, .. } = &mut bad_id {
@@ -284,7 +284,7 @@ fn bad_clouds_are_counted_and_leave_the_map_alone() {
 
 #[test]
 fn the_status_lists_owned_and_standby_trolleys() {
-    let (owner, replica) = roles(pair().0, pair().1);
+    let (owner, replica) = roles(pair());
     for (mut n, owned) in [(owner, true), (replica, false)] {
         let actions = n.handle(PlannerEvent::StatusTick {
             dropped_messages: 4,

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use clap::Parser;
-use glasshouse_bus::BusArgs;
+use glasshouse_bus::set_flag;
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
 
 /// Read-only monitor of the fleet: a web page with fleet, planner and fruit tables (JSON API at
@@ -16,9 +16,6 @@ use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, Ser
 #[derive(Parser, Debug)]
 #[command(name = "dashboard", version)]
 struct Cli {
-    /// Settings file (JSON5).
-    #[arg(short, long, value_name = "FILE")]
-    config: Option<PathBuf>,
     /// Write a Rerun recording (.rrd) to FILE.
     #[arg(long, value_name = "FILE")]
     record: Option<PathBuf>,
@@ -43,24 +40,33 @@ struct Cli {
     /// Do not serve the web page.
     #[arg(long)]
     no_http: bool,
-    #[command(flatten)]
-    bus: BusArgs,
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
-    glasshouse_bus::init_tracing();
-    let cli = Cli::parse();
-    let mut settings: DashboardSettings = glasshouse_bus::load_settings(cli.config.as_deref())?;
-    if cli.record.is_some() {
-        settings.record = cli.record;
-    }
+fn main() -> anyhow::Result<()> {
+    glasshouse_bus::service_main(apply_flags, |session, settings, shutdown| {
+        if let Some(serve) = &settings.serve {
+            println!("live 3D view: {}", serve.web_viewer_url());
+            println!("Rerun viewer: rerun {}", serve.grpc_url());
+        }
+        let state = Arc::new(Mutex::new(FleetState::default()));
+        glasshouse_dashboard::run(
+            session,
+            settings,
+            shutdown,
+            state,
+            Arc::<DashboardCounters>::default(),
+        )
+    })
+}
+
+fn apply_flags(cli: Cli, settings: &mut DashboardSettings) -> anyhow::Result<()> {
+    set_flag(&mut settings.record, cli.record.map(Some));
     if cli.serve {
         settings.serve = Some(ServeSettings {
             grpc_port: cli.grpc_port,
             web_viewer_port: cli.web_viewer_port,
             memory_limit_bytes: cli.memory_limit_mb << 20,
-            public_host: cli.public_host.clone(),
+            public_host: cli.public_host,
             ..ServeSettings::default()
         });
     }
@@ -69,14 +75,5 @@ async fn main() -> anyhow::Result<()> {
     } else if settings.http_listen.is_none() || cli.http != "0.0.0.0:8080" {
         settings.http_listen = Some(cli.http);
     }
-    if let Some(serve) = &settings.serve {
-        println!("live 3D view: {}", serve.web_viewer_url());
-        println!("Rerun viewer: rerun {}", serve.grpc_url());
-    }
-    let state = Arc::new(Mutex::new(FleetState::default()));
-    let counters = Arc::new(DashboardCounters::default());
-    glasshouse_bus::run_service(&cli.bus, |session, shutdown| {
-        glasshouse_dashboard::run(session, settings, shutdown, state, counters)
-    })
-    .await
+    Ok(())
 }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use clap::Parser;
-use glasshouse_bus::BusArgs;
+use glasshouse_bus::set_flag;
 use glasshouse_edge::{EdgeConfig, EdgeCounters};
 
 /// Streams RGB-D frames and arm state of one trolley and executes the views planners send.
@@ -16,9 +16,6 @@ use glasshouse_edge::{EdgeConfig, EdgeCounters};
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
 struct Cli {
-    /// Settings file (JSON5).
-    #[arg(short, long, value_name = "FILE")]
-    config: Option<PathBuf>,
     /// Trolley id (one key chunk: letters, digits, '-' and '_').
     #[arg(long)]
     trolley_id: Option<String>,
@@ -47,46 +44,33 @@ struct Cli {
     /// Record every captured frame to this folder (for --replay).
     #[arg(long, value_name = "DIR")]
     record_frames: Option<PathBuf>,
-    #[command(flatten)]
-    bus: BusArgs,
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
-    glasshouse_bus::init_tracing();
-    let cli = Cli::parse();
-    let mut config: EdgeConfig = glasshouse_bus::load_settings(cli.config.as_deref())?;
-    if let Some(v) = cli.trolley_id {
-        config.trolley_id = v;
-    }
-    if let Some(v) = cli.scenario {
-        config.scenario = v;
-    }
-    if let Some(v) = cli.seed {
-        config.seed = v;
-    }
-    if let Some(v) = cli.max_views {
-        config.max_views = v;
-    }
-    if let Some(v) = cli.frame_interval_ms {
-        config.frame_interval_ms = v;
-    }
-    if let Some(w) = cli.width {
-        config.width = w;
-        config.height = cli.height.unwrap_or(w * 3 / 4);
-    } else if let Some(h) = cli.height {
-        config.height = h;
-    }
-    if cli.replay.is_some() {
-        config.replay_dir = cli.replay;
-    }
-    if cli.record_frames.is_some() {
-        config.record_frames_dir = cli.record_frames;
-    }
-    config.validate()?;
-    let counters = Arc::new(EdgeCounters::default());
-    glasshouse_bus::run_service(&cli.bus, |session, shutdown| {
-        glasshouse_edge::run(session, config, shutdown, None, counters)
+fn main() -> anyhow::Result<()> {
+    glasshouse_bus::service_main(apply_flags, |session, config, shutdown| {
+        glasshouse_edge::run(
+            session,
+            config,
+            shutdown,
+            None,
+            Arc::<EdgeCounters>::default(),
+        )
     })
-    .await
+}
+
+fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
+    set_flag(&mut c.trolley_id, cli.trolley_id);
+    set_flag(&mut c.scenario, cli.scenario);
+    set_flag(&mut c.seed, cli.seed);
+    set_flag(&mut c.max_views, cli.max_views);
+    set_flag(&mut c.frame_interval_ms, cli.frame_interval_ms);
+    if let Some(width) = cli.width {
+        c.width = width;
+        c.height = cli.height.unwrap_or(width * 3 / 4);
+    } else {
+        set_flag(&mut c.height, cli.height);
+    }
+    set_flag(&mut c.replay_dir, cli.replay.map(Some));
+    set_flag(&mut c.record_frames_dir, cli.record_frames.map(Some));
+    c.validate()
 }

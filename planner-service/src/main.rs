@@ -1,10 +1,9 @@
 //! `planner-service`: ROI maps, next best views and fruit estimates for every trolley it hears.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use clap::Parser;
-use glasshouse_bus::BusArgs;
+use glasshouse_bus::set_flag;
 use glasshouse_planner::{PlannerCounters, PlannerSettings};
 
 /// Integrates ROI clouds into a voxel map per trolley, publishes ranked next best views and
@@ -16,9 +15,6 @@ use glasshouse_planner::{PlannerCounters, PlannerSettings};
 #[derive(Parser, Debug)]
 #[command(name = "planner-service", version)]
 struct Cli {
-    /// Settings file (JSON5).
-    #[arg(short, long, value_name = "FILE")]
-    config: Option<PathBuf>,
     /// Planner id (one key chunk).
     #[arg(long)]
     planner_id: Option<String>,
@@ -28,28 +24,23 @@ struct Cli {
     /// Planner seed (views are seeded from it and the frame sequence).
     #[arg(long)]
     seed: Option<u64>,
-    #[command(flatten)]
-    bus: BusArgs,
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
-    glasshouse_bus::init_tracing();
-    let cli = Cli::parse();
-    let mut settings: PlannerSettings = glasshouse_bus::load_settings(cli.config.as_deref())?;
-    if let Some(v) = cli.planner_id {
-        settings.planner_id = v;
-    }
-    if let Some(v) = cli.method {
-        settings.planning.method = v;
-    }
-    if let Some(v) = cli.seed {
-        settings.planning.seed = v;
-    }
-    settings.validate()?;
-    let counters = Arc::new(PlannerCounters::default());
-    glasshouse_bus::run_service(&cli.bus, |session, shutdown| {
-        glasshouse_planner::run(session, settings, shutdown, counters)
-    })
-    .await
+fn main() -> anyhow::Result<()> {
+    glasshouse_bus::service_main(
+        |cli: Cli, s: &mut PlannerSettings| {
+            set_flag(&mut s.planner_id, cli.planner_id);
+            set_flag(&mut s.planning.method, cli.method);
+            set_flag(&mut s.planning.seed, cli.seed);
+            s.validate()
+        },
+        |session, settings, shutdown| {
+            glasshouse_planner::run(
+                session,
+                settings,
+                shutdown,
+                Arc::<PlannerCounters>::default(),
+            )
+        },
+    )
 }

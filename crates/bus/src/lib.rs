@@ -39,6 +39,8 @@ pub use zenoh;
 pub enum BusError {
     #[error("zenoh configuration: {0}")]
     Config(String),
+    #[error("settings file {0}")]
+    Settings(String),
     #[error("cannot open the zenoh session: {0}")]
     Open(String),
     #[error("cannot declare {what} on {key}: {reason}")]
@@ -784,8 +786,69 @@ pub fn load_settings<T: serde::de::DeserializeOwned + Default>(
         return Ok(T::default());
     };
     let text = std::fs::read_to_string(path)
-        .map_err(|e| BusError::Config(format!("{}: {e}", path.display())))?;
-    json5::from_str(&text).map_err(|e| BusError::Config(format!("{}: {e}", path.display())))
+        .map_err(|e| BusError::Settings(format!("{}: {e}", path.display())))?;
+    json5::from_str(&text).map_err(|e| BusError::Settings(format!("{}: {e}", path.display())))
+}
+
+/// The flags every service binary shares: its settings file and its session.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ServiceArgs {
+    /// Settings file (JSON5); the flags given here override it.
+    #[arg(short, long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub bus: BusArgs,
+}
+
+/// The whole `main` of a service binary: logs to stderr, parses the binary's own flags `C`
+/// plus [`ServiceArgs`], builds the settings `S` (defaults, then `--config`, then `flags`,
+/// which applies the binary's flags and validates), and runs `service` on a multi-threaded
+/// runtime until Ctrl-C or SIGTERM.
+pub fn service_main<C, S, E, Fut>(
+    flags: impl FnOnce(C, &mut S) -> Result<(), E>,
+    service: impl FnOnce(Session, S, Shutdown) -> Fut,
+) -> Result<(), E>
+where
+    C: clap::Parser,
+    S: serde::de::DeserializeOwned + Default,
+    E: From<BusError> + From<std::io::Error>,
+    Fut: std::future::Future<Output = Result<(), E>>,
+{
+    use clap::{Args, FromArgMatches};
+    init_tracing();
+    let command = C::command();
+    // The flattened flags' doc comments would otherwise replace the binary's own description.
+    let (about, long_about) = (
+        command.get_about().cloned(),
+        command.get_long_about().cloned(),
+    );
+    let mut command = ServiceArgs::augment_args(command);
+    if let Some(about) = about {
+        command = command.about(about);
+    }
+    if let Some(long_about) = long_about {
+        command = command.long_about(long_about);
+    }
+    let matches = command.get_matches();
+    let parsed = C::from_arg_matches(&matches).and_then(|cli| {
+        ServiceArgs::from_arg_matches(&matches).map(|service_args| (cli, service_args))
+    });
+    let (cli, service_args) = parsed.unwrap_or_else(|e| e.exit());
+    let mut settings = load_settings(service_args.config.as_deref())?;
+    flags(cli, &mut settings)?;
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?
+        .block_on(run_service(&service_args.bus, |session, shutdown| {
+            service(session, settings, shutdown)
+        }))
+}
+
+/// Overrides a setting with a flag, when the flag was given.
+pub fn set_flag<T>(setting: &mut T, flag: Option<T>) {
+    if let Some(value) = flag {
+        *setting = value;
+    }
 }
 
 /// Runs a service binary's loop on its own session: opens the session from `args`, hands it

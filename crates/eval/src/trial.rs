@@ -305,6 +305,11 @@ impl<S: TrolleySource> Trial<S> {
         self.clock_s
     }
 
+    /// Planner compute charged to the clock so far, seconds.
+    pub fn compute_time_s(&self) -> f64 {
+        self.compute_time_s
+    }
+
     pub fn is_done(&self) -> bool {
         self.clock_s > self.config.budget_s || self.edge.is_done()
     }

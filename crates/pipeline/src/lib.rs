@@ -16,6 +16,7 @@
 mod capture;
 mod detection;
 mod edge;
+mod fits;
 mod planning;
 mod reach;
 

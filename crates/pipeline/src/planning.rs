@@ -4,7 +4,7 @@
 use std::collections::HashSet;
 
 use glasshouse_arm::Robot;
-use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, FittedShape, ShapeKind};
+use glasshouse_nbv::fit::{FitConfig, FittedShape, ShapeKind};
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, Plan, PlanError, PlannerConfig,
     PlanningContext, ReachPredicate,
@@ -17,6 +17,7 @@ use glasshouse_roimap::{MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxe
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
+use crate::fits::FitCache;
 use crate::ReachFilter;
 
 /// Why a planning step failed; the trolley's state is left as it was before the step.
@@ -170,6 +171,13 @@ pub struct TrolleyPlanner {
     last_cloud_seq: Option<u64>,
     clusters: Vec<RoiCluster>,
     estimates: Vec<FruitEstimate>,
+    /// The fitted shape of each cluster, and the fits kept between frames.
+    fits: Vec<FittedShape>,
+    fit_cache: FitCache,
+    /// The clusters changed since the fits were last made.
+    fits_stale: bool,
+    /// Clusters refitted by the last fit update (the others kept their fits).
+    last_refits: usize,
     map_seq: u64,
     /// Voxels last published as occupied or ROI: MapUpdate carries solid voxels and the ones
     /// that stopped being solid, not every newly freed voxel (those would dominate the traffic).
@@ -188,6 +196,10 @@ impl TrolleyPlanner {
             last_cloud_seq: None,
             clusters: Vec::new(),
             estimates: Vec::new(),
+            fits: Vec::new(),
+            fit_cache: FitCache::default(),
+            fits_stale: false,
+            last_refits: 0,
             map_seq: 0,
             published_solid: HashSet::new(),
         })
@@ -250,19 +262,34 @@ impl TrolleyPlanner {
         }
         self.clusters = self.map.clusters(self.settings.min_cluster_voxels);
         self.estimates = self.tracker.update(&self.clusters);
+        self.fits_stale = true;
         Ok(fresh)
     }
 
-    /// Every fruit of the latest clusters with its fitted ellipsoid.
-    pub fn fruits(&self) -> Vec<FruitRecord> {
-        self.clusters
+    /// Every fruit of the latest clusters with its fitted ellipsoid. Fits are made here, not on
+    /// integration (a replica integrates without them), and only for the fruits whose voxels or
+    /// surroundings changed since their last fit.
+    pub fn fruits(&mut self) -> Vec<FruitRecord> {
+        if self.fits_stale {
+            (self.fits, self.last_refits) =
+                self.fit_cache
+                    .update(&self.map, &self.clusters, &self.settings.fit);
+            self.fits_stale = false;
+        }
+        self.estimates
             .iter()
-            .zip(&self.estimates)
-            .map(|(cluster, estimate)| FruitRecord {
-                fitted: fit_ellipsoid(&self.map, cluster, &self.settings.fit),
+            .zip(&self.fits)
+            .map(|(estimate, fitted)| FruitRecord {
+                fitted: fitted.clone(),
                 estimate: estimate.clone(),
             })
             .collect()
+    }
+
+    /// How many fruits the last [`TrolleyPlanner::fruits`] refitted; the others' surroundings had
+    /// not changed.
+    pub fn last_refits(&self) -> usize {
+        self.last_refits
     }
 
     /// The next best views from the camera at `world_from_camera`, seeded for frame `frame_seq`;

@@ -355,3 +355,42 @@ fn the_cloud_carries_the_frame_camera_pose() {
     let origin = frame.world_from_camera.translation.vector;
     assert!((cloud.sensor_origin_in_world.coords - origin).norm() < 1e-9);
 }
+
+/// Fits every cluster of the planner's map afresh.
+fn fresh_fits(planner: &TrolleyPlanner) -> Vec<glasshouse_nbv::fit::FittedShape> {
+    let map = planner.map();
+    let clusters = map.clusters(planner.settings().min_cluster_voxels);
+    let fit = |c| glasshouse_nbv::fit::fit_ellipsoid(map, c, &planner.settings().fit);
+    clusters.iter().map(fit).collect()
+}
+
+#[test]
+fn kept_fits_equal_fresh_fits_and_only_touched_fruits_are_refitted() {
+    let mut trolley = sim(ScenarioKind::Row);
+    let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    planner.set_info(trolley.info()).unwrap();
+    let (mut refits, mut fruits_seen) = (0, 0);
+    for seq in 1..=12 {
+        if seq % 4 == 0 {
+            trolley.next_segment().expect("the row has a next segment");
+        }
+        let frame = trolley.capture(seq).unwrap().unwrap();
+        let cloud = detect_frame(&frame, seq, "d1", &DetectorConfig::default()).unwrap();
+        planner.integrate(&cloud).unwrap();
+        let fitted: Vec<_> = planner.fruits().into_iter().map(|f| f.fitted).collect();
+        // Debug text: equal bit for bit, NaN residuals of box fallbacks included.
+        let text = |shapes: &[glasshouse_nbv::fit::FittedShape]| format!("{shapes:?}");
+        assert_eq!(text(&fitted), text(&fresh_fits(&planner)), "frame {seq}");
+        refits += planner.last_refits();
+        fruits_seen += fitted.len();
+        if let Some(plan) = planner.plan(&frame.world_from_camera, seq).unwrap() {
+            let goals: Vec<_> = plan.views.iter().map(|v| v.world_from_camera).collect();
+            trolley.execute(&goals);
+        }
+    }
+    assert!(fruits_seen > 0);
+    assert!(
+        refits < fruits_seen,
+        "{refits} refits for {fruits_seen} fruits"
+    );
+}

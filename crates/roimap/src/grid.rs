@@ -136,6 +136,8 @@ pub(crate) struct Block {
     pub roi_frontier: Mask,
     /// Changed since the last `take_changes`.
     pub dirty: Mask,
+    /// The scan (1-based count of inserted scans) that last changed a voxel of this block.
+    pub changed_at_scan: u64,
 }
 
 impl Block {
@@ -149,6 +151,7 @@ impl Block {
             expl_frontier: EMPTY,
             roi_frontier: EMPTY,
             dirty: EMPTY,
+            changed_at_scan: 0,
         }
     }
 }

@@ -498,6 +498,7 @@ impl RoiMap {
         self.known_count = self.known_count.wrapping_add_signed(d_known);
         self.occupied_count = self.occupied_count.wrapping_add_signed(d_occ);
         if any_changed {
+            block.changed_at_scan = self.scans_inserted + 1;
             self.dirty_blocks.insert(bi as u32);
         }
         log.note(bi as u32, &state_changed, &roi_changed);

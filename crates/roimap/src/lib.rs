@@ -524,6 +524,7 @@ impl RoiMap {
         mask_set(&mut b.occupied, l, is_occ);
         mask_set(&mut b.roi_mask, l, is_roi);
         mask_set(&mut b.dirty, l, true);
+        b.changed_at_scan = self.scans_inserted + 1;
         self.dirty_blocks.insert(bi as u32);
         if !was_known {
             self.known_count += 1;
@@ -849,6 +850,30 @@ impl RoiMap {
             });
         }
         clusters
+    }
+
+    /// Whether a voxel with its centre in the box `[lo, hi]` may have changed since the map had
+    /// taken `scans` scans ([`RoiMap::scans_inserted`]). Block-grained, so it can say yes for a
+    /// change next to the box, never no for a change inside it: what was computed from the box
+    /// then can be reused when this is false.
+    pub fn changed_since(&self, lo: &Point3<f64>, hi: &Point3<f64>, scans: u64) -> bool {
+        let (Some(a), Some(b)) = (self.try_key_of(lo), self.try_key_of(hi)) else {
+            return true;
+        };
+        let (a, b) = (grid::block_of(a), grid::block_of(b));
+        let span = |a: i32, b: i32| i64::from(b) - i64::from(a) + 1;
+        if span(a.x, b.x) * span(a.y, b.y) * span(a.z, b.z) > 4096 {
+            return true;
+        }
+        (a.x..=b.x).any(|x| {
+            (a.y..=b.y).any(|y| {
+                (a.z..=b.z).any(|z| {
+                    self.store
+                        .find(VoxelKey::new(x, y, z))
+                        .is_some_and(|block| block.changed_at_scan > scans)
+                })
+            })
+        })
     }
 
     /// Number of successful [`RoiMap::insert_scan`] calls.

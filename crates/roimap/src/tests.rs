@@ -1263,3 +1263,26 @@ fn batch_walk_equals_walking_each_ray_alone() {
         }
     }
 }
+
+#[test]
+fn changed_since_sees_the_boxes_a_scan_touched_and_only_near_them() {
+    let mut m = map();
+    let origin = Point3::new(0.001, 0.001, 0.001);
+    m.insert_scan(&origin, &[p32(0.105, 0.005, 0.005)], &[false])
+        .expect("valid scan");
+    let before = m.scans_inserted();
+    let near_ray = (Point3::new(0.05, 0.0, 0.0), Point3::new(0.06, 0.01, 0.01));
+    let far = (Point3::new(1.0, 1.0, 1.0), Point3::new(1.1, 1.1, 1.1));
+    assert!(m.changed_since(&near_ray.0, &near_ray.1, 0));
+    assert!(!m.changed_since(&near_ray.0, &near_ray.1, before));
+    // The same ray again changes its voxels' log-odds: the box near it changed, the far one not.
+    m.insert_scan(&origin, &[p32(0.105, 0.005, 0.005)], &[false])
+        .expect("valid scan");
+    assert!(m.changed_since(&near_ray.0, &near_ray.1, before));
+    assert!(!m.changed_since(&far.0, &far.1, before));
+    // A scan into the far box changes it.
+    let far_origin = Point3::new(1.001, 1.001, 1.001);
+    m.insert_scan(&far_origin, &[p32(1.05, 1.05, 1.05)], &[false])
+        .expect("valid scan");
+    assert!(m.changed_since(&far.0, &far.1, before + 1));
+}

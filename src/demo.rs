@@ -52,6 +52,8 @@ pub struct DemoArgs {
     /// Give up when the pipeline makes no progress for this long.
     #[arg(long, default_value_t = 60)]
     pub stall_timeout_s: u64,
+    #[command(flatten)]
+    pub perception: crate::eval::PerceptionArgs,
 }
 
 #[derive(Serialize)]
@@ -102,6 +104,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         max_views: args.views.max(1),
         width: args.width,
         height: args.width * 3 / 4,
+        perception_noise: args.perception.noise()?,
         ..EdgeConfig::default()
     };
     edge_config.validate()?;

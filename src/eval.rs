@@ -8,7 +8,11 @@
 //! - `table.md`: Table I (mean ± std at the end of the budget) and the Mann-Whitney p-values;
 //! - `summary.json`: `{"<method>": {"<metric>": {"mean", "std", "n"}}, "fruits_total", "p_values",
 //!   "settings"}`;
-//! - `covered_volume.png`, `volume_accuracy.png`: mean curves over time per method.
+//! - `covered_volume.png`, `volume_accuracy.png`, `f1.png`, `count_ratio.png`: mean curves over
+//!   time per method.
+//!
+//! `--label-noise P` and `--silhouette-px N` put the simulated detector's errors into every
+//! frame (per-pixel label flips, depth artefacts at plant silhouettes), seeded per frame.
 //!
 //! Trial `t` (from 0) uses seed `--seed + t` for the scene, the camera noise and the planner, the
 //! same for every method, so methods are compared on the same scenes; `glasshouse demo --seed`
@@ -24,8 +28,42 @@ use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
 use glasshouse_eval::report::{self, method_label, MethodRuns};
 use glasshouse_eval::{run_trial, ComputeTime, TrialConfig, TrialResult};
 use glasshouse_nbv::Method;
-use glasshouse_sim::ScenarioKind;
+use glasshouse_sim::{PerceptionNoise, ScenarioKind, MAX_SILHOUETTE_PX};
 use indicatif::{ProgressBar, ProgressStyle};
+
+/// The simulated detector's errors (`demo` and `eval`).
+#[derive(clap::Args, Debug, Clone, Copy, Default)]
+pub struct PerceptionArgs {
+    /// Detector label noise: probability in [0, 1] that each pixel's fruit/non-fruit label
+    /// flips (0 = the perfect colour detector).
+    #[arg(long, value_name = "P", default_value_t = 0.0)]
+    pub label_noise: f64,
+    /// Depth artefacts at plant silhouettes: band width in pixels where depth goes missing or
+    /// mixes foreground and background (0 = none, at most 8).
+    #[arg(long, value_name = "PX", default_value_t = 0)]
+    pub silhouette_px: u32,
+}
+
+impl PerceptionArgs {
+    /// The noise these flags ask for, or an error naming the flag out of range.
+    pub fn noise(&self) -> anyhow::Result<PerceptionNoise> {
+        let noise = PerceptionNoise {
+            label_noise: self.label_noise,
+            silhouette_px: self.silhouette_px,
+        };
+        ensure!(
+            (0.0..=1.0).contains(&noise.label_noise),
+            "--label-noise must be a probability in [0, 1], got {}",
+            noise.label_noise
+        );
+        ensure!(
+            noise.silhouette_px <= MAX_SILHOUETTE_PX,
+            "--silhouette-px must be 0..={MAX_SILHOUETTE_PX}, got {}",
+            noise.silhouette_px
+        );
+        Ok(noise)
+    }
+}
 
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
@@ -61,6 +99,8 @@ pub struct EvalArgs {
     /// Trials run in parallel (default: the number of cores).
     #[arg(long)]
     pub jobs: Option<usize>,
+    #[command(flatten)]
+    pub perception: PerceptionArgs,
 }
 
 /// Parsed and checked arguments.
@@ -69,6 +109,7 @@ struct Plan {
     methods: Vec<Method>,
     compute_time: ComputeTime,
     jobs: usize,
+    perception_noise: PerceptionNoise,
 }
 
 fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
@@ -108,6 +149,7 @@ fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
         methods,
         compute_time,
         jobs,
+        perception_noise: args.perception.noise()?,
     })
 }
 
@@ -146,6 +188,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "motion": "arm",
         "width": args.width,
         "height": height,
+        "perception_noise": plan.perception_noise,
     });
     let summary = report::summary_json(&runs, settings);
     write(
@@ -191,6 +234,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 height,
                 budget_s: args.budget_s,
                 compute_time: plan.compute_time,
+                perception_noise: plan.perception_noise,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -333,7 +377,9 @@ fn plot_notes(runs: &[MethodRuns]) -> String {
         "\n## Plots\n\n`covered_volume.png` (paper Fig. 5) and `volume_accuracy.png` (Fig. 6): \
          x = simulated time in s, y = the mean over trials at each second. Solid lines: box \
          estimates (the paper's); dashed: fitted ellipsoid estimates. Volume accuracy keeps \
-         pairs with accuracy > 0.5 (the published plots' rule).\n\n",
+         pairs with accuracy > 0.5 (the published plots' rule). `f1.png` and `count_ratio.png` \
+         follow the fruit counts the same way (count ratio above 1: the map reports more fruit \
+         than there is).\n\n",
     );
     for (i, run) in runs.iter().enumerate() {
         let [r, g, b] = PALETTE[i % PALETTE.len()];
@@ -348,7 +394,7 @@ fn plot_notes(runs: &[MethodRuns]) -> String {
 
 fn write_plots(out: &Path, runs: &[MethodRuns], budget_s: f64) -> anyhow::Result<()> {
     type Value = fn(&glasshouse_eval::Sample) -> f64;
-    let plots: [(&str, &str, &str, Value, Value); 2] = [
+    let plots: [(&str, &str, &str, Value, Value); 4] = [
         (
             "covered_volume.png",
             "covered roi volume",
@@ -362,6 +408,20 @@ fn write_plots(out: &Path, runs: &[MethodRuns], budget_s: f64) -> anyhow::Result
             "volume accuracy",
             |s| s.boxes.volume_accuracy_gt05,
             |s| s.fitted.volume_accuracy_gt05,
+        ),
+        (
+            "f1.png",
+            "fruit f1 (matched fruits)",
+            "f1",
+            |s| s.boxes.counts.f1,
+            |s| s.fitted.counts.f1,
+        ),
+        (
+            "count_ratio.png",
+            "count ratio (reported / true fruits)",
+            "count ratio",
+            |s| s.boxes.counts.count_ratio,
+            |s| s.fitted.counts.count_ratio,
         ),
     ];
     for (file, title, y_label, boxes, fitted) in plots {
@@ -382,13 +442,19 @@ fn write_plots(out: &Path, runs: &[MethodRuns], budget_s: f64) -> anyhow::Result
                 });
             }
         }
+        // Shares end at 1; a count ratio may exceed it (over-counting), so its axis grows.
+        let highest = series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.1))
+            .filter(|y| y.is_finite())
+            .fold(1.0, f64::max);
         let spec = PlotSpec {
             title: title.to_string(),
             x_label: "time (s)".to_string(),
             y_label: y_label.to_string(),
             x_max: budget_s,
             y_min: 0.0,
-            y_max: 1.0,
+            y_max: highest.ceil(),
             width: 900,
             height: 560,
         };
@@ -415,6 +481,7 @@ mod tests {
             compute_ms: Some(50.0),
             width: 64,
             jobs: Some(2),
+            perception: PerceptionArgs::default(),
         }
     }
 
@@ -446,6 +513,20 @@ mod tests {
                 jobs: Some(0),
                 ..args(out.clone())
             },
+            EvalArgs {
+                perception: PerceptionArgs {
+                    label_noise: 1.5,
+                    silhouette_px: 0,
+                },
+                ..args(out.clone())
+            },
+            EvalArgs {
+                perception: PerceptionArgs {
+                    label_noise: 0.3,
+                    silhouette_px: 9,
+                },
+                ..args(out.clone())
+            },
         ];
         for a in bad {
             let msg = format!("{:#}", run(a).unwrap_err());
@@ -470,6 +551,8 @@ mod tests {
             "summary.json",
             "covered_volume.png",
             "volume_accuracy.png",
+            "f1.png",
+            "count_ratio.png",
             "trials/ours-uu-0.csv",
             "trials/explo-uu-0.csv",
         ] {

@@ -22,7 +22,7 @@ use glasshouse_pipeline::{
 };
 use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{ArmState, FruitEstimates, Header, RgbdFrame, TrolleyInfo, TrolleyStatus};
-use glasshouse_sim::ScenarioKind;
+use glasshouse_sim::{PerceptionNoise, ScenarioKind};
 use serde::Deserialize;
 use source::{FrameRecorder, ReplaySource};
 use tokio::time::Instant;
@@ -59,6 +59,8 @@ pub struct EdgeConfig {
     /// Wall-clock time at least between two captures (0: capture as soon as the last view is
     /// done). A real camera streams at a fixed rate; 200 ms paces a trolley at 5 frames/s.
     pub frame_interval_ms: u64,
+    /// Simulated detector label noise and silhouette depth artefacts (clean by default).
+    pub perception_noise: PerceptionNoise,
 }
 
 impl Default for EdgeConfig {
@@ -77,6 +79,7 @@ impl Default for EdgeConfig {
             replay_dir: None,
             record_frames_dir: None,
             frame_interval_ms: 0,
+            perception_noise: PerceptionNoise::default(),
         }
     }
 }
@@ -84,7 +87,7 @@ impl Default for EdgeConfig {
 impl EdgeConfig {
     pub fn validate(&self) -> anyhow::Result<()> {
         keys::validate_id(&self.trolley_id)?;
-        self.sim().validate_image_size()?;
+        self.sim().validate()?;
         anyhow::ensure!(
             self.capture_time_s.is_finite() && self.capture_time_s >= 0.0,
             "capture time must be finite and >= 0"
@@ -109,7 +112,10 @@ impl EdgeConfig {
     /// The simulated trolley these settings describe.
     pub fn sim(&self) -> SimTrolleySettings {
         let size = (self.width, self.height);
-        SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
+        SimTrolleySettings {
+            perception_noise: self.perception_noise,
+            ..SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
+        }
     }
 
     fn open_source(&self) -> anyhow::Result<Box<dyn TrolleySource>> {

@@ -11,8 +11,8 @@ use glasshouse_edge::{EdgeConfig, EdgeCounters};
 ///
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
-/// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir), then
-/// the flags below.
+/// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir,
+/// perception_noise: { label_noise, silhouette_px }), then the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
 struct Cli {
@@ -44,6 +44,14 @@ struct Cli {
     /// Record every captured frame to this folder (for --replay).
     #[arg(long, value_name = "DIR")]
     record_frames: Option<PathBuf>,
+    /// Simulated detector label noise: probability in [0, 1] that each pixel's fruit/non-fruit
+    /// label flips (0 = the perfect colour detector).
+    #[arg(long, value_name = "P")]
+    label_noise: Option<f64>,
+    /// Simulated depth artefacts at plant silhouettes: band width in pixels where depth goes
+    /// missing or mixes foreground and background (0 = none, at most 8).
+    #[arg(long, value_name = "PX")]
+    silhouette_px: Option<u32>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -72,5 +80,7 @@ fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
     }
     set_flag(&mut c.replay_dir, cli.replay.map(Some));
     set_flag(&mut c.record_frames_dir, cli.record_frames.map(Some));
+    set_flag(&mut c.perception_noise.label_noise, cli.label_noise);
+    set_flag(&mut c.perception_noise.silhouette_px, cli.silhouette_px);
     c.validate()
 }

@@ -3,7 +3,9 @@
 //! I/O-free like the other algorithm crates: everything here turns inputs into values, strings or
 //! PNG bytes; the `glasshouse eval` command writes them.
 //!
-//! - [`metrics`]: greedy one-to-one matching of estimates to ground truth and the Table I metrics;
+//! - [`metrics`]: greedy one-to-one matching of estimates to ground truth, the Table I metrics
+//!   and the fruit counts that show inflation (count ratio, precision, recall, F1, false fruits,
+//!   time to 95 %);
 //! - [`stats`]: mean ± std and the one-sided Mann-Whitney U test;
 //! - [`trial`]: a seeded trial through the same steps the services run ([`glasshouse_pipeline`]: the
 //!   edge's state machine, detection, the per-trolley planner), on the simulator's clock;
@@ -16,7 +18,10 @@ pub mod report;
 pub mod stats;
 pub mod trial;
 
-pub use metrics::{evaluate, greedy_match, BoxEstimate, Match, Metrics, MATCH_DISTANCE_M};
-pub use report::{MethodRuns, METRICS};
+pub use metrics::{
+    evaluate, greedy_match, time_to_detect_s, BoxEstimate, FruitCounts, Match, Metrics,
+    MATCH_DISTANCE_M,
+};
+pub use report::{Better, MethodRuns, DETECTED_SHARE, METRICS};
 pub use stats::{mann_whitney_u, mean_std, Alternative, MannWhitney, MeanStd};
 pub use trial::{run_trial, ComputeTime, EvalError, Sample, Trial, TrialConfig, TrialResult};

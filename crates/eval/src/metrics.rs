@@ -12,7 +12,15 @@
 //!   |voxels of the truth boxes|`, where a box's voxels are those whose centres lie inside it
 //!   (the rule of [`FruitTruth::voxel_keys`]) and both sides are unions over all boxes.
 //!
-//! Means over an empty set are NaN ("no value"), never 0, so they cannot pass for a result.
+//! - **Fruit counts** (what inflates when the detector errs): count ratio = reported fruits ÷
+//!   true fruits; precision = matched ÷ reported; recall = matched ÷ true; F1 = their harmonic
+//!   mean, `2·matched / (reported + true)`; false fruits = reported − matched. A fruit is found
+//!   by the same matching as above.
+//! - **Time to 95 %**: the first sampled second at which at least 95 % of the true fruits are
+//!   matched ([`time_to_detect_s`]); none when it never happens.
+//!
+//! Means and ratios over an empty set are NaN ("no value"), never 0, so they cannot pass for a
+//! result.
 
 use std::collections::HashSet;
 
@@ -154,11 +162,69 @@ pub fn mean(values: &[f64]) -> f64 {
     }
 }
 
+/// `numerator / denominator`; NaN when the denominator is 0.
+fn ratio(numerator: usize, denominator: usize) -> f64 {
+    if denominator == 0 {
+        f64::NAN
+    } else {
+        numerator as f64 / denominator as f64
+    }
+}
+
+/// How the reported fruits compare with the true ones (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct FruitCounts {
+    /// Reported ÷ true fruits (NaN without true fruits); above 1 the map over-counts.
+    pub count_ratio: f64,
+    /// Matched ÷ reported (NaN without reported fruits).
+    pub precision: f64,
+    /// Matched ÷ true (NaN without true fruits).
+    pub recall: f64,
+    /// `2·matched / (reported + true)` (NaN when both are 0).
+    pub f1: f64,
+    /// Reported fruits that match no true fruit.
+    pub false_fruits: usize,
+}
+
+impl FruitCounts {
+    /// From the counts of matched pairs, reported and true fruits (`matched` is capped at both).
+    pub fn new(matched: usize, reported: usize, truths: usize) -> Self {
+        let matched = matched.min(reported).min(truths);
+        Self {
+            count_ratio: ratio(reported, truths),
+            precision: ratio(matched, reported),
+            recall: ratio(matched, truths),
+            f1: ratio(2 * matched, reported + truths),
+            false_fruits: reported - matched,
+        }
+    }
+}
+
+/// The first of `detected_at` (second, matched fruits), in time order, at which at least `share`
+/// of `truths` fruits are matched; None when never, or without true fruits.
+pub fn time_to_detect_s(
+    detected_at: impl IntoIterator<Item = (u32, usize)>,
+    truths: usize,
+    share: f64,
+) -> Option<u32> {
+    if truths == 0 || !(share.is_finite() && share > 0.0) {
+        return None;
+    }
+    // The small margin keeps 19 of 20 at 95 % from failing on rounding.
+    let needed = (share * truths as f64 - 1e-9).ceil().max(1.0) as usize;
+    detected_at
+        .into_iter()
+        .find(|&(_, detected)| detected >= needed)
+        .map(|(time_s, _)| time_s)
+}
+
 /// The Table I metrics of one set of estimates at one instant.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct Metrics {
     /// Matched pairs.
     pub detected: usize,
+    /// Count ratio, precision, recall, F1 and false fruits.
+    pub counts: FruitCounts,
     /// Mean centre distance of matched pairs in cm (NaN without pairs).
     pub center_distance_cm: f64,
     /// Mean volume accuracy over matched pairs (NaN without pairs).
@@ -189,6 +255,7 @@ pub fn evaluate(estimates: &[BoxEstimate], truths: &[FruitTruth], resolution_m: 
     let above: Vec<f64> = accuracies.iter().copied().filter(|a| *a > 0.5).collect();
     Metrics {
         detected: matches.len(),
+        counts: FruitCounts::new(matches.len(), estimates.len(), truths.len()),
         center_distance_cm: mean(&distances),
         volume_accuracy: mean(&accuracies),
         volume_accuracy_gt05: mean(&above),
@@ -343,6 +410,80 @@ mod tests {
         assert!(empty.center_distance_cm.is_nan() && empty.volume_accuracy.is_nan());
         assert!(empty.volume_accuracy_gt05.is_nan());
         assert_eq!(empty.covered_volume, 0.0);
+    }
+
+    #[test]
+    fn fruit_counts_catch_inflation() {
+        // 28 true fruits, 52 reported, 20 of them matched: the map over-counts.
+        let c = FruitCounts::new(20, 52, 28);
+        assert!((c.count_ratio - 52.0 / 28.0).abs() < 1e-12, "{c:?}");
+        assert!((c.precision - 20.0 / 52.0).abs() < 1e-12, "{c:?}");
+        assert!((c.recall - 20.0 / 28.0).abs() < 1e-12, "{c:?}");
+        let f1 = 2.0 * c.precision * c.recall / (c.precision + c.recall);
+        assert!((c.f1 - f1).abs() < 1e-12, "{c:?}");
+        assert_eq!(c.false_fruits, 32);
+        // A perfect report.
+        let perfect = FruitCounts::new(7, 7, 7);
+        assert_eq!(
+            (
+                perfect.count_ratio,
+                perfect.precision,
+                perfect.recall,
+                perfect.f1
+            ),
+            (1.0, 1.0, 1.0, 1.0)
+        );
+        assert_eq!(perfect.false_fruits, 0);
+        // Nothing reported: recall and F1 are 0, precision has no value.
+        let none = FruitCounts::new(0, 0, 7);
+        assert_eq!((none.count_ratio, none.recall, none.f1), (0.0, 0.0, 0.0));
+        assert!(none.precision.is_nan());
+        // No true fruits: only precision and F1 have values.
+        let no_truth = FruitCounts::new(0, 3, 0);
+        assert!(no_truth.count_ratio.is_nan() && no_truth.recall.is_nan());
+        assert_eq!((no_truth.precision, no_truth.f1), (0.0, 0.0));
+        assert_eq!(no_truth.false_fruits, 3);
+        assert!(FruitCounts::new(0, 0, 0).f1.is_nan());
+        // More matches than either side cannot happen; they are capped rather than underflow.
+        assert_eq!(FruitCounts::new(9, 3, 5).false_fruits, 0);
+    }
+
+    #[test]
+    fn evaluate_counts_reported_and_false_fruits() {
+        let truths = [
+            truth(0, p(0.0, 0.0, 1.0), 0.02),
+            truth(1, p(1.0, 0.0, 1.0), 0.02),
+        ];
+        // One estimate per fruit, two more near the first (one-to-one: they stay unmatched even
+        // within 20 cm), one far away.
+        let estimates = [
+            estimate(p(0.0, 0.0, 1.0), 0.02),
+            estimate(p(1.0, 0.0, 1.0), 0.02),
+            estimate(p(0.05, 0.0, 1.0), 0.02),
+            estimate(p(0.0, 0.1, 1.0), 0.02),
+            estimate(p(3.0, 0.0, 1.0), 0.02),
+        ];
+        let m = evaluate(&estimates, &truths, 0.01);
+        assert_eq!(m.detected, 2);
+        assert_eq!(m.counts.false_fruits, 3);
+        assert_eq!(m.counts.count_ratio, 2.5);
+        assert_eq!(m.counts.precision, 0.4);
+        assert_eq!(m.counts.recall, 1.0);
+        assert!((m.counts.f1 - 4.0 / 7.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn time_to_detect_is_the_first_second_reaching_the_share() {
+        let curve = [(0, 0), (1, 10), (2, 18), (3, 19), (4, 20), (5, 19)];
+        // 95 % of 20 = 19 fruits, first at 3 s.
+        assert_eq!(time_to_detect_s(curve, 20, 0.95), Some(3));
+        // 95 % of 28 = 26.6: 27 needed.
+        let curve = [(0, 0), (7, 26), (9, 27)];
+        assert_eq!(time_to_detect_s(curve, 28, 0.95), Some(9));
+        assert_eq!(time_to_detect_s([(0, 0), (1, 26)], 28, 0.95), None);
+        assert_eq!(time_to_detect_s([(0, 5)], 0, 0.95), None);
+        assert_eq!(time_to_detect_s([(0, 5)], 5, f64::NAN), None);
+        assert_eq!(time_to_detect_s([(4, 1)], 1, 1.0), Some(4));
     }
 
     #[test]

@@ -10,12 +10,21 @@ use serde_json::{json, Map, Value};
 use crate::stats::{mann_whitney_u, mean_std, Alternative};
 use crate::trial::{Sample, TrialResult};
 
+/// Which values of a metric are better.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Better {
+    Higher,
+    Lower,
+    /// Neither direction (the count ratio is best at 1): no one-sided test.
+    Neither,
+}
+
 /// One reported metric: its key, its Table I label and which direction is better.
 #[derive(Clone, Copy, Debug)]
 pub struct MetricDef {
     pub key: &'static str,
     pub label: &'static str,
-    pub higher_is_better: bool,
+    pub better: Better,
     /// Decimals in the table.
     pub decimals: usize,
     pub value: fn(&Sample) -> f64,
@@ -24,79 +33,118 @@ pub struct MetricDef {
 /// The metrics reported at the end of the budget, in table order. `volume_accuracy` keeps every
 /// matched pair; the `_gt05` variants keep pairs with accuracy > 0.5 only (the published plots'
 /// rule). `_fitted` variants use the fitted ellipsoid estimates (centre; box around it; its box
-/// volume `8·a·b·c`, comparable with the truth's box volume).
-pub const METRICS: [MetricDef; 10] = [
+/// volume `8·a·b·c`, comparable with the truth's box volume). The fruit counts (count ratio,
+/// precision, recall, F1, false fruits) are those of the box estimates.
+pub const METRICS: [MetricDef; 15] = [
     MetricDef {
         key: "detected",
         label: "detected ROIs",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 1,
         value: |s| s.boxes.detected as f64,
     },
     MetricDef {
         key: "covered_volume",
         label: "covered ROI volume",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 2,
         value: |s| s.boxes.covered_volume,
     },
     MetricDef {
         key: "center_distance_cm",
         label: "centre distance (cm)",
-        higher_is_better: false,
+        better: Better::Lower,
         decimals: 2,
         value: |s| s.boxes.center_distance_cm,
     },
     MetricDef {
         key: "volume_accuracy",
         label: "volume accuracy",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 2,
         value: |s| s.boxes.volume_accuracy,
     },
     MetricDef {
         key: "volume_accuracy_gt05",
         label: "volume accuracy (pairs > 0.5)",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 2,
         value: |s| s.boxes.volume_accuracy_gt05,
     },
     MetricDef {
         key: "volume_accuracy_fitted",
         label: "volume accuracy, fitted",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 2,
         value: |s| s.fitted.volume_accuracy,
     },
     MetricDef {
         key: "volume_accuracy_fitted_gt05",
         label: "volume accuracy, fitted (pairs > 0.5)",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 2,
         value: |s| s.fitted.volume_accuracy_gt05,
     },
     MetricDef {
         key: "detected_fitted",
         label: "detected ROIs, fitted",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 1,
         value: |s| s.fitted.detected as f64,
     },
     MetricDef {
         key: "covered_volume_fitted",
         label: "covered ROI volume, fitted",
-        higher_is_better: true,
+        better: Better::Higher,
         decimals: 2,
         value: |s| s.fitted.covered_volume,
     },
     MetricDef {
         key: "center_distance_cm_fitted",
         label: "centre distance (cm), fitted",
-        higher_is_better: false,
+        better: Better::Lower,
         decimals: 2,
         value: |s| s.fitted.center_distance_cm,
     },
+    MetricDef {
+        key: "count_ratio",
+        label: "count ratio (reported ÷ true fruits)",
+        better: Better::Neither,
+        decimals: 2,
+        value: |s| s.boxes.counts.count_ratio,
+    },
+    MetricDef {
+        key: "precision",
+        label: "fruit precision",
+        better: Better::Higher,
+        decimals: 2,
+        value: |s| s.boxes.counts.precision,
+    },
+    MetricDef {
+        key: "recall",
+        label: "fruit recall",
+        better: Better::Higher,
+        decimals: 2,
+        value: |s| s.boxes.counts.recall,
+    },
+    MetricDef {
+        key: "f1",
+        label: "fruit F1",
+        better: Better::Higher,
+        decimals: 2,
+        value: |s| s.boxes.counts.f1,
+    },
+    MetricDef {
+        key: "false_fruits",
+        label: "false fruits",
+        better: Better::Lower,
+        decimals: 1,
+        value: |s| s.boxes.counts.false_fruits as f64,
+    },
 ];
+
+/// Share of the true fruits whose detection time is reported.
+pub const DETECTED_SHARE: f64 = 0.95;
 
 /// The trials of one method, in trial order.
 #[derive(Clone, Debug)]
@@ -152,7 +200,9 @@ pub const OVER_TIME_METRICS: [MetricDef; 2] = [METRICS[0], METRICS[1]];
 /// Header of the per-trial CSV.
 pub const CSV_HEADER: &str = "time_s,views,frames,estimates,mean_confidence,\
 detected,center_distance_cm,volume_accuracy,volume_accuracy_gt05,covered_volume,\
-fitted_detected,fitted_center_distance_cm,fitted_volume_accuracy,fitted_volume_accuracy_gt05,fitted_covered_volume";
+fitted_detected,fitted_center_distance_cm,fitted_volume_accuracy,fitted_volume_accuracy_gt05,fitted_covered_volume,\
+count_ratio,precision,recall,f1,false_fruits,\
+fitted_precision,fitted_recall,fitted_f1,fitted_false_fruits";
 
 /// A number for CSV: empty for NaN, otherwise fixed 6 decimals (bit-stable across runs).
 fn csv_num(v: f64) -> String {
@@ -170,7 +220,7 @@ pub fn trial_csv(result: &TrialResult) -> String {
     for s in &result.samples {
         let _ = writeln!(
             out,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             s.time_s,
             s.views,
             s.frames,
@@ -186,6 +236,15 @@ pub fn trial_csv(result: &TrialResult) -> String {
             csv_num(s.fitted.volume_accuracy),
             csv_num(s.fitted.volume_accuracy_gt05),
             csv_num(s.fitted.covered_volume),
+            csv_num(s.boxes.counts.count_ratio),
+            csv_num(s.boxes.counts.precision),
+            csv_num(s.boxes.counts.recall),
+            csv_num(s.boxes.counts.f1),
+            s.boxes.counts.false_fruits,
+            csv_num(s.fitted.counts.precision),
+            csv_num(s.fitted.counts.recall),
+            csv_num(s.fitted.counts.f1),
+            s.fitted.counts.false_fruits,
         );
     }
     out
@@ -213,14 +272,14 @@ fn p_values_of(
 ) -> BTreeMap<&'static str, BTreeMap<String, f64>> {
     let mut out = BTreeMap::new();
     for metric in metrics {
+        let (alternative, sign) = match metric.better {
+            Better::Higher => (Alternative::Greater, ">"),
+            Better::Lower => (Alternative::Less, "<"),
+            Better::Neither => continue,
+        };
         let mut per_pair = BTreeMap::new();
         for ours in runs.iter().filter(|r| r.method.uses_roi_sampling()) {
             for explo in runs.iter().filter(|r| !r.method.uses_roi_sampling()) {
-                let (alternative, sign) = if metric.higher_is_better {
-                    (Alternative::Greater, ">")
-                } else {
-                    (Alternative::Less, "<")
-                };
                 if let Some(test) =
                     mann_whitney_u(&values(ours, metric), &values(explo, metric), alternative)
                 {
@@ -253,6 +312,14 @@ fn number(v: f64) -> Value {
     serde_json::Number::from_f64(v).map_or(Value::Null, Value::Number)
 }
 
+/// `{"mean", "std", "n"}` of the values (NaN skipped; nulls and n = 0 without values).
+fn stats_json(values: &[f64]) -> Value {
+    match mean_std(values) {
+        Some(m) => json!({"mean": number(m.mean), "std": number(m.std), "n": m.n}),
+        None => json!({"mean": null, "std": null, "n": 0}),
+    }
+}
+
 /// `summary.json`: per method and metric the mean and sample std over trials at the end of the
 /// budget (`null` without values), `fruits_total` (fruits per scene, the mean over trials when
 /// scenes differ), `p_values` (see [`p_values`]) and the run's settings under `settings`.
@@ -262,19 +329,23 @@ pub fn summary_json(runs: &[MethodRuns], settings: Value) -> Value {
     for run in runs {
         let mut metrics = Map::new();
         for metric in &METRICS {
-            let entry = match mean_std(&run.final_values(metric)) {
-                Some(m) => json!({"mean": number(m.mean), "std": number(m.std), "n": m.n}),
-                None => json!({"mean": null, "std": null, "n": 0}),
-            };
-            metrics.insert(metric.key.to_string(), entry);
-        }
-        let views: Vec<f64> = run.trials.iter().map(|t| f64::from(t.views)).collect();
-        if let Some(m) = mean_std(&views) {
             metrics.insert(
-                "views".into(),
-                json!({"mean": number(m.mean), "std": number(m.std), "n": m.n}),
+                metric.key.to_string(),
+                stats_json(&run.final_values(metric)),
             );
         }
+        let views: Vec<f64> = run.trials.iter().map(|t| f64::from(t.views)).collect();
+        if !views.is_empty() {
+            metrics.insert("views".into(), stats_json(&views));
+        }
+        // Over the trials that reached the share; `n` says how many did.
+        let detect_times: Vec<f64> = run
+            .trials
+            .iter()
+            .filter_map(|t| t.time_to_detect_s(DETECTED_SHARE))
+            .map(f64::from)
+            .collect();
+        metrics.insert("time_to_95_s".into(), stats_json(&detect_times));
         fruit_counts.extend(run.trials.iter().map(|t| t.fruits_total as f64));
         root.insert(run.method.to_string(), Value::Object(metrics));
     }
@@ -340,7 +411,16 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         out.push('\n');
     }
     type PerTrial = fn(&TrialResult) -> Option<f64>;
-    let rows: [(&str, PerTrial); 3] = [
+    let rows: [(&str, PerTrial); 5] = [
+        (
+            "time to 95 % of fruits detected (s; trials reaching it)",
+            |t| t.time_to_detect_s(DETECTED_SHARE).map(f64::from),
+        ),
+        ("share of trials detecting 95 % of fruits", |t| {
+            Some(f64::from(u8::from(
+                t.time_to_detect_s(DETECTED_SHARE).is_some(),
+            )))
+        }),
         ("views executed", |t| Some(f64::from(t.views))),
         ("planner compute per frame (ms)", |t| {
             (t.frames > 0).then(|| 1e3 * t.compute_time_s / t.frames as f64)
@@ -428,7 +508,11 @@ fn write_p_cells(
     metric: &MetricDef,
     pairs: &[(Method, Method)],
 ) {
-    let sign = if metric.higher_is_better { ">" } else { "<" };
+    let sign = if metric.better == Better::Higher {
+        ">"
+    } else {
+        "<"
+    };
     for (ours, explo) in pairs {
         let key = format!("{ours} {sign} {explo}");
         match p.get(metric.key).and_then(|r| r.get(&key)) {
@@ -461,13 +545,15 @@ mod tests {
     #![allow(clippy::unwrap_used)]
 
     use super::*;
-    use crate::metrics::Metrics;
+    use crate::metrics::{FruitCounts, Metrics};
     use crate::trial::{ComputeTime, TrialConfig};
     use glasshouse_sim::ScenarioKind;
 
     fn metrics(detected: usize, cov: f64) -> Metrics {
         Metrics {
             detected,
+            // Two reported fruits more than detected.
+            counts: FruitCounts::new(detected, detected + 2, 28),
             center_distance_cm: if detected > 0 { 2.0 } else { f64::NAN },
             volume_accuracy: 0.5,
             volume_accuracy_gt05: f64::NAN,
@@ -525,6 +611,14 @@ mod tests {
         assert!(lines.iter().all(|l| l.split(',').count() == cols));
         assert!(lines[1].starts_with("0,0,0,0,0.500000,0,,0.500000,,0.000000,"));
         assert!(lines[2].starts_with("1,1,1,3,0.500000,3,2.000000,"));
+        // Count ratio 5/28, precision 3/5, recall 3/28, F1 6/33, 2 false fruits (boxes),
+        // then the fitted ones.
+        assert!(
+            lines[2]
+                .ends_with(",0.178571,0.600000,0.107143,0.181818,2,0.600000,0.107143,0.181818,2"),
+            "{}",
+            lines[2]
+        );
     }
 
     #[test]
@@ -560,6 +654,42 @@ mod tests {
             .get("ours-uu < explo-uu")
             .is_some());
         assert_eq!(s["settings"]["seed"], 1);
+        // The fruit counts at the end: ours detects 5..9 of 28 with 2 false fruits each.
+        assert_eq!(s["ours-uu"]["false_fruits"]["mean"], 2.0);
+        let ratio = s["ours-uu"]["count_ratio"]["mean"].as_f64().unwrap();
+        assert!((ratio - 9.0 / 28.0).abs() < 1e-12, "{ratio}");
+        // The count ratio has no better direction: no one-sided test.
+        assert!(s["p_values"].get("count_ratio").is_none());
+        assert!(s["p_values"]["f1"].get("ours-uu > explo-uu").is_some());
+        assert!(s["p_values"]["false_fruits"]
+            .get("ours-uu < explo-uu")
+            .is_some());
+        // No trial detects 95 % of its 28 fruits.
+        assert_eq!(s["ours-uu"]["time_to_95_s"]["n"], 0);
+    }
+
+    #[test]
+    fn time_to_95_counts_the_trials_that_reach_it() {
+        let mut r = runs();
+        // Ours trial 0 detects 27 of 28 at 1 s (96 %), trial 1 only 26.
+        r[0].trials[0] = result(Method::OursUu, 27);
+        r[0].trials[1] = result(Method::OursUu, 26);
+        assert_eq!(r[0].trials[0].time_to_detect_s(DETECTED_SHARE), Some(1));
+        assert_eq!(r[0].trials[1].time_to_detect_s(DETECTED_SHARE), None);
+        let s = summary_json(&r, json!({}));
+        assert_eq!(s["ours-uu"]["time_to_95_s"]["n"], 1);
+        assert_eq!(s["ours-uu"]["time_to_95_s"]["mean"], 1.0);
+        let t = table_markdown("2", &r, 1.0);
+        assert!(
+            t.contains("| 2 | share of trials detecting 95 % of fruits | 0.2 ± 0.4 | 0.0 ± 0.0 |"),
+            "{t}"
+        );
+        assert!(
+            t.contains(
+                "| 2 | time to 95 % of fruits detected (s; trials reaching it) | 1.0 ± 0.0 | – |"
+            ),
+            "{t}"
+        );
     }
 
     #[test]

@@ -24,7 +24,7 @@ use glasshouse_pipeline::{
     TrolleyPlanner, TrolleySource,
 };
 use glasshouse_proto::{RankedViews, RgbdFrame};
-use glasshouse_sim::{ScenarioKind, Scene};
+use glasshouse_sim::{PerceptionNoise, ScenarioKind, Scene};
 use serde::Serialize;
 
 use crate::metrics::{evaluate, BoxEstimate, Metrics};
@@ -70,6 +70,8 @@ pub struct TrialConfig {
     pub capture_time_s: f64,
     /// Row segments (the edge's default).
     pub segment_length_m: f64,
+    /// The simulated detector's label noise and silhouette depth artefacts (clean by default).
+    pub perception_noise: PerceptionNoise,
 }
 
 impl TrialConfig {
@@ -85,6 +87,7 @@ impl TrialConfig {
             compute_time: ComputeTime::Measured,
             capture_time_s: glasshouse_arm::CAPTURE_TIME_S,
             segment_length_m: 1.0,
+            perception_noise: PerceptionNoise::default(),
         }
     }
 
@@ -92,6 +95,9 @@ impl TrialConfig {
         let bad = |m: &str| Err(EvalError::InvalidConfig(m.to_string()));
         if !((16..=1280).contains(&self.width) && (12..=960).contains(&self.height)) {
             return bad("image size outside 16x12..1280x960");
+        }
+        if let Err(e) = self.perception_noise.validate() {
+            return bad(&e.to_string());
         }
         if !(self.budget_s.is_finite() && self.budget_s >= 0.0 && self.budget_s <= 86_400.0) {
             return bad("budget must be within 0..=86400 s");
@@ -135,7 +141,10 @@ impl TrialConfig {
 
     fn sim(&self) -> SimTrolleySettings {
         let size = (self.width, self.height);
-        SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
+        SimTrolleySettings {
+            perception_noise: self.perception_noise,
+            ..SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
+        }
     }
 }
 
@@ -193,6 +202,13 @@ impl TrialResult {
     /// The sample at the end of the budget.
     pub fn last(&self) -> Option<&Sample> {
         self.samples.last()
+    }
+
+    /// The first sampled second at which `share` of the true fruits are matched by box
+    /// estimates; None when that never happens within the budget.
+    pub fn time_to_detect_s(&self, share: f64) -> Option<u32> {
+        let curve = self.samples.iter().map(|s| (s.time_s, s.boxes.detected));
+        crate::metrics::time_to_detect_s(curve, self.fruits_total, share)
     }
 }
 

@@ -3,7 +3,9 @@
 
 use glasshouse_arm::{Interval, Mount, MountState};
 use glasshouse_proto::{ArmModel, ArmState, Fruit, MountKind, RgbdFrame, TrolleyInfo};
-use glasshouse_sim::{CameraModel, ScenarioKind, Scene, Segment, SimArm};
+use glasshouse_sim::{
+    CameraModel, PerceptionNoise, PerceptionNoiseError, ScenarioKind, Scene, Segment, SimArm,
+};
 use nalgebra::Isometry3;
 
 pub use glasshouse_sim::Executed;
@@ -20,6 +22,8 @@ pub enum CaptureError {
     SegmentLength(f64),
     #[error("image size {0}x{1} outside 16x12..1280x960")]
     ImageSize(u32, u32),
+    #[error(transparent)]
+    PerceptionNoise(#[from] PerceptionNoiseError),
 }
 
 /// Seed of the camera noise of frame `frame_seq` of a scene seeded with `scene_seed`.
@@ -27,16 +31,17 @@ pub fn noise_seed(scene_seed: u64, frame_seq: u64) -> u64 {
     scene_seed.wrapping_mul(1_000_003).wrapping_add(frame_seq)
 }
 
-/// Renders the simulated camera and packs the frame for the wire. Depth is in millimetres with
-/// one rule for every consumer: invalid and over-range depths are both 0
-/// ([`glasshouse_sim::RgbdImage::depth_as_u16`]).
+/// Renders the simulated camera with `perception` noise on top (seeded from `noise_seed` too)
+/// and packs the frame for the wire. Depth is in millimetres with one rule for every consumer:
+/// invalid and over-range depths are both 0 ([`glasshouse_sim::RgbdImage::depth_as_u16`]).
 pub fn render_frame(
     scene: &Scene,
     camera: &CameraModel,
     world_from_camera: &Isometry3<f64>,
     noise_seed: u64,
+    perception: &PerceptionNoise,
 ) -> RgbdFrame {
-    let image = scene.render(camera, world_from_camera, noise_seed);
+    let image = scene.render_with(camera, world_from_camera, noise_seed, perception);
     RgbdFrame {
         depth: image.depth_as_u16(f64::from(DEPTH_SCALE_M)),
         intrinsics: image.intrinsics,
@@ -77,22 +82,25 @@ pub struct SimTrolleySettings {
     pub height: u32,
     /// Length along the row of the part the trolley works on at a time (row scenario).
     pub segment_length_m: f64,
+    /// The detector's label noise and the depth artefacts at silhouettes (clean by default).
+    pub perception_noise: PerceptionNoise,
 }
 
 impl SimTrolleySettings {
-    /// The image must be 16x12 to 1280x960 pixels.
-    pub fn validate_image_size(&self) -> Result<(), CaptureError> {
+    /// The image must be 16x12 to 1280x960 pixels and the perception noise in range.
+    pub fn validate(&self) -> Result<(), CaptureError> {
         let (w, h) = (self.width, self.height);
         if !((16..=1280).contains(&w) && (12..=960).contains(&h)) {
             return Err(CaptureError::ImageSize(w, h));
         }
+        self.perception_noise.validate()?;
         Ok(())
     }
 }
 
 impl SimTrolleySettings {
     /// Scene `scenario` seeded with `seed`, images of `size` (width, height) pixels, row
-    /// segments `segment_length_m` long.
+    /// segments `segment_length_m` long, clean perception.
     pub fn new(scenario: ScenarioKind, seed: u64, size: (u32, u32), segment_length_m: f64) -> Self {
         let (width, height) = size;
         Self {
@@ -101,6 +109,7 @@ impl SimTrolleySettings {
             width,
             height,
             segment_length_m,
+            perception_noise: PerceptionNoise::default(),
         }
     }
 }
@@ -119,7 +128,7 @@ pub struct SimTrolley {
 
 impl SimTrolley {
     pub fn new(settings: SimTrolleySettings) -> Result<Self, CaptureError> {
-        settings.validate_image_size()?;
+        settings.validate()?;
         let (w, h) = (settings.width, settings.height);
         let scene = Scene::generate(settings.scenario, settings.seed);
         let arm = SimArm::new(&scene).map_err(|e| CaptureError::InitialView(e.to_string()))?;
@@ -223,7 +232,14 @@ impl TrolleySource for SimTrolley {
     fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String> {
         let pose = self.arm.world_from_camera();
         let seed = noise_seed(self.settings.seed, frame_seq);
-        Ok(Some(render_frame(&self.scene, &self.camera, &pose, seed)))
+        let noise = &self.settings.perception_noise;
+        Ok(Some(render_frame(
+            &self.scene,
+            &self.camera,
+            &pose,
+            seed,
+            noise,
+        )))
     }
 
     fn arm_state(&self, moving: bool, views_done: u32) -> ArmState {

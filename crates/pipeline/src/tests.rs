@@ -229,14 +229,47 @@ fn a_source_without_frames_finishes() {
 }
 
 fn sim(scenario: ScenarioKind) -> SimTrolley {
+    SimTrolley::new(SimTrolleySettings::new(scenario, 3, (160, 120), 1.0)).unwrap()
+}
+
+fn noisy_sim(label_noise: f64, silhouette_px: u32) -> Result<SimTrolley, CaptureError> {
     SimTrolley::new(SimTrolleySettings {
-        scenario,
-        seed: 3,
-        width: 160,
-        height: 120,
-        segment_length_m: 1.0,
+        perception_noise: glasshouse_sim::PerceptionNoise {
+            label_noise,
+            silhouette_px,
+        },
+        ..SimTrolleySettings::new(ScenarioKind::Two, 3, (160, 120), 1.0)
     })
-    .unwrap()
+}
+
+#[test]
+fn the_trolley_settings_noise_reaches_its_frames_and_the_detector() {
+    let clean = sim(ScenarioKind::Two).capture(1).unwrap().unwrap();
+    let zero = noisy_sim(0.0, 0).unwrap().capture(1).unwrap().unwrap();
+    assert_eq!(zero, clean);
+    let labels = noisy_sim(0.3, 0).unwrap().capture(1).unwrap().unwrap();
+    assert_eq!(labels.depth, clean.depth);
+    assert_ne!(labels.rgb, clean.rgb);
+    let edges = noisy_sim(0.0, 1).unwrap().capture(1).unwrap().unwrap();
+    assert_eq!(edges.rgb, clean.rgb);
+    let zeros = |f: &glasshouse_proto::RgbdFrame| f.depth.iter().filter(|&&d| d == 0).count();
+    assert!(zeros(&edges) > zeros(&clean) + 100);
+    // The unchanged detector labels background as fruit: many more ROI points.
+    let roi = |f: &glasshouse_proto::RgbdFrame| {
+        let cloud = detect_frame(f, 1, "d", &DetectorConfig::default()).unwrap();
+        cloud.roi.iter().filter(|&&r| r).count()
+    };
+    assert!(
+        roi(&labels) > 2 * roi(&clean),
+        "{} vs {}",
+        roi(&labels),
+        roi(&clean)
+    );
+    for bad in [-0.1, 1.5, f64::NAN] {
+        let err = noisy_sim(bad, 0).unwrap_err();
+        assert!(matches!(err, CaptureError::PerceptionNoise(_)), "{err}");
+    }
+    assert!(noisy_sim(0.0, 100).is_err());
 }
 
 #[test]
@@ -335,13 +368,7 @@ fn bad_settings_are_rejected() {
         assert!(TrolleyPlanner::new(bad).is_err());
     }
     assert!(matches!(
-        SimTrolley::new(SimTrolleySettings {
-            scenario: ScenarioKind::One,
-            seed: 1,
-            width: 8,
-            height: 8,
-            segment_length_m: 1.0
-        }),
+        SimTrolley::new(SimTrolleySettings::new(ScenarioKind::One, 1, (8, 8), 1.0)),
         Err(CaptureError::ImageSize(8, 8))
     ));
 }

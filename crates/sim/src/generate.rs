@@ -20,6 +20,14 @@ pub(crate) const LEAF_RANGE: [(f32, f32); 3] = [(45.0, 80.0), (115.0, 160.0), (2
 pub(crate) const YELLOW_FRUIT_ALBEDO: [f32; 3] = [230.0, 200.0, 30.0];
 pub(crate) const GREEN_FRUIT_ALBEDO: [f32; 3] = [70.0, 125.0, 30.0];
 
+/// True for an albedo of the red fruit range: the only colour the HSI rule labels fruit.
+pub(crate) fn is_ripe_colour(albedo: [f32; 3]) -> bool {
+    RED_FRUIT_RANGE
+        .iter()
+        .zip(albedo)
+        .all(|(&(lo, hi), a)| (lo..=hi).contains(&a))
+}
+
 const STEM_RADIUS_M: (f64, f64) = (0.009, 0.012);
 const STEM_HEIGHT_M: (f64, f64) = (1.0, 1.5);
 const FRUIT_HALF_XY_M: (f64, f64) = (0.025, 0.04);

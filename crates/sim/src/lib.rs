@@ -10,6 +10,7 @@
 //! Frames follow `glasshouse_geom`: world `z` up in metres, camera optical frame `x` right, `y`
 //! down, `z` forward; camera poses are `world_from_camera`.
 
+mod artefacts;
 mod generate;
 mod shapes;
 mod trolley;
@@ -23,7 +24,13 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+pub use artefacts::{
+    PerceptionNoise, PerceptionNoiseError, MAX_SILHOUETTE_PX, SILHOUETTE_MISSING_SHARE,
+    SILHOUETTE_MIXED_SHARE, SILHOUETTE_STEP_M,
+};
 pub use trolley::{Executed, SimArm};
+
+use artefacts::{LabelFlips, SurfaceImage, FLOOR_SURFACE};
 
 use generate::{Plant, Solid, FLOOR_ALBEDO};
 use shapes::{Bvh, Packet, Ray, Shape, NO_HIT, PACKET, PACKET_HEIGHT, PACKET_WIDTH};
@@ -205,10 +212,13 @@ pub struct Scene {
     seed: u64,
     fruits: Vec<FruitTruth>,
     plants: Vec<Plant>,
-    /// Shapes in BVH order, with per-shape albedo and fruit index alongside.
+    /// Shapes in BVH order, with per-shape albedo, fruit index, whether the detector's colour
+    /// rule labels it fruit (ripe fruit) and whether it is part of a plant alongside.
     shapes: Vec<Shape>,
     albedo: Vec<[f32; 3]>,
     fruit_index: Vec<Option<u32>>,
+    looks_like_fruit: Vec<bool>,
+    is_plant: Vec<bool>,
     bvh: Bvh,
     camera_workspace: Aabb,
     sampling_region: Aabb,
@@ -249,6 +259,11 @@ impl Scene {
             shapes: ordered_shapes,
             albedo: ordered.iter().map(|s| s.albedo).collect(),
             fruit_index: ordered.iter().map(|s| s.fruit_index).collect(),
+            looks_like_fruit: ordered
+                .iter()
+                .map(|s| s.fruit_index.is_some() && generate::is_ripe_colour(s.albedo))
+                .collect(),
+            is_plant: ordered.iter().map(|s| s.is_plant).collect(),
             bvh,
             camera_workspace: built.camera_workspace,
             sampling_region,
@@ -403,7 +418,27 @@ impl Scene {
         world_from_camera: &Isometry3<f64>,
         noise_seed: u64,
     ) -> RgbdImage {
+        self.render_with(
+            camera,
+            world_from_camera,
+            noise_seed,
+            &PerceptionNoise::default(),
+        )
+    }
+
+    /// [`Scene::render`] with imperfect perception on top (label noise, silhouette artefacts),
+    /// also seeded from `noise_seed`; clean `perception` renders exactly what `render` does.
+    pub fn render_with(
+        &self,
+        camera: &CameraModel,
+        world_from_camera: &Isometry3<f64>,
+        noise_seed: u64,
+        perception: &PerceptionNoise,
+    ) -> RgbdImage {
         let k = camera.intrinsics;
+        let mut labels = LabelFlips::new(perception, noise_seed);
+        let mut seen = (perception.silhouette_px > 0)
+            .then(|| SurfaceImage::new(k.width as usize, k.height as usize));
         let pixel_count = k.pixel_count();
         let mut depth_m = vec![f32::NAN; pixel_count];
         let mut rgb = vec![0u8; 3 * pixel_count];
@@ -452,18 +487,20 @@ impl Scene {
                     let pixel = (band_v + dv) * width + u;
                     let slot = dv * width + u;
                     let mut t = band_t[slot];
+                    let mut surface = band_hit[slot];
                     let (dir_in_camera, dir_in_world) = band_dir[slot];
-                    let (normal, albedo) = match self.shapes.get(band_hit[slot] as usize) {
+                    let (normal, albedo) = match self.shapes.get(surface as usize) {
                         Some(shape) => (
                             shape.normal_at(&(origin + dir_in_world * t)),
                             self.albedo
-                                .get(band_hit[slot] as usize)
+                                .get(surface as usize)
                                 .copied()
                                 .unwrap_or(FLOOR_ALBEDO),
                         ),
                         None => match floor_hit(&origin, &dir_in_world) {
                             Some(floor_t) => {
                                 t = floor_t;
+                                surface = FLOOR_SURFACE;
                                 (Vector3::z(), FLOOR_ALBEDO)
                             }
                             None => {
@@ -475,9 +512,15 @@ impl Scene {
                     // Two-sided shading: turn the normal towards the camera.
                     let cos_incidence = dir_in_world.dot(&normal);
                     let facing = if cos_incidence > 0.0 { -normal } else { normal };
+                    let fruit = self.looks_like_fruit.get(surface as usize) == Some(&true);
+                    let albedo = labels.albedo_seen(fruit, albedo);
                     rgb[3 * pixel..3 * pixel + 3]
                         .copy_from_slice(&shade(albedo, facing.dot(&light)));
                     let depth = t * dir_in_camera.z;
+                    if let Some(seen) = seen.as_mut() {
+                        seen.surface[pixel] = surface;
+                        seen.depth_m[pixel] = depth;
+                    }
                     if cos_incidence.abs() < camera.grazing_cos_min
                         || !(camera.min_range_m..=camera.max_range_m).contains(&depth)
                     {
@@ -494,6 +537,18 @@ impl Scene {
                     }
                 }
             }
+        }
+        if let Some(seen) = &seen {
+            let range_m = (camera.min_range_m, camera.max_range_m);
+            let is_plant = &self.is_plant;
+            artefacts::add_silhouette_artefacts(
+                &mut depth_m,
+                seen,
+                is_plant,
+                perception,
+                noise_seed,
+                range_m,
+            );
         }
         RgbdImage {
             intrinsics: k,

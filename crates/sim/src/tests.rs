@@ -615,3 +615,213 @@ fn packet_render_matches_single_ray_tracing() {
     assert!(valid > 10_000, "{valid} valid pixels");
     assert!(sky > 0, "no sky pixel");
 }
+
+/// FNV-1a over a frame's depth bits and colours.
+fn frame_digest(image: &RgbdImage) -> u64 {
+    let mut hash = 0xcbf2_9ce4_8422_2325u64;
+    let depth_bytes = image.depth_m.iter().flat_map(|d| d.to_bits().to_le_bytes());
+    for byte in depth_bytes.chain(image.rgb.iter().copied()) {
+        hash = (hash ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3);
+    }
+    hash
+}
+
+/// Scenario 2 seed 3 at 160x120 from its initial view, noise seed 7: rendered before
+/// perception noise existed. Clean perception must keep it bit for bit (regenerate only when the
+/// renderer changes on purpose).
+const CLEAN_FRAME_DIGEST: u64 = 0xdb9a_5f19_7766_1648;
+
+fn scene_two_frame(perception: &PerceptionNoise, noise_seed: u64, exact: bool) -> RgbdImage {
+    let scene = Scene::generate(ScenarioKind::Two, 3);
+    let mut camera = CameraModel::with_resolution(160, 120);
+    if exact {
+        camera.depth_noise_std_at_1m_m = 0.0;
+    }
+    scene.render_with(
+        &camera,
+        &scene.initial_camera_pose(),
+        noise_seed,
+        perception,
+    )
+}
+
+fn depth_bits(image: &RgbdImage) -> Vec<u32> {
+    image.depth_m.iter().map(|d| d.to_bits()).collect()
+}
+
+#[test]
+fn clean_perception_renders_the_frames_of_before() {
+    let clean = scene_two_frame(&PerceptionNoise::default(), 7, false);
+    assert_eq!(frame_digest(&clean), CLEAN_FRAME_DIGEST);
+    let scene = Scene::generate(ScenarioKind::Two, 3);
+    let camera = CameraModel::with_resolution(160, 120);
+    let plain = scene.render(&camera, &scene.initial_camera_pose(), 7);
+    assert_eq!(frame_digest(&plain), CLEAN_FRAME_DIGEST);
+}
+
+/// Share of the surface pixels whose HSI label differs between two renders of the same view.
+fn flipped_share(clean: &RgbdImage, noisy: &RgbdImage) -> f64 {
+    let (mut surface, mut flipped) = (0usize, 0usize);
+    for (a, b) in clean.rgb.chunks_exact(3).zip(noisy.rgb.chunks_exact(3)) {
+        if a == SKY_RGB {
+            assert_eq!(a, b, "a sky pixel changed");
+            continue;
+        }
+        surface += 1;
+        if is_roi(a[0], a[1], a[2]) != is_roi(b[0], b[1], b[2]) {
+            flipped += 1;
+        }
+    }
+    assert!(surface > 10_000, "{surface} surface pixels");
+    flipped as f64 / surface as f64
+}
+
+#[test]
+fn label_noise_flips_about_p_of_the_labels_the_hsi_rule_sees() {
+    let clean = scene_two_frame(&PerceptionNoise::default(), 7, false);
+    let fruit_pixels = clean
+        .rgb
+        .chunks_exact(3)
+        .filter(|c| is_roi(c[0], c[1], c[2]))
+        .count();
+    assert!(fruit_pixels > 200, "{fruit_pixels} fruit pixels");
+    for p in [0.05, 0.3, 1.0] {
+        let noise = PerceptionNoise {
+            label_noise: p,
+            ..PerceptionNoise::default()
+        };
+        let noisy = scene_two_frame(&noise, 7, false);
+        // About 15 000 surface pixels: the binomial standard deviation is below 0.004.
+        let share = flipped_share(&clean, &noisy);
+        assert!((share - p).abs() < 0.02, "p {p}: flipped {share}");
+        // Fruit pixels flip too, not only the background.
+        let fruit_kept = clean
+            .rgb
+            .chunks_exact(3)
+            .zip(noisy.rgb.chunks_exact(3))
+            .filter(|(a, b)| is_roi(a[0], a[1], a[2]) && is_roi(b[0], b[1], b[2]))
+            .count() as f64;
+        let kept_share = fruit_kept / fruit_pixels as f64;
+        assert!(
+            (kept_share - (1.0 - p)).abs() < 0.1,
+            "p {p}: kept {kept_share}"
+        );
+        // Labels only: the depth is untouched.
+        assert_eq!(depth_bits(&noisy), depth_bits(&clean));
+    }
+}
+
+#[test]
+fn perception_noise_is_seeded_by_the_frame() {
+    let noise = PerceptionNoise {
+        label_noise: 0.3,
+        silhouette_px: 1,
+    };
+    let a = scene_two_frame(&noise, 7, false);
+    let b = scene_two_frame(&noise, 7, false);
+    assert_eq!(frame_digest(&a), frame_digest(&b));
+    let c = scene_two_frame(&noise, 8, false);
+    assert_ne!(a.rgb, c.rgb);
+    assert_ne!(depth_bits(&a), depth_bits(&c));
+    assert_ne!(frame_digest(&a), CLEAN_FRAME_DIGEST);
+}
+
+/// Depths within `radius` pixels of `pixel` in an image `width` wide.
+fn window(image: &RgbdImage, pixel: usize, radius: usize) -> Vec<f32> {
+    let (w, h) = (
+        image.intrinsics.width as usize,
+        image.intrinsics.height as usize,
+    );
+    let (u, v) = (pixel % w, pixel / w);
+    let mut out = Vec::new();
+    for qv in v.saturating_sub(radius)..=(v + radius).min(h - 1) {
+        for qu in u.saturating_sub(radius)..=(u + radius).min(w - 1) {
+            out.push(image.depth_m[qv * w + qu]);
+        }
+    }
+    out
+}
+
+#[test]
+fn silhouette_artefacts_touch_only_pixels_at_depth_edges() {
+    let clean = scene_two_frame(&PerceptionNoise::default(), 7, true);
+    let mut changed_counts = Vec::new();
+    for radius in [1usize, 2] {
+        let noise = PerceptionNoise {
+            silhouette_px: radius as u32,
+            ..PerceptionNoise::default()
+        };
+        let noisy = scene_two_frame(&noise, 7, true);
+        assert_eq!(noisy.rgb, clean.rgb, "silhouettes changed colours");
+        let (mut missing, mut mixed) = (0usize, 0usize);
+        for (pixel, (&a, &b)) in clean.depth_m.iter().zip(&noisy.depth_m).enumerate() {
+            if a.to_bits() == b.to_bits() {
+                continue;
+            }
+            assert!(a.is_finite(), "pixel {pixel} gained a depth");
+            let around = window(&clean, pixel, radius);
+            let step = SILHOUETTE_STEP_M as f32;
+            assert!(
+                around
+                    .iter()
+                    .any(|d| !d.is_finite() || (d - a).abs() > step),
+                "pixel {pixel} changed away from any depth edge"
+            );
+            if b.is_nan() {
+                missing += 1;
+            } else {
+                mixed += 1;
+                // A blend lies between the depths around it (when all of them are known).
+                if around.iter().all(|d| d.is_finite()) {
+                    let lo = around.iter().copied().fold(a, f32::min);
+                    let hi = around.iter().copied().fold(a, f32::max);
+                    assert!(
+                        (lo..=hi).contains(&b),
+                        "pixel {pixel}: {b} not in {lo}..={hi}"
+                    );
+                }
+            }
+        }
+        let valid = clean.depth_m.iter().filter(|d| d.is_finite()).count();
+        assert!(
+            missing > 20 && mixed > 20,
+            "{missing} missing, {mixed} mixed"
+        );
+        // At 160x120 leaves are a few pixels wide, so the bands cover much of the plants.
+        let most = valid * (1 + radius) / 4;
+        assert!(
+            missing + mixed < most,
+            "{} of {valid} changed",
+            missing + mixed
+        );
+        changed_counts.push(missing + mixed);
+    }
+    assert!(changed_counts[1] > changed_counts[0], "{changed_counts:?}");
+}
+
+#[test]
+fn perception_noise_out_of_range_is_an_error() {
+    for label_noise in [-0.1, 1.01, f64::NAN, f64::INFINITY] {
+        let noise = PerceptionNoise {
+            label_noise,
+            ..PerceptionNoise::default()
+        };
+        let err = noise.validate().unwrap_err().to_string();
+        assert!(err.contains("[0, 1]"), "{err}");
+    }
+    let wide = PerceptionNoise {
+        silhouette_px: MAX_SILHOUETTE_PX + 1,
+        ..PerceptionNoise::default()
+    };
+    assert!(wide.validate().is_err());
+    for ok in [0.0, 0.5, 1.0] {
+        let noise = PerceptionNoise {
+            label_noise: ok,
+            silhouette_px: MAX_SILHOUETTE_PX,
+        };
+        assert_eq!(noise.validate(), Ok(()));
+    }
+    let parsed: PerceptionNoise = serde_json::from_str(r#"{"label_noise": 0.3}"#).unwrap();
+    assert_eq!(parsed.label_noise, 0.3);
+    assert_eq!(parsed.silhouette_px, 0);
+}

@@ -8,14 +8,8 @@ use super::*;
 
 /// Trolley t1's info and `n` clouds (frames 1..=n) of scenario 2 at a small resolution.
 fn trolley_clouds(n: u64) -> (TrolleyInfo, Vec<RoiCloud>) {
-    let mut trolley = SimTrolley::new(SimTrolleySettings {
-        scenario: ScenarioKind::Two,
-        seed: 3,
-        width: 96,
-        height: 72,
-        segment_length_m: 1.0,
-    })
-    .unwrap();
+    let mut trolley =
+        SimTrolley::new(SimTrolleySettings::new(ScenarioKind::Two, 3, (96, 72), 1.0)).unwrap();
     let clouds = (1..=n)
         .map(|seq| {
             let frame = trolley.capture(seq).unwrap().unwrap();

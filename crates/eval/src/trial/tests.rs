@@ -4,6 +4,8 @@ use glasshouse_pipeline::Executed;
 use glasshouse_proto::{ArmState, Fruit, TrolleyInfo};
 use nalgebra::Isometry3;
 
+use glasshouse_sim::PerceptionNoise;
+
 use super::*;
 
 fn small(method: Method, budget_s: f64) -> TrialConfig {
@@ -132,11 +134,43 @@ fn bad_configurations_are_rejected() {
             segment_length_m: 0.0,
             ..small(Method::OursUu, 5.0)
         },
+        TrialConfig {
+            perception_noise: PerceptionNoise {
+                label_noise: 1.5,
+                silhouette_px: 0,
+            },
+            ..small(Method::OursUu, 5.0)
+        },
     ];
     for config in bad {
         assert!(matches!(
             Trial::new(config),
             Err(EvalError::InvalidConfig(_)) | Err(EvalError::Capture(_))
         ));
+    }
+}
+
+/// The trial's perception noise reaches its frames (other plans, other fruits than the clean
+/// detector on the same scene), and the fruit counts add up.
+#[test]
+fn perception_noise_reaches_the_trial_and_the_counts_add_up() {
+    let clean = run_trial(small(Method::OursUu, 20.0), |_| {}).unwrap();
+    let noisy_config = TrialConfig {
+        perception_noise: PerceptionNoise {
+            label_noise: 0.3,
+            silhouette_px: 1,
+        },
+        ..small(Method::OursUu, 20.0)
+    };
+    let noisy = run_trial(noisy_config, |_| {}).unwrap();
+    assert_ne!(clean.plans, noisy.plans);
+    for result in [&clean, &noisy] {
+        let last = result.last().unwrap();
+        let counts = last.boxes.counts;
+        assert_eq!(last.estimates, last.boxes.detected + counts.false_fruits);
+        let recall = last.boxes.detected as f64 / result.fruits_total as f64;
+        assert!((counts.recall - recall).abs() < 1e-12, "{counts:?}");
+        let ratio = last.estimates as f64 / result.fruits_total as f64;
+        assert!((counts.count_ratio - ratio).abs() < 1e-12, "{counts:?}");
     }
 }

@@ -6,6 +6,7 @@ mod demo;
 mod eval;
 mod fleet_bench;
 mod render;
+mod secure;
 
 use clap::{Parser, Subcommand};
 use glasshouse_bus::BusArgs;
@@ -36,6 +37,9 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Render what the simulated camera sees to a colour PNG and a colour-mapped depth PNG.
     Render(render::RenderArgs),
+    /// Secure a deployment: a CA, a certificate per identity, the router's mTLS listener and
+    /// access control list, and one client config per identity (`init`, then `issue` to add).
+    Secure(secure::SecureArgs),
     /// Run a Zenoh router for a deployment: listens where `--zenoh-config` or `-l` says, else on
     /// tcp/0.0.0.0:7447.
     Router {
@@ -58,6 +62,7 @@ async fn main() -> anyhow::Result<()> {
         Command::BenchMap(args) => bench_map::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Render(args) => render::run(args),
+        Command::Secure(args) => secure::run(args),
         Command::Router { bus } => {
             let config = glasshouse_bus::router_config(&bus, DEFAULT_ROUTER_LISTEN)?;
             let listen = config.get_json("listen/endpoints").unwrap_or_default();

@@ -20,7 +20,7 @@ pub use acl::{acl, grants, AclMessage, Flow, Grant};
 pub enum TrustError {
     #[error("{0}")]
     Id(#[from] keys::KeyError),
-    #[error("{0} is in the roster twice")]
+    #[error("{0} is already in the roster")]
     Duplicate(String),
     #[error("router endpoint {0:?} is not tls/HOST:PORT")]
     Endpoint(String),
@@ -104,7 +104,7 @@ pub fn default_router_hosts() -> Vec<String> {
 
 /// Where clients connect unless the roster says otherwise.
 pub fn default_router_endpoint() -> String {
-    "tls/router:7447".to_owned()
+    "tls/127.0.0.1:7447".to_owned()
 }
 
 impl Default for Roster {

@@ -10,8 +10,8 @@ use glasshouse_trust::{
     client_config, config_text, router_config, Identity, Kind, Layout, Roster, ROUTER,
 };
 use rcgen::{
-    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose,
-    IsCa, Issuer, KeyPair, KeyUsagePurpose,
+    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa,
+    Issuer, KeyPair, KeyUsagePurpose,
 };
 
 #[derive(clap::Args, Debug)]
@@ -267,7 +267,12 @@ fn write_identity(
     validity: Validity,
 ) -> anyhow::Result<()> {
     let name = identity.common_name();
-    let params = leaf_params(&name, Vec::new(), ExtendedKeyUsagePurpose::ClientAuth, validity)?;
+    let params = leaf_params(
+        &name,
+        Vec::new(),
+        ExtendedKeyUsagePurpose::ClientAuth,
+        validity,
+    )?;
     write_signed(layout, &name, params, ca)?;
     let config = client_config(roster, identity, layout);
     write_file(

@@ -194,13 +194,19 @@ mod tests {
         let alone = config_tree(&BusArgs::default(), None, default);
         assert_eq!(alone["listen"]["endpoints"], json!(["tcp/0.0.0.0:7447"]));
         let from_file = config_tree(&BusArgs::default(), Some(file()), default);
-        assert_eq!(from_file["listen"]["endpoints"], json!(["tls/0.0.0.0:7448"]));
+        assert_eq!(
+            from_file["listen"]["endpoints"],
+            json!(["tls/0.0.0.0:7448"])
+        );
         let flag = BusArgs {
             listen: vec!["tcp/127.0.0.1:9001".into()],
             ..BusArgs::default()
         };
         let from_flag = config_tree(&flag, Some(file()), default);
-        assert_eq!(from_flag["listen"]["endpoints"], json!(["tcp/127.0.0.1:9001"]));
+        assert_eq!(
+            from_flag["listen"]["endpoints"],
+            json!(["tcp/127.0.0.1:9001"])
+        );
     }
 
     #[test]

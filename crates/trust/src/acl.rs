@@ -66,7 +66,11 @@ fn publish(keys: Vec<String>, all: Vec<String>) -> [Grant; 2] {
 /// Subscribing to `keys` and receiving what is put there.
 fn subscribe(keys: Vec<String>) -> [Grant; 2] {
     [
-        grant(Flow::Ingress, &[AclMessage::DeclareSubscriber], keys.clone()),
+        grant(
+            Flow::Ingress,
+            &[AclMessage::DeclareSubscriber],
+            keys.clone(),
+        ),
         grant(Flow::Egress, &[AclMessage::Put], keys),
     ]
 }
@@ -74,7 +78,11 @@ fn subscribe(keys: Vec<String>) -> [Grant; 2] {
 /// Its own liveliness token.
 fn token(kind: MemberKind, id: &str) -> Option<Grant> {
     let key = keys::alive(kind, id).ok()?;
-    Some(grant(Flow::Ingress, &[AclMessage::LivelinessToken], vec![key]))
+    Some(grant(
+        Flow::Ingress,
+        &[AclMessage::LivelinessToken],
+        vec![key],
+    ))
 }
 
 /// Following the membership of `kinds` (history included).
@@ -163,7 +171,11 @@ fn planner_grants(pid: &str) -> Vec<Grant> {
         grants.push(grant(Flow::Egress, &[AclMessage::Query], mine));
     }
     // Asking the other planners: the query out, their queryables and replies back.
-    grants.push(grant(Flow::Ingress, &[AclMessage::Query], vec![all_snapshots()]));
+    grants.push(grant(
+        Flow::Ingress,
+        &[AclMessage::Query],
+        vec![all_snapshots()],
+    ));
     grants.push(grant(
         Flow::Egress,
         &[AclMessage::Reply, AclMessage::DeclareQueryable],
@@ -228,7 +240,8 @@ mod tests {
 
     /// Key expression inclusion for the forms used here (`*` is one chunk).
     fn includes(pattern: &str, key: &str) -> bool {
-        let (p, k): (Vec<&str>, Vec<&str>) = (pattern.split('/').collect(), key.split('/').collect());
+        let (p, k): (Vec<&str>, Vec<&str>) =
+            (pattern.split('/').collect(), key.split('/').collect());
         p.len() == k.len() && p.iter().zip(&k).all(|(p, k)| *p == "*" || p == k)
     }
 
@@ -249,20 +262,74 @@ mod tests {
     #[test]
     fn a_trolley_writes_only_its_own_keys_and_reads_only_its_views() {
         for topic in ["rgbd", "arm", "info", "status", "truth"] {
-            assert!(may(T, "t1", Ingress, Put, &format!("gh/trolley/t1/{topic}")));
-            assert!(!may(T, "t1", Ingress, Put, &format!("gh/trolley/t2/{topic}")));
+            assert!(may(
+                T,
+                "t1",
+                Ingress,
+                Put,
+                &format!("gh/trolley/t1/{topic}")
+            ));
+            assert!(!may(
+                T,
+                "t1",
+                Ingress,
+                Put,
+                &format!("gh/trolley/t2/{topic}")
+            ));
         }
         for topic in ["roi", "views", "fruits", "map"] {
-            assert!(!may(T, "t1", Ingress, Put, &format!("gh/trolley/t1/{topic}")));
+            assert!(!may(
+                T,
+                "t1",
+                Ingress,
+                Put,
+                &format!("gh/trolley/t1/{topic}")
+            ));
         }
-        assert!(may(T, "t1", Ingress, DeclareSubscriber, "gh/trolley/t1/views"));
+        assert!(may(
+            T,
+            "t1",
+            Ingress,
+            DeclareSubscriber,
+            "gh/trolley/t1/views"
+        ));
         assert!(may(T, "t1", Egress, Put, "gh/trolley/t1/views"));
-        assert!(!may(T, "t1", Ingress, DeclareSubscriber, "gh/trolley/*/views"));
+        assert!(!may(
+            T,
+            "t1",
+            Ingress,
+            DeclareSubscriber,
+            "gh/trolley/*/views"
+        ));
         assert!(!may(T, "t1", Egress, Put, "gh/trolley/t2/views"));
-        assert!(!may(T, "t1", Ingress, DeclareSubscriber, "gh/trolley/t1/roi"));
-        assert!(may(T, "t1", Ingress, LivelinessToken, "gh/alive/trolley/t1"));
-        assert!(!may(T, "t1", Ingress, LivelinessToken, "gh/alive/trolley/t2"));
-        assert!(!may(T, "t1", Ingress, LivelinessToken, "gh/alive/planner/t1"));
+        assert!(!may(
+            T,
+            "t1",
+            Ingress,
+            DeclareSubscriber,
+            "gh/trolley/t1/roi"
+        ));
+        assert!(may(
+            T,
+            "t1",
+            Ingress,
+            LivelinessToken,
+            "gh/alive/trolley/t1"
+        ));
+        assert!(!may(
+            T,
+            "t1",
+            Ingress,
+            LivelinessToken,
+            "gh/alive/trolley/t2"
+        ));
+        assert!(!may(
+            T,
+            "t1",
+            Ingress,
+            LivelinessToken,
+            "gh/alive/planner/t1"
+        ));
         assert!(!may(T, "t1", Ingress, Query, "gh/planner/p1/snapshot/t1"));
         assert!(!may(T, "t1", Egress, Reply, "gh/planner/p1/snapshot/t1"));
         // It learns who subscribes to its frames (the dashboard's wildcard included).
@@ -275,31 +342,91 @@ mod tests {
         assert!(may(D, "d1", Ingress, Put, "gh/detector/d1/status"));
         assert!(!may(D, "d1", Ingress, Put, "gh/detector/d2/status"));
         for topic in ["rgbd", "views", "fruits", "map", "info"] {
-            assert!(!may(D, "d1", Ingress, Put, &format!("gh/trolley/t1/{topic}")));
+            assert!(!may(
+                D,
+                "d1",
+                Ingress,
+                Put,
+                &format!("gh/trolley/t1/{topic}")
+            ));
         }
-        assert!(may(D, "d1", Ingress, DeclareSubscriber, "gh/trolley/t1/rgbd"));
+        assert!(may(
+            D,
+            "d1",
+            Ingress,
+            DeclareSubscriber,
+            "gh/trolley/t1/rgbd"
+        ));
         assert!(may(D, "d1", Egress, Put, "gh/trolley/t1/rgbd"));
         assert!(!may(D, "d1", Egress, Put, "gh/trolley/t1/views"));
-        assert!(may(D, "d1", Ingress, LivelinessToken, "gh/alive/detector/d1"));
-        assert!(!may(D, "d1", Ingress, LivelinessToken, "gh/alive/planner/d1"));
-        assert!(may(D, "d1", Ingress, DeclareLivelinessSubscriber, "gh/alive/trolley/*"));
-        assert!(may(D, "d1", Egress, LivelinessToken, "gh/alive/detector/d2"));
+        assert!(may(
+            D,
+            "d1",
+            Ingress,
+            LivelinessToken,
+            "gh/alive/detector/d1"
+        ));
+        assert!(!may(
+            D,
+            "d1",
+            Ingress,
+            LivelinessToken,
+            "gh/alive/planner/d1"
+        ));
+        assert!(may(
+            D,
+            "d1",
+            Ingress,
+            DeclareLivelinessSubscriber,
+            "gh/alive/trolley/*"
+        ));
+        assert!(may(
+            D,
+            "d1",
+            Egress,
+            LivelinessToken,
+            "gh/alive/detector/d2"
+        ));
         assert!(!may(D, "d1", Ingress, Query, "gh/planner/p1/snapshot/t1"));
     }
 
     #[test]
     fn a_planner_writes_results_and_only_planners_query_snapshots() {
         for topic in ["views", "fruits", "map"] {
-            assert!(may(P, "p1", Ingress, Put, &format!("gh/trolley/t3/{topic}")));
+            assert!(may(
+                P,
+                "p1",
+                Ingress,
+                Put,
+                &format!("gh/trolley/t3/{topic}")
+            ));
         }
         for topic in ["rgbd", "arm", "info", "roi", "status", "truth"] {
-            assert!(!may(P, "p1", Ingress, Put, &format!("gh/trolley/t3/{topic}")));
+            assert!(!may(
+                P,
+                "p1",
+                Ingress,
+                Put,
+                &format!("gh/trolley/t3/{topic}")
+            ));
         }
         assert!(may(P, "p1", Ingress, Put, "gh/planner/p1/status"));
         assert!(!may(P, "p1", Ingress, Put, "gh/planner/p2/status"));
         assert!(may(P, "p1", Ingress, Put, "gh/fleet/fruits"));
-        assert!(may(P, "p1", Ingress, DeclareQueryable, "gh/planner/p1/snapshot/*"));
-        assert!(!may(P, "p1", Ingress, DeclareQueryable, "gh/planner/p2/snapshot/*"));
+        assert!(may(
+            P,
+            "p1",
+            Ingress,
+            DeclareQueryable,
+            "gh/planner/p1/snapshot/*"
+        ));
+        assert!(!may(
+            P,
+            "p1",
+            Ingress,
+            DeclareQueryable,
+            "gh/planner/p2/snapshot/*"
+        ));
         assert!(may(P, "p1", Egress, Query, "gh/planner/p1/snapshot/t1"));
         assert!(!may(P, "p1", Egress, Query, "gh/planner/p2/snapshot/t1"));
         assert!(may(P, "p1", Ingress, Reply, "gh/planner/p1/snapshot/t1"));
@@ -314,8 +441,20 @@ mod tests {
             assert!(may(P, "p1", Egress, Put, &format!("gh/trolley/t3/{topic}")));
         }
         assert!(!may(P, "p1", Egress, Put, "gh/trolley/t3/rgbd"));
-        assert!(may(P, "p1", Ingress, LivelinessToken, "gh/alive/planner/p1"));
-        assert!(!may(P, "p1", Ingress, LivelinessToken, "gh/alive/trolley/p1"));
+        assert!(may(
+            P,
+            "p1",
+            Ingress,
+            LivelinessToken,
+            "gh/alive/planner/p1"
+        ));
+        assert!(!may(
+            P,
+            "p1",
+            Ingress,
+            LivelinessToken,
+            "gh/alive/trolley/p1"
+        ));
     }
 
     #[test]
@@ -331,8 +470,15 @@ mod tests {
             "gh/planner/p1/snapshot/t1",
         ];
         let all = [
-            Put, Delete, DeclareSubscriber, Query, DeclareQueryable, Reply, LivelinessToken,
-            DeclareLivelinessSubscriber, LivelinessQuery,
+            Put,
+            Delete,
+            DeclareSubscriber,
+            Query,
+            DeclareQueryable,
+            Reply,
+            LivelinessToken,
+            DeclareLivelinessSubscriber,
+            LivelinessQuery,
         ];
         for key in every_key {
             for message in all {
@@ -345,7 +491,13 @@ mod tests {
                 );
             }
         }
-        assert!(may(W, "web1", Ingress, DeclareSubscriber, "gh/trolley/*/rgbd"));
+        assert!(may(
+            W,
+            "web1",
+            Ingress,
+            DeclareSubscriber,
+            "gh/trolley/*/rgbd"
+        ));
         assert!(may(W, "web1", Egress, Put, "gh/trolley/t9/truth"));
     }
 

@@ -42,7 +42,12 @@ pub enum Kind {
 }
 
 impl Kind {
-    pub const ALL: [Kind; 4] = [Kind::Trolley, Kind::Planner, Kind::Detector, Kind::Dashboard];
+    pub const ALL: [Kind; 4] = [
+        Kind::Trolley,
+        Kind::Planner,
+        Kind::Detector,
+        Kind::Dashboard,
+    ];
 
     pub fn as_str(self) -> &'static str {
         match self {
@@ -99,7 +104,9 @@ pub struct Roster {
 
 /// The router's certificate names unless the roster says otherwise.
 pub fn default_router_hosts() -> Vec<String> {
-    ["localhost", "127.0.0.1", "router"].map(String::from).to_vec()
+    ["localhost", "127.0.0.1", "router"]
+        .map(String::from)
+        .to_vec()
 }
 
 /// Where clients connect unless the roster says otherwise.
@@ -325,10 +332,21 @@ mod tests {
 
     #[test]
     fn a_roster_names_identities_by_common_name() {
-        let names: Vec<String> = roster().identities().iter().map(Identity::common_name).collect();
+        let names: Vec<String> = roster()
+            .identities()
+            .iter()
+            .map(Identity::common_name)
+            .collect();
         assert_eq!(
             names,
-            ["trolley-t1", "trolley-t2", "planner-p1", "planner-p2", "detector-d1", "dashboard-web1"]
+            [
+                "trolley-t1",
+                "trolley-t2",
+                "planner-p1",
+                "planner-p2",
+                "detector-d1",
+                "dashboard-web1"
+            ]
         );
         assert_eq!(roster().router_hosts, default_router_hosts());
         assert_eq!(roster().router_listen().expect("port"), "tls/0.0.0.0:7448");
@@ -337,14 +355,34 @@ mod tests {
     #[test]
     fn bad_rosters_are_refused() {
         let dup = r#"{ trolleys: ["t1", "t1"] }"#;
-        assert_eq!(Roster::parse(dup), Err(TrustError::Duplicate("trolley-t1".into())));
-        assert!(matches!(Roster::parse(r#"{ planners: ["a/b"] }"#), Err(TrustError::Id(_))));
-        for endpoint in ["tcp/router:7447", "tls/router", "tls/:7447", "tls/router:port"] {
+        assert_eq!(
+            Roster::parse(dup),
+            Err(TrustError::Duplicate("trolley-t1".into()))
+        );
+        assert!(matches!(
+            Roster::parse(r#"{ planners: ["a/b"] }"#),
+            Err(TrustError::Id(_))
+        ));
+        for endpoint in [
+            "tcp/router:7447",
+            "tls/router",
+            "tls/:7447",
+            "tls/router:port",
+        ] {
             let text = format!(r#"{{ trolleys: ["t1"], router_endpoint: "{endpoint}" }}"#);
-            assert!(matches!(Roster::parse(&text), Err(TrustError::Endpoint(_))), "{endpoint}");
+            assert!(
+                matches!(Roster::parse(&text), Err(TrustError::Endpoint(_))),
+                "{endpoint}"
+            );
         }
-        assert!(matches!(Roster::parse(r#"{ robots: ["t1"] }"#), Err(TrustError::Parse(_))));
-        assert_eq!(Roster::parse(r#"{ router_hosts: [] }"#), Err(TrustError::NoRouterHost));
+        assert!(matches!(
+            Roster::parse(r#"{ robots: ["t1"] }"#),
+            Err(TrustError::Parse(_))
+        ));
+        assert_eq!(
+            Roster::parse(r#"{ router_hosts: [] }"#),
+            Err(TrustError::NoRouterHost)
+        );
     }
 
     #[test]
@@ -365,7 +403,10 @@ mod tests {
         let t1 = Identity::new(Kind::Trolley, "t1").expect("valid");
         let client = client_config(&r, &t1, &layout);
         assert_eq!(client["mode"], "client");
-        assert_eq!(client["connect"]["endpoints"], json!(["tls/127.0.0.1:7448"]));
+        assert_eq!(
+            client["connect"]["endpoints"],
+            json!(["tls/127.0.0.1:7448"])
+        );
         let tls = &client["transport"]["link"]["tls"];
         assert_eq!(tls["enable_mtls"], true);
         assert_eq!(tls["connect_private_key"], "/pki/trolley-t1.key");
@@ -373,7 +414,10 @@ mod tests {
         assert_eq!(tls["root_ca_certificate"], "/pki/ca.pem");
         let router = router_config(&r, &layout).expect("valid");
         assert_eq!(router["listen"]["endpoints"], json!(["tls/0.0.0.0:7448"]));
-        assert_eq!(router["transport"]["link"]["tls"]["listen_private_key"], "/pki/router.key");
+        assert_eq!(
+            router["transport"]["link"]["tls"]["listen_private_key"],
+            "/pki/router.key"
+        );
         assert_eq!(router["access_control"]["default_permission"], "deny");
         for config in [&client, &router] {
             let max = config["transport"]["link"]["rx"]["max_message_size"]

@@ -14,7 +14,7 @@ use serde_json::{json, Value};
 use crate::{Identity, Kind, Roster};
 
 /// A message type of Zenoh's ACL.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AclMessage {
     Put,
@@ -26,6 +26,20 @@ pub enum AclMessage {
     LivelinessToken,
     DeclareLivelinessSubscriber,
     LivelinessQuery,
+}
+
+impl AclMessage {
+    pub const ALL: [AclMessage; 9] = [
+        AclMessage::Put,
+        AclMessage::Delete,
+        AclMessage::DeclareSubscriber,
+        AclMessage::Query,
+        AclMessage::DeclareQueryable,
+        AclMessage::Reply,
+        AclMessage::LivelinessToken,
+        AclMessage::DeclareLivelinessSubscriber,
+        AclMessage::LivelinessQuery,
+    ];
 }
 
 /// Which way a message crosses the router, seen from the identity's link.
@@ -259,202 +273,115 @@ mod tests {
     const D: Kind = Kind::Detector;
     const W: Kind = Kind::Dashboard;
 
+    /// What identity `kind`-`id` may do, one case a line: `+` allowed or `-` denied, `in`
+    /// (ingress) or `out` (egress), the message as the ACL spells it, the key.
+    fn check(kind: Kind, id: &str, table: &str) {
+        for line in table.lines().map(str::trim).filter(|l| !l.is_empty()) {
+            let words: Vec<&str> = line.split_whitespace().collect();
+            let &[sign, flow, message, key] = words.as_slice() else {
+                panic!("bad case {line:?}");
+            };
+            let flow = if flow == "in" { Ingress } else { Egress };
+            let message: AclMessage =
+                serde_json::from_value(json!(message)).expect("an ACL message type");
+            let allowed = may(kind, id, flow, message, key);
+            assert_eq!(allowed, sign == "+", "{kind:?} {id}: {line}");
+        }
+    }
+
+    /// Put on `gh/trolley/{tid}/{topic}` for each topic: `sign` `+` allowed, `-` denied.
+    fn puts(sign: &str, who: (Kind, &str), tid: &str, topics: &[&str]) {
+        for topic in topics {
+            check(
+                who.0,
+                who.1,
+                &format!("{sign} in put gh/trolley/{tid}/{topic}"),
+            );
+        }
+    }
+
     #[test]
     fn a_trolley_writes_only_its_own_keys_and_reads_only_its_views() {
-        for topic in ["rgbd", "arm", "info", "status", "truth"] {
-            assert!(may(
-                T,
-                "t1",
-                Ingress,
-                Put,
-                &format!("gh/trolley/t1/{topic}")
-            ));
-            assert!(!may(
-                T,
-                "t1",
-                Ingress,
-                Put,
-                &format!("gh/trolley/t2/{topic}")
-            ));
-        }
-        for topic in ["roi", "views", "fruits", "map"] {
-            assert!(!may(
-                T,
-                "t1",
-                Ingress,
-                Put,
-                &format!("gh/trolley/t1/{topic}")
-            ));
-        }
-        assert!(may(
+        let own = ["rgbd", "arm", "info", "status", "truth"];
+        puts("+", (T, "t1"), "t1", &own);
+        puts("-", (T, "t1"), "t2", &own);
+        puts("-", (T, "t1"), "t1", &["roi", "views", "fruits", "map"]);
+        check(
             T,
             "t1",
-            Ingress,
-            DeclareSubscriber,
-            "gh/trolley/t1/views"
-        ));
-        assert!(may(T, "t1", Egress, Put, "gh/trolley/t1/views"));
-        assert!(!may(
-            T,
-            "t1",
-            Ingress,
-            DeclareSubscriber,
-            "gh/trolley/*/views"
-        ));
-        assert!(!may(T, "t1", Egress, Put, "gh/trolley/t2/views"));
-        assert!(!may(
-            T,
-            "t1",
-            Ingress,
-            DeclareSubscriber,
-            "gh/trolley/t1/roi"
-        ));
-        assert!(may(
-            T,
-            "t1",
-            Ingress,
-            LivelinessToken,
-            "gh/alive/trolley/t1"
-        ));
-        assert!(!may(
-            T,
-            "t1",
-            Ingress,
-            LivelinessToken,
-            "gh/alive/trolley/t2"
-        ));
-        assert!(!may(
-            T,
-            "t1",
-            Ingress,
-            LivelinessToken,
-            "gh/alive/planner/t1"
-        ));
-        assert!(!may(T, "t1", Ingress, Query, "gh/planner/p1/snapshot/t1"));
-        assert!(!may(T, "t1", Egress, Reply, "gh/planner/p1/snapshot/t1"));
-        // It learns who subscribes to its frames (the dashboard's wildcard included).
-        assert!(may(T, "t1", Egress, DeclareSubscriber, "gh/trolley/*/rgbd"));
+            "
+            + in declare_subscriber gh/trolley/t1/views
+            + out put gh/trolley/t1/views
+            - in declare_subscriber gh/trolley/*/views
+            - out put gh/trolley/t2/views
+            - in declare_subscriber gh/trolley/t1/roi
+            + in liveliness_token gh/alive/trolley/t1
+            - in liveliness_token gh/alive/trolley/t2
+            - in liveliness_token gh/alive/planner/t1
+            - in query gh/planner/p1/snapshot/t1
+            - out reply gh/planner/p1/snapshot/t1
+            + out declare_subscriber gh/trolley/*/rgbd
+            ",
+        );
     }
 
     #[test]
     fn a_detector_writes_only_clouds_and_its_status() {
-        assert!(may(D, "d1", Ingress, Put, "gh/trolley/t7/roi"));
-        assert!(may(D, "d1", Ingress, Put, "gh/detector/d1/status"));
-        assert!(!may(D, "d1", Ingress, Put, "gh/detector/d2/status"));
-        for topic in ["rgbd", "views", "fruits", "map", "info"] {
-            assert!(!may(
-                D,
-                "d1",
-                Ingress,
-                Put,
-                &format!("gh/trolley/t1/{topic}")
-            ));
-        }
-        assert!(may(
+        puts("+", (D, "d1"), "t7", &["roi"]);
+        puts("-", (D, "d1"), "t1", &["rgbd", "views", "fruits", "map"]);
+        check(
             D,
             "d1",
-            Ingress,
-            DeclareSubscriber,
-            "gh/trolley/t1/rgbd"
-        ));
-        assert!(may(D, "d1", Egress, Put, "gh/trolley/t1/rgbd"));
-        assert!(!may(D, "d1", Egress, Put, "gh/trolley/t1/views"));
-        assert!(may(
-            D,
-            "d1",
-            Ingress,
-            LivelinessToken,
-            "gh/alive/detector/d1"
-        ));
-        assert!(!may(
-            D,
-            "d1",
-            Ingress,
-            LivelinessToken,
-            "gh/alive/planner/d1"
-        ));
-        assert!(may(
-            D,
-            "d1",
-            Ingress,
-            DeclareLivelinessSubscriber,
-            "gh/alive/trolley/*"
-        ));
-        assert!(may(
-            D,
-            "d1",
-            Egress,
-            LivelinessToken,
-            "gh/alive/detector/d2"
-        ));
-        assert!(!may(D, "d1", Ingress, Query, "gh/planner/p1/snapshot/t1"));
+            "
+            + in put gh/detector/d1/status
+            - in put gh/detector/d2/status
+            + in declare_subscriber gh/trolley/t1/rgbd
+            + out put gh/trolley/t1/rgbd
+            - out put gh/trolley/t1/views
+            + in liveliness_token gh/alive/detector/d1
+            - in liveliness_token gh/alive/planner/d1
+            + in declare_liveliness_subscriber gh/alive/trolley/*
+            + out liveliness_token gh/alive/detector/d2
+            - in query gh/planner/p1/snapshot/t1
+            ",
+        );
     }
 
     #[test]
     fn a_planner_writes_results_and_only_planners_query_snapshots() {
-        for topic in ["views", "fruits", "map"] {
-            assert!(may(
-                P,
-                "p1",
-                Ingress,
-                Put,
-                &format!("gh/trolley/t3/{topic}")
-            ));
-        }
-        for topic in ["rgbd", "arm", "info", "roi", "status", "truth"] {
-            assert!(!may(
-                P,
-                "p1",
-                Ingress,
-                Put,
-                &format!("gh/trolley/t3/{topic}")
-            ));
-        }
-        assert!(may(P, "p1", Ingress, Put, "gh/planner/p1/status"));
-        assert!(!may(P, "p1", Ingress, Put, "gh/planner/p2/status"));
-        assert!(may(P, "p1", Ingress, Put, "gh/fleet/fruits"));
-        assert!(may(
+        puts("+", (P, "p1"), "t3", &["views", "fruits", "map"]);
+        puts(
+            "-",
+            (P, "p1"),
+            "t3",
+            &["rgbd", "arm", "info", "roi", "status"],
+        );
+        let snapshot = "gh/planner/p1/snapshot/t1";
+        check(
             P,
             "p1",
-            Ingress,
-            DeclareQueryable,
-            "gh/planner/p1/snapshot/*"
-        ));
-        assert!(!may(
-            P,
-            "p1",
-            Ingress,
-            DeclareQueryable,
-            "gh/planner/p2/snapshot/*"
-        ));
-        assert!(may(P, "p1", Egress, Query, "gh/planner/p1/snapshot/t1"));
-        assert!(!may(P, "p1", Egress, Query, "gh/planner/p2/snapshot/t1"));
-        assert!(may(P, "p1", Ingress, Reply, "gh/planner/p1/snapshot/t1"));
-        assert!(!may(P, "p1", Ingress, Reply, "gh/planner/p2/snapshot/t1"));
-        assert!(may(P, "p2", Ingress, Query, "gh/planner/p1/snapshot/t1"));
-        assert!(may(P, "p2", Egress, Reply, "gh/planner/p1/snapshot/t1"));
-        for kind in [T, D, W] {
-            assert!(!may(kind, "x", Ingress, Query, "gh/planner/p1/snapshot/t1"));
-            assert!(!may(kind, "x", Egress, Reply, "gh/planner/p1/snapshot/t1"));
+            "
+            + in put gh/planner/p1/status
+            - in put gh/planner/p2/status
+            + in put gh/fleet/fruits
+            + in declare_queryable gh/planner/p1/snapshot/*
+            - in declare_queryable gh/planner/p2/snapshot/*
+            + out query gh/planner/p1/snapshot/t1
+            - out query gh/planner/p2/snapshot/t1
+            + in reply gh/planner/p1/snapshot/t1
+            - in reply gh/planner/p2/snapshot/t1
+            + out put gh/trolley/t3/roi
+            + out put gh/trolley/t3/info
+            + out put gh/trolley/t3/fruits
+            - out put gh/trolley/t3/rgbd
+            + in liveliness_token gh/alive/planner/p1
+            - in liveliness_token gh/alive/trolley/p1
+            ",
+        );
+        for (kind, sign) in [(P, "+"), (T, "-"), (D, "-"), (W, "-")] {
+            let asking = format!("{sign} in query {snapshot}\n{sign} out reply {snapshot}");
+            check(kind, "p2", &asking);
         }
-        for topic in ["roi", "info", "fruits"] {
-            assert!(may(P, "p1", Egress, Put, &format!("gh/trolley/t3/{topic}")));
-        }
-        assert!(!may(P, "p1", Egress, Put, "gh/trolley/t3/rgbd"));
-        assert!(may(
-            P,
-            "p1",
-            Ingress,
-            LivelinessToken,
-            "gh/alive/planner/p1"
-        ));
-        assert!(!may(
-            P,
-            "p1",
-            Ingress,
-            LivelinessToken,
-            "gh/alive/trolley/p1"
-        ));
     }
 
     #[test]
@@ -469,19 +396,8 @@ mod tests {
             "gh/alive/trolley/web1",
             "gh/planner/p1/snapshot/t1",
         ];
-        let all = [
-            Put,
-            Delete,
-            DeclareSubscriber,
-            Query,
-            DeclareQueryable,
-            Reply,
-            LivelinessToken,
-            DeclareLivelinessSubscriber,
-            LivelinessQuery,
-        ];
         for key in every_key {
-            for message in all {
+            for message in AclMessage::ALL {
                 let subscribing = message == DeclareSubscriber && !key.contains("snapshot");
                 let alive = key.starts_with("gh/alive");
                 assert_eq!(

@@ -152,8 +152,22 @@ fn roster_from(args: &InitArgs) -> anyhow::Result<Roster> {
 
 fn init(args: InitArgs) -> anyhow::Result<()> {
     let roster = roster_from(&args)?;
-    std::fs::create_dir_all(&args.out).with_context(|| args.out.display().to_string())?;
-    let layout = Layout::new(&std::fs::canonicalize(&args.out)?);
+    let layout = create(&args.out, &roster, args.validity.valid_days)?;
+    println!(
+        "{} identities in {}; CA ca.pem, router router.json5, one <kind>-<id>.json5 each.",
+        roster.identities().len(),
+        layout.dir.display()
+    );
+    println!("Run `glasshouse router --zenoh-config router.json5` and give every binary its own config with --zenoh-config.");
+    Ok(())
+}
+
+/// Writes a new PKI for `roster` into `out` (created; must not hold a CA yet): the CA, the
+/// router's and every identity's key and certificate, the roster and every config.
+pub fn create(out: &Path, roster: &Roster, valid_days: u32) -> anyhow::Result<Layout> {
+    let validity = Validity { valid_days };
+    std::fs::create_dir_all(out).with_context(|| out.display().to_string())?;
+    let layout = Layout::new(&std::fs::canonicalize(out)?);
     if layout.ca_key().exists() {
         bail!(
             "{} already holds a CA; use `glasshouse secure issue` to add identities",
@@ -161,7 +175,7 @@ fn init(args: InitArgs) -> anyhow::Result<()> {
         );
     }
     let ca_key = KeyPair::generate()?;
-    let ca_params = ca_params(args.validity)?;
+    let ca_params = ca_params(validity);
     let ca_cert = ca_params.self_signed(&ca_key)?;
     write_key(&layout.ca_key(), &ca_key)?;
     write_file(&layout.ca_cert(), &ca_cert.pem())?;
@@ -170,20 +184,14 @@ fn init(args: InitArgs) -> anyhow::Result<()> {
         ROUTER,
         roster.router_hosts.clone(),
         ExtendedKeyUsagePurpose::ServerAuth,
-        args.validity,
+        validity,
     )?;
     write_signed(&layout, ROUTER, router, &ca)?;
     for identity in roster.identities() {
-        write_identity(&layout, &roster, &identity, &ca, args.validity)?;
+        write_identity(&layout, roster, &identity, &ca, validity)?;
     }
-    write_roster_and_router(&layout, &roster)?;
-    println!(
-        "{} identities in {}; CA ca.pem, router router.json5, one <kind>-<id>.json5 each.",
-        roster.identities().len(),
-        layout.dir.display()
-    );
-    println!("Run `glasshouse router --zenoh-config router.json5` and give every binary its own config with --zenoh-config.");
-    Ok(())
+    write_roster_and_router(&layout, roster)?;
+    Ok(layout)
 }
 
 fn issue(args: IssueArgs) -> anyhow::Result<()> {
@@ -221,13 +229,13 @@ fn named(common_name: &str) -> DistinguishedName {
     name
 }
 
-fn ca_params(validity: Validity) -> anyhow::Result<CertificateParams> {
-    let mut params = CertificateParams::new(Vec::<String>::new())?;
+fn ca_params(validity: Validity) -> CertificateParams {
+    let mut params = CertificateParams::default();
     params.distinguished_name = named("glasshouse-ca");
     params.is_ca = IsCa::Ca(BasicConstraints::Constrained(0));
     params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
     validity_window(&mut params, validity);
-    Ok(params)
+    params
 }
 
 fn leaf_params(

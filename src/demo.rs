@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use glasshouse_bus::{BusArgs, Shutdown, ShutdownTrigger};
+use glasshouse_bus::{BusArgs, FleetSessions, Shutdown, ShutdownTrigger};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
@@ -175,12 +175,7 @@ struct Pipeline {
 
 /// How the demo's router and components open their sessions.
 struct Sessions {
-    endpoint: String,
-    router: BusArgs,
-    dashboard: BusArgs,
-    detector: BusArgs,
-    planner: BusArgs,
-    edge: BusArgs,
+    fleet: FleetSessions,
     /// The secured demo's PKI, removed at the end.
     pki: Option<PathBuf>,
 }
@@ -189,15 +184,8 @@ impl Sessions {
     fn new(args: &DemoArgs, edge: &EdgeConfig, planner: &PlannerSettings) -> anyhow::Result<Self> {
         let port = free_port()?;
         if !args.secure {
-            let endpoint = format!("tcp/127.0.0.1:{port}");
-            let client = BusArgs::client(&endpoint);
             return Ok(Self {
-                router: BusArgs::router(&endpoint),
-                dashboard: client.clone(),
-                detector: client.clone(),
-                planner: client.clone(),
-                edge: client,
-                endpoint,
+                fleet: FleetSessions::plain(&format!("tcp/127.0.0.1:{port}")),
                 pki: None,
             });
         }
@@ -222,7 +210,7 @@ impl Sessions {
                 ..BusArgs::default()
             })
         };
-        Ok(Self {
+        let fleet = FleetSessions {
             router: BusArgs {
                 zenoh_config: Some(layout.config(glasshouse_trust::ROUTER)),
                 listen: vec![endpoint.clone()],
@@ -233,6 +221,9 @@ impl Sessions {
             planner: config(Kind::Planner, &roster.planners)?,
             edge: config(Kind::Trolley, &roster.trolleys)?,
             endpoint,
+        };
+        Ok(Self {
+            fleet,
             pki: Some(dir),
         })
     }
@@ -249,28 +240,28 @@ impl Pipeline {
     ) -> anyhow::Result<Self> {
         // An in-process router on a free loopback port; every component is a client of it.
         let sessions = Sessions::new(args, &edge_config, &planner_settings)?;
-        let endpoint = sessions.endpoint.clone();
-        let router = glasshouse_bus::open(&sessions.router).await?;
+        let endpoint = sessions.fleet.endpoint.clone();
+        let router = glasshouse_bus::open(&sessions.fleet.router).await?;
         let (trigger, shutdown) = Shutdown::new();
         let (edge_trigger, edge_shutdown) = Shutdown::new();
 
         let state = Arc::new(Mutex::new(FleetState::default()));
         let dashboard_settings = dashboard_settings(args);
         let dashboard = tokio::spawn(glasshouse_dashboard::run(
-            glasshouse_bus::open(&sessions.dashboard).await?,
+            glasshouse_bus::open(&sessions.fleet.dashboard).await?,
             dashboard_settings,
             shutdown.clone(),
             state.clone(),
             Arc::new(DashboardCounters::default()),
         ));
         let detector = tokio::spawn(glasshouse_detector::run(
-            glasshouse_bus::open(&sessions.detector).await?,
+            glasshouse_bus::open(&sessions.fleet.detector).await?,
             DetectorSettings::default(),
             shutdown.clone(),
             Arc::new(DetectorCounters::default()),
         ));
         let planner = tokio::spawn(glasshouse_planner::run(
-            glasshouse_bus::open(&sessions.planner).await?,
+            glasshouse_bus::open(&sessions.fleet.planner).await?,
             planner_settings,
             shutdown.clone(),
             Arc::new(PlannerCounters::default()),
@@ -278,7 +269,7 @@ impl Pipeline {
         let (events_tx, events) = tokio::sync::mpsc::unbounded_channel();
         let tid = edge_config.trolley_id.clone();
         let edge = tokio::spawn(glasshouse_edge::run(
-            glasshouse_bus::open(&sessions.edge).await?,
+            glasshouse_bus::open(&sessions.fleet.edge).await?,
             edge_config,
             edge_shutdown,
             Some(events_tx),

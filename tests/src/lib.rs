@@ -46,32 +46,11 @@ pub async fn open(args: &BusArgs) -> Session {
         .expect("session opens")
 }
 
-/// How each process of a [`Pipeline`] opens its session.
-#[derive(Clone, Debug)]
-pub struct FleetSessions {
-    /// Where clients connect.
-    pub endpoint: String,
-    pub router: BusArgs,
-    pub dashboard: BusArgs,
-    pub detector: BusArgs,
-    pub planner: BusArgs,
-    pub edge: BusArgs,
-}
+pub use glasshouse_bus::FleetSessions;
 
-impl FleetSessions {
-    /// Plain TCP clients of a router on a free loopback port.
-    pub fn loopback() -> Self {
-        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-        let client = BusArgs::client(&endpoint);
-        Self {
-            router: BusArgs::router(&endpoint),
-            dashboard: client.clone(),
-            detector: client.clone(),
-            planner: client.clone(),
-            edge: client,
-            endpoint,
-        }
-    }
+/// Plain TCP clients of a router on a free loopback port.
+pub fn loopback_sessions() -> FleetSessions {
+    FleetSessions::plain(&format!("tcp/127.0.0.1:{}", free_port()))
 }
 
 /// Small images keep the debug-build tests quick; the loop is the same.
@@ -120,7 +99,7 @@ impl Pipeline {
         dashboard: DashboardSettings,
         planner: PlannerSettings,
     ) -> Pipeline {
-        Self::start_services_on(FleetSessions::loopback(), dashboard, planner).await
+        Self::start_services_on(loopback_sessions(), dashboard, planner).await
     }
 
     /// Like [`Pipeline::start_services`], each process opening its session from `sessions`.

@@ -126,6 +126,33 @@ impl BusArgs {
     }
 }
 
+/// How each process of a fleet run inside one process (the demo, the tests) opens its session.
+#[derive(Clone, Debug)]
+pub struct FleetSessions {
+    /// Where clients connect.
+    pub endpoint: String,
+    pub router: BusArgs,
+    pub dashboard: BusArgs,
+    pub detector: BusArgs,
+    pub planner: BusArgs,
+    pub edge: BusArgs,
+}
+
+impl FleetSessions {
+    /// Plain clients of a router listening on `endpoint`.
+    pub fn plain(endpoint: &str) -> Self {
+        let client = BusArgs::client(endpoint);
+        Self {
+            endpoint: endpoint.to_owned(),
+            router: BusArgs::router(endpoint),
+            dashboard: client.clone(),
+            detector: client.clone(),
+            planner: client.clone(),
+            edge: client,
+        }
+    }
+}
+
 /// Opens a session with the shared flags.
 pub async fn open(args: &BusArgs) -> Result<Session> {
     let config = zenoh_config(args)?;

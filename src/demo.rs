@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use glasshouse_bus::{BusArgs, Shutdown, ShutdownTrigger};
+use glasshouse_bus::{BusArgs, FleetSessions, Shutdown, ShutdownTrigger};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
@@ -14,6 +14,7 @@ use glasshouse_nbv::Method;
 use glasshouse_planner::{PlannerCounters, PlannerSettings};
 use glasshouse_proto::{Fruit, ViewKind};
 use glasshouse_sim::ScenarioKind;
+use glasshouse_trust::{Identity, Kind};
 use serde::Serialize;
 
 #[derive(clap::Args, Debug)]
@@ -49,6 +50,10 @@ pub struct DemoArgs {
     /// Write the result as JSON: {"views", "frames", "fruits": [{centre_m, size_m, volume_m3, ...}]}.
     #[arg(long, value_name = "FILE")]
     pub summary_json: Option<PathBuf>,
+    /// Run through a secured bus: a fresh PKI in a temporary directory, the router with mutual
+    /// TLS and the generated ACL, each component with its own certificate.
+    #[arg(long)]
+    pub secure: bool,
     /// Give up when the pipeline makes no progress for this long.
     #[arg(long, default_value_t = 60)]
     pub stall_timeout_s: u64,
@@ -167,7 +172,68 @@ struct Pipeline {
     edge: ServiceTask,
     events: tokio::sync::mpsc::UnboundedReceiver<EdgeEvent>,
     ctrl_c: tokio::task::JoinHandle<()>,
+    /// A secured demo's PKI, removed once the router is closed.
+    pki: Option<PathBuf>,
 }
+
+/// How the demo's router and components open their sessions.
+struct Sessions {
+    fleet: FleetSessions,
+    /// The secured demo's PKI, removed at the end.
+    pki: Option<PathBuf>,
+}
+
+impl Sessions {
+    fn new(args: &DemoArgs, edge: &EdgeConfig, planner: &PlannerSettings) -> anyhow::Result<Self> {
+        let port = free_port()?;
+        if !args.secure {
+            return Ok(Self {
+                fleet: FleetSessions::plain(&format!("tcp/127.0.0.1:{port}")),
+                pki: None,
+            });
+        }
+        let endpoint = format!("tls/127.0.0.1:{port}");
+        let roster = glasshouse_trust::Roster {
+            trolleys: vec![edge.trolley_id.clone()],
+            planners: vec![planner.planner_id.clone()],
+            detectors: vec![DetectorSettings::default().detector_id],
+            dashboards: vec![DEMO_DASHBOARD.into()],
+            router_endpoint: endpoint.clone(),
+            ..glasshouse_trust::Roster::default()
+        };
+        roster.validate()?;
+        let dir = std::env::temp_dir().join(format!("glasshouse-demo-pki-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let layout = crate::secure::create(&dir, &roster, 1)?;
+        println!("secured: a fresh PKI in {}", layout.dir.display());
+        let config = |kind, ids: &[String]| -> anyhow::Result<BusArgs> {
+            let name = Identity::new(kind, &ids[0])?.common_name();
+            Ok(BusArgs {
+                zenoh_config: Some(layout.config(&name)),
+                ..BusArgs::default()
+            })
+        };
+        let fleet = FleetSessions {
+            router: BusArgs {
+                zenoh_config: Some(layout.config(glasshouse_trust::ROUTER)),
+                listen: vec![endpoint.clone()],
+                ..BusArgs::default()
+            },
+            dashboard: config(Kind::Dashboard, &roster.dashboards)?,
+            detector: config(Kind::Detector, &roster.detectors)?,
+            planner: config(Kind::Planner, &roster.planners)?,
+            edge: config(Kind::Trolley, &roster.trolleys)?,
+            endpoint,
+        };
+        Ok(Self {
+            fleet,
+            pki: Some(dir),
+        })
+    }
+}
+
+/// The dashboard's identity in a secured demo.
+const DEMO_DASHBOARD: &str = "demo";
 
 impl Pipeline {
     async fn start(
@@ -176,30 +242,29 @@ impl Pipeline {
         planner_settings: PlannerSettings,
     ) -> anyhow::Result<Self> {
         // An in-process router on a free loopback port; every component is a client of it.
-        let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
-        let router = glasshouse_bus::open(&BusArgs::router(&endpoint)).await?;
-        let client_args = BusArgs::client(&endpoint);
-        let client = || glasshouse_bus::open(&client_args);
+        let sessions = Sessions::new(args, &edge_config, &planner_settings)?;
+        let endpoint = sessions.fleet.endpoint.clone();
+        let router = glasshouse_bus::open(&sessions.fleet.router).await?;
         let (trigger, shutdown) = Shutdown::new();
         let (edge_trigger, edge_shutdown) = Shutdown::new();
 
         let state = Arc::new(Mutex::new(FleetState::default()));
         let dashboard_settings = dashboard_settings(args);
         let dashboard = tokio::spawn(glasshouse_dashboard::run(
-            client().await?,
+            glasshouse_bus::open(&sessions.fleet.dashboard).await?,
             dashboard_settings,
             shutdown.clone(),
             state.clone(),
             Arc::new(DashboardCounters::default()),
         ));
         let detector = tokio::spawn(glasshouse_detector::run(
-            client().await?,
+            glasshouse_bus::open(&sessions.fleet.detector).await?,
             DetectorSettings::default(),
             shutdown.clone(),
             Arc::new(DetectorCounters::default()),
         ));
         let planner = tokio::spawn(glasshouse_planner::run(
-            client().await?,
+            glasshouse_bus::open(&sessions.fleet.planner).await?,
             planner_settings,
             shutdown.clone(),
             Arc::new(PlannerCounters::default()),
@@ -207,7 +272,7 @@ impl Pipeline {
         let (events_tx, events) = tokio::sync::mpsc::unbounded_channel();
         let tid = edge_config.trolley_id.clone();
         let edge = tokio::spawn(glasshouse_edge::run(
-            client().await?,
+            glasshouse_bus::open(&sessions.fleet.edge).await?,
             edge_config,
             edge_shutdown,
             Some(events_tx),
@@ -217,8 +282,12 @@ impl Pipeline {
             glasshouse_bus::shutdown_signal().await;
         });
         println!(
-            "glasshouse demo: scenario {} seed {} views {} method {} (router + 4 Zenoh sessions over {endpoint})",
-            args.scenario, args.seed, args.views, args.method
+            "glasshouse demo: scenario {} seed {} views {} method {} (router + 4 Zenoh sessions over {endpoint}{})",
+            args.scenario,
+            args.seed,
+            args.views,
+            args.method,
+            if args.secure { ", mutual TLS + ACL" } else { "" }
         );
         Ok(Pipeline {
             router,
@@ -232,6 +301,7 @@ impl Pipeline {
             edge,
             events,
             ctrl_c,
+            pki: sessions.pki,
         })
     }
 
@@ -266,6 +336,9 @@ impl Pipeline {
         }
         self.ctrl_c.abort();
         let _ = self.router.close().await;
+        if let Some(pki) = &self.pki {
+            let _ = std::fs::remove_dir_all(pki);
+        }
         Ok(self
             .state
             .lock()

@@ -6,6 +6,7 @@ mod demo;
 mod eval;
 mod fleet_bench;
 mod render;
+mod secure;
 
 use clap::{Parser, Subcommand};
 use glasshouse_bus::BusArgs;
@@ -36,12 +37,19 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Render what the simulated camera sees to a colour PNG and a colour-mapped depth PNG.
     Render(render::RenderArgs),
-    /// Run a Zenoh router for a deployment (default: listen on tcp/0.0.0.0:7447).
+    /// Secure a deployment: a CA, a certificate per identity, the router's mTLS listener and
+    /// access control list, and one client config per identity (`init`, then `issue` to add).
+    Secure(secure::SecureArgs),
+    /// Run a Zenoh router for a deployment: listens where `--zenoh-config` or `-l` says, else on
+    /// tcp/0.0.0.0:7447.
     Router {
         #[command(flatten)]
         bus: BusArgs,
     },
 }
+
+/// Where a router listens when neither its config file nor a flag says.
+const DEFAULT_ROUTER_LISTEN: &str = "tcp/0.0.0.0:7447";
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
@@ -54,13 +62,14 @@ async fn main() -> anyhow::Result<()> {
         Command::BenchMap(args) => bench_map::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Render(args) => render::run(args),
-        Command::Router { mut bus } => {
-            bus.mode = Some(glasshouse_bus::Mode::Router);
-            if bus.listen.is_empty() {
-                bus.listen.push("tcp/0.0.0.0:7447".into());
-            }
-            let session = glasshouse_bus::open(&bus).await?;
-            tracing::info!(zid = %session.zid(), listen = ?bus.listen, "router up");
+        Command::Secure(args) => secure::run(args),
+        Command::Router { bus } => {
+            let config = glasshouse_bus::router_config(&bus, DEFAULT_ROUTER_LISTEN)?;
+            let listen = config.get_json("listen/endpoints").unwrap_or_default();
+            let session = zenoh::open(config)
+                .await
+                .map_err(|e| anyhow::anyhow!("cannot open the router: {e}"))?;
+            tracing::info!(zid = %session.zid(), %listen, "router up");
             glasshouse_bus::shutdown_signal().await;
             let _ = session.close().await;
             Ok(())

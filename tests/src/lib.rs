@@ -36,13 +36,21 @@ pub async fn within<T>(secs: u64, what: &str, future: impl Future<Output = T>) -
 
 /// A client session to `endpoint`.
 pub async fn client(endpoint: &str) -> Session {
-    within(
-        10,
-        "client session",
-        glasshouse_bus::open(&BusArgs::client(endpoint)),
-    )
-    .await
-    .expect("client session opens")
+    open(&BusArgs::client(endpoint)).await
+}
+
+/// A session opened from `args` (flags or a `--zenoh-config` file).
+pub async fn open(args: &BusArgs) -> Session {
+    within(10, "session", glasshouse_bus::open(args))
+        .await
+        .expect("session opens")
+}
+
+pub use glasshouse_bus::FleetSessions;
+
+/// Plain TCP clients of a router on a free loopback port.
+pub fn loopback_sessions() -> FleetSessions {
+    FleetSessions::plain(&format!("tcp/127.0.0.1:{}", free_port()))
 }
 
 /// Small images keep the debug-build tests quick; the loop is the same.
@@ -67,6 +75,7 @@ pub struct Pipeline {
     pub fleet: Arc<Mutex<FleetState>>,
     pub events: tokio::sync::mpsc::UnboundedReceiver<EdgeEvent>,
     events_tx: Option<tokio::sync::mpsc::UnboundedSender<EdgeEvent>>,
+    sessions: FleetSessions,
     services: Vec<(&'static str, JoinHandle<anyhow::Result<()>>)>,
     triggers: Vec<ShutdownTrigger>,
 }
@@ -90,17 +99,19 @@ impl Pipeline {
         dashboard: DashboardSettings,
         planner: PlannerSettings,
     ) -> Pipeline {
-        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-        let router = within(
-            10,
-            "router",
-            glasshouse_bus::open(&BusArgs::router(&endpoint)),
-        )
-        .await
-        .expect("router opens");
+        Self::start_services_on(loopback_sessions(), dashboard, planner).await
+    }
+
+    /// Like [`Pipeline::start_services`], each process opening its session from `sessions`.
+    pub async fn start_services_on(
+        sessions: FleetSessions,
+        dashboard: DashboardSettings,
+        planner: PlannerSettings,
+    ) -> Pipeline {
+        let router = open(&sessions.router).await;
         let (events_tx, events) = tokio::sync::mpsc::unbounded_channel();
         let mut pipeline = Pipeline {
-            endpoint,
+            endpoint: sessions.endpoint.clone(),
             router,
             edge_counters: Arc::new(EdgeCounters::default()),
             detector_counters: Arc::new(DetectorCounters::default()),
@@ -109,10 +120,11 @@ impl Pipeline {
             fleet: Arc::new(Mutex::new(FleetState::default())),
             events,
             events_tx: Some(events_tx),
+            sessions,
             services: Vec::new(),
             triggers: Vec::new(),
         };
-        let session = client(&pipeline.endpoint).await;
+        let session = open(&pipeline.sessions.dashboard).await;
         let task = glasshouse_dashboard::run(
             session,
             dashboard,
@@ -121,7 +133,7 @@ impl Pipeline {
             pipeline.dashboard_counters.clone(),
         );
         pipeline.services.push(("dashboard", tokio::spawn(task)));
-        let session = client(&pipeline.endpoint).await;
+        let session = open(&pipeline.sessions.detector).await;
         let task = glasshouse_detector::run(
             session,
             DetectorSettings::default(),
@@ -129,7 +141,7 @@ impl Pipeline {
             pipeline.detector_counters.clone(),
         );
         pipeline.services.push(("detector", tokio::spawn(task)));
-        let session = client(&pipeline.endpoint).await;
+        let session = open(&pipeline.sessions.planner).await;
         let task = glasshouse_planner::run(
             session,
             planner,
@@ -142,7 +154,7 @@ impl Pipeline {
 
     /// Starts the edge; its events arrive on `events`.
     pub async fn start_edge(&mut self, edge_config: EdgeConfig) {
-        let session = client(&self.endpoint).await;
+        let session = open(&self.sessions.edge).await;
         let task = glasshouse_edge::run(
             session,
             edge_config,

@@ -24,7 +24,20 @@ async fn real_binaries_close_the_loop() {
     let with = |extra: &[&str]| -> Vec<String> {
         connect.iter().chain(extra).map(|s| s.to_string()).collect()
     };
-    let router = Proc::start("router", "glasshouse", &["router", "-l", &endpoint], &logs);
+    // The router's listener comes from its config file (no -l): the file is respected.
+    let router_config = logs.join("router.json5");
+    std::fs::write(
+        &router_config,
+        format!("{{ listen: {{ endpoints: [\"{endpoint}\"] }} }}"),
+    )
+    .expect("router config");
+    let router_config = router_config.to_string_lossy().into_owned();
+    let router = Proc::start(
+        "router",
+        "glasshouse",
+        &["router", "--zenoh-config", &router_config],
+        &logs,
+    );
     // Clients retry their connection, so the start order does not matter.
     let args = with(&["--record", &rrd_arg]);
     let dashboard = Proc::start(

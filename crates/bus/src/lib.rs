@@ -17,7 +17,10 @@
 //! `CongestionControl::Block`. Subscribers decode every payload through the verified codec of
 //! `glasshouse-proto`; a payload that fails is counted in [`DropCounters`] and skipped.
 
+mod config;
 mod queue;
+
+pub use config::{router_config, zenoh_config};
 
 use std::marker::PhantomData;
 use std::path::PathBuf;
@@ -79,7 +82,8 @@ impl Mode {
 /// Session flags shared by every Glasshouse binary.
 #[derive(clap::Args, Clone, Debug, Default)]
 pub struct BusArgs {
-    /// Zenoh configuration file (JSON5, Zenoh's own format); flags below override it.
+    /// Zenoh configuration file (JSON5, Zenoh's own format), merged over the project's defaults
+    /// (multicast off, clients retry forever); the flags below override it.
     #[arg(
         long = "zenoh-config",
         value_name = "FILE",
@@ -122,63 +126,31 @@ impl BusArgs {
     }
 }
 
-fn insert(config: &mut zenoh::Config, key: &str, value: &str) -> Result<()> {
-    config
-        .insert_json5(key, value)
-        .map_err(|e| BusError::Config(format!("{key} = {value}: {e}")))
+/// How each process of a fleet run inside one process (the demo, the tests) opens its session.
+#[derive(Clone, Debug)]
+pub struct FleetSessions {
+    /// Where clients connect.
+    pub endpoint: String,
+    pub router: BusArgs,
+    pub dashboard: BusArgs,
+    pub detector: BusArgs,
+    pub planner: BusArgs,
+    pub edge: BusArgs,
 }
 
-fn json_list(items: &[String]) -> String {
-    serde_json::Value::from(items.to_vec()).to_string()
-}
-
-/// Builds the Zenoh configuration from the shared flags.
-pub fn zenoh_config(args: &BusArgs) -> Result<zenoh::Config> {
-    let mut config = match &args.zenoh_config {
-        Some(path) => zenoh::Config::from_file(path)
-            .map_err(|e| BusError::Config(format!("{}: {e}", path.display())))?,
-        None => {
-            let mut c = zenoh::Config::default();
-            insert(&mut c, "scouting/multicast/enabled", "false")?;
-            // Containers start in any order: clients keep retrying instead of exiting.
-            insert(
-                &mut c,
-                "connect/timeout_ms",
-                r#"{ router: -1, peer: -1, client: -1 }"#,
-            )?;
-            insert(
-                &mut c,
-                "connect/exit_on_failure",
-                r#"{ router: false, peer: false, client: false }"#,
-            )?;
-            // A busy consumer must slow a reliable producer down, not get its link closed.
-            insert(
-                &mut c,
-                "transport/link/tx/queue/congestion_control/block/wait_before_close",
-                "60000000",
-            )?;
-            c
+impl FleetSessions {
+    /// Plain clients of a router listening on `endpoint`.
+    pub fn plain(endpoint: &str) -> Self {
+        let client = BusArgs::client(endpoint);
+        Self {
+            endpoint: endpoint.to_owned(),
+            router: BusArgs::router(endpoint),
+            dashboard: client.clone(),
+            detector: client.clone(),
+            planner: client.clone(),
+            edge: client,
         }
-    };
-    if let Some(mode) = args.mode {
-        insert(&mut config, "mode", &format!("\"{}\"", mode.as_str()))?;
     }
-    if !args.connect.is_empty() {
-        insert(&mut config, "connect/endpoints", &json_list(&args.connect))?;
-    }
-    if !args.listen.is_empty() {
-        insert(&mut config, "listen/endpoints", &json_list(&args.listen))?;
-    }
-    if let Some(lease_ms) = args.lease_ms {
-        insert(
-            &mut config,
-            "transport/link/tx/lease",
-            &lease_ms.to_string(),
-        )?;
-        // Four keep-alives per lease, as Zenoh's default.
-        insert(&mut config, "transport/link/tx/keep_alive", "4")?;
-    }
-    Ok(config)
 }
 
 /// Opens a session with the shared flags.

@@ -11,7 +11,8 @@ use glasshouse_edge::{EdgeConfig, EdgeCounters};
 ///
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
-/// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir), then
+/// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir,
+/// compress_frames, realtime), then
 /// the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
@@ -44,6 +45,14 @@ struct Cli {
     /// Record every captured frame to this folder (for --replay).
     #[arg(long, value_name = "DIR")]
     record_frames: Option<PathBuf>,
+    /// Send (and record) frames uncompressed: 1.5 MB per 640x480 frame instead of ~0.13 MB, for
+    /// readers that predate the frame encodings.
+    #[arg(long)]
+    raw_frames: bool,
+    /// Run in real time: wait out each view's simulated arm motion and capture time (seconds,
+    /// from the arm's joint speed limits) in wall-clock time before the next capture.
+    #[arg(long)]
+    realtime: bool,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -72,5 +81,11 @@ fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
     }
     set_flag(&mut c.replay_dir, cli.replay.map(Some));
     set_flag(&mut c.record_frames_dir, cli.record_frames.map(Some));
+    if cli.raw_frames {
+        c.compress_frames = false;
+    }
+    if cli.realtime {
+        c.realtime = true;
+    }
     c.validate()
 }

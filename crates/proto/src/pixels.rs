@@ -86,26 +86,22 @@ pub struct PlaneShape {
     pub channels: usize,
 }
 
-impl PlaneShape {
-    /// Index of the sample that predicts sample `i`: the same channel of the pixel to the left,
-    /// in the first column the one above; `None` for the first pixel.
-    fn predictor(self, i: usize) -> Option<usize> {
-        let row_len = self.width * self.channels;
-        if i % row_len >= self.channels {
-            Some(i - self.channels)
-        } else {
-            i.checked_sub(row_len)
-        }
-    }
-}
-
 /// Encodes a plane as [`ImageEncoding::LeftDeltaZstd`]; `None` when zstd cannot allocate its
 /// context (the writer then sends the plane raw).
 pub fn encode_plane<T: Sample>(samples: &[T], shape: PlaneShape) -> Option<Vec<u8>> {
     let mut residuals = Vec::with_capacity(samples.len() * T::BYTES);
-    for (i, &s) in samples.iter().enumerate() {
-        let predicted = shape.predictor(i).map_or(T::default(), |p| samples[p]);
-        s.wrapping_sub(predicted).put_le(&mut residuals);
+    let row_len = (shape.width * shape.channels).max(1);
+    let mut above: &[T] = &[];
+    for row in samples.chunks(row_len) {
+        for (x, &s) in row.iter().enumerate() {
+            let predicted = if x >= shape.channels {
+                row[x - shape.channels]
+            } else {
+                above.get(x).copied().unwrap_or_default()
+            };
+            s.wrapping_sub(predicted).put_le(&mut residuals);
+        }
+        above = row;
     }
     compress(&residuals).ok()
 }
@@ -140,10 +136,21 @@ pub fn decode_plane<T: Sample>(
             found: residuals.len() / T::BYTES,
         });
     }
-    let mut plane: Vec<T> = Vec::with_capacity(samples);
-    for (i, bytes) in residuals.chunks_exact(T::BYTES).enumerate() {
-        let predicted = shape.predictor(i).map_or(T::default(), |p| plane[p]);
-        plane.push(T::from_le(bytes).wrapping_add(predicted));
+    let mut plane: Vec<T> = residuals.chunks_exact(T::BYTES).map(T::from_le).collect();
+    let row_len = shape.width * shape.channels;
+    for start in (0..plane.len()).step_by(row_len) {
+        let end = (start + row_len).min(plane.len());
+        if start >= row_len {
+            let (done, row) = plane.split_at_mut(start);
+            let above = &done[start - row_len..];
+            for x in 0..shape.channels.min(end - start) {
+                row[x] = row[x].wrapping_add(above[x]);
+            }
+        }
+        let row = &mut plane[start..end];
+        for x in shape.channels..row.len() {
+            row[x] = row[x].wrapping_add(row[x - shape.channels]);
+        }
     }
     Ok(plane)
 }
@@ -177,15 +184,37 @@ mod tests {
         assert_eq!(back, rgb);
     }
 
+    /// Index of the sample that predicts sample `i` (the format's definition): the same channel
+    /// of the pixel to the left, in the first column the one above; `None` for the first pixel.
+    fn predictor(shape: PlaneShape, i: usize) -> Option<usize> {
+        let row_len = shape.width * shape.channels;
+        if i % row_len >= shape.channels {
+            Some(i - shape.channels)
+        } else {
+            i.checked_sub(row_len)
+        }
+    }
+
+    #[test]
+    fn the_residuals_follow_the_definition() {
+        let rgb: Vec<u8> = (0..36).map(|i| (i * 53 % 256) as u8).collect();
+        let encoded = encode_plane(&rgb, RGB).unwrap();
+        let residuals = zstd::bulk::decompress(&encoded, rgb.len()).unwrap();
+        for (i, r) in residuals.iter().enumerate() {
+            let predicted = predictor(RGB, i).map_or(0, |p| rgb[p]);
+            assert_eq!(*r, rgb[i].wrapping_sub(predicted), "sample {i}");
+        }
+    }
+
     #[test]
     fn predictor_is_left_then_above() {
-        assert_eq!(RGB.predictor(0), None);
-        assert_eq!(RGB.predictor(2), None);
-        assert_eq!(RGB.predictor(3), Some(0));
-        assert_eq!(RGB.predictor(12), Some(0));
-        assert_eq!(RGB.predictor(14), Some(2));
-        assert_eq!(DEPTH.predictor(5), Some(4));
-        assert_eq!(DEPTH.predictor(4), Some(0));
+        assert_eq!(predictor(RGB, 0), None);
+        assert_eq!(predictor(RGB, 2), None);
+        assert_eq!(predictor(RGB, 3), Some(0));
+        assert_eq!(predictor(RGB, 12), Some(0));
+        assert_eq!(predictor(RGB, 14), Some(2));
+        assert_eq!(predictor(DEPTH, 5), Some(4));
+        assert_eq!(predictor(DEPTH, 4), Some(0));
     }
 
     #[test]

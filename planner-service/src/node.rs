@@ -277,7 +277,7 @@ impl PlannerNode {
             return Vec::new();
         }
         let mut actions = self.introduce(&tid);
-        let latest = !self.queued_clouds.get(&tid).is_some_and(|&n| n > 0);
+        let latest = self.queued_clouds.get(&tid).is_none_or(|&n| n == 0);
         let Some(slot) = self.slots.get_mut(&tid) else {
             return actions;
         };

@@ -157,6 +157,8 @@ pub fn decode_plane<T: Sample>(
 
 #[cfg(test)]
 mod tests {
+    #![allow(clippy::unwrap_used)]
+
     use super::*;
 
     const DEPTH: PlaneShape = PlaneShape {

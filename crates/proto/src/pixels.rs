@@ -44,40 +44,27 @@ pub trait Sample: Copy + Default {
     fn from_le(bytes: &[u8]) -> Self;
 }
 
-impl Sample for u8 {
-    const BYTES: usize = 1;
-    fn wrapping_sub(self, other: Self) -> Self {
-        u8::wrapping_sub(self, other)
-    }
-    fn wrapping_add(self, other: Self) -> Self {
-        u8::wrapping_add(self, other)
-    }
-    fn put_le(self, out: &mut Vec<u8>) {
-        out.push(self);
-    }
-    fn from_le(bytes: &[u8]) -> Self {
-        bytes.first().copied().unwrap_or_default()
-    }
+macro_rules! impl_sample {
+    ($($t:ty),+) => {$(
+        impl Sample for $t {
+            const BYTES: usize = std::mem::size_of::<$t>();
+            fn wrapping_sub(self, other: Self) -> Self {
+                <$t>::wrapping_sub(self, other)
+            }
+            fn wrapping_add(self, other: Self) -> Self {
+                <$t>::wrapping_add(self, other)
+            }
+            fn put_le(self, out: &mut Vec<u8>) {
+                out.extend_from_slice(&self.to_le_bytes());
+            }
+            fn from_le(bytes: &[u8]) -> Self {
+                bytes.try_into().map_or(0, <$t>::from_le_bytes)
+            }
+        }
+    )+};
 }
 
-impl Sample for u16 {
-    const BYTES: usize = 2;
-    fn wrapping_sub(self, other: Self) -> Self {
-        u16::wrapping_sub(self, other)
-    }
-    fn wrapping_add(self, other: Self) -> Self {
-        u16::wrapping_add(self, other)
-    }
-    fn put_le(self, out: &mut Vec<u8>) {
-        out.extend_from_slice(&self.to_le_bytes());
-    }
-    fn from_le(bytes: &[u8]) -> Self {
-        match bytes {
-            [lo, hi] => u16::from_le_bytes([*lo, *hi]),
-            _ => 0,
-        }
-    }
-}
+impl_sample!(u8, u16);
 
 /// The shape of a plane: `channels` interleaved samples per pixel, `width` pixels per row.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -111,13 +111,19 @@ fn roles((a, b): (PlannerNode, PlannerNode)) -> (PlannerNode, PlannerNode) {
     }
 }
 
+/// (owner, replica) of t1, both with t1's info.
+fn informed_owner_and_replica(info: &TrolleyInfo) -> (PlannerNode, PlannerNode) {
+    let (mut owner, mut replica) = roles(pair());
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(info));
+    }
+    (owner, replica)
+}
+
 #[test]
 fn the_owner_plans_and_publishes_the_replica_only_integrates() {
     let (info, clouds) = trolley_clouds(2);
-    let (mut owner, mut replica) = roles(pair());
-    for n in [&mut owner, &mut replica] {
-        n.handle(info_event(&info));
-    }
+    let (mut owner, mut replica) = informed_owner_and_replica(&info);
     for cloud in &clouds {
         let published = owner.handle(cloud_event(cloud));
         let views = views_of(&published);
@@ -330,10 +336,7 @@ fn outputs_for(actions: &[PlannerAction], tid: &str) -> (usize, usize, usize) {
 #[test]
 fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
     let (info, clouds) = trolley_clouds(3);
-    let (mut owner, mut replica) = roles(pair());
-    for n in [&mut owner, &mut replica] {
-        n.handle(info_event(&info));
-    }
+    let (mut owner, mut replica) = informed_owner_and_replica(&info);
     let batch = || {
         let queued = clouds
             .iter()

@@ -56,6 +56,10 @@ pub struct FleetBenchArgs {
     /// Keep the processes' logs in this folder (default: a temporary one, removed).
     #[arg(long, value_name = "DIR")]
     pub logs: Option<PathBuf>,
+    /// Run every edge with --realtime: each view's simulated arm motion and capture time
+    /// (seconds) passes in wall-clock time, as on a real trolley.
+    #[arg(long)]
+    pub realtime: bool,
 }
 
 /// One process of the fleet.
@@ -362,7 +366,7 @@ impl Fleet {
         tokio::time::sleep(Duration::from_secs(2)).await;
         let interval_ms = (1000.0 / args.fps).round() as u64;
         for i in 1..=args.trolleys {
-            let extra = [
+            let mut extra = vec![
                 "--trolley-id".into(),
                 format!("t{i}"),
                 "--scenario".into(),
@@ -374,6 +378,9 @@ impl Fleet {
                 "--frame-interval-ms".into(),
                 interval_ms.to_string(),
             ];
+            if args.realtime {
+                extra.push("--realtime".into());
+            }
             self.spawn_client("edge", format!("t{i}"), "edge", &extra)?;
         }
         Ok(())

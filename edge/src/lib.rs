@@ -18,10 +18,13 @@ use std::time::Duration;
 use anyhow::Context;
 use glasshouse_bus::{declare_alive, DropCounters, Publisher, Received, Shutdown, Subscriber};
 use glasshouse_pipeline::{
-    EdgeAction, EdgeInput, EdgeNode, EdgeSettings, SimTrolley, SimTrolleySettings, TrolleySource,
+    EdgeAction, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer, SimTrolley, SimTrolleySettings,
+    TrolleySource,
 };
 use glasshouse_proto::keys::{self, MemberKind};
-use glasshouse_proto::{ArmState, FruitEstimates, Header, RgbdFrame, TrolleyInfo, TrolleyStatus};
+use glasshouse_proto::{
+    ArmState, FruitEstimates, Header, ImageEncoding, RgbdFrame, TrolleyInfo, TrolleyStatus,
+};
 use glasshouse_sim::{PerceptionNoise, ScenarioKind};
 use serde::Deserialize;
 use source::{FrameRecorder, ReplaySource};
@@ -61,6 +64,13 @@ pub struct EdgeConfig {
     pub frame_interval_ms: u64,
     /// Simulated detector label noise and silhouette depth artefacts (clean by default).
     pub perception_noise: PerceptionNoise,
+    /// Send frames compressed (lossless left delta + zstd per plane, ~10x smaller); false sends
+    /// the raw planes, for readers that predate `ImageEncoding`.
+    pub compress_frames: bool,
+    /// Take as long in wall-clock time as the simulated arm: wait out each view's motion and
+    /// capture time before capturing the next frame (false: capture as soon as the view is
+    /// executed; the simulated clock alone counts the time).
+    pub realtime: bool,
 }
 
 impl Default for EdgeConfig {
@@ -80,6 +90,8 @@ impl Default for EdgeConfig {
             record_frames_dir: None,
             frame_interval_ms: 0,
             perception_noise: PerceptionNoise::default(),
+            compress_frames: true,
+            realtime: false,
         }
     }
 }
@@ -115,6 +127,15 @@ impl EdgeConfig {
         SimTrolleySettings {
             perception_noise: self.perception_noise,
             ..SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
+        }
+    }
+
+    /// How the edge sends each frame's planes.
+    pub fn frame_encoding(&self) -> ImageEncoding {
+        if self.compress_frames {
+            ImageEncoding::LeftDeltaZstd
+        } else {
+            ImageEncoding::Raw
         }
     }
 
@@ -187,6 +208,10 @@ struct Driver {
     next_capture: Instant,
     views_done: u32,
     events: Option<tokio::sync::mpsc::UnboundedSender<EdgeEvent>>,
+    /// With `realtime`: the pacer and the origin of its wall clock.
+    pacer: Option<(RealtimePacer, Instant)>,
+    /// Cuts a pacing wait short.
+    shutdown: Shutdown,
 }
 
 impl Driver {
@@ -238,7 +263,7 @@ impl Driver {
         self.announcement = Some(Announcement {
             info,
             arm,
-            frame,
+            frame: frame.encoded_as(self.config.frame_encoding()),
             recorded: false,
         });
         Ok(EdgeInput::Captured { frame: true })
@@ -334,10 +359,25 @@ impl Driver {
         })
     }
 
+    /// With `realtime`, waits out the simulated time the pacer says is due before `action`.
+    async fn pace(&mut self, action: &EdgeAction, sim_time_s: f64) {
+        let Some((pacer, origin)) = &mut self.pacer else {
+            return;
+        };
+        let wait = pacer.wait_before(action, sim_time_s, origin.elapsed());
+        if !wait.is_zero() {
+            tokio::select! {
+                _ = tokio::time::sleep(wait) => {}
+                _ = self.shutdown.wait() => {}
+            }
+        }
+    }
+
     /// Performs actions (and those their outcomes cause) until none is left.
     async fn drain(&mut self, node: &mut EdgeNode, actions: Vec<EdgeAction>) -> anyhow::Result<()> {
         let mut queue: VecDeque<EdgeAction> = actions.into();
         while let Some(action) = queue.pop_front() {
+            self.pace(&action, node.sim_time_s()).await;
             if let Some(input) = self.perform(action).await? {
                 queue.extend(node.handle(input));
             }
@@ -381,6 +421,10 @@ pub async fn run(
         next_capture: Instant::now(),
         views_done: 0,
         events,
+        pacer: config
+            .realtime
+            .then(|| (RealtimePacer::default(), Instant::now())),
+        shutdown: shutdown.clone(),
         config,
     };
     tracing::info!(trolley = %tid, scenario = %driver.config.scenario, seed = driver.config.seed, "edge started");

@@ -12,7 +12,8 @@ use glasshouse_edge::{EdgeConfig, EdgeCounters};
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
 /// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir,
-/// perception_noise: { label_noise, silhouette_px }), then the flags below.
+/// perception_noise: { label_noise, silhouette_px }, compress_frames, realtime), then the flags
+/// below.
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
 struct Cli {
@@ -52,6 +53,14 @@ struct Cli {
     /// missing or mixes foreground and background (0 = none, at most 8).
     #[arg(long, value_name = "PX")]
     silhouette_px: Option<u32>,
+    /// Send (and record) frames uncompressed: 1.5 MB per 640x480 frame instead of ~0.13 MB, for
+    /// readers that predate the frame encodings.
+    #[arg(long)]
+    raw_frames: bool,
+    /// Run in real time: wait out each view's simulated arm motion and capture time (seconds,
+    /// from the arm's joint speed limits) in wall-clock time before the next capture.
+    #[arg(long)]
+    realtime: bool,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -82,5 +91,11 @@ fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
     set_flag(&mut c.record_frames_dir, cli.record_frames.map(Some));
     set_flag(&mut c.perception_noise.label_noise, cli.label_noise);
     set_flag(&mut c.perception_noise.silhouette_px, cli.silhouette_px);
+    if cli.raw_frames {
+        c.compress_frames = false;
+    }
+    if cli.realtime {
+        c.realtime = true;
+    }
     c.validate()
 }

@@ -165,7 +165,13 @@ impl Inputs {
                 }
                 r = self.clouds.recv() => {
                     let Received { header, message, .. } = r?;
-                    PlannerEvent::Cloud { header, cloud: message }
+                    // Clouds that queued up while the node was busy go in as one batch: each is
+                    // integrated, each trolley planned once, on its latest.
+                    let mut clouds = vec![(header, message)];
+                    while let Some(Received { header, message, .. }) = self.clouds.try_recv() {
+                        clouds.push((header, message));
+                    }
+                    PlannerEvent::Clouds(clouds)
                 }
             };
             return Some(event);

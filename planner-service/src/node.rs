@@ -33,6 +33,9 @@ pub enum PlannerEvent {
         header: Header,
         cloud: RoiCloud,
     },
+    /// Clouds that queued up while the planner was busy, in arrival order: each is integrated,
+    /// and the owner plans once per trolley, on the trolley's last cloud of the batch.
+    Clouds(Vec<(Header, RoiCloud)>),
     /// A trolley's workspace and arm.
     Info {
         header: Header,
@@ -138,6 +141,8 @@ pub struct PlannerNode {
     latest_fruits: BTreeMap<String, FruitEstimates>,
     stats: PlannerStats,
     status_seq: u64,
+    /// While a `Clouds` batch is handled: per trolley, its clouds still to come in the batch.
+    queued_clouds: BTreeMap<String, usize>,
 }
 
 fn describe(a: &Option<Assignment>) -> String {
@@ -178,6 +183,7 @@ impl PlannerNode {
             latest_fruits: BTreeMap::new(),
             stats: PlannerStats::default(),
             status_seq: 0,
+            queued_clouds: BTreeMap::new(),
         }
     }
 
@@ -227,6 +233,7 @@ impl PlannerNode {
                 Vec::new()
             }
             PlannerEvent::Cloud { header, cloud } => self.on_cloud(header, cloud),
+            PlannerEvent::Clouds(clouds) => self.on_clouds(clouds),
             PlannerEvent::Info { header, info } => self.on_info(&header.trolley_id, info),
             PlannerEvent::Fruits { header, fruits } => {
                 if keys::validate_id(&header.trolley_id).is_ok() {
@@ -270,6 +277,7 @@ impl PlannerNode {
             return Vec::new();
         }
         let mut actions = self.introduce(&tid);
+        let latest = self.queued_clouds.get(&tid).is_none_or(|&n| n == 0);
         let Some(slot) = self.slots.get_mut(&tid) else {
             return actions;
         };
@@ -277,8 +285,28 @@ impl PlannerNode {
             buffered.push((header, cloud));
             return actions;
         }
-        let plan = slot.role == Role::Owner;
+        let plan = slot.role == Role::Owner && latest;
         actions.extend(self.integrate(&tid, header, cloud, plan));
+        actions
+    }
+
+    /// Handles a batch of clouds one by one, so that a trolley's clouds queued behind a later
+    /// one are integrated without fits or planning (the edge waits only on its latest frame).
+    fn on_clouds(&mut self, clouds: Vec<(Header, RoiCloud)>) -> Vec<PlannerAction> {
+        for (header, _) in &clouds {
+            *self
+                .queued_clouds
+                .entry(header.trolley_id.clone())
+                .or_default() += 1;
+        }
+        let mut actions = Vec::new();
+        for (header, cloud) in clouds {
+            if let Some(n) = self.queued_clouds.get_mut(&header.trolley_id) {
+                *n -= 1;
+            }
+            actions.extend(self.on_cloud(header, cloud));
+        }
+        self.queued_clouds.clear();
         actions
     }
 
@@ -402,8 +430,10 @@ impl PlannerNode {
         Ok((header, Box::new(snapshot)))
     }
 
-    /// Integrates one cloud into the trolley's copy; as the owner (`plan`), also fits, plans and
-    /// publishes. A replica keeps its map, fruit ids and change tracking exactly as the owner's.
+    /// Integrates one cloud into the trolley's copy; with `plan` (the owner), also fits, plans and
+    /// publishes. An owner's cloud that is not planned on (a later one is queued) still
+    /// publishes its map changes. A replica keeps its map, fruit ids and change tracking exactly
+    /// as the owner's.
     fn integrate(
         &mut self,
         tid: &str,
@@ -427,7 +457,10 @@ impl PlannerNode {
         let camera = cloud.world_from_camera;
         slot.last_cloud = Some((header.clone(), cloud));
         if !plan {
-            return Vec::new();
+            return match slot.role {
+                Role::Owner => self.publish(tid, &header, None, None, map),
+                Role::Replica => Vec::new(),
+            };
         }
         let fruits = FruitEstimates {
             fruits: slot
@@ -453,7 +486,7 @@ impl PlannerNode {
                 None
             }
         };
-        self.publish(tid, &header, views, fruits, map)
+        self.publish(tid, &header, views, Some(fruits), map)
     }
 
     fn publish(
@@ -461,7 +494,7 @@ impl PlannerNode {
         tid: &str,
         cloud_header: &Header,
         views: Option<RankedViews>,
-        fruits: FruitEstimates,
+        fruits: Option<FruitEstimates>,
         map: MapUpdate,
     ) -> Vec<PlannerAction> {
         let header = Header {
@@ -480,7 +513,7 @@ impl PlannerNode {
             stats.views_published += 1;
             outputs.push(TrolleyOutput::Views(views));
         }
-        outputs.push(TrolleyOutput::Fruits(fruits));
+        outputs.extend(fruits.map(TrolleyOutput::Fruits));
         outputs.push(TrolleyOutput::Map(map));
         let publish = |output| PlannerAction::Publish {
             tid: tid.to_owned(),

@@ -2,6 +2,7 @@
 //! in the row scenario the trolley works through the row segment by segment.
 
 use glasshouse_edge::{EdgeConfig, EdgeEvent};
+use glasshouse_proto::{decode_typed, ImageEncoding, RgbdFrame};
 use glasshouse_tests::{test_edge_config, Pipeline};
 
 fn count(events: &[EdgeEvent], f: impl Fn(&EdgeEvent) -> bool) -> usize {
@@ -31,6 +32,12 @@ async fn recorded_frames_replay_through_the_loop() {
         other => panic!("recording did not finish: {other:?}"),
     };
     assert_eq!(frames, recorded_frames);
+    // The edge records what it sends: compressed planes, which the replay decodes.
+    let first = std::fs::read(dir.join("frame-00000001.ghw")).expect("first frame");
+    let (_, frame) = decode_typed::<RgbdFrame>(&first).expect("the recorded frame decodes");
+    assert_eq!(frame.depth_encoding, ImageEncoding::LeftDeltaZstd);
+    assert_eq!(frame.rgb_encoding, ImageEncoding::LeftDeltaZstd);
+    assert!(first.len() < frame.depth.len() * 2, "{} bytes", first.len());
 
     let mut replay = Pipeline::start(EdgeConfig {
         replay_dir: Some(dir.clone()),

@@ -50,6 +50,8 @@ pub fn render_frame(
         min_range_m: camera.min_range_m as f32,
         max_range_m: camera.max_range_m as f32,
         rgb: image.rgb,
+        depth_encoding: Default::default(),
+        rgb_encoding: Default::default(),
     }
 }
 

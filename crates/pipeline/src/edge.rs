@@ -332,3 +332,44 @@ impl EdgeNode {
         actions
     }
 }
+
+/// Wall-clock pacing of the simulated clock (`edge --realtime`): a view's motion and capture
+/// take as long in wall-clock time as the simulated arm says they take.
+///
+/// The spending starts when the driver performs an `Execute` or `MoveToNextSegment` (the arm
+/// or trolley starts to move); the next `Capture` waits until that instant plus the simulated
+/// seconds the node added meanwhile (motion + capture, or the capture alone when no view was
+/// reachable). Time is passed in, so the durations are unit-tested without sleeping.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RealtimePacer {
+    /// The wall-clock instant (since any fixed origin) and the node's simulated time when the
+    /// current motion began.
+    motion_started: Option<(std::time::Duration, f64)>,
+}
+
+impl RealtimePacer {
+    /// How long to wait before performing `action`, given the node's simulated time and the
+    /// wall-clock time now (both from the same origin on every call).
+    pub fn wait_before(
+        &mut self,
+        action: &EdgeAction,
+        sim_time_s: f64,
+        wall_now: std::time::Duration,
+    ) -> std::time::Duration {
+        match action {
+            EdgeAction::Execute { .. } | EdgeAction::MoveToNextSegment => {
+                self.motion_started = Some((wall_now, sim_time_s));
+                std::time::Duration::ZERO
+            }
+            EdgeAction::Capture { .. } => {
+                let Some((wall_start, sim_start_s)) = self.motion_started.take() else {
+                    return std::time::Duration::ZERO;
+                };
+                let spent_s = (sim_time_s - sim_start_s).max(0.0);
+                let due = wall_start + std::time::Duration::from_secs_f64(spent_s);
+                due.saturating_sub(wall_now)
+            }
+            _ => std::time::Duration::ZERO,
+        }
+    }
+}

@@ -25,7 +25,7 @@ pub use capture::{
     TrolleySource, DEPTH_SCALE_M,
 };
 pub use detection::detect_frame;
-pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings};
+pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer};
 pub use planning::{
     plan_seed, ranked_views, FruitRecord, PlanningError, PlanningSettings, TrolleyPlanner,
 };

@@ -421,3 +421,61 @@ fn kept_fits_equal_fresh_fits_and_only_touched_fruits_are_refitted() {
         "{refits} refits for {fruits_seen} fruits"
     );
 }
+
+/// Feeds `input` to the node and every action it returns through the pacer at wall time
+/// `now_s`; the wait before the last action, in seconds.
+fn pace(pacer: &mut RealtimePacer, node: &mut EdgeNode, input: EdgeInput, now_s: f64) -> f64 {
+    let now = std::time::Duration::from_secs_f64(now_s);
+    let actions = node.handle(input);
+    let waits: Vec<f64> = actions
+        .iter()
+        .map(|a| pacer.wait_before(a, node.sim_time_s(), now).as_secs_f64())
+        .collect();
+    waits.last().copied().unwrap_or(0.0)
+}
+
+#[test]
+fn realtime_pacing_waits_out_motion_and_capture_from_when_the_motion_began() {
+    let mut pacer = RealtimePacer::default();
+    // The first capture does not wait.
+    let mut node = EdgeNode::new(settings());
+    assert_eq!(pace(&mut pacer, &mut node, EdgeInput::Start, 0.0), 0.0);
+    // Views arrive at wall 10 s: the arm starts moving.
+    let mut node = waiting(settings());
+    assert_eq!(pace(&mut pacer, &mut node, views_for(1, &[0.9]), 10.0), 0.0);
+    // IK took 0.3 s; motion 2 s + capture 0.5 s are due at 12.5 s.
+    let wait_s = pace(&mut pacer, &mut node, executed(0, 2.0), 10.3);
+    assert!((wait_s - 2.2).abs() < 1e-9, "{wait_s}");
+    // Late already (the driver was slow): no wait, and no wait owed to the next capture.
+    let mut node = waiting(settings());
+    pace(&mut pacer, &mut node, views_for(1, &[0.9]), 20.0);
+    assert_eq!(pace(&mut pacer, &mut node, executed(0, 1.0), 30.0), 0.0);
+    assert_eq!(
+        pacer.wait_before(
+            &EdgeAction::Capture { frame_seq: 9 },
+            99.0,
+            Default::default()
+        ),
+        std::time::Duration::ZERO
+    );
+}
+
+#[test]
+fn realtime_pacing_of_an_unreachable_view_and_a_segment_move() {
+    let mut pacer = RealtimePacer::default();
+    let mut node = waiting(settings());
+    pace(&mut pacer, &mut node, views_for(1, &[0.9]), 5.0);
+    // Nothing reachable: only the capture time (0.5 s) is waited out.
+    let wait_s = pace(&mut pacer, &mut node, EdgeInput::Executed(None), 5.1);
+    assert!((wait_s - 0.4).abs() < 1e-9, "{wait_s}");
+    // A segment move of 3 s plus the capture.
+    let mut node = waiting(settings());
+    pace(&mut pacer, &mut node, views_for(1, &[0.1]), 7.0);
+    let wait_s = pace(
+        &mut pacer,
+        &mut node,
+        EdgeInput::SegmentMoved(Some(3.0)),
+        7.0,
+    );
+    assert!((wait_s - 3.5).abs() < 1e-9, "{wait_s}");
+}

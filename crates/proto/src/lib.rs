@@ -13,6 +13,7 @@
 
 pub mod keys;
 mod messages;
+pub mod pixels;
 pub mod samples;
 
 #[allow(unsafe_code, clippy::all, clippy::unwrap_used, dead_code, unused_imports)]
@@ -23,6 +24,7 @@ mod generated;
 /// The flatc-generated types, for readers that want zero-copy access.
 pub use generated::glasshouse::wire as fb;
 pub use messages::*;
+pub use pixels::{ImageEncoding, PixelCodecError};
 
 use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 

@@ -57,6 +57,8 @@ pub fn rgbd_frame() -> RgbdFrame {
         max_range_m: 3.0,
         depth: (0..48).map(|i| 500 + i * 10).collect(),
         rgb: (0..144).map(|i| (i * 7 % 256) as u8).collect(),
+        depth_encoding: Default::default(),
+        rgb_encoding: Default::default(),
     }
 }
 

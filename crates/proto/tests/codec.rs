@@ -1,7 +1,9 @@
 //! Round trips and hostile input for the wire codec.
 
+use glasshouse_geom::CameraIntrinsics;
 use glasshouse_proto::{
-    decode, decode_as, decode_typed, encode, encode_any, samples, MessageKind, ProtoError, RoiCloud,
+    decode, decode_as, decode_typed, encode, encode_any, samples, ImageEncoding, MessageKind,
+    ProtoError, RgbdFrame, RoiCloud,
 };
 use rand::{Rng, SeedableRng};
 
@@ -102,7 +104,10 @@ fn inconsistent_frame_sizes_are_rejected() {
     }
     let bytes = encode_any(&samples::header(1), &message);
     let err = decode_as(&bytes, MessageKind::RgbdFrame).expect_err("short depth accepted");
-    assert!(err.to_string().contains("depth has 47 values"), "{err}");
+    assert!(
+        err.to_string().contains("depth: 47 samples, 48 expected"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -184,4 +189,78 @@ fn a_pose_reads_back_bit_for_bit() {
         let (_, back) = decode_typed::<RoiCloud>(&bytes).expect("decodes");
         assert_eq!(back.world_from_camera, cloud.world_from_camera);
     }
+}
+
+/// A 64×48 frame with smooth depth, a few holes and flat colour, sent compressed.
+fn compressed_frame() -> RgbdFrame {
+    let intrinsics = CameraIntrinsics::from_horizontal_fov(64, 48, 80f64.to_radians());
+    let pixels = intrinsics.pixel_count();
+    RgbdFrame {
+        intrinsics,
+        depth: (0..pixels)
+            .map(|i| {
+                if i % 17 == 0 {
+                    0
+                } else {
+                    800 + (i % 64) as u16
+                }
+            })
+            .collect(),
+        rgb: (0..3 * pixels).map(|i| [40, 160, 30][i % 3]).collect(),
+        ..samples::rgbd_frame()
+    }
+    .encoded_as(ImageEncoding::LeftDeltaZstd)
+}
+
+#[test]
+fn a_compressed_frame_round_trips_and_is_smaller() {
+    let frame = compressed_frame();
+    let bytes = encode(&samples::header(3), &frame);
+    let raw = encode(
+        &samples::header(3),
+        &frame.clone().encoded_as(ImageEncoding::Raw),
+    );
+    assert!(
+        bytes.len() * 4 < raw.len(),
+        "{} vs {}",
+        bytes.len(),
+        raw.len()
+    );
+    let (_, back) = decode_typed::<RgbdFrame>(&bytes).expect("decodes");
+    assert_eq!(back, frame);
+    let (_, back_raw) = decode_typed::<RgbdFrame>(&raw).expect("decodes");
+    assert_eq!(back_raw.depth, frame.depth);
+    assert_eq!(back_raw.depth_encoding, ImageEncoding::Raw);
+}
+
+#[test]
+fn corrupt_or_truncated_compressed_frames_are_typed_errors() {
+    let bytes = encode(&samples::header(3), &compressed_frame());
+    for len in (0..bytes.len()).step_by(7) {
+        assert!(decode_typed::<RgbdFrame>(&bytes[..len]).is_err(), "{len}");
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    let mut rejected = 0;
+    for _ in 0..300 {
+        let mut bad = bytes.clone();
+        let i = rng.gen_range(0..bad.len());
+        bad[i] ^= rng.gen_range(1..=255u8);
+        match decode_typed::<RgbdFrame>(&bad) {
+            Err(_) => rejected += 1,
+            // A flipped byte outside the planes (pose, ranges, padding) may still decode.
+            Ok((_, f)) => assert_eq!(f.depth.len(), 64 * 48),
+        }
+    }
+    assert!(rejected > 100, "{rejected}");
+}
+
+#[test]
+fn a_compressed_plane_of_another_size_is_a_content_error() {
+    let mut frame = compressed_frame();
+    // The planes hold 48 rows, the intrinsics announce 47.
+    frame.intrinsics.height = 47;
+    let bytes = encode(&samples::header(3), &frame);
+    let err = decode_typed::<RgbdFrame>(&bytes).expect_err("wrong size accepted");
+    assert!(matches!(err, ProtoError::Content { .. }), "{err}");
+    assert!(err.to_string().contains("depth: zstd"), "{err}");
 }

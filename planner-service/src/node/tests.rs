@@ -105,13 +105,19 @@ fn roles((a, b): (PlannerNode, PlannerNode)) -> (PlannerNode, PlannerNode) {
     }
 }
 
+/// (owner, replica) of t1, both with t1's info.
+fn informed_owner_and_replica(info: &TrolleyInfo) -> (PlannerNode, PlannerNode) {
+    let (mut owner, mut replica) = roles(pair());
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(info));
+    }
+    (owner, replica)
+}
+
 #[test]
 fn the_owner_plans_and_publishes_the_replica_only_integrates() {
     let (info, clouds) = trolley_clouds(2);
-    let (mut owner, mut replica) = roles(pair());
-    for n in [&mut owner, &mut replica] {
-        n.handle(info_event(&info));
-    }
+    let (mut owner, mut replica) = informed_owner_and_replica(&info);
     for cloud in &clouds {
         let published = owner.handle(cloud_event(cloud));
         let views = views_of(&published);
@@ -301,4 +307,99 @@ fn the_status_lists_owned_and_standby_trolleys() {
         );
         assert_eq!(status.dropped_messages, 4);
     }
+}
+
+/// The outputs published for `tid`, by kind: (views, fruits, map updates).
+fn outputs_for(actions: &[PlannerAction], tid: &str) -> (usize, usize, usize) {
+    let mut counts = (0, 0, 0);
+    for action in actions {
+        if let PlannerAction::Publish { tid: t, output, .. } = action {
+            if t != tid {
+                continue;
+            }
+            match output {
+                TrolleyOutput::Views(_) => counts.0 += 1,
+                TrolleyOutput::Fruits(_) => counts.1 += 1,
+                TrolleyOutput::Map(_) => counts.2 += 1,
+            }
+        }
+    }
+    counts
+}
+
+#[test]
+fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut owner, mut replica) = informed_owner_and_replica(&info);
+    let batch = || {
+        let queued = clouds
+            .iter()
+            .map(|c| (header("t1", c.source_frame_seq), c.clone()));
+        PlannerEvent::Clouds(queued.collect())
+    };
+    let actions = owner.handle(batch());
+    assert_eq!(owner.stats().clouds_integrated, 3);
+    assert_eq!(owner.stats().plans, 1);
+    let views = views_of(&actions);
+    assert_eq!(views.len(), 1);
+    assert_eq!(views[0].based_on_seq, 3);
+    // Every cloud's map changes go out; fruits with the one plan.
+    assert_eq!(outputs_for(&actions, "t1"), (1, 1, 3));
+    assert!(replica.handle(batch()).is_empty());
+    assert_eq!(replica.stats().clouds_integrated, 3);
+    // The same map as integrating the clouds one at a time.
+    let (mut single, _) = roles(pair());
+    single.handle(info_event(&info));
+    for cloud in &clouds {
+        single.handle(cloud_event(cloud));
+    }
+    let (batched, one_by_one) = (owner.planner("t1").unwrap(), single.planner("t1").unwrap());
+    assert_eq!(batched.map().len(), one_by_one.map().len());
+    assert_eq!(batched.last_cloud_seq(), Some(3));
+    // A later single cloud is planned on at once again.
+    let (_, more) = trolley_clouds(4);
+    assert_eq!(views_of(&owner.handle(cloud_event(&more[3]))).len(), 1);
+    assert_eq!(owner.stats().plans, 2);
+}
+
+#[test]
+fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
+    let (info, clouds) = trolley_clouds(3);
+    let mut solo = node("p1");
+    for tid in ["t1", "t2"] {
+        solo.handle(PlannerEvent::TrolleyJoined(tid.into()));
+        solo.handle(PlannerEvent::SnapshotLoaded {
+            tid: tid.into(),
+            snapshot: None,
+        });
+        solo.handle(PlannerEvent::Info {
+            header: header(tid, 0),
+            info: info.clone(),
+        });
+    }
+    let of = |tid: &str, i: usize| (header(tid, clouds[i].source_frame_seq), clouds[i].clone());
+    let batch = vec![
+        of("t1", 0),
+        of("t2", 0),
+        of("t1", 1),
+        of("t1", 2),
+        of("t2", 1),
+    ];
+    let actions = solo.handle(PlannerEvent::Clouds(batch));
+    assert_eq!(solo.stats().clouds_integrated, 5);
+    assert_eq!(solo.stats().plans, 2);
+    assert_eq!(outputs_for(&actions, "t1"), (1, 1, 3));
+    assert_eq!(outputs_for(&actions, "t2"), (1, 1, 2));
+    let planned: Vec<(String, u64)> = actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::Publish {
+                tid,
+                output: TrolleyOutput::Views(v),
+                ..
+            } => Some((tid.clone(), v.based_on_seq)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(planned, vec![("t1".into(), 3), ("t2".into(), 2)]);
 }

@@ -367,6 +367,96 @@ impl<'a> ::flatbuffers::Verifiable for TrolleyState {
 
 impl ::flatbuffers::SimpleToVerifyInSlice for TrolleyState {}
 #[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MIN_IMAGE_ENCODING: u8 = 0;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MAX_IMAGE_ENCODING: u8 = 1;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+#[allow(non_camel_case_types)]
+pub const ENUM_VALUES_IMAGE_ENCODING: [ImageEncoding; 2] = [
+  ImageEncoding::Raw,
+  ImageEncoding::LeftDeltaZstd,
+];
+
+/// One RGB-D capture. depth_m = depth[i] * depth_scale_m; 0 means no measurement.
+/// How one pixel plane of an RgbdFrame is stored.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[repr(transparent)]
+pub struct ImageEncoding(pub u8);
+#[allow(non_upper_case_globals)]
+impl ImageEncoding {
+  /// The plane as is, in `depth` / `rgb`.
+  pub const Raw: Self = Self(0);
+  /// In `depth_encoded` / `rgb_encoded`: every sample minus its left neighbour of the same
+  /// channel (the first column: minus the sample above; the first pixel: minus 0), wrapping,
+  /// little-endian, then one zstd frame. Lossless.
+  pub const LeftDeltaZstd: Self = Self(1);
+
+  pub const ENUM_MIN: u8 = 0;
+  pub const ENUM_MAX: u8 = 1;
+  pub const ENUM_VALUES: &'static [Self] = &[
+    Self::Raw,
+    Self::LeftDeltaZstd,
+  ];
+  /// Returns the variant's name or "" if unknown.
+  pub fn variant_name(self) -> Option<&'static str> {
+    match self {
+      Self::Raw => Some("Raw"),
+      Self::LeftDeltaZstd => Some("LeftDeltaZstd"),
+      _ => None,
+    }
+  }
+}
+impl ::core::fmt::Debug for ImageEncoding {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    if let Some(name) = self.variant_name() {
+      f.write_str(name)
+    } else {
+      f.write_fmt(format_args!("<UNKNOWN {:?}>", self.0))
+    }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for ImageEncoding {
+  type Inner = Self;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    let b = unsafe { ::flatbuffers::read_scalar_at::<u8>(buf, loc) };
+    Self(b)
+  }
+}
+
+impl ::flatbuffers::Push for ImageEncoding {
+    type Output = ImageEncoding;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        unsafe { ::flatbuffers::emplace_scalar::<u8>(dst, self.0) };
+    }
+}
+
+impl ::flatbuffers::EndianScalar for ImageEncoding {
+  type Scalar = u8;
+  #[inline]
+  fn to_little_endian(self) -> u8 {
+    self.0.to_le()
+  }
+  #[inline]
+  #[allow(clippy::wrong_self_convention)]
+  fn from_little_endian(v: u8) -> Self {
+    let b = u8::from_le(v);
+    Self(b)
+  }
+}
+
+impl<'a> ::flatbuffers::Verifiable for ImageEncoding {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    u8::run_verifier(v, pos)
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for ImageEncoding {}
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
 pub const ENUM_MIN_VOXEL_STATE: u8 = 0;
 #[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
 pub const ENUM_MAX_VOXEL_STATE: u8 = 2;
@@ -2113,7 +2203,6 @@ impl<'a> TrackedFruit {
 pub enum RgbdFrameOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
-/// One RGB-D capture. depth_m = depth[i] * depth_scale_m; 0 means no measurement.
 pub struct RgbdFrame<'a> {
   pub _tab: ::flatbuffers::Table<'a>,
 }
@@ -2134,6 +2223,10 @@ impl<'a> RgbdFrame<'a> {
   pub const VT_MAX_RANGE_M: ::flatbuffers::VOffsetT = 12;
   pub const VT_DEPTH: ::flatbuffers::VOffsetT = 14;
   pub const VT_RGB: ::flatbuffers::VOffsetT = 16;
+  pub const VT_DEPTH_ENCODING: ::flatbuffers::VOffsetT = 18;
+  pub const VT_DEPTH_ENCODED: ::flatbuffers::VOffsetT = 20;
+  pub const VT_RGB_ENCODING: ::flatbuffers::VOffsetT = 22;
+  pub const VT_RGB_ENCODED: ::flatbuffers::VOffsetT = 24;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2145,6 +2238,8 @@ impl<'a> RgbdFrame<'a> {
     args: &'args RgbdFrameArgs<'args>
   ) -> ::flatbuffers::WIPOffset<RgbdFrame<'bldr>> {
     let mut builder = RgbdFrameBuilder::new(_fbb);
+    if let Some(x) = args.rgb_encoded { builder.add_rgb_encoded(x); }
+    if let Some(x) = args.depth_encoded { builder.add_depth_encoded(x); }
     if let Some(x) = args.rgb { builder.add_rgb(x); }
     if let Some(x) = args.depth { builder.add_depth(x); }
     builder.add_max_range_m(args.max_range_m);
@@ -2152,6 +2247,8 @@ impl<'a> RgbdFrame<'a> {
     builder.add_depth_scale_m(args.depth_scale_m);
     if let Some(x) = args.world_from_camera { builder.add_world_from_camera(x); }
     if let Some(x) = args.intrinsics { builder.add_intrinsics(x); }
+    builder.add_rgb_encoding(args.rgb_encoding);
+    builder.add_depth_encoding(args.depth_encoding);
     builder.finish()
   }
 
@@ -2205,6 +2302,34 @@ impl<'a> RgbdFrame<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(RgbdFrame::VT_RGB, None)}
   }
+  #[inline]
+  pub fn depth_encoding(&self) -> ImageEncoding {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<ImageEncoding>(RgbdFrame::VT_DEPTH_ENCODING, Some(ImageEncoding::Raw)).unwrap()}
+  }
+  #[inline]
+  pub fn depth_encoded(&self) -> Option<::flatbuffers::Vector<'a, u8>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(RgbdFrame::VT_DEPTH_ENCODED, None)}
+  }
+  #[inline]
+  pub fn rgb_encoding(&self) -> ImageEncoding {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<ImageEncoding>(RgbdFrame::VT_RGB_ENCODING, Some(ImageEncoding::Raw)).unwrap()}
+  }
+  #[inline]
+  pub fn rgb_encoded(&self) -> Option<::flatbuffers::Vector<'a, u8>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(RgbdFrame::VT_RGB_ENCODED, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for RgbdFrame<'_> {
@@ -2220,6 +2345,10 @@ impl ::flatbuffers::Verifiable for RgbdFrame<'_> {
      .visit_field::<f32>("max_range_m", Self::VT_MAX_RANGE_M, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u16>>>("depth", Self::VT_DEPTH, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("rgb", Self::VT_RGB, false)?
+     .visit_field::<ImageEncoding>("depth_encoding", Self::VT_DEPTH_ENCODING, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("depth_encoded", Self::VT_DEPTH_ENCODED, false)?
+     .visit_field::<ImageEncoding>("rgb_encoding", Self::VT_RGB_ENCODING, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("rgb_encoded", Self::VT_RGB_ENCODED, false)?
      .finish();
     Ok(())
   }
@@ -2232,6 +2361,10 @@ pub struct RgbdFrameArgs<'a> {
     pub max_range_m: f32,
     pub depth: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u16>>>,
     pub rgb: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
+    pub depth_encoding: ImageEncoding,
+    pub depth_encoded: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
+    pub rgb_encoding: ImageEncoding,
+    pub rgb_encoded: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
 }
 impl<'a> Default for RgbdFrameArgs<'a> {
   #[inline]
@@ -2244,6 +2377,10 @@ impl<'a> Default for RgbdFrameArgs<'a> {
       max_range_m: 0.0,
       depth: None,
       rgb: None,
+      depth_encoding: ImageEncoding::Raw,
+      depth_encoded: None,
+      rgb_encoding: ImageEncoding::Raw,
+      rgb_encoded: None,
     }
   }
 }
@@ -2282,6 +2419,22 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> RgbdFrameBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RgbdFrame::VT_RGB, rgb);
   }
   #[inline]
+  pub fn add_depth_encoding(&mut self, depth_encoding: ImageEncoding) {
+    self.fbb_.push_slot::<ImageEncoding>(RgbdFrame::VT_DEPTH_ENCODING, depth_encoding, ImageEncoding::Raw);
+  }
+  #[inline]
+  pub fn add_depth_encoded(&mut self, depth_encoded: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , u8>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RgbdFrame::VT_DEPTH_ENCODED, depth_encoded);
+  }
+  #[inline]
+  pub fn add_rgb_encoding(&mut self, rgb_encoding: ImageEncoding) {
+    self.fbb_.push_slot::<ImageEncoding>(RgbdFrame::VT_RGB_ENCODING, rgb_encoding, ImageEncoding::Raw);
+  }
+  #[inline]
+  pub fn add_rgb_encoded(&mut self, rgb_encoded: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , u8>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RgbdFrame::VT_RGB_ENCODED, rgb_encoded);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> RgbdFrameBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     RgbdFrameBuilder {
@@ -2306,6 +2459,10 @@ impl ::core::fmt::Debug for RgbdFrame<'_> {
       ds.field("max_range_m", &self.max_range_m());
       ds.field("depth", &self.depth());
       ds.field("rgb", &self.rgb());
+      ds.field("depth_encoding", &self.depth_encoding());
+      ds.field("depth_encoded", &self.depth_encoded());
+      ds.field("rgb_encoding", &self.rgb_encoding());
+      ds.field("rgb_encoded", &self.rgb_encoded());
       ds.finish()
   }
 }

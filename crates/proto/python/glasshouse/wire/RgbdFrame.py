@@ -10,7 +10,6 @@ from glasshouse.wire.Pose import Pose
 from typing import Optional
 np = import_numpy()
 
-# One RGB-D capture. depth_m = depth[i] * depth_scale_m; 0 means no measurement.
 class RgbdFrame(object):
     __slots__ = ['_tab']
 
@@ -128,8 +127,76 @@ class RgbdFrame(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
         return o == 0
 
+    # RgbdFrame
+    def DepthEncoding(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, o + self._tab.Pos)
+        return 0
+
+    # RgbdFrame
+    def DepthEncoded(self, j: int):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 1))
+        return 0
+
+    # RgbdFrame
+    def DepthEncodedAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Uint8Flags, o)
+        return 0
+
+    # RgbdFrame
+    def DepthEncodedLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # RgbdFrame
+    def DepthEncodedIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        return o == 0
+
+    # RgbdFrame
+    def RgbEncoding(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, o + self._tab.Pos)
+        return 0
+
+    # RgbdFrame
+    def RgbEncoded(self, j: int):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 1))
+        return 0
+
+    # RgbdFrame
+    def RgbEncodedAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Uint8Flags, o)
+        return 0
+
+    # RgbdFrame
+    def RgbEncodedLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # RgbdFrame
+    def RgbEncodedIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        return o == 0
+
 def RgbdFrameStart(builder: flatbuffers.Builder):
-    builder.StartObject(7)
+    builder.StartObject(11)
 
 def Start(builder: flatbuffers.Builder):
     RgbdFrameStart(builder)
@@ -187,6 +254,42 @@ def RgbdFrameStartRgbVector(builder, numElems: int) -> int:
 
 def StartRgbVector(builder, numElems: int) -> int:
     return RgbdFrameStartRgbVector(builder, numElems)
+
+def RgbdFrameAddDepthEncoding(builder: flatbuffers.Builder, depthEncoding: int):
+    builder.PrependUint8Slot(7, depthEncoding, 0)
+
+def AddDepthEncoding(builder: flatbuffers.Builder, depthEncoding: int):
+    RgbdFrameAddDepthEncoding(builder, depthEncoding)
+
+def RgbdFrameAddDepthEncoded(builder: flatbuffers.Builder, depthEncoded: int):
+    builder.PrependUOffsetTRelativeSlot(8, flatbuffers.number_types.UOffsetTFlags.py_type(depthEncoded), 0)
+
+def AddDepthEncoded(builder: flatbuffers.Builder, depthEncoded: int):
+    RgbdFrameAddDepthEncoded(builder, depthEncoded)
+
+def RgbdFrameStartDepthEncodedVector(builder, numElems: int) -> int:
+    return builder.StartVector(1, numElems, 1)
+
+def StartDepthEncodedVector(builder, numElems: int) -> int:
+    return RgbdFrameStartDepthEncodedVector(builder, numElems)
+
+def RgbdFrameAddRgbEncoding(builder: flatbuffers.Builder, rgbEncoding: int):
+    builder.PrependUint8Slot(9, rgbEncoding, 0)
+
+def AddRgbEncoding(builder: flatbuffers.Builder, rgbEncoding: int):
+    RgbdFrameAddRgbEncoding(builder, rgbEncoding)
+
+def RgbdFrameAddRgbEncoded(builder: flatbuffers.Builder, rgbEncoded: int):
+    builder.PrependUOffsetTRelativeSlot(10, flatbuffers.number_types.UOffsetTFlags.py_type(rgbEncoded), 0)
+
+def AddRgbEncoded(builder: flatbuffers.Builder, rgbEncoded: int):
+    RgbdFrameAddRgbEncoded(builder, rgbEncoded)
+
+def RgbdFrameStartRgbEncodedVector(builder, numElems: int) -> int:
+    return builder.StartVector(1, numElems, 1)
+
+def StartRgbEncodedVector(builder, numElems: int) -> int:
+    return RgbdFrameStartRgbEncodedVector(builder, numElems)
 
 def RgbdFrameEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -16,6 +16,7 @@
 mod capture;
 mod detection;
 mod edge;
+mod order;
 mod planning;
 mod reach;
 
@@ -25,6 +26,9 @@ pub use capture::{
 };
 pub use detection::detect_frame;
 pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings};
+pub use order::{
+    FrameOrder, FrameVerdict, Refusal, MAX_EPOCH_LEAD_NS, MAX_SEQ_STEP, RESYNC_FRAMES,
+};
 pub use planning::{
     plan_seed, ranked_views, FruitRecord, PlanningError, PlanningSettings, TrolleyPlanner,
 };

@@ -283,11 +283,9 @@ impl Driver {
                 source_id,
                 owner,
                 refused,
-            } => {
-                if self.logged_refusals.insert(source_id.clone()) {
-                    tracing::warn!(trolley = %tid, source = %source_id, owner = owner.as_deref().unwrap_or("none"), refused,
-                        "views refused: not from the trolley's owner (logged once per source)");
-                }
+            } if self.logged_refusals.insert(source_id.clone()) => {
+                tracing::warn!(trolley = %tid, source = %source_id, owner = owner.as_deref().unwrap_or("none"), refused,
+                    "views refused: not from the trolley's owner (logged once per source)");
             }
             _ => {}
         }

@@ -126,7 +126,6 @@ impl Header {
 }
 
 /// Largest accepted payload of any kind.
-
 pub fn max_bytes_any() -> usize {
     MessageKind::ALL
         .iter()

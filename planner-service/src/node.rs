@@ -483,10 +483,18 @@ impl PlannerNode {
             }
         }
         let plan_last = slot.role == Role::Owner;
+        // Buffered clouds the snapshot already holds are skipped: fed in order they would look
+        // like a live stream behind the map's mark and resync it. The last one is still
+        // planned on (the edge may wait on it).
+        let mark = slot.planner.last_frame();
         let n = buffered.len();
         let mut actions = Vec::new();
         for (i, received) in buffered.into_iter().enumerate() {
-            actions.extend(self.integrate(tid, received, plan_last && i + 1 == n));
+            let last = i + 1 == n;
+            let held = mark.is_some_and(|m| received.cloud.source_frame() <= m);
+            if !held || last {
+                actions.extend(self.integrate(tid, received, plan_last && last));
+            }
         }
         actions
     }

@@ -468,3 +468,41 @@ fn the_fleet_map_takes_fruits_from_the_trolley_owner_only() {
     });
     assert_eq!(fleet.latest_fruits.len(), 1);
 }
+
+#[test]
+fn buffered_clouds_the_snapshot_holds_are_not_inserted_again() {
+    let (info, clouds) = trolley_clouds(6);
+    let mut p1 = node("p1");
+    p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    p1.handle(info_event(&info));
+    for c in &clouds[..5] {
+        p1.handle(cloud_event(c));
+    }
+    // p2 took t1 on after frame 1 and buffered frames 2..=6; the snapshot it gets holds 1..=5.
+    let mut p2 = node("p2");
+    p2.handle(PlannerEvent::PlannerJoined("p1".into()));
+    p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p2.handle(info_event(&info));
+    for c in &clouds[1..] {
+        assert!(p2.handle(cloud_event(c)).is_empty());
+    }
+    let Ok((_, snapshot)) = p1.snapshot_of("t1") else {
+        panic!("p1 holds t1")
+    };
+    p2.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot),
+    });
+    p1.handle(cloud_event(&clouds[5]));
+    let (m1, m2) = (
+        p1.planner("t1").unwrap().map(),
+        p2.planner("t1").unwrap().map(),
+    );
+    assert_eq!(m2.scans_inserted(), 6);
+    assert_eq!(m1.scans_inserted(), m2.scans_inserted());
+    assert!(m1.len() == m2.len() && m1.iter().all(|(k, v)| m2.get(k) == Some(v)));
+}

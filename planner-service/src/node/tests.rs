@@ -204,23 +204,35 @@ fn our_own_token_going_away_changes_nothing() {
     assert!(a.role("t1").is_some());
 }
 
-#[test]
-fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
-    let (info, clouds) = trolley_clouds(3);
-    // p1 alone owns t1 and integrates two clouds.
+/// Planner p1, alone with t1 (no snapshot to load), after `info` and `clouds`.
+fn alone_with(info: &TrolleyInfo, clouds: &[RoiCloud]) -> PlannerNode {
     let mut p1 = node("p1");
     p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
     p1.handle(PlannerEvent::SnapshotLoaded {
         tid: "t1".into(),
         snapshot: None,
     });
-    p1.handle(info_event(&info));
-    for c in &clouds[..2] {
+    p1.handle(info_event(info));
+    for c in clouds {
         p1.handle(cloud_event(c));
     }
-    // p2 joins: it asks p1 for a snapshot and buffers the third cloud meanwhile.
+    p1
+}
+
+/// Planner p2, joining a cluster where p1 is live.
+fn joining_p1() -> PlannerNode {
     let mut p2 = node("p2");
     p2.handle(PlannerEvent::PlannerJoined("p1".into()));
+    p2
+}
+
+#[test]
+fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
+    let (info, clouds) = trolley_clouds(3);
+    // p1 alone owns t1 and integrates two clouds.
+    let mut p1 = alone_with(&info, &clouds[..2]);
+    // p2 joins: it asks p1 for a snapshot and buffers the third cloud meanwhile.
+    let mut p2 = joining_p1();
     let actions = p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
     assert_eq!(
         asks(&actions),
@@ -472,19 +484,9 @@ fn the_fleet_map_takes_fruits_from_the_trolley_owner_only() {
 #[test]
 fn buffered_clouds_the_snapshot_holds_are_not_inserted_again() {
     let (info, clouds) = trolley_clouds(6);
-    let mut p1 = node("p1");
-    p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
-    p1.handle(PlannerEvent::SnapshotLoaded {
-        tid: "t1".into(),
-        snapshot: None,
-    });
-    p1.handle(info_event(&info));
-    for c in &clouds[..5] {
-        p1.handle(cloud_event(c));
-    }
+    let mut p1 = alone_with(&info, &clouds[..5]);
     // p2 took t1 on after frame 1 and buffered frames 2..=6; the snapshot it gets holds 1..=5.
-    let mut p2 = node("p2");
-    p2.handle(PlannerEvent::PlannerJoined("p1".into()));
+    let mut p2 = joining_p1();
     p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
     p2.handle(info_event(&info));
     for c in &clouds[1..] {

@@ -13,8 +13,8 @@ use glasshouse_bus::{BusArgs, DropCounters, Publisher, Shutdown};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState};
 use glasshouse_proto::keys;
 use glasshouse_proto::{
-    samples, ArmState, FruitEstimates, Header, MapUpdate, RankedViews, RgbdFrame, RoiCloud,
-    TrolleyStatus, VoxelChange,
+    samples, ArmState, FrameId, FruitEstimates, Header, MapUpdate, RankedViews, RgbdFrame,
+    RoiCloud, TrolleyStatus, VoxelChange,
 };
 use nalgebra::Point3;
 
@@ -68,7 +68,8 @@ fn synthetic_frame(width: u32, seq: u64) -> RgbdFrame {
     }
 }
 
-fn synthetic_cloud(seq: u64) -> RoiCloud {
+fn synthetic_cloud(frame: FrameId) -> RoiCloud {
+    let seq = frame.seq;
     let points: Vec<Point3<f32>> = (0..20_000)
         .map(|i| {
             let f = i as f32;
@@ -86,6 +87,7 @@ fn synthetic_cloud(seq: u64) -> RoiCloud {
         sensor_origin_in_world: Point3::new(0.0, -0.5, 1.0),
         world_from_camera: nalgebra::Isometry3::translation(0.0, -0.5, 1.0),
         source_frame_seq: seq,
+        source_frame_epoch_ns: frame.epoch_ns,
         invalid_pixels: 0,
         detector_id: "bench".into(),
     }
@@ -135,13 +137,16 @@ impl TrolleyPublishers {
         let seq = header.seq;
         let views = RankedViews {
             based_on_seq: seq,
+            based_on_epoch_ns: header.epoch_ns,
             ..samples::ranked_views()
         };
         self.rgbd
             .publish(header, &synthetic_frame(width, seq))
             .await?;
         self.arm.publish(header, &samples::arm_state()).await?;
-        self.roi.publish(header, &synthetic_cloud(seq)).await?;
+        self.roi
+            .publish(header, &synthetic_cloud(header.frame()))
+            .await?;
         self.views.publish(header, &views).await?;
         self.fruits
             .publish(header, &samples::fruit_estimates())
@@ -175,6 +180,7 @@ async fn trolley(
     let publishers = TrolleyPublishers::declare(&session, &tid).await?;
     let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / args_fps.max(0.1)));
     let mut seq = 0u64;
+    let epoch_ns = glasshouse_bus::wall_clock_ns();
     loop {
         tokio::select! {
             _ = stop.wait() => break,
@@ -183,6 +189,7 @@ async fn trolley(
         seq += 1;
         let header = Header {
             seq,
+            epoch_ns,
             stamp_ns: seq * 200_000_000,
             trolley_id: tid.clone(),
             source_id: tid.clone(),

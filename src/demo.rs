@@ -454,6 +454,9 @@ impl Progress {
             EdgeEvent::Reannounced { frame_seq } => {
                 println!("frame {frame_seq}: no views yet, re-announced");
             }
+            EdgeEvent::ViewsRefused { source_id, .. } => {
+                println!("views from {source_id} refused: not the trolley's owner");
+            }
             EdgeEvent::SegmentDone {
                 segments_done,
                 sim_time_s,

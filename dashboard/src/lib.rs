@@ -19,8 +19,8 @@ use std::time::Instant;
 use glasshouse_bus::{AnySubscriber, Delivery, DropCounters, Received, Shutdown};
 use glasshouse_proto::keys::{self, ParsedKey, Qos, TrolleyTopic};
 use glasshouse_proto::{
-    DetectorStatus, FleetFruits, Fruit, Header, Message, PlannerStatus, RankedViews, TrolleyInfo,
-    TrolleyStatus,
+    DetectorStatus, FleetFruits, FrameId, Fruit, Header, Message, PlannerStatus, RankedViews,
+    TrolleyInfo, TrolleyStatus,
 };
 use serde::Deserialize;
 use zenoh::Session;
@@ -91,8 +91,8 @@ const PENDING_FRAMES: usize = 64;
 pub struct TrolleyView {
     /// When the latest frame arrived (wall clock of this process).
     pub last_frame_at: Option<Instant>,
-    /// Arrival of recent frames by sequence, to time frame → views.
-    pending_frames: VecDeque<(u64, Instant)>,
+    /// Arrival of recent frames (boot epoch and seq), to time frame → views.
+    pending_frames: VecDeque<(FrameId, Instant)>,
     /// Recent frame → views latencies in milliseconds.
     pub latencies_ms: VecDeque<f64>,
     pub info: Option<TrolleyInfo>,
@@ -155,11 +155,12 @@ impl FleetState {
                         t.frames += 1;
                         t.last_frame_at = Some(now);
                         // A re-announced frame keeps its first arrival time.
-                        if !t.pending_frames.iter().any(|(seq, _)| *seq == header.seq) {
+                        let frame = header.frame();
+                        if !t.pending_frames.iter().any(|(f, _)| *f == frame) {
                             if t.pending_frames.len() >= PENDING_FRAMES {
                                 t.pending_frames.pop_front();
                             }
-                            t.pending_frames.push_back((header.seq, now));
+                            t.pending_frames.push_back((frame, now));
                         }
                     }
                     (TrolleyTopic::Info, Message::TrolleyInfo(info)) => t.info = Some(info.clone()),
@@ -170,7 +171,7 @@ impl FleetState {
                         if let Some(i) = t
                             .pending_frames
                             .iter()
-                            .position(|(seq, _)| *seq == v.based_on_seq)
+                            .position(|(frame, _)| *frame == v.based_on())
                         {
                             let (_, at) = t.pending_frames[i];
                             t.pending_frames.drain(..=i);

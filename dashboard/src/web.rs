@@ -40,6 +40,8 @@ pub struct TrolleyRow {
     pub latency_p50_ms: Option<f64>,
     pub latency_p99_ms: Option<f64>,
     pub drops: u64,
+    /// RankedViews the trolley refused: not from the planner owning it.
+    pub refused_views: u64,
     /// Share of ground-truth fruit volume inside detected boxes (simulated trolleys only).
     pub covered_volume: Option<f64>,
 }
@@ -55,6 +57,8 @@ pub struct PlannerRow {
     pub mean_planning_time_ms: f32,
     pub map_voxels: u64,
     pub dropped: u64,
+    /// RoiClouds refused: not from a live detector, or a frame no trolley sends.
+    pub refused_clouds: u64,
     /// Seconds since its last status (a lost planner's grows).
     pub last_status_age_s: Option<f64>,
 }
@@ -123,6 +127,7 @@ pub fn fleet_doc(
                 latency_p50_ms: t.latency_percentile_ms(50.0),
                 latency_p99_ms: t.latency_percentile_ms(99.0),
                 drops: t.drops(),
+                refused_views: t.status.as_ref().map_or(0, |s| s.refused_views),
                 covered_volume: t.covered_volume,
             })
             .collect(),
@@ -139,6 +144,7 @@ pub fn fleet_doc(
                 mean_planning_time_ms: p.mean_planning_time_ms,
                 map_voxels: p.map_voxels,
                 dropped: p.dropped_messages,
+                refused_clouds: p.refused_clouds,
                 last_status_age_s: fleet
                     .planner_seen_at
                     .get(id)

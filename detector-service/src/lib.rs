@@ -19,8 +19,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use glasshouse_bus::{
-    declare_alive, DropCounters, MemberEvent, MemberWatch, Publisher, Received, Shutdown,
-    Subscriber,
+    declare_alive, wall_clock_ns, DropCounters, MemberEvent, MemberWatch, Publisher, Received,
+    Shutdown, Subscriber,
 };
 use glasshouse_detect::DetectorConfig;
 use glasshouse_pipeline::detect_frame;
@@ -127,6 +127,8 @@ impl Inputs {
 /// A running detector: the live members, the served trolleys' frame forwarders, the publishers.
 struct Detector {
     did: String,
+    /// This process's boot epoch: every header carries it.
+    epoch_ns: u64,
     session: Session,
     config: Arc<DetectorConfig>,
     counters: Arc<DetectorCounters>,
@@ -182,6 +184,7 @@ impl Detector {
         };
         let header = Header {
             seq: self.status_seq,
+            epoch_ns: self.epoch_ns,
             source_id: self.did.clone(),
             frame_id: "world".into(),
             ..Header::default()
@@ -208,9 +211,9 @@ impl Detector {
         let started = Instant::now();
         let cfg = self.config.clone();
         let detector_id = self.did.clone();
-        let seq = header.seq;
+        let (seq, frame_id) = (header.seq, header.frame());
         let result =
-            tokio::task::spawn_blocking(move || detect_frame(&frame, seq, &detector_id, &cfg))
+            tokio::task::spawn_blocking(move || detect_frame(&frame, frame_id, &detector_id, &cfg))
                 .await
                 .context("detection task failed")?;
         let cloud = match result {
@@ -240,6 +243,7 @@ impl Detector {
         };
         let out = Header {
             seq,
+            epoch_ns: self.epoch_ns,
             stamp_ns: header.stamp_ns,
             trolley_id: tid,
             source_id: self.did.clone(),
@@ -326,6 +330,7 @@ pub async fn run(
     let _alive = declare_alive(&session, MemberKind::Detector, &did).await?;
     let mut detector = Detector {
         did: did.clone(),
+        epoch_ns: wall_clock_ns(),
         session: session.clone(),
         config: Arc::new(DetectorConfig {
             voxel_size_m: settings.voxel_size_m,

@@ -9,14 +9,17 @@
 
 pub mod source;
 
-use std::collections::VecDeque;
+use std::collections::{BTreeSet, VecDeque};
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use glasshouse_bus::{declare_alive, DropCounters, Publisher, Received, Shutdown, Subscriber};
+use glasshouse_bus::{
+    declare_alive, wall_clock_ns, DropCounters, MemberEvent, MemberWatch, Publisher, Received,
+    Shutdown, Subscriber,
+};
 use glasshouse_pipeline::{
     EdgeAction, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer, SimTrolley, SimTrolleySettings,
     TrolleySource,
@@ -151,6 +154,8 @@ impl EdgeConfig {
 #[derive(Debug, Default)]
 pub struct EdgeCounters {
     pub drops: Arc<DropCounters>,
+    /// RankedViews refused because they did not come from the planner owning the trolley.
+    pub refused_views: std::sync::atomic::AtomicU64,
 }
 
 /// The edge's publishers.
@@ -198,6 +203,10 @@ struct Announcement {
 /// Performs the node's actions on the bus and the source.
 struct Driver {
     config: EdgeConfig,
+    /// This process's boot epoch: every header carries it.
+    epoch_ns: u64,
+    /// Sources whose refused views were logged (once each).
+    logged_refusals: BTreeSet<String>,
     source: Option<Box<dyn TrolleySource>>,
     out: Outputs,
     drops: Arc<DropCounters>,
@@ -219,6 +228,7 @@ impl Driver {
         let tid = &self.config.trolley_id;
         Header {
             seq,
+            epoch_ns: self.epoch_ns,
             stamp_ns: (sim_time_s * 1e9) as u64,
             trolley_id: tid.clone(),
             source_id: tid.clone(),
@@ -299,6 +309,14 @@ impl Driver {
             }
             EdgeEvent::SegmentDone { segments_done, .. } => {
                 tracing::info!(trolley = %tid, segment = segments_done, "segment done; moving along the row")
+            }
+            EdgeEvent::ViewsRefused {
+                source_id,
+                owner,
+                refused,
+            } if self.logged_refusals.insert(source_id.clone()) => {
+                tracing::warn!(trolley = %tid, source = %source_id, owner = owner.as_deref().unwrap_or("none"), refused,
+                    "views refused: not from the trolley's owner (logged once per source)");
             }
             _ => {}
         }
@@ -399,6 +417,7 @@ pub async fn run(
     let drops = counters.drops.clone();
     let out = Outputs::declare(&session, &tid, &drops).await?;
     let views = Subscriber::declare(&session, &keys::views(&tid)?, drops.clone()).await?;
+    let planners = MemberWatch::declare(&session, MemberKind::Planner).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
     let source = config.open_source()?;
     let truth = source.ground_truth().map(|fruits| FruitEstimates {
@@ -411,6 +430,8 @@ pub async fn run(
         .as_deref()
         .map(FrameRecorder::create);
     let mut driver = Driver {
+        epoch_ns: wall_clock_ns(),
+        logged_refusals: BTreeSet::new(),
         recorder: recorder.transpose()?,
         source: Some(source),
         out,
@@ -428,7 +449,7 @@ pub async fn run(
         config,
     };
     tracing::info!(trolley = %tid, scenario = %driver.config.scenario, seed = driver.config.seed, "edge started");
-    let mut node = EdgeNode::new(driver.config.loop_settings());
+    let mut node = EdgeNode::new(driver.config.loop_settings(), driver.epoch_ns);
     let start = node.handle(EdgeInput::Start);
     driver.drain(&mut node, start).await?;
     while !node.is_done() {
@@ -436,14 +457,20 @@ pub async fn run(
         let input = tokio::select! {
             _ = shutdown.wait() => break,
             received = views.recv() => match received {
-                Some(Received { header, message, .. }) => {
-                    EdgeInput::Views { trolley_id: header.trolley_id, views: message }
-                }
+                Some(Received { header, message, .. }) => EdgeInput::Views { header, views: message },
+                None => break,
+            },
+            member = planners.recv() => match member {
+                Some(MemberEvent::Joined(id)) => EdgeInput::PlannerJoined(id),
+                Some(MemberEvent::Left(id)) => EdgeInput::PlannerLeft(id),
                 None => break,
             },
             _ = tokio::time::sleep_until(deadline), if node.is_waiting_for_views() => EdgeInput::ViewsTimedOut,
         };
         let actions = node.handle(input);
+        counters
+            .refused_views
+            .store(node.status().refused_views, Ordering::Relaxed);
         driver.drain(&mut node, actions).await?;
     }
     let last = node.finish();

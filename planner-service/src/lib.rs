@@ -25,8 +25,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 use glasshouse_bus::{
-    ask, declare_alive, Delivery, DropCounters, MemberEvent, MemberWatch, Publisher, Received,
-    Responder, Shutdown, Subscriber,
+    ask, declare_alive, wall_clock_ns, Delivery, DropCounters, MemberEvent, MemberWatch, Publisher,
+    Received, Responder, Shutdown, Subscriber,
 };
 use glasshouse_fleet::{merge_fruits, FleetFruitInput};
 use glasshouse_pipeline::PlanningSettings;
@@ -80,6 +80,9 @@ pub struct PlannerCounters {
     pub clouds_integrated: AtomicU64,
     /// Clouds that decoded but could not be integrated (e.g. mismatched lengths).
     pub clouds_rejected: AtomicU64,
+    /// Clouds refused: not from a live detector, or a frame no trolley sends (see
+    /// [`node::PlannerNode`]).
+    pub clouds_refused: AtomicU64,
     pub views_published: AtomicU64,
 }
 
@@ -94,6 +97,7 @@ struct Inputs {
     fruit_reports: Subscriber<FruitEstimates>,
     planner_watch: MemberWatch,
     trolley_watch: MemberWatch,
+    detector_watch: MemberWatch,
     snapshots: Responder<MapSnapshot>,
     /// Snapshot queries waiting for the node's answer.
     queries: HashMap<u64, zenoh::query::Query>,
@@ -124,6 +128,7 @@ impl Inputs {
             .await?,
             planner_watch: MemberWatch::declare(session, MemberKind::Planner).await?,
             trolley_watch: MemberWatch::declare(session, MemberKind::Trolley).await?,
+            detector_watch: MemberWatch::declare(session, MemberKind::Detector).await?,
             snapshots: Responder::declare(session, &snapshots_key).await?,
             queries: HashMap::new(),
             next_query: 0,
@@ -149,12 +154,16 @@ impl Inputs {
                     MemberEvent::Joined(id) => PlannerEvent::TrolleyJoined(id),
                     MemberEvent::Left(id) => PlannerEvent::TrolleyLeft(id),
                 },
+                e = self.detector_watch.recv() => match e? {
+                    MemberEvent::Joined(id) => PlannerEvent::DetectorJoined(id),
+                    MemberEvent::Left(id) => PlannerEvent::DetectorLeft(id),
+                },
                 query = self.snapshots.recv() => match self.snapshot_query(query?).await {
                     Some(event) => event,
                     None => continue,
                 },
                 e = self.events.recv() => e?,
-                _ = self.status_tick.tick() => PlannerEvent::StatusTick { dropped_messages: drops.total() },
+                _ = self.status_tick.tick() => PlannerEvent::StatusTick { dropped_messages: drops.total(), now_ns: wall_clock_ns() },
                 r = self.fruit_reports.recv() => {
                     let Received { header, message, .. } = r?;
                     PlannerEvent::Fruits { header, fruits: message }
@@ -171,7 +180,10 @@ impl Inputs {
                     while let Some(Received { header, message, .. }) = self.clouds.try_recv() {
                         clouds.push((header, message));
                     }
-                    PlannerEvent::Clouds(clouds)
+                    PlannerEvent::Clouds {
+                        clouds,
+                        received_ns: wall_clock_ns(),
+                    }
                 }
             };
             return Some(event);
@@ -355,7 +367,8 @@ pub async fn run(
     let mut inputs = Inputs::declare(&session, &settings, &drops, events_rx).await?;
     let mut out = Outputs::declare(&session, &pid, &drops, events_tx).await?;
     let _alive = declare_alive(&session, MemberKind::Planner, &pid).await?;
-    let mut node = Box::new(PlannerNode::new(&pid, settings.planning.clone()));
+    let epoch_ns = wall_clock_ns();
+    let mut node = Box::new(PlannerNode::new(&pid, settings.planning.clone(), epoch_ns));
     tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
     while let Some(event) = inputs.next(&mut shutdown, &drops).await {
         // Integration, fits and planning are heavy: the node works on a blocking thread.
@@ -376,6 +389,9 @@ pub async fn run(
         counters
             .views_published
             .store(stats.views_published, Ordering::Relaxed);
+        counters
+            .clouds_refused
+            .store(stats.clouds_refused, Ordering::Relaxed);
         for action in actions {
             perform(action, &mut inputs, &mut out).await?;
         }

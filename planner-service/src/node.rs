@@ -4,12 +4,18 @@
 //! replicates, and the latest fruits of every trolley for the fleet map. Every decision (who owns
 //! a trolley, when to ask for a snapshot, what to do with clouds that arrive meanwhile, when to
 //! plan) is made here and tested by feeding events; the driver in `lib.rs` only moves messages.
+//!
+//! Clouds are taken only from live detectors (their liveliness tokens): a cloud whose header
+//! names another source waits up to [`UNKNOWN_SOURCE_WAIT_NS`] for that source's token (a
+//! detector's token and its first cloud may arrive in either order), then is refused and
+//! counted. Which frames a map takes is [`glasshouse_pipeline::FrameOrder`]'s rule; the frames
+//! it refuses are counted too (`PlannerStatus::refused_clouds`).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Instant;
 
 use glasshouse_fleet::{Assignment, Membership, OwnershipChange, Role};
-use glasshouse_pipeline::{ranked_views, PlanningSettings, TrolleyPlanner};
+use glasshouse_pipeline::{ranked_views, FrameVerdict, PlanningSettings, TrolleyPlanner};
 use glasshouse_proto::keys;
 use glasshouse_proto::{
     FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus, RankedViews,
@@ -21,6 +27,13 @@ use crate::fleet_fruits;
 /// Key whose rendezvous winner among the live planners publishes the fleet fruit map.
 pub const FLEET_MAP_KEY: &str = "fleet";
 
+/// How long a cloud from a source without a detector token waits for that token (receiver's
+/// clock) before it is refused.
+pub const UNKNOWN_SOURCE_WAIT_NS: u64 = 2_000_000_000;
+/// Clouds from sources without a detector token kept at most, over all sources; the oldest is
+/// refused first.
+pub const UNKNOWN_SOURCE_CLOUDS: usize = 8;
+
 /// What reaches the planner.
 #[derive(Clone, Debug)]
 pub enum PlannerEvent {
@@ -28,14 +41,22 @@ pub enum PlannerEvent {
     PlannerLeft(String),
     TrolleyJoined(String),
     TrolleyLeft(String),
-    /// A detector's ROI cloud of a trolley.
+    DetectorJoined(String),
+    DetectorLeft(String),
+    /// A ROI cloud of a trolley, received when this process's wall clock read `received_ns`
+    /// (Unix ns).
     Cloud {
         header: Header,
         cloud: RoiCloud,
+        received_ns: u64,
     },
-    /// Clouds that queued up while the planner was busy, in arrival order: each is integrated,
-    /// and the owner plans once per trolley, on the trolley's last cloud of the batch.
-    Clouds(Vec<(Header, RoiCloud)>),
+    /// Clouds that queued up while the planner was busy, in arrival order, the last received at
+    /// `received_ns`: each is integrated, and the owner plans once per trolley, on the trolley's
+    /// last cloud of the batch.
+    Clouds {
+        clouds: Vec<(Header, RoiCloud)>,
+        received_ns: u64,
+    },
     /// A trolley's workspace and arm.
     Info {
         header: Header,
@@ -56,9 +77,11 @@ pub enum PlannerEvent {
         query_id: u64,
         tid: String,
     },
-    /// Time to publish the status; `dropped_messages` is the bus's drop count.
+    /// Time to publish the status; `dropped_messages` is the bus's drop count, `now_ns` this
+    /// process's wall clock (Unix ns).
     StatusTick {
         dropped_messages: u64,
+        now_ns: u64,
     },
 }
 
@@ -109,6 +132,11 @@ pub struct PlannerStats {
     pub clouds_integrated: u64,
     /// Clouds that decoded but could not be integrated (e.g. mismatched lengths, bad ids).
     pub clouds_rejected: u64,
+    /// Clouds refused: not from a live detector, or a frame [`glasshouse_pipeline::FrameOrder`]
+    /// refuses.
+    pub clouds_refused: u64,
+    /// Clouds of frames older than the map's last one (not integrated).
+    pub clouds_stale: u64,
     pub views_published: u64,
     pub last_planning_time_ms: f32,
     pub total_planning_time_ms: f64,
@@ -120,7 +148,15 @@ enum SyncState {
     /// Up to date with the trolley's cloud stream.
     Live,
     /// Waiting for a snapshot; the trolley's clouds are kept until it is loaded.
-    Loading { buffered: Vec<(Header, RoiCloud)> },
+    Loading { buffered: Vec<ReceivedCloud> },
+}
+
+/// A cloud with the receiver's wall clock at its arrival.
+#[derive(Clone)]
+struct ReceivedCloud {
+    header: Header,
+    cloud: RoiCloud,
+    received_ns: u64,
 }
 
 /// A trolley this planner owns or replicates.
@@ -129,14 +165,22 @@ struct Slot {
     role: Role,
     sync: SyncState,
     /// The latest cloud: a planner that takes over plans on it at once.
-    last_cloud: Option<(Header, RoiCloud)>,
+    last_cloud: Option<ReceivedCloud>,
 }
 
 /// The planner (see the module docs).
 pub struct PlannerNode {
     pid: String,
+    /// This process's boot epoch, written into every header it publishes.
+    epoch_ns: u64,
     planning: PlanningSettings,
     membership: Membership,
+    /// Live detectors: the only sources clouds are taken from.
+    detectors: BTreeSet<String>,
+    /// Clouds from sources without a detector token yet, oldest first.
+    unknown_source: VecDeque<ReceivedCloud>,
+    /// Sources and trolleys whose refused clouds were logged (once each).
+    logged_refusals: BTreeSet<String>,
     slots: BTreeMap<String, Slot>,
     latest_fruits: BTreeMap<String, FruitEstimates>,
     stats: PlannerStats,
@@ -171,14 +215,19 @@ pub fn snapshot_sources(change: &OwnershipChange, pid: &str) -> Vec<String> {
 }
 
 impl PlannerNode {
-    /// A planner that knows only itself; `planning` must be valid.
-    pub fn new(pid: &str, planning: PlanningSettings) -> Self {
+    /// A planner that knows only itself, started at `epoch_ns` (its process's boot epoch);
+    /// `planning` must be valid.
+    pub fn new(pid: &str, planning: PlanningSettings, epoch_ns: u64) -> Self {
         let mut membership = Membership::new();
         membership.planner_joined(pid);
         Self {
             pid: pid.to_owned(),
+            epoch_ns,
             planning,
             membership,
+            detectors: BTreeSet::new(),
+            unknown_source: VecDeque::new(),
+            logged_refusals: BTreeSet::new(),
             slots: BTreeMap::new(),
             latest_fruits: BTreeMap::new(),
             stats: PlannerStats::default(),
@@ -232,11 +281,28 @@ impl PlannerNode {
                 tracing::info!(planner = %self.pid, trolley = %id, "trolley left; its map is kept");
                 Vec::new()
             }
-            PlannerEvent::Cloud { header, cloud } => self.on_cloud(header, cloud),
-            PlannerEvent::Clouds(clouds) => self.on_clouds(clouds),
+            PlannerEvent::DetectorJoined(id) => self.on_detector_joined(id),
+            PlannerEvent::DetectorLeft(id) => {
+                self.detectors.remove(&id);
+                Vec::new()
+            }
+            PlannerEvent::Cloud {
+                header,
+                cloud,
+                received_ns,
+            } => self.on_clouds(vec![(header, cloud)], received_ns),
+            PlannerEvent::Clouds {
+                clouds,
+                received_ns,
+            } => self.on_clouds(clouds, received_ns),
             PlannerEvent::Info { header, info } => self.on_info(&header.trolley_id, info),
             PlannerEvent::Fruits { header, fruits } => {
-                if keys::validate_id(&header.trolley_id).is_ok() {
+                // The fleet map takes a trolley's fruits from its owner only.
+                let owner = self
+                    .membership
+                    .assignment(&header.trolley_id)
+                    .map(|a| a.owner);
+                if owner.as_ref() == Some(&header.source_id) {
                     self.latest_fruits.insert(header.trolley_id, fruits);
                 }
                 Vec::new()
@@ -246,7 +312,13 @@ impl PlannerNode {
                 query_id,
                 answer: self.snapshot_of(&tid),
             }],
-            PlannerEvent::StatusTick { dropped_messages } => self.status(dropped_messages),
+            PlannerEvent::StatusTick {
+                dropped_messages,
+                now_ns,
+            } => {
+                self.expire_unknown_sources(now_ns);
+                self.status(dropped_messages)
+            }
         }
     }
 
@@ -269,11 +341,15 @@ impl PlannerNode {
         actions
     }
 
-    fn on_cloud(&mut self, header: Header, cloud: RoiCloud) -> Vec<PlannerAction> {
-        let tid = header.trolley_id.clone();
+    fn on_cloud(&mut self, received: ReceivedCloud) -> Vec<PlannerAction> {
+        let tid = received.header.trolley_id.clone();
         if keys::validate_id(&tid).is_err() {
             self.stats.clouds_rejected += 1;
             tracing::warn!(trolley = %tid, "cloud with an invalid trolley id dropped");
+            return Vec::new();
+        }
+        if !self.detectors.contains(&received.header.source_id) {
+            self.hold_unknown_source(received);
             return Vec::new();
         }
         let mut actions = self.introduce(&tid);
@@ -282,17 +358,22 @@ impl PlannerNode {
             return actions;
         };
         if let SyncState::Loading { buffered } = &mut slot.sync {
-            buffered.push((header, cloud));
+            buffered.push(received);
             return actions;
         }
         let plan = slot.role == Role::Owner && latest;
-        actions.extend(self.integrate(&tid, header, cloud, plan));
+        actions.extend(self.integrate(&tid, received, plan));
         actions
     }
 
     /// Handles a batch of clouds one by one, so that a trolley's clouds queued behind a later
     /// one are integrated without fits or planning (the edge waits only on its latest frame).
-    fn on_clouds(&mut self, clouds: Vec<(Header, RoiCloud)>) -> Vec<PlannerAction> {
+    fn on_clouds(
+        &mut self,
+        clouds: Vec<(Header, RoiCloud)>,
+        received_ns: u64,
+    ) -> Vec<PlannerAction> {
+        self.expire_unknown_sources(received_ns);
         for (header, _) in &clouds {
             *self
                 .queued_clouds
@@ -304,10 +385,55 @@ impl PlannerNode {
             if let Some(n) = self.queued_clouds.get_mut(&header.trolley_id) {
                 *n -= 1;
             }
-            actions.extend(self.on_cloud(header, cloud));
+            actions.extend(self.on_cloud(ReceivedCloud {
+                header,
+                cloud,
+                received_ns,
+            }));
         }
         self.queued_clouds.clear();
         actions
+    }
+
+    /// A detector's token: the clouds it sent before it, if any wait, are taken in order.
+    fn on_detector_joined(&mut self, id: String) -> Vec<PlannerAction> {
+        self.detectors.insert(id.clone());
+        let held = std::mem::take(&mut self.unknown_source);
+        let (waited, others): (Vec<ReceivedCloud>, Vec<ReceivedCloud>) =
+            held.into_iter().partition(|c| c.header.source_id == id);
+        self.unknown_source = others.into();
+        waited.into_iter().flat_map(|c| self.on_cloud(c)).collect()
+    }
+
+    /// Keeps a cloud from a source without a detector token for a while (its token may follow).
+    fn hold_unknown_source(&mut self, received: ReceivedCloud) {
+        self.unknown_source.push_back(received);
+        while self.unknown_source.len() > UNKNOWN_SOURCE_CLOUDS {
+            if let Some(oldest) = self.unknown_source.pop_front() {
+                self.refuse_unknown_source(&oldest);
+            }
+        }
+    }
+
+    /// Refuses the clouds that waited longer than [`UNKNOWN_SOURCE_WAIT_NS`] for a token.
+    fn expire_unknown_sources(&mut self, now_ns: u64) {
+        while let Some(oldest) = self.unknown_source.front() {
+            if now_ns.saturating_sub(oldest.received_ns) <= UNKNOWN_SOURCE_WAIT_NS {
+                break;
+            }
+            if let Some(oldest) = self.unknown_source.pop_front() {
+                self.refuse_unknown_source(&oldest);
+            }
+        }
+    }
+
+    fn refuse_unknown_source(&mut self, refused: &ReceivedCloud) {
+        self.stats.clouds_refused += 1;
+        let source = &refused.header.source_id;
+        if self.logged_refusals.insert(format!("source {source}")) {
+            tracing::warn!(planner = %self.pid, trolley = %refused.header.trolley_id, %source,
+                "cloud refused: its source is no live detector (logged once per source)");
+        }
     }
 
     /// Takes on, hands over or drops trolleys as the assignment changed; a trolley this planner
@@ -338,8 +464,8 @@ impl PlannerNode {
                     if took_over {
                         tracing::info!(planner = %pid, trolley = %tid, "took over as owner");
                     }
-                    if let (true, true, Some((h, c))) = (took_over, live, slot.last_cloud.clone()) {
-                        actions.extend(self.integrate(&tid, h, c, true));
+                    if let (true, true, Some(last)) = (took_over, live, slot.last_cloud.clone()) {
+                        actions.extend(self.integrate(&tid, last, true));
                     }
                 }
                 (Some(role), None) => actions.extend(self.take_on(change, role)),
@@ -380,7 +506,7 @@ impl PlannerNode {
         if let Some(snapshot) = snapshot {
             match TrolleyPlanner::from_snapshot(self.planning.clone(), &snapshot) {
                 Ok(mut loaded) => {
-                    tracing::info!(planner = %pid, trolley = %tid, from = %snapshot.planner_id, seq = snapshot.based_on_seq, voxels = loaded.map().len(), "snapshot loaded");
+                    tracing::info!(planner = %pid, trolley = %tid, from = %snapshot.planner_id, seq = snapshot.based_on_seq, epoch_ns = snapshot.based_on_epoch_ns, voxels = loaded.map().len(), "snapshot loaded");
                     if let Some(info) = slot.planner.info() {
                         if let Err(e) = loaded.set_info(info.clone()) {
                             tracing::warn!(planner = %pid, trolley = %tid, error = %e, "views are not filtered by reach");
@@ -394,10 +520,18 @@ impl PlannerNode {
             }
         }
         let plan_last = slot.role == Role::Owner;
+        // Buffered clouds the snapshot already holds are skipped: fed in order they would look
+        // like a live stream behind the map's mark and resync it. The last one is still
+        // planned on (the edge may wait on it).
+        let mark = slot.planner.last_frame();
         let n = buffered.len();
         let mut actions = Vec::new();
-        for (i, (header, cloud)) in buffered.into_iter().enumerate() {
-            actions.extend(self.integrate(tid, header, cloud, plan_last && i + 1 == n));
+        for (i, received) in buffered.into_iter().enumerate() {
+            let last = i + 1 == n;
+            let held = mark.is_some_and(|m| received.cloud.source_frame() <= m);
+            if !held || last {
+                actions.extend(self.integrate(tid, received, plan_last && last));
+            }
         }
         actions
     }
@@ -421,6 +555,7 @@ impl PlannerNode {
             .map_err(|e| e.to_string())?;
         let header = Header {
             seq: snapshot.based_on_seq,
+            epoch_ns: self.epoch_ns,
             trolley_id: tid.to_owned(),
             source_id: self.pid.clone(),
             frame_id: "world".into(),
@@ -434,28 +569,40 @@ impl PlannerNode {
     /// publishes. An owner's cloud that is not planned on (a later one is queued) still
     /// publishes its map changes. A replica keeps its map, fruit ids and change tracking exactly
     /// as the owner's.
-    fn integrate(
-        &mut self,
-        tid: &str,
-        header: Header,
-        cloud: RoiCloud,
-        plan: bool,
-    ) -> Vec<PlannerAction> {
+    fn integrate(&mut self, tid: &str, received: ReceivedCloud, plan: bool) -> Vec<PlannerAction> {
         let pid = self.pid.clone();
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
         let started = Instant::now();
-        if let Err(e) = slot.planner.integrate(&cloud) {
-            self.stats.clouds_rejected += 1;
-            tracing::warn!(trolley = %tid, seq = header.seq, error = %e, "cloud dropped");
-            return Vec::new();
+        let (header, cloud) = (&received.header, &received.cloud);
+        let frame = cloud.source_frame();
+        match slot.planner.integrate(cloud, received.received_ns) {
+            Err(e) => {
+                self.stats.clouds_rejected += 1;
+                tracing::warn!(trolley = %tid, seq = header.seq, error = %e, "cloud dropped");
+                return Vec::new();
+            }
+            Ok(FrameVerdict::Refused(why)) => {
+                self.stats.clouds_refused += 1;
+                if self.logged_refusals.insert(format!("frame {tid}")) {
+                    tracing::warn!(planner = %pid, trolley = %tid, %frame, source = %header.source_id, reason = %why,
+                        "cloud refused: no trolley sends this frame (logged once per trolley)");
+                }
+                return Vec::new();
+            }
+            Ok(FrameVerdict::Resync { mark }) => {
+                tracing::warn!(planner = %pid, trolley = %tid, %frame, %mark, "the trolley's stream overrides the map's last frame");
+            }
+            Ok(FrameVerdict::Stale) => self.stats.clouds_stale += 1,
+            Ok(FrameVerdict::Fresh | FrameVerdict::Repeat) => {}
         }
         self.stats.clouds_integrated += 1;
-        let seq = cloud.source_frame_seq;
-        let map = slot.planner.map_update(seq, &pid);
+        let map = slot.planner.map_update(frame.seq, &pid);
         let camera = cloud.world_from_camera;
-        slot.last_cloud = Some((header.clone(), cloud));
+        let header = received.header.clone();
+        slot.last_cloud = Some(received);
+        let seq = frame.seq;
         if !plan {
             return match slot.role {
                 Role::Owner => self.publish(tid, &header, None, None, map),
@@ -475,7 +622,7 @@ impl PlannerNode {
         let views = match slot.planner.plan(&camera, seq) {
             Ok(Some(plan)) => {
                 let ms = (started.elapsed().as_secs_f64() * 1e3) as f32;
-                Some(ranked_views(&plan, seq, ms, &pid))
+                Some(ranked_views(&plan, frame, ms, &pid))
             }
             Ok(None) => {
                 tracing::info!(trolley = %tid, "no TrolleyInfo yet: cloud integrated, planning deferred");
@@ -499,6 +646,7 @@ impl PlannerNode {
     ) -> Vec<PlannerAction> {
         let header = Header {
             seq: cloud_header.seq,
+            epoch_ns: self.epoch_ns,
             stamp_ns: cloud_header.stamp_ns,
             trolley_id: tid.to_owned(),
             source_id: self.pid.clone(),
@@ -543,6 +691,7 @@ impl PlannerNode {
                 0.0
             },
             dropped_messages: dropped_messages + s.clouds_rejected,
+            refused_clouds: s.clouds_refused,
             map_voxels: self
                 .slots
                 .values()
@@ -551,6 +700,7 @@ impl PlannerNode {
         };
         let header = Header {
             seq: self.status_seq,
+            epoch_ns: self.epoch_ns,
             source_id: self.pid.clone(),
             frame_id: "world".into(),
             ..Header::default()

@@ -152,6 +152,28 @@ impl Pipeline {
         pipeline
     }
 
+    /// Stops the edge (its session and liveliness token go away) and checks that it ended
+    /// cleanly, then starts a new one on a new session with `edge_config`: a restarted trolley,
+    /// with a new boot epoch. The new edge's events arrive on `events`.
+    pub async fn restart_edge(&mut self, edge_config: EdgeConfig) {
+        let index = self
+            .services
+            .iter()
+            .position(|(name, _)| *name == "edge")
+            .expect("an edge runs");
+        // Services and their triggers are pushed together, one each.
+        self.triggers.remove(index).fire();
+        let (name, task) = self.services.remove(index);
+        within(20, name, task)
+            .await
+            .unwrap_or_else(|e| panic!("{name} task panicked: {e}"))
+            .unwrap_or_else(|e| panic!("{name} failed: {e:#}"));
+        let (events_tx, events) = tokio::sync::mpsc::unbounded_channel();
+        self.events = events;
+        self.events_tx = Some(events_tx);
+        self.start_edge(edge_config).await;
+    }
+
     /// Starts the edge; its events arrive on `events`.
     pub async fn start_edge(&mut self, edge_config: EdgeConfig) {
         let session = open(&self.sessions.edge).await;

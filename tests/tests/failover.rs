@@ -10,7 +10,7 @@ use std::sync::Arc;
 use glasshouse_bus::{Delivery, DropCounters, Subscriber};
 use glasshouse_planner::PlannerSettings;
 use glasshouse_proto::keys::{self, Key};
-use glasshouse_proto::{RoiCloud, Wire};
+use glasshouse_proto::{FrameId, RoiCloud, Wire};
 use glasshouse_roimap::RoiMap;
 use glasshouse_tests::procs::{build_binaries, Proc};
 use glasshouse_tests::{client, free_port, within};
@@ -24,17 +24,17 @@ async fn observe<M: Wire>(observer: &zenoh::Session, key: &Key<M>) -> Subscriber
         .expect("subscriber")
 }
 
-/// The map a planner with default settings builds from these clouds, integrating each frame
-/// sequence once, in arrival order (the planner's rule).
+/// The map a planner with default settings builds from these clouds of one edge run, integrating
+/// each frame once, in arrival order (the planner's rule for an honest stream).
 fn rebuild(clouds: &[RoiCloud]) -> RoiMap {
     let settings = PlannerSettings::default();
     let mut map = RoiMap::new(settings.planning.map_config()).expect("map config");
     let mut last = None;
     for c in clouds {
-        if last.is_none_or(|l| c.source_frame_seq > l) {
+        if last.is_none_or(|l| c.source_frame() > l) {
             map.insert_scan(&c.sensor_origin_in_world, &c.points_in_world, &c.roi)
                 .expect("cloud integrates");
-            last = Some(c.source_frame_seq);
+            last = Some(c.source_frame());
         }
     }
     map
@@ -199,11 +199,12 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     while let Some(received) = clouds_sub.try_recv() {
         clouds.push(received.message);
     }
-    let last_seq = clouds
+    let last = clouds
         .iter()
-        .map(|c| c.source_frame_seq)
+        .map(RoiCloud::source_frame)
         .max()
         .expect("clouds");
+    let last_seq = last.seq;
     let expected = rebuild(&clouds);
 
     // The survivor has integrated the last cloud once its snapshot says so.
@@ -211,7 +212,7 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     let survivor = within(60, "the survivor's snapshot at the last cloud", async {
         loop {
             match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
-                Ok((_, s)) if s.based_on_seq >= last_seq => {
+                Ok((_, s)) if FrameId::new(s.based_on_epoch_ns, s.based_on_seq) >= last => {
                     return RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
                 }
                 Ok((_, s)) => eprintln!("survivor at seq {} of {last_seq}", s.based_on_seq),

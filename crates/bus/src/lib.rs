@@ -658,6 +658,15 @@ pub async fn live_members(session: &Session, kind: keys::MemberKind) -> Vec<Stri
     ids
 }
 
+/// This machine's wall clock in ns since the Unix epoch (0 if it reads before 1970). A service
+/// reads it once at start for its boot epoch ([`glasshouse_proto::Header::epoch_ns`]) and passes
+/// it, and the time of each event, into its state machine.
+pub fn wall_clock_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+}
+
 /// Resolves on Ctrl-C or SIGTERM.
 pub async fn shutdown_signal() {
     let ctrl_c = async {

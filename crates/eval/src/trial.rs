@@ -23,7 +23,7 @@ use glasshouse_pipeline::{
     EdgeSettings, FruitRecord, PlanningError, PlanningSettings, SimTrolley, SimTrolleySettings,
     TrolleyPlanner, TrolleySource,
 };
-use glasshouse_proto::{RankedViews, RgbdFrame};
+use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame};
 use glasshouse_sim::{PerceptionNoise, ScenarioKind, Scene};
 use serde::Serialize;
 
@@ -243,6 +243,9 @@ pub struct Trial<S: TrolleySource = SimTrolley> {
     last_second: u32,
 }
 
+/// The id the trial's detector and planner sign their messages with.
+const EVAL_ID: &str = "eval";
+
 impl Trial<SimTrolley> {
     /// A trial on the scene's simulated trolley.
     pub fn new(config: TrialConfig) -> Result<Self, EvalError> {
@@ -258,7 +261,9 @@ impl<S: TrolleySource> Trial<S> {
         let planning = config.planning();
         let scene = Scene::generate(config.scenario, config.seed);
         let empty = Metrics::empty(scene.fruits(), planning.resolution_m);
-        let mut edge = EdgeNode::new(config.edge());
+        // One process on a simulated clock: boot epoch 0, and the one planner owns the trolley.
+        let mut edge = EdgeNode::new(config.edge(), 0);
+        edge.handle(EdgeInput::PlannerJoined(EVAL_ID.into()));
         Ok(Self {
             detector: DetectorConfig {
                 voxel_size_m: planning.resolution_m,
@@ -364,10 +369,12 @@ impl<S: TrolleySource> Trial<S> {
                 EdgeAction::Capture { frame_seq } => self.capture(frame_seq)?,
                 EdgeAction::Announce { frame_seq, .. } => match self.plan_on(frame_seq)? {
                     Some(views) => {
-                        self.feed(EdgeInput::Views {
+                        let header = Header {
                             trolley_id: "t1".into(),
-                            views,
-                        });
+                            source_id: EVAL_ID.into(),
+                            ..Header::default()
+                        };
+                        self.feed(EdgeInput::Views { header, views });
                         return Ok(true);
                     }
                     None => None,
@@ -432,16 +439,17 @@ impl<S: TrolleySource> Trial<S> {
         let Some(frame) = self.frame.take() else {
             return Ok(None);
         };
-        let cloud = detect_frame(&frame, frame_seq, "eval", &self.detector)?;
+        let frame_id = FrameId::new(0, frame_seq);
+        let cloud = detect_frame(&frame, frame_id, EVAL_ID, &self.detector)?;
         let started = Instant::now();
         self.planner.set_info(self.source.info())?;
-        self.planner.integrate(&cloud)?;
+        self.planner.integrate(&cloud, 0)?;
         let plan = self.planner.plan(&frame.world_from_camera, frame_seq)?;
         let compute_s = match self.config.compute_time {
             ComputeTime::Fixed { ms } => ms / 1e3,
             ComputeTime::Measured => started.elapsed().as_secs_f64(),
         };
-        let views = plan.map(|p| ranked_views(&p, frame_seq, (compute_s * 1e3) as f32, "eval"));
+        let views = plan.map(|p| ranked_views(&p, frame_id, (compute_s * 1e3) as f32, EVAL_ID));
         self.compute_time_s += compute_s;
         let available_s = self.clock_s + compute_s;
         // Seconds before the new estimates exist hold the previous ones.

@@ -1,13 +1,13 @@
 //! Detection: one RGB-D frame in, its ROI-labelled world cloud out.
 
 use glasshouse_detect::{detect, DepthFrame, DetectError, DetectorConfig};
-use glasshouse_proto::{RgbdFrame, RoiCloud};
+use glasshouse_proto::{FrameId, RgbdFrame, RoiCloud};
 
 /// Runs the detector ([`glasshouse_detect::detect`]: 1 cm averaging, the paper's HSI rule,
-/// back-projection with the frame's intrinsics and pose) on frame `frame_seq`.
+/// back-projection with the frame's intrinsics and pose) on the frame `frame_id` of its trolley.
 pub fn detect_frame(
     frame: &RgbdFrame,
-    frame_seq: u64,
+    frame_id: FrameId,
     detector_id: &str,
     config: &DetectorConfig,
 ) -> Result<RoiCloud, DetectError> {
@@ -23,7 +23,8 @@ pub fn detect_frame(
         roi: cloud.roi,
         sensor_origin_in_world: cloud.sensor_origin_in_world,
         world_from_camera: frame.world_from_camera,
-        source_frame_seq: frame_seq,
+        source_frame_seq: frame_id.seq,
+        source_frame_epoch_ns: frame_id.epoch_ns,
         invalid_pixels: cloud.invalid_pixels.min(u32::MAX as usize) as u32,
         detector_id: detector_id.to_owned(),
     })

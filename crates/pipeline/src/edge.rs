@@ -6,11 +6,18 @@
 //! worth a look, the trolley moves on to the next segment instead. The clock is simulated: each
 //! view costs its motion time plus a capture time.
 //!
+//! The edge executes views only from the planner its own membership view ranks owner of its
+//! trolley (the live planners' tokens, ranked with the planners' own rendezvous hash), and only
+//! views planned on its latest frame (boot epoch and seq): views from anyone else are refused and
+//! counted (`TrolleyStatus::refused_views`).
+//!
 //! The edge service's driver performs the actions on the bus and on its [`TrolleySource`]
 //! (`crate::TrolleySource`); the experiments perform them in-process. Both feed the outcomes
 //! back as events.
 
-use glasshouse_proto::{RankedView, RankedViews, TrolleyState, TrolleyStatus};
+use std::collections::BTreeSet;
+
+use glasshouse_proto::{FrameId, Header, RankedView, RankedViews, TrolleyState, TrolleyStatus};
 use nalgebra::Isometry3;
 
 use crate::Executed;
@@ -46,6 +53,13 @@ pub enum EdgeEvent {
     Reannounced { frame_seq: u64 },
     /// The run is over: the view budget is spent, the row is done or the source has no frames.
     Finished { views_done: u32, frames: u64 },
+    /// Views from `source_id`, not from the trolley's owner (`owner`, if any planner is live),
+    /// were refused; `refused` counts every refusal so far.
+    ViewsRefused {
+        source_id: String,
+        owner: Option<String>,
+        refused: u64,
+    },
 }
 
 /// An event the driver feeds in.
@@ -57,11 +71,12 @@ pub enum EdgeInput {
     Captured { frame: bool },
     /// No views arrived within the driver's timeout since the last `AwaitViews`.
     ViewsTimedOut,
-    /// Views arrived on the trolley's views key.
-    Views {
-        trolley_id: String,
-        views: RankedViews,
-    },
+    /// Views arrived on the trolley's views key; the header names the trolley and the planner.
+    Views { header: Header, views: RankedViews },
+    /// A planner's liveliness token appeared.
+    PlannerJoined(String),
+    /// A planner's liveliness token went away.
+    PlannerLeft(String),
     /// The outcome of an `Execute` action.
     Executed(Option<Executed>),
     /// The outcome of a `MoveToNextSegment` action: the motion time, or None at the row's end.
@@ -113,6 +128,10 @@ enum Phase {
 #[derive(Clone, Debug)]
 pub struct EdgeNode {
     settings: EdgeSettings,
+    /// This process's boot epoch: its frames are (epoch_ns, frame_seq).
+    epoch_ns: u64,
+    /// The live planners, as their liveliness tokens say.
+    planners: BTreeSet<String>,
     frame_seq: u64,
     sim_time_s: f64,
     segments_done: u32,
@@ -121,9 +140,12 @@ pub struct EdgeNode {
 }
 
 impl EdgeNode {
-    pub fn new(settings: EdgeSettings) -> Self {
+    /// A node whose frames carry the boot epoch `epoch_ns` (chosen once by its process).
+    pub fn new(settings: EdgeSettings, epoch_ns: u64) -> Self {
         Self {
             settings,
+            epoch_ns,
+            planners: BTreeSet::new(),
             frame_seq: 0,
             sim_time_s: 0.0,
             segments_done: 0,
@@ -136,6 +158,7 @@ impl EdgeNode {
                 dropped_messages: 0,
                 last_views_seq: 0,
                 message: String::new(),
+                refused_views: 0,
             },
             phase: Phase::Idle,
         }
@@ -149,6 +172,19 @@ impl EdgeNode {
     /// The latest frame sequence (the frame views are awaited for).
     pub fn frame_seq(&self) -> u64 {
         self.frame_seq
+    }
+
+    /// The latest frame: this process's epoch and the frame sequence.
+    pub fn frame(&self) -> FrameId {
+        FrameId::new(self.epoch_ns, self.frame_seq)
+    }
+
+    /// The planner this node takes views from: the live planner ranked first for its trolley.
+    pub fn owner(&self) -> Option<&str> {
+        let live: Vec<String> = self.planners.iter().cloned().collect();
+        let ranked = glasshouse_fleet::rank_planners(&self.settings.trolley_id, &live);
+        let owner = ranked.first()?;
+        self.planners.get(*owner).map(String::as_str)
     }
 
     pub fn status(&self) -> &TrolleyStatus {
@@ -167,13 +203,27 @@ impl EdgeNode {
     /// Feeds one event; returns what to do. Events that do not fit the current phase (views on
     /// an older frame, a stray timeout) change nothing.
     pub fn handle(&mut self, input: EdgeInput) -> Vec<EdgeAction> {
+        let input = match input {
+            EdgeInput::PlannerJoined(id) => {
+                self.planners.insert(id);
+                return Vec::new();
+            }
+            EdgeInput::PlannerLeft(id) => {
+                self.planners.remove(&id);
+                return Vec::new();
+            }
+            EdgeInput::Views { header, .. } if self.owner() != Some(&header.source_id) => {
+                return self.refuse(header.source_id);
+            }
+            input => input,
+        };
         match (std::mem::replace(&mut self.phase, Phase::Idle), input) {
             (Phase::Idle, EdgeInput::Start) => self.capture(),
             (Phase::Capturing, EdgeInput::Captured { frame: true }) => self.announce(),
             (Phase::Capturing, EdgeInput::Captured { frame: false }) => self.finish(),
             (Phase::WaitingForViews, EdgeInput::ViewsTimedOut) => self.reannounce(),
-            (Phase::WaitingForViews, EdgeInput::Views { trolley_id, views }) => {
-                self.on_views(&trolley_id, views)
+            (Phase::WaitingForViews, EdgeInput::Views { header, views }) => {
+                self.on_views(&header.trolley_id, views)
             }
             (Phase::Executing(views), EdgeInput::Executed(executed)) => {
                 self.on_executed(&views, executed)
@@ -207,6 +257,16 @@ impl EdgeNode {
         actions.push(self.status_action());
         actions.push(EdgeAction::Stop);
         actions
+    }
+
+    /// Views not from the owner: counted, reported, never executed.
+    fn refuse(&mut self, source_id: String) -> Vec<EdgeAction> {
+        self.status.refused_views += 1;
+        vec![EdgeAction::Report(EdgeEvent::ViewsRefused {
+            source_id,
+            owner: self.owner().map(str::to_owned),
+            refused: self.status.refused_views,
+        })]
     }
 
     fn status_action(&self) -> EdgeAction {
@@ -257,7 +317,7 @@ impl EdgeNode {
 
     fn on_views(&mut self, trolley_id: &str, views: RankedViews) -> Vec<EdgeAction> {
         self.phase = Phase::WaitingForViews;
-        if trolley_id != self.settings.trolley_id || views.based_on_seq != self.frame_seq {
+        if trolley_id != self.settings.trolley_id || views.based_on() != self.frame() {
             return Vec::new();
         }
         self.status.last_views_seq = views.based_on_seq;

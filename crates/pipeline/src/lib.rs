@@ -17,6 +17,7 @@ mod capture;
 mod detection;
 mod edge;
 mod fits;
+mod order;
 mod planning;
 mod reach;
 
@@ -26,6 +27,9 @@ pub use capture::{
 };
 pub use detection::detect_frame;
 pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer};
+pub use order::{
+    FrameOrder, FrameVerdict, Refusal, MAX_EPOCH_LEAD_NS, MAX_SEQ_STEP, RESYNC_FRAMES,
+};
 pub use planning::{
     plan_seed, ranked_views, FruitRecord, PlanningError, PlanningSettings, TrolleyPlanner,
 };

@@ -10,7 +10,7 @@ use glasshouse_nbv::{
     PlanningContext, ReachPredicate,
 };
 use glasshouse_proto::{
-    FittedEllipsoid, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
+    FittedEllipsoid, FrameId, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
     TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
 };
 use glasshouse_roimap::{MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey};
@@ -18,7 +18,7 @@ use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
 use crate::fits::FitCache;
-use crate::ReachFilter;
+use crate::{FrameOrder, FrameVerdict, ReachFilter};
 
 /// Why a planning step failed; the trolley's state is left as it was before the step.
 #[derive(thiserror::Error, Debug, Clone, PartialEq)]
@@ -133,10 +133,10 @@ impl FruitRecord {
     }
 }
 
-/// The ranked views of a plan as they travel on the bus.
+/// The ranked views of a plan on frame `based_on` as they travel on the bus.
 pub fn ranked_views(
     plan: &Plan,
-    based_on_seq: u64,
+    based_on: FrameId,
     planning_time_ms: f32,
     pid: &str,
 ) -> RankedViews {
@@ -152,7 +152,8 @@ pub fn ranked_views(
     });
     RankedViews {
         views: views.collect(),
-        based_on_seq,
+        based_on_seq: based_on.seq,
+        based_on_epoch_ns: based_on.epoch_ns,
         planning_time_ms,
         planner_id: pid.to_owned(),
     }
@@ -168,7 +169,8 @@ pub struct TrolleyPlanner {
     info: Option<TrolleyInfo>,
     /// Views the arm cannot reach are never proposed (once the trolley's robot is known).
     reach: Option<ReachFilter>,
-    last_cloud_seq: Option<u64>,
+    /// Which frames the map takes (the last one integrated, see [`FrameOrder`]).
+    order: FrameOrder,
     clusters: Vec<RoiCluster>,
     estimates: Vec<FruitEstimate>,
     /// The fitted shape of each cluster, and the fits kept between frames.
@@ -193,7 +195,7 @@ impl TrolleyPlanner {
             tracker: FruitTracker::default(),
             info: None,
             reach: None,
-            last_cloud_seq: None,
+            order: FrameOrder::default(),
             clusters: Vec::new(),
             estimates: Vec::new(),
             fits: Vec::new(),
@@ -213,9 +215,9 @@ impl TrolleyPlanner {
         &self.settings
     }
 
-    /// The last frame sequence integrated, if any.
-    pub fn last_cloud_seq(&self) -> Option<u64> {
-        self.last_cloud_seq
+    /// The last frame integrated, if any.
+    pub fn last_frame(&self) -> Option<FrameId> {
+        self.order.last()
     }
 
     pub fn info(&self) -> Option<&TrolleyInfo> {
@@ -246,24 +248,33 @@ impl TrolleyPlanner {
         self.set_robot(robot)
     }
 
-    /// Inserts the cloud into the map (each frame sequence once: a re-announced frame comes back
-    /// as the same cloud), then updates the ROI clusters and the fruit ids. Returns whether the
-    /// map took the cloud; a rejected cloud leaves the map untouched.
-    pub fn integrate(&mut self, cloud: &RoiCloud) -> Result<bool, PlanningError> {
-        let seq = cloud.source_frame_seq;
-        let fresh = self.last_cloud_seq.is_none_or(|last| seq > last);
-        if fresh {
+    /// Inserts the cloud into the map when [`FrameOrder`] takes its frame (each frame once: a
+    /// re-announced frame comes back as the same cloud), then updates the ROI clusters and the
+    /// fruit ids. `now_ns` is the receiver's wall clock (0 where frames carry epoch 0, as in the
+    /// experiments). Returns the verdict on the frame; a refused cloud changes nothing, and a
+    /// cloud the map rejects leaves the map untouched.
+    pub fn integrate(
+        &mut self,
+        cloud: &RoiCloud,
+        now_ns: u64,
+    ) -> Result<FrameVerdict, PlanningError> {
+        let frame = cloud.source_frame();
+        let verdict = self.order.judge(frame, now_ns);
+        if let FrameVerdict::Refused(_) = verdict {
+            return Ok(verdict);
+        }
+        if verdict.integrates() {
             self.map.insert_scan(
                 &cloud.sensor_origin_in_world,
                 &cloud.points_in_world,
                 &cloud.roi,
             )?;
-            self.last_cloud_seq = Some(seq);
+            self.order.integrated(frame);
         }
         self.clusters = self.map.clusters(self.settings.min_cluster_voxels);
         self.estimates = self.tracker.update(&self.clusters);
         self.fits_stale = true;
-        Ok(fresh)
+        Ok(verdict)
     }
 
     /// Every fruit of the latest clusters with its fitted ellipsoid. Fits are made here, not on
@@ -388,7 +399,8 @@ impl TrolleyPlanner {
         Ok(MapSnapshot {
             trolley_id: tid.to_owned(),
             planner_id: pid.to_owned(),
-            based_on_seq: self.last_cloud_seq.unwrap_or(0),
+            based_on_seq: self.order.last().map_or(0, |f| f.seq),
+            based_on_epoch_ns: self.order.last().map_or(0, |f| f.epoch_ns),
             map,
             tracked_fruits: tracked_fruits.collect(),
             next_fruit_id,
@@ -423,7 +435,8 @@ impl TrolleyPlanner {
             tracked.map(|f| (f.id, f.centre_in_world.cast())).collect(),
             snapshot.next_fruit_id,
         );
-        planner.last_cloud_seq = (snapshot.based_on_seq > 0).then_some(snapshot.based_on_seq);
+        let last = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
+        planner.order = FrameOrder::starting_at((last != FrameId::default()).then_some(last));
         Ok(planner)
     }
 }

@@ -1,11 +1,14 @@
 #![allow(clippy::unwrap_used)]
 
 use glasshouse_detect::DetectorConfig;
-use glasshouse_proto::{RankedView, RankedViews, TrolleyState, ViewKind};
+use glasshouse_proto::{FrameId, Header, RankedView, RankedViews, TrolleyState, ViewKind};
 use glasshouse_sim::ScenarioKind;
 use nalgebra::{Isometry3, Translation3};
 
 use super::*;
+
+/// The edge's boot epoch in these tests.
+const EPOCH_NS: u64 = 1_790_000_000_000_000_000;
 
 fn settings() -> EdgeSettings {
     EdgeSettings {
@@ -33,21 +36,41 @@ fn views(seq: u64, utilities: &[f32]) -> RankedViews {
     RankedViews {
         views: views.collect(),
         based_on_seq: seq,
+        based_on_epoch_ns: EPOCH_NS,
         planning_time_ms: 1.0,
         planner_id: "p1".into(),
     }
 }
 
+fn views_header(tid: &str, pid: &str) -> Header {
+    Header {
+        trolley_id: tid.into(),
+        source_id: pid.into(),
+        ..Header::default()
+    }
+}
+
+/// Views on frame `seq` of this epoch from the owner of t1.
 fn views_for(seq: u64, utilities: &[f32]) -> EdgeInput {
     EdgeInput::Views {
-        trolley_id: "t1".into(),
+        header: views_header("t1", "p1"),
         views: views(seq, utilities),
     }
 }
 
+/// A node that knows planner p1 (so p1 owns t1).
+fn node(settings: EdgeSettings) -> EdgeNode {
+    let mut node = EdgeNode::new(settings, EPOCH_NS);
+    assert!(node
+        .handle(EdgeInput::PlannerJoined("p1".into()))
+        .is_empty());
+    assert_eq!(node.owner(), Some("p1"));
+    node
+}
+
 /// A node that has announced frame 1 and waits for views.
 fn waiting(settings: EdgeSettings) -> EdgeNode {
-    let mut node = EdgeNode::new(settings);
+    let mut node = node(settings);
     assert_eq!(
         node.handle(EdgeInput::Start),
         vec![EdgeAction::Capture { frame_seq: 1 }]
@@ -119,15 +142,67 @@ fn views_on_another_frame_or_trolley_are_ignored() {
     let mut node = waiting(settings());
     assert!(node.handle(views_for(7, &[0.9])).is_empty());
     let other = EdgeInput::Views {
-        trolley_id: "t2".into(),
+        header: views_header("t2", "p1"),
         views: views(1, &[0.9]),
     };
     assert!(node.handle(other).is_empty());
+    // The same seq of an earlier process of this trolley is another frame.
+    let mut earlier = views(1, &[0.9]);
+    earlier.based_on_epoch_ns = EPOCH_NS - 1;
+    let earlier = EdgeInput::Views {
+        header: views_header("t1", "p1"),
+        views: earlier,
+    };
+    assert!(node.handle(earlier).is_empty());
     assert!(node.is_waiting_for_views());
     // Events that do not fit the phase change nothing.
     assert!(node.handle(executed(0, 1.0)).is_empty());
     assert!(node.handle(EdgeInput::Start).is_empty());
     assert!(node.is_waiting_for_views());
+}
+
+#[test]
+fn views_from_a_planner_that_does_not_own_the_trolley_are_refused() {
+    let mut node = waiting(settings());
+    // p9 is no member at all; p2 is live but ranks below p1 for t1 or above: whoever is not
+    // the owner is refused, whatever its views say.
+    node.handle(EdgeInput::PlannerJoined("p2".into()));
+    let owner = node.owner().unwrap().to_owned();
+    let other = if owner == "p1" { "p2" } else { "p1" };
+    for (n, source) in [(1, "p9"), (2, other)] {
+        let rogue = EdgeInput::Views {
+            header: views_header("t1", source),
+            views: views(1, &[0.9]),
+        };
+        let actions = node.handle(rogue);
+        assert_eq!(
+            actions,
+            vec![EdgeAction::Report(EdgeEvent::ViewsRefused {
+                source_id: source.into(),
+                owner: Some(owner.clone()),
+                refused: n,
+            })]
+        );
+        assert!(node.is_waiting_for_views());
+    }
+    assert_eq!(node.status().refused_views, 2);
+    // The owner's views on the frame are executed.
+    let from_owner = EdgeInput::Views {
+        header: views_header("t1", &owner),
+        views: views(1, &[0.9]),
+    };
+    assert!(matches!(
+        node.handle(from_owner)[0],
+        EdgeAction::Execute { .. }
+    ));
+    // The owner leaves: the other planner takes over, and its views count from now on.
+    node.handle(EdgeInput::PlannerLeft(owner));
+    assert_eq!(node.owner(), Some(other));
+    // Without any live planner no views are taken.
+    node.handle(EdgeInput::PlannerLeft(other.into()));
+    assert_eq!(node.owner(), None);
+    assert_eq!(node.handle(views_for(2, &[0.9])).len(), 1);
+    assert_eq!(node.status().refused_views, 3);
 }
 
 #[test]
@@ -215,7 +290,7 @@ fn the_view_budget_ends_the_run_once_the_last_frame_is_answered() {
 
 #[test]
 fn a_source_without_frames_finishes() {
-    let mut node = EdgeNode::new(settings());
+    let mut node = node(settings());
     node.handle(EdgeInput::Start);
     let actions = node.handle(EdgeInput::Captured { frame: false });
     assert!(matches!(
@@ -256,7 +331,7 @@ fn the_trolley_settings_noise_reaches_its_frames_and_the_detector() {
     assert!(zeros(&edges) > zeros(&clean) + 100);
     // The unchanged detector labels background as fruit: many more ROI points.
     let roi = |f: &glasshouse_proto::RgbdFrame| {
-        let cloud = detect_frame(f, 1, "d", &DetectorConfig::default()).unwrap();
+        let cloud = detect_frame(f, FrameId::new(0, 1), "d", &DetectorConfig::default()).unwrap();
         cloud.roi.iter().filter(|&&r| r).count()
     };
     assert!(
@@ -297,17 +372,17 @@ fn one_depth_rule_invalid_and_over_range_are_zero() {
 fn the_steps_capture_detect_integrate_plan_and_fit() {
     let mut trolley = sim(ScenarioKind::Two);
     let frame = trolley.capture(1).unwrap().unwrap();
-    let cloud = detect_frame(&frame, 1, "d1", &DetectorConfig::default()).unwrap();
+    let cloud = detect_frame(&frame, FrameId::new(0, 1), "d1", &DetectorConfig::default()).unwrap();
     assert!(cloud.roi.iter().any(|&r| r));
     let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
     // No info yet: the cloud is integrated, planning waits.
-    assert!(planner.integrate(&cloud).unwrap());
+    assert_eq!(planner.integrate(&cloud, 0).unwrap(), FrameVerdict::Fresh);
     assert!(planner.plan(&frame.world_from_camera, 1).unwrap().is_none());
     planner.set_info(trolley.info()).unwrap();
     assert!(planner.filters_reach());
     // The same frame again is not inserted twice.
     let known = planner.map().len();
-    assert!(!planner.integrate(&cloud).unwrap());
+    assert_eq!(planner.integrate(&cloud, 0).unwrap(), FrameVerdict::Repeat);
     assert_eq!(planner.map().len(), known);
     let plan = planner.plan(&frame.world_from_camera, 1).unwrap().unwrap();
     assert!(!plan.views.is_empty());
@@ -331,15 +406,23 @@ fn the_steps_capture_detect_integrate_plan_and_fit() {
 fn a_snapshot_carries_map_ids_and_seq() {
     let mut trolley = sim(ScenarioKind::Two);
     let frame = trolley.capture(1).unwrap().unwrap();
-    let mut cloud = detect_frame(&frame, 1, "d1", &DetectorConfig::default()).unwrap();
-    cloud.source_frame_seq = 5;
+    let frame_id = FrameId::new(EPOCH_NS, 5);
+    let cloud = detect_frame(&frame, frame_id, "d1", &DetectorConfig::default()).unwrap();
     let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
-    planner.integrate(&cloud).unwrap();
+    planner.integrate(&cloud, EPOCH_NS).unwrap();
     let snapshot = planner.snapshot("t1", "p1").unwrap();
-    assert_eq!(snapshot.based_on_seq, 5);
-    let copy = TrolleyPlanner::from_snapshot(PlanningSettings::default(), &snapshot).unwrap();
+    assert_eq!(
+        (snapshot.based_on_epoch_ns, snapshot.based_on_seq),
+        (EPOCH_NS, 5)
+    );
+    let mut copy = TrolleyPlanner::from_snapshot(PlanningSettings::default(), &snapshot).unwrap();
     assert_eq!(copy.map().len(), planner.map().len());
-    assert_eq!(copy.last_cloud_seq(), Some(5));
+    assert_eq!(copy.last_frame(), Some(frame_id));
+    // The copy goes on where the snapshot ends: the same frame is not inserted again.
+    assert_eq!(
+        copy.integrate(&cloud, EPOCH_NS).unwrap(),
+        FrameVerdict::Repeat
+    );
     let coarse = PlanningSettings {
         resolution_m: 0.02,
         ..PlanningSettings::default()
@@ -376,9 +459,10 @@ fn bad_settings_are_rejected() {
 #[test]
 fn the_cloud_carries_the_frame_camera_pose() {
     let frame = glasshouse_proto::samples::rgbd_frame();
-    let cloud = detect_frame(&frame, 7, "d1", &DetectorConfig::default()).unwrap();
+    let frame_id = FrameId::new(EPOCH_NS, 7);
+    let cloud = detect_frame(&frame, frame_id, "d1", &DetectorConfig::default()).unwrap();
     assert_eq!(cloud.world_from_camera, frame.world_from_camera);
-    assert_eq!(cloud.source_frame_seq, 7);
+    assert_eq!(cloud.source_frame(), frame_id);
     let origin = frame.world_from_camera.translation.vector;
     assert!((cloud.sensor_origin_in_world.coords - origin).norm() < 1e-9);
 }
@@ -402,8 +486,14 @@ fn kept_fits_equal_fresh_fits_and_only_touched_fruits_are_refitted() {
             trolley.next_segment().expect("the row has a next segment");
         }
         let frame = trolley.capture(seq).unwrap().unwrap();
-        let cloud = detect_frame(&frame, seq, "d1", &DetectorConfig::default()).unwrap();
-        planner.integrate(&cloud).unwrap();
+        let cloud = detect_frame(
+            &frame,
+            FrameId::new(EPOCH_NS, seq),
+            "d1",
+            &DetectorConfig::default(),
+        )
+        .unwrap();
+        planner.integrate(&cloud, EPOCH_NS).unwrap();
         let fitted: Vec<_> = planner.fruits().into_iter().map(|f| f.fitted).collect();
         // Debug text: equal bit for bit, NaN residuals of box fallbacks included.
         let text = |shapes: &[glasshouse_nbv::fit::FittedShape]| format!("{shapes:?}");
@@ -438,7 +528,7 @@ fn pace(pacer: &mut RealtimePacer, node: &mut EdgeNode, input: EdgeInput, now_s:
 fn realtime_pacing_waits_out_motion_and_capture_from_when_the_motion_began() {
     let mut pacer = RealtimePacer::default();
     // The first capture does not wait.
-    let mut node = EdgeNode::new(settings());
+    let mut node = EdgeNode::new(settings(), EPOCH_NS);
     assert_eq!(pace(&mut pacer, &mut node, EdgeInput::Start, 0.0), 0.0);
     // Views arrive at wall 10 s: the arm starts moving.
     let mut node = waiting(settings());

@@ -82,11 +82,35 @@ pub trait Wire: Sized + Clone + Send + Sync + 'static + Into<Message> {
     fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self>;
 }
 
+/// Which frame of which trolley process: frames are ordered by boot epoch, then sequence, so a
+/// restarted edge (a new epoch, its seq from 1 again) comes after everything it sent before.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct FrameId {
+    /// Wall-clock ns (Unix epoch) when the trolley's process started.
+    pub epoch_ns: u64,
+    pub seq: u64,
+}
+
+impl FrameId {
+    pub fn new(epoch_ns: u64, seq: u64) -> Self {
+        Self { epoch_ns, seq }
+    }
+}
+
+impl std::fmt::Display for FrameId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}@{}", self.seq, self.epoch_ns)
+    }
+}
+
 /// The envelope fields around every message.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Header {
     /// Per-publisher sequence number (frames: the capture sequence the loop refers to).
     pub seq: u64,
+    /// The publisher's boot epoch: wall-clock ns (Unix epoch) when its process started, chosen
+    /// once by the process's driver. Receivers order a publisher's messages by (epoch_ns, seq).
+    pub epoch_ns: u64,
     /// Time of the data in nanoseconds (simulated or sensor time).
     pub stamp_ns: u64,
     pub trolley_id: String,
@@ -94,6 +118,13 @@ pub struct Header {
     pub source_id: String,
     /// The frame the data is expressed in (`world` for everything the services publish).
     pub frame_id: String,
+}
+
+impl Header {
+    /// The frame this header announces (for an RgbdFrame: its capture).
+    pub fn frame(&self) -> FrameId {
+        FrameId::new(self.epoch_ns, self.seq)
+    }
 }
 
 /// Largest accepted payload of any kind.
@@ -132,6 +163,7 @@ fn read_header(envelope: &fb::Envelope<'_>) -> Header {
     let text = |s: Option<&str>| s.unwrap_or_default().to_owned();
     Header {
         seq: envelope.seq(),
+        epoch_ns: envelope.epoch_ns(),
         stamp_ns: envelope.stamp_ns(),
         trolley_id: text(envelope.trolley_id()),
         source_id: text(envelope.source_id()),
@@ -201,6 +233,7 @@ pub fn encode<M: Wire>(header: &Header, message: &M) -> Vec<u8> {
             frame_id: Some(frame_id),
             payload_type: M::KIND.payload_type(),
             payload: Some(payload),
+            epoch_ns: header.epoch_ns,
         },
     );
     fb::finish_envelope_buffer(&mut fbb, envelope);

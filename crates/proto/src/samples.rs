@@ -13,10 +13,14 @@ fn region() -> Aabb {
     Aabb::new(Point3::new(-1.0, -1.0, 0.0), Point3::new(1.0, 1.0, 1.5))
 }
 
+/// The boot epoch of the samples' publisher (2026-01-01T00:00:00Z).
+pub const SAMPLE_EPOCH_NS: u64 = 1_767_225_600_000_000_000;
+
 /// A header for trolley `t1`.
 pub fn header(seq: u64) -> Header {
     Header {
         seq,
+        epoch_ns: SAMPLE_EPOCH_NS,
         stamp_ns: 1_000_000 * seq,
         trolley_id: "t1".into(),
         source_id: "sample".into(),
@@ -108,6 +112,7 @@ pub fn roi_cloud() -> RoiCloud {
         sensor_origin_in_world: Point3::new(0.0, -0.5, 1.0),
         world_from_camera: look_at(&Point3::new(0.0, -0.5, 1.0), &Point3::new(0.0, 0.3, 0.8)),
         source_frame_seq: 42,
+        source_frame_epoch_ns: SAMPLE_EPOCH_NS,
         invalid_pixels: 5,
         detector_id: "d1".into(),
     }
@@ -133,6 +138,7 @@ pub fn ranked_views() -> RankedViews {
             },
         ],
         based_on_seq: 42,
+        based_on_epoch_ns: SAMPLE_EPOCH_NS,
         planning_time_ms: 12.5,
         planner_id: "p1".into(),
     }
@@ -184,6 +190,7 @@ pub fn planner_status() -> PlannerStatus {
         mean_planning_time_ms: 28.0,
         dropped_messages: 1,
         map_voxels: 12345,
+        refused_clouds: 1,
     }
 }
 
@@ -198,6 +205,7 @@ pub fn trolley_status() -> TrolleyStatus {
         dropped_messages: 2,
         last_views_seq: 4,
         message: "moving".into(),
+        refused_views: 3,
     }
 }
 
@@ -217,6 +225,7 @@ pub fn map_snapshot() -> MapSnapshot {
         trolley_id: "t1".into(),
         planner_id: "p2".into(),
         based_on_seq: 42,
+        based_on_epoch_ns: SAMPLE_EPOCH_NS,
         map: vec![1, 2, 3, 4, 5],
         tracked_fruits: vec![TrackedFruit {
             id: 3,

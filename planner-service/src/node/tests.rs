@@ -2,18 +2,26 @@
 
 use glasshouse_detect::DetectorConfig;
 use glasshouse_pipeline::{detect_frame, SimTrolley, SimTrolleySettings, TrolleySource};
+use glasshouse_proto::FrameId;
 use glasshouse_sim::ScenarioKind;
 
 use super::*;
 
-/// Trolley t1's info and `n` clouds (frames 1..=n) of scenario 2 at a small resolution.
+/// The receiver's wall clock in these tests (Unix ns).
+const NOW_NS: u64 = 1_790_000_000_000_000_000;
+/// The boot epoch of trolley t1's edge: an hour before now.
+const EDGE_EPOCH_NS: u64 = NOW_NS - 3_600_000_000_000;
+
+/// Trolley t1's info and `n` clouds (frames 1..=n of its edge's epoch) of scenario 2 at a small
+/// resolution.
 fn trolley_clouds(n: u64) -> (TrolleyInfo, Vec<RoiCloud>) {
     let mut trolley =
         SimTrolley::new(SimTrolleySettings::new(ScenarioKind::Two, 3, (96, 72), 1.0)).unwrap();
     let clouds = (1..=n)
         .map(|seq| {
             let frame = trolley.capture(seq).unwrap().unwrap();
-            detect_frame(&frame, seq, "d1", &DetectorConfig::default()).unwrap()
+            let frame_id = FrameId::new(EDGE_EPOCH_NS, seq);
+            detect_frame(&frame, frame_id, "d1", &DetectorConfig::default()).unwrap()
         })
         .collect();
     (trolley.info(), clouds)
@@ -30,9 +38,24 @@ fn header(tid: &str, seq: u64) -> Header {
 }
 
 fn cloud_event(cloud: &RoiCloud) -> PlannerEvent {
+    cloud_from("d1", cloud, NOW_NS)
+}
+
+fn cloud_from(source: &str, cloud: &RoiCloud, received_ns: u64) -> PlannerEvent {
     PlannerEvent::Cloud {
-        header: header("t1", cloud.source_frame_seq),
+        header: Header {
+            source_id: source.into(),
+            ..header("t1", cloud.source_frame_seq)
+        },
         cloud: cloud.clone(),
+        received_ns,
+    }
+}
+
+fn status_tick(now_ns: u64) -> PlannerEvent {
+    PlannerEvent::StatusTick {
+        dropped_messages: 4,
+        now_ns,
     }
 }
 
@@ -43,14 +66,20 @@ fn info_event(info: &TrolleyInfo) -> PlannerEvent {
     }
 }
 
+/// A planner that knows detector d1.
 fn node(pid: &str) -> PlannerNode {
-    PlannerNode::new(
+    let mut node = PlannerNode::new(
         pid,
         PlanningSettings {
             scoring_threads: 1,
             ..PlanningSettings::default()
         },
-    )
+        NOW_NS,
+    );
+    assert!(node
+        .handle(PlannerEvent::DetectorJoined("d1".into()))
+        .is_empty());
+    node
 }
 
 fn asks(actions: &[PlannerAction]) -> Vec<(String, Vec<String>)> {
@@ -131,7 +160,7 @@ fn the_owner_plans_and_publishes_the_replica_only_integrates() {
     assert_eq!(owner.stats().views_published, 2);
     let (om, rm) = (owner.planner("t1").unwrap(), replica.planner("t1").unwrap());
     assert_eq!(om.map().len(), rm.map().len());
-    assert_eq!(om.last_cloud_seq(), Some(2));
+    assert_eq!(om.last_frame(), Some(FrameId::new(EDGE_EPOCH_NS, 2)));
 }
 
 #[test]
@@ -175,23 +204,35 @@ fn our_own_token_going_away_changes_nothing() {
     assert!(a.role("t1").is_some());
 }
 
-#[test]
-fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
-    let (info, clouds) = trolley_clouds(3);
-    // p1 alone owns t1 and integrates two clouds.
+/// Planner p1, alone with t1 (no snapshot to load), after `info` and `clouds`.
+fn alone_with(info: &TrolleyInfo, clouds: &[RoiCloud]) -> PlannerNode {
     let mut p1 = node("p1");
     p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
     p1.handle(PlannerEvent::SnapshotLoaded {
         tid: "t1".into(),
         snapshot: None,
     });
-    p1.handle(info_event(&info));
-    for c in &clouds[..2] {
+    p1.handle(info_event(info));
+    for c in clouds {
         p1.handle(cloud_event(c));
     }
-    // p2 joins: it asks p1 for a snapshot and buffers the third cloud meanwhile.
+    p1
+}
+
+/// Planner p2, joining a cluster where p1 is live.
+fn joining_p1() -> PlannerNode {
     let mut p2 = node("p2");
     p2.handle(PlannerEvent::PlannerJoined("p1".into()));
+    p2
+}
+
+#[test]
+fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
+    let (info, clouds) = trolley_clouds(3);
+    // p1 alone owns t1 and integrates two clouds.
+    let mut p1 = alone_with(&info, &clouds[..2]);
+    // p2 joins: it asks p1 for a snapshot and buffers the third cloud meanwhile.
+    let mut p2 = joining_p1();
     let actions = p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
     assert_eq!(
         asks(&actions),
@@ -239,7 +280,10 @@ fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
     );
     assert_eq!(m1.len(), m2.len());
     assert!(m1.iter().all(|(k, v)| m2.get(k) == Some(v)));
-    assert_eq!(p2.planner("t1").unwrap().last_cloud_seq(), Some(3));
+    assert_eq!(
+        p2.planner("t1").unwrap().last_frame(),
+        Some(FrameId::new(EDGE_EPOCH_NS, 3))
+    );
     // As owner it plans on the last buffered cloud, as replica it stays quiet.
     let planned = views_of(&loaded);
     match p2.role("t1") {
@@ -286,9 +330,7 @@ fn bad_clouds_are_counted_and_leave_the_map_alone() {
 fn the_status_lists_owned_and_standby_trolleys() {
     let (owner, replica) = roles(pair());
     for (mut n, owned) in [(owner, true), (replica, false)] {
-        let actions = n.handle(PlannerEvent::StatusTick {
-            dropped_messages: 4,
-        });
+        let actions = n.handle(status_tick(NOW_NS));
         let PlannerAction::PublishStatus { status, .. } = &actions[0] else {
             panic!("{actions:?}")
         };
@@ -335,7 +377,10 @@ fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
         let queued = clouds
             .iter()
             .map(|c| (header("t1", c.source_frame_seq), c.clone()));
-        PlannerEvent::Clouds(queued.collect())
+        PlannerEvent::Clouds {
+            clouds: queued.collect(),
+            received_ns: NOW_NS,
+        }
     };
     let actions = owner.handle(batch());
     assert_eq!(owner.stats().clouds_integrated, 3);
@@ -355,7 +400,7 @@ fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
     }
     let (batched, one_by_one) = (owner.planner("t1").unwrap(), single.planner("t1").unwrap());
     assert_eq!(batched.map().len(), one_by_one.map().len());
-    assert_eq!(batched.last_cloud_seq(), Some(3));
+    assert_eq!(batched.last_frame().map(|f| f.seq), Some(3));
     // A later single cloud is planned on at once again.
     let (_, more) = trolley_clouds(4);
     assert_eq!(views_of(&owner.handle(cloud_event(&more[3]))).len(), 1);
@@ -385,7 +430,10 @@ fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
         of("t1", 2),
         of("t2", 1),
     ];
-    let actions = solo.handle(PlannerEvent::Clouds(batch));
+    let actions = solo.handle(PlannerEvent::Clouds {
+        clouds: batch,
+        received_ns: NOW_NS,
+    });
     assert_eq!(solo.stats().clouds_integrated, 5);
     assert_eq!(solo.stats().plans, 2);
     assert_eq!(outputs_for(&actions, "t1"), (1, 1, 3));
@@ -402,4 +450,162 @@ fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
         })
         .collect();
     assert_eq!(planned, vec![("t1".into(), 3), ("t2".into(), 2)]);
+}
+
+/// The owner of t1 with its info and the first cloud integrated.
+fn owner_with_first_cloud(info: &TrolleyInfo, first: &RoiCloud) -> PlannerNode {
+    let (mut owner, _) = roles(pair());
+    owner.handle(info_event(info));
+    assert_eq!(views_of(&owner.handle(cloud_event(first))).len(), 1);
+    owner
+}
+
+#[test]
+fn a_restarted_edge_keeps_the_map_growing() {
+    let (info, clouds) = trolley_clouds(3);
+    let mut owner = owner_with_first_cloud(&info, &clouds[0]);
+    owner.handle(cloud_event(&clouds[1]));
+    let before = owner.planner("t1").unwrap().map().scans_inserted();
+    // The edge restarts: a new epoch, its frames from 1 again.
+    let mut restarted = clouds[2].clone();
+    restarted.source_frame_epoch_ns = EDGE_EPOCH_NS + 60_000_000_000;
+    restarted.source_frame_seq = 1;
+    let views = views_of(&owner.handle(cloud_event(&restarted)));
+    assert_eq!(views.len(), 1);
+    assert_eq!(views[0].based_on(), restarted.source_frame());
+    let planner = owner.planner("t1").unwrap();
+    assert_eq!(planner.map().scans_inserted(), before + 1);
+    assert_eq!(planner.last_frame(), Some(restarted.source_frame()));
+    // A straggler of the old process is neither integrated nor a reason to stop.
+    owner.handle(cloud_event(&clouds[1]));
+    assert_eq!(owner.stats().clouds_stale, 1);
+    assert_eq!(
+        owner.planner("t1").unwrap().map().scans_inserted(),
+        before + 1
+    );
+}
+
+#[test]
+fn a_frame_far_ahead_is_refused_and_counted_and_the_map_goes_on() {
+    let (info, clouds) = trolley_clouds(2);
+    let mut owner = owner_with_first_cloud(&info, &clouds[0]);
+    let mut rogue = clouds[1].clone();
+    rogue.source_frame_seq = 1_000_000_000_000;
+    assert!(owner.handle(cloud_event(&rogue)).is_empty());
+    let mut future = clouds[1].clone();
+    future.source_frame_epoch_ns = NOW_NS + 3_600_000_000_000;
+    assert!(owner.handle(cloud_event(&future)).is_empty());
+    assert_eq!(owner.stats().clouds_refused, 2);
+    assert_eq!(owner.planner("t1").unwrap().map().scans_inserted(), 1);
+    // The next real frame is integrated and planned on.
+    assert_eq!(views_of(&owner.handle(cloud_event(&clouds[1]))).len(), 1);
+    assert_eq!(owner.planner("t1").unwrap().map().scans_inserted(), 2);
+    let actions = owner.handle(status_tick(NOW_NS));
+    let PlannerAction::PublishStatus { status, .. } = &actions[0] else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(status.refused_clouds, 2);
+}
+
+#[test]
+fn clouds_from_a_source_that_is_no_detector_are_refused() {
+    let (info, clouds) = trolley_clouds(2);
+    let mut owner = owner_with_first_cloud(&info, &clouds[0]);
+    // Held while its token may still come, refused once the wait is over.
+    assert!(owner
+        .handle(cloud_from("rogue", &clouds[1], NOW_NS))
+        .is_empty());
+    assert_eq!(owner.stats().clouds_refused, 0);
+    owner.handle(status_tick(NOW_NS + UNKNOWN_SOURCE_WAIT_NS / 2));
+    assert_eq!(owner.stats().clouds_refused, 0);
+    owner.handle(status_tick(NOW_NS + UNKNOWN_SOURCE_WAIT_NS + 1));
+    assert_eq!(owner.stats().clouds_refused, 1);
+    assert_eq!(owner.planner("t1").unwrap().map().scans_inserted(), 1);
+    // A flood from unknown sources is bounded: the oldest are refused at once.
+    for i in 0..UNKNOWN_SOURCE_CLOUDS + 3 {
+        owner.handle(cloud_from(&format!("r{i}"), &clouds[1], NOW_NS + 1));
+    }
+    assert_eq!(owner.stats().clouds_refused, 4);
+    // A detector that left is no source either.
+    owner.handle(PlannerEvent::DetectorLeft("d1".into()));
+    owner.handle(cloud_event(&clouds[1]));
+    owner.handle(status_tick(NOW_NS + 2 * UNKNOWN_SOURCE_WAIT_NS));
+    assert_eq!(owner.planner("t1").unwrap().map().scans_inserted(), 1);
+    assert_eq!(
+        owner.stats().clouds_refused,
+        5 + UNKNOWN_SOURCE_CLOUDS as u64
+    );
+}
+
+#[test]
+fn a_cloud_that_arrives_before_its_detector_token_is_taken_with_the_token() {
+    let (info, clouds) = trolley_clouds(1);
+    let (mut owner, _) = roles(pair());
+    owner.handle(info_event(&info));
+    assert!(owner
+        .handle(cloud_from("d2", &clouds[0], NOW_NS))
+        .is_empty());
+    let actions = owner.handle(PlannerEvent::DetectorJoined("d2".into()));
+    assert_eq!(views_of(&actions).len(), 1);
+    assert_eq!(owner.stats().clouds_refused, 0);
+    assert_eq!(owner.planner("t1").unwrap().map().scans_inserted(), 1);
+    // Nothing is left to refuse later.
+    owner.handle(status_tick(NOW_NS + 2 * UNKNOWN_SOURCE_WAIT_NS));
+    assert_eq!(owner.stats().clouds_refused, 0);
+}
+
+#[test]
+fn the_fleet_map_takes_fruits_from_the_trolley_owner_only() {
+    let (owner, replica) = roles(pair());
+    let (owner_id, replica_id) = (owner.pid.clone(), replica.pid.clone());
+    let mut fleet = node(&owner_id);
+    fleet.handle(PlannerEvent::PlannerJoined(replica_id.clone()));
+    fleet.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    let fruits = glasshouse_proto::samples::fruit_estimates();
+    for source in [replica_id.as_str(), "rogue"] {
+        fleet.handle(PlannerEvent::Fruits {
+            header: Header {
+                source_id: source.into(),
+                ..header("t1", 1)
+            },
+            fruits: fruits.clone(),
+        });
+    }
+    assert!(fleet.latest_fruits.is_empty());
+    fleet.handle(PlannerEvent::Fruits {
+        header: Header {
+            source_id: owner_id,
+            ..header("t1", 1)
+        },
+        fruits,
+    });
+    assert_eq!(fleet.latest_fruits.len(), 1);
+}
+
+#[test]
+fn buffered_clouds_the_snapshot_holds_are_not_inserted_again() {
+    let (info, clouds) = trolley_clouds(6);
+    let mut p1 = alone_with(&info, &clouds[..5]);
+    // p2 took t1 on after frame 1 and buffered frames 2..=6; the snapshot it gets holds 1..=5.
+    let mut p2 = joining_p1();
+    p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p2.handle(info_event(&info));
+    for c in &clouds[1..] {
+        assert!(p2.handle(cloud_event(c)).is_empty());
+    }
+    let Ok((_, snapshot)) = p1.snapshot_of("t1") else {
+        panic!("p1 holds t1")
+    };
+    p2.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot),
+    });
+    p1.handle(cloud_event(&clouds[5]));
+    let (m1, m2) = (
+        p1.planner("t1").unwrap().map(),
+        p2.planner("t1").unwrap().map(),
+    );
+    assert_eq!(m2.scans_inserted(), 6);
+    assert_eq!(m1.scans_inserted(), m2.scans_inserted());
+    assert!(m1.len() == m2.len() && m1.iter().all(|(k, v)| m2.get(k) == Some(v)));
 }

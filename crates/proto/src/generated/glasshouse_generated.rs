@@ -3005,6 +3005,7 @@ impl<'a> RoiCloud<'a> {
   pub const VT_INVALID_PIXELS: ::flatbuffers::VOffsetT = 12;
   pub const VT_DETECTOR_ID: ::flatbuffers::VOffsetT = 14;
   pub const VT_WORLD_FROM_CAMERA: ::flatbuffers::VOffsetT = 16;
+  pub const VT_SOURCE_FRAME_EPOCH_NS: ::flatbuffers::VOffsetT = 18;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3016,6 +3017,7 @@ impl<'a> RoiCloud<'a> {
     args: &'args RoiCloudArgs<'args>
   ) -> ::flatbuffers::WIPOffset<RoiCloud<'bldr>> {
     let mut builder = RoiCloudBuilder::new(_fbb);
+    builder.add_source_frame_epoch_ns(args.source_frame_epoch_ns);
     builder.add_source_frame_seq(args.source_frame_seq);
     if let Some(x) = args.world_from_camera { builder.add_world_from_camera(x); }
     if let Some(x) = args.detector_id { builder.add_detector_id(x); }
@@ -3077,6 +3079,15 @@ impl<'a> RoiCloud<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<Pose>(RoiCloud::VT_WORLD_FROM_CAMERA, None)}
   }
+  /// The boot epoch of the trolley process that captured the frame (its header's epoch_ns):
+  /// frames are ordered by (source_frame_epoch_ns, source_frame_seq).
+  #[inline]
+  pub fn source_frame_epoch_ns(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(RoiCloud::VT_SOURCE_FRAME_EPOCH_NS, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for RoiCloud<'_> {
@@ -3092,6 +3103,7 @@ impl ::flatbuffers::Verifiable for RoiCloud<'_> {
      .visit_field::<u32>("invalid_pixels", Self::VT_INVALID_PIXELS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("detector_id", Self::VT_DETECTOR_ID, false)?
      .visit_field::<Pose>("world_from_camera", Self::VT_WORLD_FROM_CAMERA, false)?
+     .visit_field::<u64>("source_frame_epoch_ns", Self::VT_SOURCE_FRAME_EPOCH_NS, false)?
      .finish();
     Ok(())
   }
@@ -3104,6 +3116,7 @@ pub struct RoiCloudArgs<'a> {
     pub invalid_pixels: u32,
     pub detector_id: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub world_from_camera: Option<&'a Pose>,
+    pub source_frame_epoch_ns: u64,
 }
 impl<'a> Default for RoiCloudArgs<'a> {
   #[inline]
@@ -3116,6 +3129,7 @@ impl<'a> Default for RoiCloudArgs<'a> {
       invalid_pixels: 0,
       detector_id: None,
       world_from_camera: None,
+      source_frame_epoch_ns: 0,
     }
   }
 }
@@ -3154,6 +3168,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> RoiCloudBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<&Pose>(RoiCloud::VT_WORLD_FROM_CAMERA, world_from_camera);
   }
   #[inline]
+  pub fn add_source_frame_epoch_ns(&mut self, source_frame_epoch_ns: u64) {
+    self.fbb_.push_slot::<u64>(RoiCloud::VT_SOURCE_FRAME_EPOCH_NS, source_frame_epoch_ns, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> RoiCloudBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     RoiCloudBuilder {
@@ -3178,6 +3196,7 @@ impl ::core::fmt::Debug for RoiCloud<'_> {
       ds.field("invalid_pixels", &self.invalid_pixels());
       ds.field("detector_id", &self.detector_id());
       ds.field("world_from_camera", &self.world_from_camera());
+      ds.field("source_frame_epoch_ns", &self.source_frame_epoch_ns());
       ds.finish()
   }
 }
@@ -3202,6 +3221,7 @@ impl<'a> RankedViews<'a> {
   pub const VT_BASED_ON_SEQ: ::flatbuffers::VOffsetT = 6;
   pub const VT_PLANNING_TIME_MS: ::flatbuffers::VOffsetT = 8;
   pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 10;
+  pub const VT_BASED_ON_EPOCH_NS: ::flatbuffers::VOffsetT = 12;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3213,6 +3233,7 @@ impl<'a> RankedViews<'a> {
     args: &'args RankedViewsArgs<'args>
   ) -> ::flatbuffers::WIPOffset<RankedViews<'bldr>> {
     let mut builder = RankedViewsBuilder::new(_fbb);
+    builder.add_based_on_epoch_ns(args.based_on_epoch_ns);
     builder.add_based_on_seq(args.based_on_seq);
     if let Some(x) = args.planner_id { builder.add_planner_id(x); }
     builder.add_planning_time_ms(args.planning_time_ms);
@@ -3249,6 +3270,14 @@ impl<'a> RankedViews<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(RankedViews::VT_PLANNER_ID, None)}
   }
+  /// The boot epoch of the trolley that captured the frame: views answer (epoch, seq).
+  #[inline]
+  pub fn based_on_epoch_ns(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(RankedViews::VT_BASED_ON_EPOCH_NS, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for RankedViews<'_> {
@@ -3261,6 +3290,7 @@ impl ::flatbuffers::Verifiable for RankedViews<'_> {
      .visit_field::<u64>("based_on_seq", Self::VT_BASED_ON_SEQ, false)?
      .visit_field::<f32>("planning_time_ms", Self::VT_PLANNING_TIME_MS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
+     .visit_field::<u64>("based_on_epoch_ns", Self::VT_BASED_ON_EPOCH_NS, false)?
      .finish();
     Ok(())
   }
@@ -3270,6 +3300,7 @@ pub struct RankedViewsArgs<'a> {
     pub based_on_seq: u64,
     pub planning_time_ms: f32,
     pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub based_on_epoch_ns: u64,
 }
 impl<'a> Default for RankedViewsArgs<'a> {
   #[inline]
@@ -3279,6 +3310,7 @@ impl<'a> Default for RankedViewsArgs<'a> {
       based_on_seq: 0,
       planning_time_ms: 0.0,
       planner_id: None,
+      based_on_epoch_ns: 0,
     }
   }
 }
@@ -3305,6 +3337,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> RankedViewsBuilder<'a, 'b, A>
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RankedViews::VT_PLANNER_ID, planner_id);
   }
   #[inline]
+  pub fn add_based_on_epoch_ns(&mut self, based_on_epoch_ns: u64) {
+    self.fbb_.push_slot::<u64>(RankedViews::VT_BASED_ON_EPOCH_NS, based_on_epoch_ns, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> RankedViewsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     RankedViewsBuilder {
@@ -3326,6 +3362,7 @@ impl ::core::fmt::Debug for RankedViews<'_> {
       ds.field("based_on_seq", &self.based_on_seq());
       ds.field("planning_time_ms", &self.planning_time_ms());
       ds.field("planner_id", &self.planner_id());
+      ds.field("based_on_epoch_ns", &self.based_on_epoch_ns());
       ds.finish()
   }
 }
@@ -4053,6 +4090,7 @@ impl<'a> PlannerStatus<'a> {
   pub const VT_MEAN_PLANNING_TIME_MS: ::flatbuffers::VOffsetT = 16;
   pub const VT_DROPPED_MESSAGES: ::flatbuffers::VOffsetT = 18;
   pub const VT_MAP_VOXELS: ::flatbuffers::VOffsetT = 20;
+  pub const VT_REFUSED_CLOUDS: ::flatbuffers::VOffsetT = 22;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4064,6 +4102,7 @@ impl<'a> PlannerStatus<'a> {
     args: &'args PlannerStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<PlannerStatus<'bldr>> {
     let mut builder = PlannerStatusBuilder::new(_fbb);
+    builder.add_refused_clouds(args.refused_clouds);
     builder.add_map_voxels(args.map_voxels);
     builder.add_dropped_messages(args.dropped_messages);
     builder.add_views_published(args.views_published);
@@ -4140,6 +4179,14 @@ impl<'a> PlannerStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(PlannerStatus::VT_MAP_VOXELS, Some(0)).unwrap()}
   }
+  /// RoiClouds refused: not from a live detector, or a frame id no honest trolley could send.
+  #[inline]
+  pub fn refused_clouds(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_REFUSED_CLOUDS, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
@@ -4157,6 +4204,7 @@ impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
      .visit_field::<f32>("mean_planning_time_ms", Self::VT_MEAN_PLANNING_TIME_MS, false)?
      .visit_field::<u64>("dropped_messages", Self::VT_DROPPED_MESSAGES, false)?
      .visit_field::<u64>("map_voxels", Self::VT_MAP_VOXELS, false)?
+     .visit_field::<u64>("refused_clouds", Self::VT_REFUSED_CLOUDS, false)?
      .finish();
     Ok(())
   }
@@ -4171,6 +4219,7 @@ pub struct PlannerStatusArgs<'a> {
     pub mean_planning_time_ms: f32,
     pub dropped_messages: u64,
     pub map_voxels: u64,
+    pub refused_clouds: u64,
 }
 impl<'a> Default for PlannerStatusArgs<'a> {
   #[inline]
@@ -4185,6 +4234,7 @@ impl<'a> Default for PlannerStatusArgs<'a> {
       mean_planning_time_ms: 0.0,
       dropped_messages: 0,
       map_voxels: 0,
+      refused_clouds: 0,
     }
   }
 }
@@ -4231,6 +4281,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> PlannerStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(PlannerStatus::VT_MAP_VOXELS, map_voxels, 0);
   }
   #[inline]
+  pub fn add_refused_clouds(&mut self, refused_clouds: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_REFUSED_CLOUDS, refused_clouds, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> PlannerStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     PlannerStatusBuilder {
@@ -4257,6 +4311,7 @@ impl ::core::fmt::Debug for PlannerStatus<'_> {
       ds.field("mean_planning_time_ms", &self.mean_planning_time_ms());
       ds.field("dropped_messages", &self.dropped_messages());
       ds.field("map_voxels", &self.map_voxels());
+      ds.field("refused_clouds", &self.refused_clouds());
       ds.finish()
   }
 }
@@ -4284,6 +4339,7 @@ impl<'a> TrolleyStatus<'a> {
   pub const VT_DROPPED_MESSAGES: ::flatbuffers::VOffsetT = 14;
   pub const VT_LAST_VIEWS_SEQ: ::flatbuffers::VOffsetT = 16;
   pub const VT_MESSAGE: ::flatbuffers::VOffsetT = 18;
+  pub const VT_REFUSED_VIEWS: ::flatbuffers::VOffsetT = 20;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4295,6 +4351,7 @@ impl<'a> TrolleyStatus<'a> {
     args: &'args TrolleyStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<TrolleyStatus<'bldr>> {
     let mut builder = TrolleyStatusBuilder::new(_fbb);
+    builder.add_refused_views(args.refused_views);
     builder.add_last_views_seq(args.last_views_seq);
     builder.add_dropped_messages(args.dropped_messages);
     builder.add_frames_published(args.frames_published);
@@ -4363,6 +4420,14 @@ impl<'a> TrolleyStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(TrolleyStatus::VT_MESSAGE, None)}
   }
+  /// RankedViews refused because they did not come from the planner owning the trolley.
+  #[inline]
+  pub fn refused_views(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(TrolleyStatus::VT_REFUSED_VIEWS, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for TrolleyStatus<'_> {
@@ -4379,6 +4444,7 @@ impl ::flatbuffers::Verifiable for TrolleyStatus<'_> {
      .visit_field::<u64>("dropped_messages", Self::VT_DROPPED_MESSAGES, false)?
      .visit_field::<u64>("last_views_seq", Self::VT_LAST_VIEWS_SEQ, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("message", Self::VT_MESSAGE, false)?
+     .visit_field::<u64>("refused_views", Self::VT_REFUSED_VIEWS, false)?
      .finish();
     Ok(())
   }
@@ -4392,6 +4458,7 @@ pub struct TrolleyStatusArgs<'a> {
     pub dropped_messages: u64,
     pub last_views_seq: u64,
     pub message: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub refused_views: u64,
 }
 impl<'a> Default for TrolleyStatusArgs<'a> {
   #[inline]
@@ -4405,6 +4472,7 @@ impl<'a> Default for TrolleyStatusArgs<'a> {
       dropped_messages: 0,
       last_views_seq: 0,
       message: None,
+      refused_views: 0,
     }
   }
 }
@@ -4447,6 +4515,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyStatusBuilder<'a, 'b, 
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyStatus::VT_MESSAGE, message);
   }
   #[inline]
+  pub fn add_refused_views(&mut self, refused_views: u64) {
+    self.fbb_.push_slot::<u64>(TrolleyStatus::VT_REFUSED_VIEWS, refused_views, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> TrolleyStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     TrolleyStatusBuilder {
@@ -4472,6 +4544,7 @@ impl ::core::fmt::Debug for TrolleyStatus<'_> {
       ds.field("dropped_messages", &self.dropped_messages());
       ds.field("last_views_seq", &self.last_views_seq());
       ds.field("message", &self.message());
+      ds.field("refused_views", &self.refused_views());
       ds.finish()
   }
 }
@@ -4647,6 +4720,7 @@ impl<'a> MapSnapshot<'a> {
   pub const VT_MAP: ::flatbuffers::VOffsetT = 10;
   pub const VT_TRACKED_FRUITS: ::flatbuffers::VOffsetT = 12;
   pub const VT_NEXT_FRUIT_ID: ::flatbuffers::VOffsetT = 14;
+  pub const VT_BASED_ON_EPOCH_NS: ::flatbuffers::VOffsetT = 16;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4658,6 +4732,7 @@ impl<'a> MapSnapshot<'a> {
     args: &'args MapSnapshotArgs<'args>
   ) -> ::flatbuffers::WIPOffset<MapSnapshot<'bldr>> {
     let mut builder = MapSnapshotBuilder::new(_fbb);
+    builder.add_based_on_epoch_ns(args.based_on_epoch_ns);
     builder.add_based_on_seq(args.based_on_seq);
     builder.add_next_fruit_id(args.next_fruit_id);
     if let Some(x) = args.tracked_fruits { builder.add_tracked_fruits(x); }
@@ -4712,6 +4787,14 @@ impl<'a> MapSnapshot<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u32>(MapSnapshot::VT_NEXT_FRUIT_ID, Some(0)).unwrap()}
   }
+  /// The boot epoch of the trolley that captured frame based_on_seq.
+  #[inline]
+  pub fn based_on_epoch_ns(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(MapSnapshot::VT_BASED_ON_EPOCH_NS, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
@@ -4726,6 +4809,7 @@ impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("map", Self::VT_MAP, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, TrackedFruit>>>("tracked_fruits", Self::VT_TRACKED_FRUITS, false)?
      .visit_field::<u32>("next_fruit_id", Self::VT_NEXT_FRUIT_ID, false)?
+     .visit_field::<u64>("based_on_epoch_ns", Self::VT_BASED_ON_EPOCH_NS, false)?
      .finish();
     Ok(())
   }
@@ -4737,6 +4821,7 @@ pub struct MapSnapshotArgs<'a> {
     pub map: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
     pub tracked_fruits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, TrackedFruit>>>,
     pub next_fruit_id: u32,
+    pub based_on_epoch_ns: u64,
 }
 impl<'a> Default for MapSnapshotArgs<'a> {
   #[inline]
@@ -4748,6 +4833,7 @@ impl<'a> Default for MapSnapshotArgs<'a> {
       map: None,
       tracked_fruits: None,
       next_fruit_id: 0,
+      based_on_epoch_ns: 0,
     }
   }
 }
@@ -4782,6 +4868,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapSnapshotBuilder<'a, 'b, A>
     self.fbb_.push_slot::<u32>(MapSnapshot::VT_NEXT_FRUIT_ID, next_fruit_id, 0);
   }
   #[inline]
+  pub fn add_based_on_epoch_ns(&mut self, based_on_epoch_ns: u64) {
+    self.fbb_.push_slot::<u64>(MapSnapshot::VT_BASED_ON_EPOCH_NS, based_on_epoch_ns, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapSnapshotBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     MapSnapshotBuilder {
@@ -4805,6 +4895,7 @@ impl ::core::fmt::Debug for MapSnapshot<'_> {
       ds.field("map", &self.map());
       ds.field("tracked_fruits", &self.tracked_fruits());
       ds.field("next_fruit_id", &self.next_fruit_id());
+      ds.field("based_on_epoch_ns", &self.based_on_epoch_ns());
       ds.finish()
   }
 }
@@ -5099,6 +5190,7 @@ impl<'a> Envelope<'a> {
   pub const VT_FRAME_ID: ::flatbuffers::VOffsetT = 14;
   pub const VT_PAYLOAD_TYPE: ::flatbuffers::VOffsetT = 16;
   pub const VT_PAYLOAD: ::flatbuffers::VOffsetT = 18;
+  pub const VT_EPOCH_NS: ::flatbuffers::VOffsetT = 20;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5110,6 +5202,7 @@ impl<'a> Envelope<'a> {
     args: &'args EnvelopeArgs<'args>
   ) -> ::flatbuffers::WIPOffset<Envelope<'bldr>> {
     let mut builder = EnvelopeBuilder::new(_fbb);
+    builder.add_epoch_ns(args.epoch_ns);
     builder.add_stamp_ns(args.stamp_ns);
     builder.add_seq(args.seq);
     if let Some(x) = args.payload { builder.add_payload(x); }
@@ -5177,6 +5270,15 @@ impl<'a> Envelope<'a> {
     // Created from valid Table for this object
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Table<'a>>>(Envelope::VT_PAYLOAD, None)}
+  }
+  /// The writer's boot epoch: wall-clock ns (Unix epoch) when its process started. A restarted
+  /// process starts its seq again under a new epoch; receivers order by (epoch_ns, seq).
+  #[inline]
+  pub fn epoch_ns(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(Envelope::VT_EPOCH_NS, Some(0)).unwrap()}
   }
   #[inline]
   #[allow(non_snake_case)]
@@ -5389,6 +5491,7 @@ impl ::flatbuffers::Verifiable for Envelope<'_> {
           _ => Ok(()),
         }
      })?
+     .visit_field::<u64>("epoch_ns", Self::VT_EPOCH_NS, false)?
      .finish();
     Ok(())
   }
@@ -5402,6 +5505,7 @@ pub struct EnvelopeArgs<'a> {
     pub frame_id: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub payload_type: Payload,
     pub payload: Option<::flatbuffers::WIPOffset<::flatbuffers::UnionWIPOffset>>,
+    pub epoch_ns: u64,
 }
 impl<'a> Default for EnvelopeArgs<'a> {
   #[inline]
@@ -5415,6 +5519,7 @@ impl<'a> Default for EnvelopeArgs<'a> {
       frame_id: None,
       payload_type: Payload::NONE,
       payload: None,
+      epoch_ns: 0,
     }
   }
 }
@@ -5455,6 +5560,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> EnvelopeBuilder<'a, 'b, A> {
   #[inline]
   pub fn add_payload(&mut self, payload: ::flatbuffers::WIPOffset<::flatbuffers::UnionWIPOffset>) {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Envelope::VT_PAYLOAD, payload);
+  }
+  #[inline]
+  pub fn add_epoch_ns(&mut self, epoch_ns: u64) {
+    self.fbb_.push_slot::<u64>(Envelope::VT_EPOCH_NS, epoch_ns, 0);
   }
   #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> EnvelopeBuilder<'a, 'b, A> {
@@ -5571,6 +5680,7 @@ impl ::core::fmt::Debug for Envelope<'_> {
           ds.field("payload", &x)
         },
       };
+      ds.field("epoch_ns", &self.epoch_ns());
       ds.finish()
   }
 }

@@ -20,6 +20,8 @@ pub struct MapSnapshot {
     pub planner_id: String,
     /// The last RoiCloud frame seq integrated into the map.
     pub based_on_seq: u64,
+    /// The boot epoch of the trolley that captured that frame.
+    pub based_on_epoch_ns: u64,
     /// `glasshouse_roimap` snapshot bytes.
     pub map: Vec<u8>,
     pub tracked_fruits: Vec<TrackedFruit>,
@@ -48,6 +50,7 @@ impl Wire for MapSnapshot {
                 map: Some(map),
                 tracked_fruits: Some(tracked),
                 next_fruit_id: self.next_fruit_id,
+                based_on_epoch_ns: self.based_on_epoch_ns,
             },
         )
         .as_union_value()
@@ -63,6 +66,7 @@ impl Wire for MapSnapshot {
             trolley_id: string_or_empty(m.trolley_id()),
             planner_id: string_or_empty(m.planner_id()),
             based_on_seq: m.based_on_seq(),
+            based_on_epoch_ns: m.based_on_epoch_ns(),
             map: m.map().map(|b| b.bytes().to_vec()).unwrap_or_default(),
             tracked_fruits: m
                 .tracked_fruits()

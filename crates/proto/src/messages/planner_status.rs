@@ -16,6 +16,8 @@ pub struct PlannerStatus {
     pub mean_planning_time_ms: f32,
     pub dropped_messages: u64,
     pub map_voxels: u64,
+    /// RoiClouds refused: not from a live detector, or a frame id no honest trolley sends.
+    pub refused_clouds: u64,
 }
 
 impl Wire for PlannerStatus {
@@ -37,6 +39,7 @@ impl Wire for PlannerStatus {
                 mean_planning_time_ms: self.mean_planning_time_ms,
                 dropped_messages: self.dropped_messages,
                 map_voxels: self.map_voxels,
+                refused_clouds: self.refused_clouds,
             },
         )
         .as_union_value()
@@ -54,6 +57,7 @@ impl Wire for PlannerStatus {
             mean_planning_time_ms: m.mean_planning_time_ms(),
             dropped_messages: m.dropped_messages(),
             map_voxels: m.map_voxels(),
+            refused_clouds: m.refused_clouds(),
         })
     }
 }

@@ -4,7 +4,7 @@ use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 use nalgebra::Isometry3;
 
 use super::convert::{payload, pose_from_fb, pose_to_fb, string_or_empty, unknown_enum};
-use crate::{fb, MessageKind, Result, Wire};
+use crate::{fb, FrameId, MessageKind, Result, Wire};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ViewKind {
@@ -27,6 +27,8 @@ pub struct RankedViews {
     pub views: Vec<RankedView>,
     /// The frame sequence these views were planned on.
     pub based_on_seq: u64,
+    /// The boot epoch of the trolley that captured that frame.
+    pub based_on_epoch_ns: u64,
     pub planning_time_ms: f32,
     pub planner_id: String,
 }
@@ -60,6 +62,13 @@ fn read_view(v: &fb::View) -> Result<RankedView> {
     })
 }
 
+impl RankedViews {
+    /// The frame these views were planned on.
+    pub fn based_on(&self) -> FrameId {
+        FrameId::new(self.based_on_epoch_ns, self.based_on_seq)
+    }
+}
+
 impl Wire for RankedViews {
     const KIND: MessageKind = MessageKind::RankedViews;
 
@@ -86,6 +95,7 @@ impl Wire for RankedViews {
                 based_on_seq: self.based_on_seq,
                 planning_time_ms: self.planning_time_ms,
                 planner_id: Some(planner),
+                based_on_epoch_ns: self.based_on_epoch_ns,
             },
         )
         .as_union_value()
@@ -101,6 +111,7 @@ impl Wire for RankedViews {
         Ok(RankedViews {
             views,
             based_on_seq: m.based_on_seq(),
+            based_on_epoch_ns: m.based_on_epoch_ns(),
             planning_time_ms: m.planning_time_ms(),
             planner_id: string_or_empty(m.planner_id()),
         })

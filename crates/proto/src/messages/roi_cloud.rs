@@ -4,7 +4,7 @@ use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 use nalgebra::{Isometry3, Point3};
 
 use super::convert::{content, payload, point3f, pose_from_fb, pose_to_fb, string_or_empty, vec3f};
-use crate::{fb, MessageKind, Result, Wire};
+use crate::{fb, FrameId, MessageKind, Result, Wire};
 
 /// ROI-labelled points in the world frame from one frame.
 #[derive(Clone, Debug, PartialEq)]
@@ -15,8 +15,17 @@ pub struct RoiCloud {
     /// The camera pose of the frame the points come from, so planners need not guess it.
     pub world_from_camera: Isometry3<f64>,
     pub source_frame_seq: u64,
+    /// The boot epoch of the trolley process that captured the frame.
+    pub source_frame_epoch_ns: u64,
     pub invalid_pixels: u32,
     pub detector_id: String,
+}
+
+impl RoiCloud {
+    /// The frame the points come from.
+    pub fn source_frame(&self) -> FrameId {
+        FrameId::new(self.source_frame_epoch_ns, self.source_frame_seq)
+    }
 }
 
 impl Wire for RoiCloud {
@@ -45,6 +54,7 @@ impl Wire for RoiCloud {
                 invalid_pixels: self.invalid_pixels,
                 detector_id: Some(detector),
                 world_from_camera: Some(&pose),
+                source_frame_epoch_ns: self.source_frame_epoch_ns,
             },
         )
         .as_union_value()
@@ -80,6 +90,7 @@ impl Wire for RoiCloud {
             sensor_origin_in_world: origin,
             world_from_camera,
             source_frame_seq: m.source_frame_seq(),
+            source_frame_epoch_ns: m.source_frame_epoch_ns(),
             invalid_pixels: m.invalid_pixels(),
             detector_id: string_or_empty(m.detector_id()),
         })

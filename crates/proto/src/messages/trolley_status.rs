@@ -24,6 +24,8 @@ pub struct TrolleyStatus {
     pub dropped_messages: u64,
     pub last_views_seq: u64,
     pub message: String,
+    /// RankedViews refused because they did not come from the planner owning the trolley.
+    pub refused_views: u64,
 }
 
 fn state_to_fb(state: TrolleyState) -> fb::TrolleyState {
@@ -63,6 +65,7 @@ impl Wire for TrolleyStatus {
                 dropped_messages: self.dropped_messages,
                 last_views_seq: self.last_views_seq,
                 message: Some(message),
+                refused_views: self.refused_views,
             },
         )
         .as_union_value()
@@ -79,6 +82,7 @@ impl Wire for TrolleyStatus {
             dropped_messages: m.dropped_messages(),
             last_views_seq: m.last_views_seq(),
             message: string_or_empty(m.message()),
+            refused_views: m.refused_views(),
         })
     }
 }

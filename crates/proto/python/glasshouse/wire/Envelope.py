@@ -90,8 +90,17 @@ class Envelope(object):
             return obj
         return None
 
+    # The writer's boot epoch: wall-clock ns (Unix epoch) when its process started. A restarted
+    # process starts its seq again under a new epoch; receivers order by (epoch_ns, seq).
+    # Envelope
+    def EpochNs(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def EnvelopeStart(builder: flatbuffers.Builder):
-    builder.StartObject(8)
+    builder.StartObject(9)
 
 def Start(builder: flatbuffers.Builder):
     EnvelopeStart(builder)
@@ -143,6 +152,12 @@ def EnvelopeAddPayload(builder: flatbuffers.Builder, payload: int):
 
 def AddPayload(builder: flatbuffers.Builder, payload: int):
     EnvelopeAddPayload(builder, payload)
+
+def EnvelopeAddEpochNs(builder: flatbuffers.Builder, epochNs: int):
+    builder.PrependUint64Slot(8, epochNs, 0)
+
+def AddEpochNs(builder: flatbuffers.Builder, epochNs: int):
+    EnvelopeAddEpochNs(builder, epochNs)
 
 def EnvelopeEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

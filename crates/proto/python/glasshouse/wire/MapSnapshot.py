@@ -114,8 +114,16 @@ class MapSnapshot(object):
             return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
         return 0
 
+    # The boot epoch of the trolley that captured frame based_on_seq.
+    # MapSnapshot
+    def BasedOnEpochNs(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def MapSnapshotStart(builder: flatbuffers.Builder):
-    builder.StartObject(6)
+    builder.StartObject(7)
 
 def Start(builder: flatbuffers.Builder):
     MapSnapshotStart(builder)
@@ -167,6 +175,12 @@ def MapSnapshotAddNextFruitId(builder: flatbuffers.Builder, nextFruitId: int):
 
 def AddNextFruitId(builder: flatbuffers.Builder, nextFruitId: int):
     MapSnapshotAddNextFruitId(builder, nextFruitId)
+
+def MapSnapshotAddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: int):
+    builder.PrependUint64Slot(6, basedOnEpochNs, 0)
+
+def AddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: int):
+    MapSnapshotAddBasedOnEpochNs(builder, basedOnEpochNs)
 
 def MapSnapshotEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

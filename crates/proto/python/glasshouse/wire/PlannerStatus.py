@@ -119,8 +119,16 @@ class PlannerStatus(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # RoiClouds refused: not from a live detector, or a frame id no honest trolley could send.
+    # PlannerStatus
+    def RefusedClouds(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def PlannerStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(9)
+    builder.StartObject(10)
 
 def Start(builder: flatbuffers.Builder):
     PlannerStatusStart(builder)
@@ -190,6 +198,12 @@ def PlannerStatusAddMapVoxels(builder: flatbuffers.Builder, mapVoxels: int):
 
 def AddMapVoxels(builder: flatbuffers.Builder, mapVoxels: int):
     PlannerStatusAddMapVoxels(builder, mapVoxels)
+
+def PlannerStatusAddRefusedClouds(builder: flatbuffers.Builder, refusedClouds: int):
+    builder.PrependUint64Slot(9, refusedClouds, 0)
+
+def AddRefusedClouds(builder: flatbuffers.Builder, refusedClouds: int):
+    PlannerStatusAddRefusedClouds(builder, refusedClouds)
 
 def PlannerStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -76,8 +76,16 @@ class RankedViews(object):
             return self._tab.String(o + self._tab.Pos)
         return None
 
+    # The boot epoch of the trolley that captured the frame: views answer (epoch, seq).
+    # RankedViews
+    def BasedOnEpochNs(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def RankedViewsStart(builder: flatbuffers.Builder):
-    builder.StartObject(4)
+    builder.StartObject(5)
 
 def Start(builder: flatbuffers.Builder):
     RankedViewsStart(builder)
@@ -111,6 +119,12 @@ def RankedViewsAddPlannerId(builder: flatbuffers.Builder, plannerId: int):
 
 def AddPlannerId(builder: flatbuffers.Builder, plannerId: int):
     RankedViewsAddPlannerId(builder, plannerId)
+
+def RankedViewsAddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: int):
+    builder.PrependUint64Slot(4, basedOnEpochNs, 0)
+
+def AddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: int):
+    RankedViewsAddBasedOnEpochNs(builder, basedOnEpochNs)
 
 def RankedViewsEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -126,8 +126,17 @@ class RoiCloud(object):
             return obj
         return None
 
+    # The boot epoch of the trolley process that captured the frame (its header's epoch_ns):
+    # frames are ordered by (source_frame_epoch_ns, source_frame_seq).
+    # RoiCloud
+    def SourceFrameEpochNs(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def RoiCloudStart(builder: flatbuffers.Builder):
-    builder.StartObject(7)
+    builder.StartObject(8)
 
 def Start(builder: flatbuffers.Builder):
     RoiCloudStart(builder)
@@ -185,6 +194,12 @@ def RoiCloudAddWorldFromCamera(builder: flatbuffers.Builder, worldFromCamera: An
 
 def AddWorldFromCamera(builder: flatbuffers.Builder, worldFromCamera: Any):
     RoiCloudAddWorldFromCamera(builder, worldFromCamera)
+
+def RoiCloudAddSourceFrameEpochNs(builder: flatbuffers.Builder, sourceFrameEpochNs: int):
+    builder.PrependUint64Slot(7, sourceFrameEpochNs, 0)
+
+def AddSourceFrameEpochNs(builder: flatbuffers.Builder, sourceFrameEpochNs: int):
+    RoiCloudAddSourceFrameEpochNs(builder, sourceFrameEpochNs)
 
 def RoiCloudEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

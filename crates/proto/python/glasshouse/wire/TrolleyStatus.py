@@ -86,8 +86,16 @@ class TrolleyStatus(object):
             return self._tab.String(o + self._tab.Pos)
         return None
 
+    # RankedViews refused because they did not come from the planner owning the trolley.
+    # TrolleyStatus
+    def RefusedViews(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def TrolleyStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(8)
+    builder.StartObject(9)
 
 def Start(builder: flatbuffers.Builder):
     TrolleyStatusStart(builder)
@@ -139,6 +147,12 @@ def TrolleyStatusAddMessage(builder: flatbuffers.Builder, message: int):
 
 def AddMessage(builder: flatbuffers.Builder, message: int):
     TrolleyStatusAddMessage(builder, message)
+
+def TrolleyStatusAddRefusedViews(builder: flatbuffers.Builder, refusedViews: int):
+    builder.PrependUint64Slot(8, refusedViews, 0)
+
+def AddRefusedViews(builder: flatbuffers.Builder, refusedViews: int):
+    TrolleyStatusAddRefusedViews(builder, refusedViews)
 
 def TrolleyStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

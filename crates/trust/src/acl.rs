@@ -147,6 +147,8 @@ fn trolley_grants(tid: &str) -> Vec<Grant> {
     let mut grants = publish(own(tid, &TROLLEY_WRITES), every(&TROLLEY_WRITES)).to_vec();
     grants.extend(subscribe(own(tid, &[TrolleyTopic::Views])));
     grants.extend(token(MemberKind::Trolley, tid));
+    // The edge ranks the planners itself to take views only from its trolley's owner.
+    grants.extend(watch(&[MemberKind::Planner]));
     grants
 }
 
@@ -173,7 +175,12 @@ fn planner_grants(pid: &str) -> Vec<Grant> {
     let mut grants = publish(writes, all).to_vec();
     grants.extend(subscribe(every(&PLANNER_READS)));
     grants.extend(token(MemberKind::Planner, pid));
-    grants.extend(watch(&[MemberKind::Planner, MemberKind::Trolley]));
+    // Clouds are taken only from live detectors.
+    grants.extend(watch(&[
+        MemberKind::Planner,
+        MemberKind::Trolley,
+        MemberKind::Detector,
+    ]));
     if let Ok(mine) = keys::planner_snapshots(pid) {
         let mine = vec![mine.as_str().to_owned()];
         // Its queryable: declared, queried, answered.
@@ -315,6 +322,9 @@ mod tests {
             - in declare_subscriber gh/trolley/*/views
             - out put gh/trolley/t2/views
             - in declare_subscriber gh/trolley/t1/roi
+            + in declare_liveliness_subscriber gh/alive/planner/*
+            + out liveliness_token gh/alive/planner/p1
+            - in declare_liveliness_subscriber gh/alive/detector/*
             + in liveliness_token gh/alive/trolley/t1
             - in liveliness_token gh/alive/trolley/t2
             - in liveliness_token gh/alive/planner/t1
@@ -376,6 +386,8 @@ mod tests {
             - out put gh/trolley/t3/rgbd
             + in liveliness_token gh/alive/planner/p1
             - in liveliness_token gh/alive/trolley/p1
+            + in declare_liveliness_subscriber gh/alive/detector/*
+            + out liveliness_token gh/alive/detector/d1
             ",
         );
         for (kind, sign) in [(P, "+"), (T, "-"), (D, "-"), (W, "-")] {

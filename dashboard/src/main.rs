@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex};
 
 use clap::Parser;
 use glasshouse_bus::set_flag;
-use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
+use glasshouse_dashboard::{DashboardSettings, FleetState, ServeSettings};
 
 /// Read-only monitor of the fleet: a web page with fleet, planner and fruit tables (JSON API at
 /// /api/fleet, /api/trolleys/{id}/fruits, /healthz), a Rerun recording and/or a live Rerun stream.
@@ -43,19 +43,13 @@ struct Cli {
 }
 
 fn main() -> anyhow::Result<()> {
-    glasshouse_bus::service_main(apply_flags, |session, settings, shutdown| {
+    glasshouse_bus::service_main(apply_flags, |session, settings, shutdown, counters| {
         if let Some(serve) = &settings.serve {
             println!("live 3D view: {}", serve.web_viewer_url());
             println!("Rerun viewer: rerun {}", serve.grpc_url());
         }
         let state = Arc::new(Mutex::new(FleetState::default()));
-        glasshouse_dashboard::run(
-            session,
-            settings,
-            shutdown,
-            state,
-            Arc::<DashboardCounters>::default(),
-        )
+        glasshouse_dashboard::run(session, settings, shutdown, state, counters)
     })
 }
 

@@ -1,10 +1,8 @@
 //! `detector-service`: RGB-D frames in, ROI point clouds out.
 
-use std::sync::Arc;
-
 use clap::Parser;
 use glasshouse_bus::set_flag;
-use glasshouse_detector::{DetectorCounters, DetectorSettings};
+use glasshouse_detector::DetectorSettings;
 
 /// Turns the RGB-D frames of every trolley into ROI-labelled world point clouds (HSI rule).
 ///
@@ -19,18 +17,10 @@ struct Cli {
 }
 
 fn main() -> anyhow::Result<()> {
-    glasshouse_bus::service_main(
-        |cli: Cli, s: &mut DetectorSettings| {
-            set_flag(&mut s.detector_id, cli.detector_id);
-            s.validate()
-        },
-        |session, settings, shutdown| {
-            glasshouse_detector::run(
-                session,
-                settings,
-                shutdown,
-                Arc::<DetectorCounters>::default(),
-            )
-        },
-    )
+    glasshouse_bus::service_main(apply_flags, glasshouse_detector::run)
+}
+
+fn apply_flags(cli: Cli, s: &mut DetectorSettings) -> anyhow::Result<()> {
+    set_flag(&mut s.detector_id, cli.detector_id);
+    s.validate()
 }

@@ -1,11 +1,10 @@
 //! `edge`: one trolley (simulated glasshouse source) on the Glasshouse bus.
 
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use clap::Parser;
 use glasshouse_bus::set_flag;
-use glasshouse_edge::{EdgeConfig, EdgeCounters};
+use glasshouse_edge::EdgeConfig;
 
 /// Streams RGB-D frames and arm state of one trolley and executes the views planners send.
 ///
@@ -64,14 +63,8 @@ struct Cli {
 }
 
 fn main() -> anyhow::Result<()> {
-    glasshouse_bus::service_main(apply_flags, |session, config, shutdown| {
-        glasshouse_edge::run(
-            session,
-            config,
-            shutdown,
-            None,
-            Arc::<EdgeCounters>::default(),
-        )
+    glasshouse_bus::service_main(apply_flags, |session, config, shutdown, counters| {
+        glasshouse_edge::run(session, config, shutdown, None, counters)
     })
 }
 

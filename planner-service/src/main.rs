@@ -1,10 +1,8 @@
 //! `planner-service`: ROI maps, next best views and fruit estimates for every trolley it hears.
 
-use std::sync::Arc;
-
 use clap::Parser;
 use glasshouse_bus::set_flag;
-use glasshouse_planner::{PlannerCounters, PlannerSettings};
+use glasshouse_planner::PlannerSettings;
 
 /// Integrates ROI clouds into a voxel map per trolley, publishes ranked next best views and
 /// fruit estimates.
@@ -27,20 +25,12 @@ struct Cli {
 }
 
 fn main() -> anyhow::Result<()> {
-    glasshouse_bus::service_main(
-        |cli: Cli, s: &mut PlannerSettings| {
-            set_flag(&mut s.planner_id, cli.planner_id);
-            set_flag(&mut s.planning.method, cli.method);
-            set_flag(&mut s.planning.seed, cli.seed);
-            s.validate()
-        },
-        |session, settings, shutdown| {
-            glasshouse_planner::run(
-                session,
-                settings,
-                shutdown,
-                Arc::<PlannerCounters>::default(),
-            )
-        },
-    )
+    glasshouse_bus::service_main(apply_flags, glasshouse_planner::run)
+}
+
+fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
+    set_flag(&mut s.planner_id, cli.planner_id);
+    set_flag(&mut s.planning.method, cli.method);
+    set_flag(&mut s.planning.seed, cli.seed);
+    s.validate()
 }

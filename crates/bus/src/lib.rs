@@ -784,14 +784,15 @@ pub struct ServiceArgs {
 /// The whole `main` of a service binary: logs to stderr, parses the binary's own flags `C`
 /// plus [`ServiceArgs`], builds the settings `S` (defaults, then `--config`, then `flags`,
 /// which applies the binary's flags and validates), and runs `service` on a multi-threaded
-/// runtime until Ctrl-C or SIGTERM.
-pub fn service_main<C, S, E, Fut>(
+/// runtime, with fresh counters `K`, until Ctrl-C or SIGTERM.
+pub fn service_main<C, S, K, E, Fut>(
     flags: impl FnOnce(C, &mut S) -> Result<(), E>,
-    service: impl FnOnce(Session, S, Shutdown) -> Fut,
+    service: impl FnOnce(Session, S, Shutdown, Arc<K>) -> Fut,
 ) -> Result<(), E>
 where
     C: clap::Parser,
     S: serde::de::DeserializeOwned + Default,
+    K: Default,
     E: From<BusError> + From<std::io::Error>,
     Fut: std::future::Future<Output = Result<(), E>>,
 {
@@ -821,7 +822,7 @@ where
         .enable_all()
         .build()?
         .block_on(run_service(&service_args.bus, |session, shutdown| {
-            service(session, settings, shutdown)
+            service(session, settings, shutdown, Arc::default())
         }))
 }
 

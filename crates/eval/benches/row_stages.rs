@@ -2,10 +2,9 @@
 //! simulated minutes with the planner's compute measured; every minute it prints the planner's
 //! mean compute per frame over that minute (integrate, cluster, track and plan; the fits are
 //! made when the fruits are published), the fruits refitted per frame, and, timed on the map
-//! held then,
-//! ROI clustering over the whole map, fitting every fruit afresh, and one plan. A stage whose
-//! time grows from minute 1 to the end works over the whole row rather than what the scan
-//! changed. `cargo bench -p glasshouse-eval --bench row_stages [-- MINUTES]` (default 10).
+//! held then, ROI clustering over the whole map, fitting every fruit afresh, and one plan. A
+//! stage whose time grows from minute 1 to the end works over the whole row rather than what
+//! the scan changed. `cargo bench -p glasshouse-eval --bench row_stages [-- MINUTES]` (default 10).
 
 use std::time::Instant;
 

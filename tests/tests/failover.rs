@@ -195,33 +195,42 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     );
 
     edge.terminate();
+    // The detector may still publish a cloud of the edge's last frame after the edge is gone,
+    // and the observer may get it after the survivor: compare the survivor's snapshot with the
+    // clouds observed once both are at the same last frame.
     let mut clouds = Vec::new();
-    while let Some(received) = clouds_sub.try_recv() {
-        clouds.push(received.message);
-    }
-    let last = clouds
+    let key = keys::planner_snapshot(&replica, "t1").expect("key");
+    let survivor = within(
+        60,
+        "the survivor's snapshot at the last observed cloud",
+        async {
+            loop {
+                while let Some(received) = clouds_sub.try_recv() {
+                    clouds.push(received.message);
+                }
+                let last = clouds.iter().map(RoiCloud::source_frame).max();
+                match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
+                    Ok((_, s)) => {
+                        let at = FrameId::new(s.based_on_epoch_ns, s.based_on_seq);
+                        if Some(at) == last {
+                            return RoiMap::read_snapshot(s.map.as_slice())
+                                .expect("snapshot decodes");
+                        }
+                        eprintln!("survivor at {at:?}, last cloud observed {last:?}");
+                    }
+                    Err(e) => eprintln!("no snapshot yet: {e}"),
+                }
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        },
+    )
+    .await;
+    let last_seq = clouds
         .iter()
-        .map(RoiCloud::source_frame)
+        .map(|c| c.source_frame().seq)
         .max()
         .expect("clouds");
-    let last_seq = last.seq;
     let expected = rebuild(&clouds);
-
-    // The survivor has integrated the last cloud once its snapshot says so.
-    let key = keys::planner_snapshot(&replica, "t1").expect("key");
-    let survivor = within(60, "the survivor's snapshot at the last cloud", async {
-        loop {
-            match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
-                Ok((_, s)) if FrameId::new(s.based_on_epoch_ns, s.based_on_seq) >= last => {
-                    return RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
-                }
-                Ok((_, s)) => eprintln!("survivor at seq {} of {last_seq}", s.based_on_seq),
-                Err(e) => eprintln!("no snapshot yet: {e}"),
-            }
-            tokio::time::sleep(Duration::from_millis(200)).await;
-        }
-    })
-    .await;
     eprintln!(
         "{} clouds (last seq {last_seq}), survivor map {} voxels",
         clouds.len(),

@@ -11,6 +11,8 @@
 //! The schema lives in `schema/glasshouse.fbs`; `scripts/gen-proto` regenerates `src/generated/`
 //! (Rust) and `python/` (Python) with flatc 25.12.19, and CI fails if they drift.
 
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod keys;
 mod messages;
 pub mod pixels;

@@ -264,3 +264,21 @@ fn a_compressed_plane_of_another_size_is_a_content_error() {
     assert!(matches!(err, ProtoError::Content { .. }), "{err}");
     assert!(err.to_string().contains("depth: zstd"), "{err}");
 }
+
+#[test]
+fn a_pose_with_huge_quaternion_components_reads_as_a_unit_rotation() {
+    // Found by fuzzing (fuzz/corpus/proto_*/crash-*): the norm of such a quaternion overflows
+    // to infinity, and normalising by it gave a zero rotation that the decoder then returned.
+    let mut cloud = samples::roi_cloud();
+    let huge = nalgebra::Quaternion::new(1e300, -1e300, 0.0, 1e-300);
+    cloud.world_from_camera.rotation = nalgebra::UnitQuaternion::new_unchecked(huge);
+    let bytes = encode(&samples::header(1), &cloud);
+    let (h, back) = decode_typed::<RoiCloud>(&bytes).expect("decodes");
+    let q = back.world_from_camera.rotation.quaternion();
+    assert!((q.norm() - 1.0).abs() < 1e-12, "{q:?}");
+    assert!(
+        (q.w - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-12,
+        "{q:?}"
+    );
+    decode_typed::<RoiCloud>(&encode(&h, &back)).expect("the decoded pose encodes and decodes");
+}

@@ -38,6 +38,8 @@
 
 mod batch;
 mod derived;
+#[doc(hidden)]
+pub mod fuzzing;
 mod grid;
 mod insert;
 pub mod ply;

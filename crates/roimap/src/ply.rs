@@ -199,7 +199,8 @@ pub fn read_cloud(r: impl Read) -> Result<PlyCloud, PlyError> {
             "list property in the vertex element".into(),
         ));
     }
-    let mut points = Vec::with_capacity(vertex.count.min(1 << 24));
+    // The count is the header's claim: reserve for at most 64k points, the rest as they arrive.
+    let mut points = Vec::with_capacity(vertex.count.min(1 << 16));
     if binary {
         // Skip earlier elements (fixed-size only).
         for e in &elements[..vertex_at] {
@@ -215,10 +216,14 @@ pub fn read_cloud(r: impl Read) -> Result<PlyCloud, PlyError> {
                     }
                 }
             }
-            let mut skip = vec![0u8; size];
-            for _ in 0..e.count {
-                r.read_exact(&mut skip)
-                    .map_err(|_| PlyError::Truncated(format!("element `{}`", e.name)))?;
+            // Skipped as one byte count, not element by element: an element without properties
+            // and a huge count would otherwise loop on empty reads for as long as it says.
+            let bytes = (size as u64)
+                .checked_mul(e.count as u64)
+                .ok_or_else(|| PlyError::BadHeader(format!("element `{}` is too large", e.name)))?;
+            let skipped = std::io::copy(&mut (&mut r).take(bytes), &mut std::io::sink())?;
+            if skipped < bytes {
+                return Err(PlyError::Truncated(format!("element `{}`", e.name)));
             }
         }
         let offsets: Vec<(usize, Scalar)> = {
@@ -331,5 +336,51 @@ impl RoiMap {
             }
         }
         w.write_all(&out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const XYZ: &str = "property float x\nproperty float y\nproperty float z\n";
+
+    fn binary(elements_before: &str, vertices: usize, data: &[u8]) -> Vec<u8> {
+        let mut file = format!(
+            "ply\nformat binary_little_endian 1.0\n{elements_before}element vertex {vertices}\n{XYZ}end_header\n"
+        )
+        .into_bytes();
+        file.extend_from_slice(data);
+        file
+    }
+
+    #[test]
+    fn an_element_without_properties_and_a_huge_count_is_skipped_at_once() {
+        let point: Vec<u8> = [1.0f32, 2.0, 3.0]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let file = binary(&format!("element empty {}\n", u64::MAX), 1, &point);
+        let cloud = read_cloud(file.as_slice()).expect("reads");
+        assert_eq!(cloud.points, vec![Point3::new(1.0, 2.0, 3.0)]);
+    }
+
+    #[test]
+    fn elements_larger_than_the_file_are_errors() {
+        let file = binary("element face 1000\nproperty int a\n", 1, &[0; 12]);
+        assert!(matches!(
+            read_cloud(file.as_slice()),
+            Err(PlyError::Truncated(_))
+        ));
+        let huge = format!("element face {}\nproperty double a\n", u64::MAX);
+        assert!(matches!(
+            read_cloud(binary(&huge, 1, &[0; 12]).as_slice()),
+            Err(PlyError::BadHeader(_))
+        ));
+        let many = binary("", usize::MAX, &[0; 12]);
+        assert!(matches!(
+            read_cloud(many.as_slice()),
+            Err(PlyError::Truncated(_))
+        ));
     }
 }

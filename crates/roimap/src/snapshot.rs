@@ -32,8 +32,8 @@ use crate::{ChangeLog, MapConfig, MapError, RoiMap, VoxelKey};
 const MAGIC: &[u8; 4] = b"GHRM";
 /// Current format version.
 pub const FORMAT_VERSION: u16 = 2;
-const KIND_SNAPSHOT: u16 = 0;
-const HEADER_BYTES: usize = 16;
+pub(crate) const KIND_SNAPSHOT: u16 = 0;
+pub(crate) const HEADER_BYTES: usize = 16;
 
 /// Errors reading or writing snapshots and deltas.
 #[derive(thiserror::Error, Debug)]
@@ -97,7 +97,7 @@ fn kind_name(kind: u16) -> &'static str {
     }
 }
 
-fn frame(kind: u16, body: &[u8], w: &mut impl Write) -> Result<(), SnapshotError> {
+pub(crate) fn frame(kind: u16, body: &[u8], w: &mut impl Write) -> Result<(), SnapshotError> {
     let mut out = Vec::with_capacity(HEADER_BYTES + body.len() + 4);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
@@ -443,7 +443,7 @@ impl RoiMap {
 }
 
 /// Decompresses a verified body, refusing a stated size no LZ4 block could expand to.
-fn unpack(packed: &[u8]) -> Result<Vec<u8>, SnapshotError> {
+pub(crate) fn unpack(packed: &[u8]) -> Result<Vec<u8>, SnapshotError> {
     let corrupt = |m: &str| SnapshotError::Corrupt(m.into());
     let size = packed
         .get(..4)

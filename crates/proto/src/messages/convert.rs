@@ -133,6 +133,8 @@ fn unit_rotation(q: Quaternion<f64>) -> UnitQuaternion<f64> {
     if (q.norm_squared() - 1.0).abs() <= 4.0 * f64::EPSILON {
         UnitQuaternion::new_unchecked(q)
     } else {
-        UnitQuaternion::from_quaternion(q)
+        // Scaled by its largest component first: squaring components near f64::MAX overflows
+        // the norm to infinity, and dividing by it would leave a zero quaternion.
+        UnitQuaternion::from_quaternion(q / q.coords.amax())
     }
 }

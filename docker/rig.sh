@@ -1,17 +1,20 @@
 #!/usr/bin/env bash
 # The Glasshouse compose rig: router, 2 detectors, 3 planners, 4 simulated trolleys, dashboard.
 #
-#   docker/rig.sh up     build the release binaries, stage stripped copies, make sure a local base
+#   docker/rig.sh up     build the release binaries, stage stripped copies, make the deployment's
+#                        PKI (once) and stage one identity per container, make sure a local base
 #                        image exists (debootstrap when debian:bookworm-slim is absent and cannot
-#                        be pulled), build the image, start the rig
-#   docker/rig.sh test   start the rig if needed, wait until every trolley has fruit, kill the
-#                        planner that owns a trolley, check every trolley keeps getting views and
-#                        keeps its fruit, restart that planner and check it rejoins
+#                        be pulled), build the image, start the rig over mutual TLS + ACL
+#   docker/rig.sh test   start the rig if needed, wait until every trolley has fruit, run a rogue
+#                        container that must get every attempt refused, kill the planner that
+#                        owns a trolley, check every trolley keeps getting views and keeps its
+#                        fruit, restart that planner and check it rejoins
 #   docker/rig.sh down   stop and remove the rig's containers and network (images are kept)
 #   docker/rig.sh logs [SERVICE...]   the last 50 log lines of the rig (or of some services)
 #
 # Environment (all optional):
 #   GH_SKIP_BUILD=1        up: do not run cargo; stage what target/release already has
+#   GH_NEW_PKI=1           up: make a new PKI even if docker/.stage/pki exists
 #   GH_CARGO_JOBS=N        up: cargo build -j N (default: cargo's own)
 #   GH_DEBIAN_MIRROR=URL   debootstrap mirror (default http://deb.debian.org/debian)
 #   BASE_IMAGE=IMAGE       use this local base image instead of looking for one
@@ -28,6 +31,17 @@ REPO="$(cd "$DOCKER_DIR/.." && pwd)"
 COMPOSE_FILE="$DOCKER_DIR/compose.yaml"
 PROJECT=glasshouse
 STAGE="$DOCKER_DIR/.stage"
+PKI="$STAGE/pki"
+export GH_IDENTITIES="$STAGE/identities"
+# Where each container reads its identity (the configs name the files there).
+PKI_IN_CONTAINER=/etc/glasshouse/pki
+# The containers' user (Dockerfile): the owner of the staged identities, whose keys are 0600.
+RIG_UID=10001
+# The roster: compose.yaml's services, plus the rogue container's observer (read-only).
+ROSTER_ARGS=(--trolleys t1,t2,t3,t4 --planners p1,p2,p3 --detectors d1,d2 --dashboards web1,probe
+    --router-hosts router,localhost --router-endpoint tls/router:7447)
+# The rogue container: a valid trolley identity (t2) acting on t1's keys, watched by dashboard-probe.
+ROGUE_IDENTITIES=(trolley-t2 dashboard-probe)
 BINS=(glasshouse edge detector-service planner-service dashboard)
 SLIM_IMAGE=debian:bookworm-slim
 CACHED_BASE=glasshouse-base:bookworm
@@ -105,6 +119,45 @@ stage_binaries() {
     log "staged stripped binaries: $(du -sh "$STAGE/bin" | cut -f1) in docker/.stage/bin"
 }
 
+# The deployment's PKI (CA, router, one identity per process, router.json5 with the ACL), made
+# once with `glasshouse secure init`; ca.key stays in docker/.stage/pki, never in a container.
+make_pki() {
+    if [[ -f "$PKI/ca.key" && "${GH_NEW_PKI:-0}" != 1 ]]; then
+        log "PKI: docker/.stage/pki exists (GH_NEW_PKI=1 makes a new one)"
+        return
+    fi
+    as_root rm -rf "$PKI"
+    "$STAGE/bin/glasshouse" secure init --out "$PKI" "${ROSTER_ARGS[@]}" \
+        --install-dir "$PKI_IN_CONTAINER" >/dev/null || fail "secure init failed"
+    log "PKI: made docker/.stage/pki (glasshouse secure init ${ROSTER_ARGS[*]})"
+}
+
+# stage_identity DIR NAME...: the CA certificate and each NAME's key, certificate and config.
+stage_identity() {
+    local dir="$1" name
+    shift
+    mkdir -p "$dir"
+    cp "$PKI/ca.pem" "$dir/"
+    for name in "$@"; do
+        cp "$PKI/$name.key" "$PKI/$name.pem" "$PKI/$name.json5" "$dir/" ||
+            fail "the PKI has no identity $name (GH_NEW_PKI=1 makes a new one)"
+    done
+}
+
+# docker/.stage/identities/<name>/: what one container mounts, owned by the containers' user.
+stage_identities() {
+    local ids=() f name
+    as_root rm -rf "$GH_IDENTITIES"
+    for f in "$PKI"/*.json5; do
+        name="$(basename "$f" .json5)"
+        [[ "$name" == roster ]] || ids+=("$name")
+    done
+    for name in "${ids[@]}"; do stage_identity "$GH_IDENTITIES/$name" "$name"; done
+    stage_identity "$GH_IDENTITIES/rogue" "${ROGUE_IDENTITIES[@]}"
+    as_root chown -R "$RIG_UID:$RIG_UID" "$GH_IDENTITIES"
+    log "identities staged: ${ids[*]} (+ rogue: ${ROGUE_IDENTITIES[*]})"
+}
+
 as_root() {
     if [[ $EUID -eq 0 ]]; then "$@"; else sudo "$@"; fi
 }
@@ -157,6 +210,8 @@ ensure_base_image() {
 cmd_up() {
     build_binaries
     stage_binaries
+    make_pki
+    stage_identities
     ensure_base_image
     local t0=$SECONDS
     # Plain `docker build` (what compose.yaml's router `build:` section describes): it works with
@@ -296,6 +351,44 @@ owner_of() {
 }
 
 # ---------------------------------------------------------------------------------------------
+# run_rogue TID...: `glasshouse secure probe` in a container of its own on the rig's network, as
+# trolley-t2 acting on t1's keys (and without a certificate, and with another CA's), watched by
+# dashboard-probe. Fails unless every attempt is refused and every trolley still gets views.
+ROGUE_LINE=""
+run_rogue() {
+    local tids=("$@") network out t0=$SECONDS tid
+    network="$(docker inspect -f '{{range $k, $v := .NetworkSettings.Networks}}{{$k}} {{end}}' \
+        "$(cid_of router)" | awk '{print $1}')"
+    [[ -n "$network" ]] || fail "cannot tell the rig's network" router
+    load_fleet || fail "the dashboard API does not answer" dashboard
+    declare -A views_before=()
+    for tid in "${tids[@]}"; do views_before[$tid]="${T_VIEWS[$tid]:-0}"; done
+    log "rogue: glasshouse secure probe on network $network as trolley-t2 against t1"
+    if ! out="$(docker run --rm --network "$network" --init \
+        -v "$GH_IDENTITIES/rogue:$PKI_IN_CONTAINER:ro" "$RIG_IMAGE" \
+        glasshouse secure probe --rogue "$PKI_IN_CONTAINER/trolley-t2.json5" \
+        --observer "$PKI_IN_CONTAINER/dashboard-probe.json5" --victim t1 --planners p1,p2,p3 2>&1)"; then
+        printf '%s\n' "$out" >&2
+        fail "the rogue container was not refused everything (or could not judge)" router
+    fi
+    printf '%s\n' "$out" | sed 's/^/    /' >&2
+    ROGUE_LINE="$(printf '%s\n' "$out" | tail -n1) in $((SECONDS - t0)) s"
+    # The legitimate fleet keeps running: every trolley gets new views after the probe.
+    local pending=("${tids[@]}") still t1=$SECONDS
+    while ((${#pending[@]} > 0)); do
+        ((SECONDS - t1 < FAILOVER_TIMEOUT)) ||
+            fail "after the rogue, no new views within ${FAILOVER_TIMEOUT} s for: ${pending[*]}" dashboard
+        sleep 1
+        load_fleet || continue
+        still=()
+        for tid in "${pending[@]}"; do
+            [[ "${T_VIEWS[$tid]:-0}" -gt "${views_before[$tid]}" || "${T_STATE[$tid]:-}" == Done ]] ||
+                still+=("$tid")
+        done
+        pending=("${still[@]}")
+    done
+    log "rogue: $ROGUE_LINE; every trolley got new views after it"
+}
 
 cmd_test() {
     local t_test=$SECONDS
@@ -351,7 +444,10 @@ cmd_test() {
     log "every trolley has fruit after ${t_fruits} s: $FLEET_LINE"
     log "planners: $PLANNER_LINE"
 
-    # 2. Kill the planner that owns the victim trolley; every trolley must keep getting views.
+    # 2. A rogue container on the rig's network: every attempt must be refused, the fleet goes on.
+    run_rogue "${tids[@]}"
+
+    # 3. Kill the planner that owns the victim trolley; every trolley must keep getting views.
     local victim="${GH_VICTIM_TROLLEY:-${tids[0]}}"
     [[ -n "${TROLLEY_SVC[$victim]:-}" ]] || fail "GH_VICTIM_TROLLEY=$victim is not a trolley of the rig"
     live_planners
@@ -428,7 +524,7 @@ cmd_test() {
     log "  planners: $PLANNER_LINE"
     running "$pcid" && log "  note: docker restarted $psvc by itself (restart policy)"
 
-    # 3. Restart the killed planner. It has rejoined when the dashboard gets a new PlannerStatus
+    # 4. Restart the killed planner. It has rejoined when the dashboard gets a new PlannerStatus
     #    from it: the dashboard keeps a dead planner's last row, so wait for that row to change.
     local frozen="${P_ROW[$owner]:-}"
     docker start "$pcid" >/dev/null
@@ -467,6 +563,7 @@ cmd_test() {
     echo "rig test PASSED (${DC[*]}, project $PROJECT)"
     printf '  %-34s %s\n' \
         "every trolley had fruit after" "${t_fruits} s (${#tids[@]} trolleys; limit ${FRUIT_TIMEOUT} s)" \
+        "rogue container (mTLS + ACL)" "$ROGUE_LINE" \
         "killed planner" "$owner ($psvc), owner of $victim via $how" \
         "every trolley had a new view after" "${t_failover} s (limit ${FAILOVER_TIMEOUT} s)" \
         "takeover (views)" "${takeover:-not observed}" \

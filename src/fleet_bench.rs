@@ -60,6 +60,11 @@ pub struct FleetBenchArgs {
     /// (seconds) passes in wall-clock time, as on a real trolley.
     #[arg(long)]
     pub realtime: bool,
+    /// Run the fleet secured: a fresh PKI in the logs folder, every process its own identity
+    /// over mutual TLS, the router with the generated ACL (what `glasshouse secure` deploys), to
+    /// measure what TLS and the ACL cost against a plain run.
+    #[arg(long)]
+    pub secure: bool,
 }
 
 /// One process of the fleet.
@@ -177,6 +182,9 @@ struct Report {
     planners: u32,
     detectors: u32,
     scenario: String,
+    /// "mtls+acl" (`--secure`) or "tcp".
+    transport: &'static str,
+    realtime: bool,
     width: u32,
     fps_per_trolley_max: f64,
     measured_s: f64,
@@ -225,7 +233,7 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
 
     let mut fleet = Fleet::new(&args)?;
     fleet.spawn_router()?;
-    let observer = glasshouse_bus::open(&BusArgs::client(&fleet.endpoint)).await?;
+    let observer = glasshouse_bus::open(&fleet.session_of(BENCH_OBSERVER)).await?;
     let observed = Arc::new(Mutex::new(Observed::default()));
     let subscriber = subscribe_observer(&observer, observed.clone()).await?;
     fleet.spawn_services(&args).await?;
@@ -282,10 +290,15 @@ fn validate(args: &FleetBenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The observer's identity in a secured bench (a dashboard: it reads everything).
+const BENCH_OBSERVER: &str = "dashboard-bench";
+
 /// The fleet's processes, the router they all reach and the folder of their logs.
 struct Fleet {
     procs: Vec<Proc>,
     endpoint: String,
+    /// A secured fleet's PKI (`--secure`): every process connects with its own config.
+    pki: Option<glasshouse_trust::Layout>,
     lease: String,
     logs: PathBuf,
     /// The logs folder is temporary (no `--logs`): removed at the end.
@@ -299,23 +312,51 @@ impl Fleet {
             std::env::temp_dir().join(format!("glasshouse-fleet-bench-{}", std::process::id()))
         });
         std::fs::create_dir_all(&logs).with_context(|| format!("log folder {}", logs.display()))?;
+        let port = free_port()?;
+        let (endpoint, pki) = if args.secure {
+            let endpoint = format!("tls/127.0.0.1:{port}");
+            let pki = secured_fleet_pki(args, &endpoint, &logs.join("pki"))?;
+            (endpoint, Some(pki))
+        } else {
+            (format!("tcp/127.0.0.1:{port}"), None)
+        };
         Ok(Fleet {
             procs: Vec::new(),
-            endpoint: format!("tcp/127.0.0.1:{}", free_port()?),
+            endpoint,
+            pki,
             lease: args.lease_ms.to_string(),
             logs,
             temp_logs,
         })
     }
 
+    /// How `name` (`router`, `<kind>-<id>`) opens its session: its own config when secured.
+    fn session_of(&self, name: &str) -> BusArgs {
+        match &self.pki {
+            Some(pki) => BusArgs {
+                zenoh_config: Some(pki.config(name)),
+                ..BusArgs::default()
+            },
+            None => BusArgs::client(&self.endpoint),
+        }
+    }
+
+    /// `--zenoh-config FILE` of `name` in a secured fleet, nothing in a plain one.
+    fn config_flags(&self, name: &str) -> Vec<String> {
+        self.pki.as_ref().map_or_else(Vec::new, |pki| {
+            vec![
+                "--zenoh-config".into(),
+                pki.config(name).to_string_lossy().into_owned(),
+            ]
+        })
+    }
+
     fn spawn_router(&mut self) -> anyhow::Result<()> {
-        let args = [
-            "router".into(),
-            "-l".into(),
-            self.endpoint.clone(),
-            "--lease-ms".into(),
-            self.lease.clone(),
-        ];
+        let mut args = vec!["router".into()];
+        args.extend(self.config_flags(glasshouse_trust::ROUTER));
+        // Loopback only, whatever the config file's listener says.
+        args.extend(["-l".into(), self.endpoint.clone()]);
+        args.extend(["--lease-ms".into(), self.lease.clone()]);
         let router = spawn(
             "router",
             "router".into(),
@@ -346,6 +387,9 @@ impl Fleet {
         .iter()
         .map(|s| s.to_string())
         .collect();
+        // The edge process is a trolley's identity.
+        let role = if kind == "edge" { "trolley" } else { kind };
+        a.extend(self.config_flags(&format!("{role}-{name}")));
         a.extend_from_slice(extra);
         let proc = spawn(kind, name, &sibling(bin)?, &a, &self.logs)?;
         self.procs.push(proc);
@@ -411,31 +455,66 @@ impl Fleet {
     }
 }
 
+/// A PKI for the bench's fleet (trolleys t1..tN, planners, detectors, the observer) in `dir`.
+fn secured_fleet_pki(
+    args: &FleetBenchArgs,
+    endpoint: &str,
+    dir: &Path,
+) -> anyhow::Result<glasshouse_trust::Layout> {
+    let ids = |prefix: &str, n: u32| (1..=n).map(|i| format!("{prefix}{i}")).collect();
+    let roster = glasshouse_trust::Roster {
+        trolleys: ids("t", args.trolleys),
+        planners: ids("p", args.planners),
+        detectors: ids("d", args.detectors),
+        dashboards: vec![BENCH_OBSERVER.trim_start_matches("dashboard-").into()],
+        router_endpoint: endpoint.to_owned(),
+        ..glasshouse_trust::Roster::default()
+    };
+    roster.validate()?;
+    let _ = std::fs::remove_dir_all(dir);
+    crate::secure::create(dir, &roster, 1)
+}
+
 /// Records every message on the bus into `observed`, stamped with its arrival.
 async fn subscribe_observer(
     observer: &glasshouse_bus::zenoh::Session,
     observed: Arc<Mutex<Observed>>,
-) -> anyhow::Result<glasshouse_bus::zenoh::pubsub::Subscriber<()>> {
-    observer
-        .declare_subscriber(keys::EVERYTHING)
-        .callback(move |sample| {
-            let now = Instant::now();
-            let Some(key) = keys::parse(sample.key_expr().as_str()) else {
-                return;
-            };
-            let Some(kind) = key.message_kind() else {
-                return;
-            };
-            let bytes = sample.payload().to_bytes();
-            let Ok(mut o) = observed.lock() else { return };
-            let Ok((header, message)) = decode_as(&bytes, kind) else {
-                o.corrupt += 1;
-                return;
-            };
-            o.record(&key, &header, message, now);
-        })
-        .await
-        .map_err(|e| anyhow::anyhow!("observer subscriber: {e}"))
+) -> anyhow::Result<Vec<glasshouse_bus::zenoh::pubsub::Subscriber<()>>> {
+    // One subscriber per key a dashboard may read: a secured router's ACL refuses `gh/**`.
+    let mut reads: Vec<String> = TrolleyTopic::ALL
+        .iter()
+        .map(|&t| keys::all_trolleys(t))
+        .collect();
+    reads.push(keys::all_planner_status().as_str().to_owned());
+    reads.push(keys::all_detector_status().as_str().to_owned());
+    let mut subscribers = Vec::new();
+    for key in reads {
+        let observed = observed.clone();
+        let subscriber = observer
+            .declare_subscriber(key)
+            .callback(move |sample| record_sample(&observed, &sample))
+            .await
+            .map_err(|e| anyhow::anyhow!("observer subscription: {e}"))?;
+        subscribers.push(subscriber);
+    }
+    Ok(subscribers)
+}
+
+fn record_sample(observed: &Mutex<Observed>, sample: &glasshouse_bus::zenoh::sample::Sample) {
+    let now = Instant::now();
+    let Some(key) = keys::parse(sample.key_expr().as_str()) else {
+        return;
+    };
+    let Some(kind) = key.message_kind() else {
+        return;
+    };
+    let bytes = sample.payload().to_bytes();
+    let Ok(mut o) = observed.lock() else { return };
+    let Ok((header, message)) = decode_as(&bytes, kind) else {
+        o.corrupt += 1;
+        return;
+    };
+    o.record(&key, &header, message, now);
 }
 
 impl Observed {
@@ -684,6 +763,8 @@ fn build_report(
         planners: args.planners,
         detectors: args.detectors,
         scenario: args.scenario.clone(),
+        transport: if args.secure { "mtls+acl" } else { "tcp" },
+        realtime: args.realtime,
         width: args.width,
         fps_per_trolley_max: args.fps,
         measured_s: elapsed_s,
@@ -707,8 +788,16 @@ fn ms(v: Option<f64>) -> String {
 
 fn print_report(r: &Report) {
     println!(
-        "fleet-bench: {} trolleys ({} scenario, {} px wide, at most {} frames/s each), {} planners, {} detectors, {:.0} s measured",
-        r.trolleys, r.scenario, r.width, r.fps_per_trolley_max, r.planners, r.detectors, r.measured_s
+        "fleet-bench: {} trolleys ({} scenario, {} px wide, at most {} frames/s each{}), {} planners, {} detectors, {:.0} s measured over {}",
+        r.trolleys,
+        r.scenario,
+        r.width,
+        r.fps_per_trolley_max,
+        if r.realtime { ", real-time arms" } else { "" },
+        r.planners,
+        r.detectors,
+        r.measured_s,
+        r.transport
     );
     println!(
         "  frames per second per trolley   {:.2}",

@@ -5,6 +5,7 @@ mod dashboard_bench;
 mod demo;
 mod eval;
 mod fleet_bench;
+mod probe;
 mod render;
 mod secure;
 
@@ -62,7 +63,7 @@ async fn main() -> anyhow::Result<()> {
         Command::BenchMap(args) => bench_map::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Render(args) => render::run(args),
-        Command::Secure(args) => secure::run(args),
+        Command::Secure(args) => secure::run(args).await,
         Command::Router { bus } => {
             let config = glasshouse_bus::router_config(&bus, DEFAULT_ROUTER_LISTEN)?;
             let listen = config.get_json("listen/endpoints").unwrap_or_default();

@@ -28,6 +28,11 @@ enum SecureCommand {
     /// Add one identity to an existing PKI, signed by its CA, and regenerate router.json5's ACL
     /// (restart the router to apply it).
     Issue(IssueArgs),
+    /// Try, from outside, what the deployment must refuse: connecting without a certificate or
+    /// with another CA's, and a trolley identity writing another trolley's keys, views and ROI
+    /// clouds, posing as a planner or detector, or asking for map snapshots. Prints each attempt;
+    /// exits non-zero when any got through.
+    Probe(crate::probe::ProbeArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -59,6 +64,10 @@ struct InitArgs {
     /// on tls/0.0.0.0:PORT [default: tls/127.0.0.1:7447, or the roster's].
     #[arg(long, value_name = "ENDPOINT")]
     router_endpoint: Option<String>,
+    /// Absolute directory where the processes will read these files, when not --out (e.g. a
+    /// volume mounted at /etc/glasshouse/pki): the configs name the files there.
+    #[arg(long, value_name = "DIR")]
+    install_dir: Option<String>,
     #[command(flatten)]
     validity: Validity,
 }
@@ -114,10 +123,11 @@ struct Validity {
     valid_days: u32,
 }
 
-pub fn run(args: SecureArgs) -> anyhow::Result<()> {
+pub async fn run(args: SecureArgs) -> anyhow::Result<()> {
     match args.command {
         SecureCommand::Init(args) => init(args),
         SecureCommand::Issue(args) => issue(args),
+        SecureCommand::Probe(args) => crate::probe::run(args).await,
     }
 }
 
@@ -142,6 +152,9 @@ fn roster_from(args: &InitArgs) -> anyhow::Result<Roster> {
     }
     if let Some(endpoint) = &args.router_endpoint {
         roster.router_endpoint = endpoint.clone();
+    }
+    if let Some(dir) = &args.install_dir {
+        roster.install_dir = Some(dir.clone());
     }
     roster.validate()?;
     if roster.identities().is_empty() {
@@ -282,7 +295,7 @@ fn write_identity(
         validity,
     )?;
     write_signed(layout, &name, params, ca)?;
-    let config = client_config(roster, identity, layout);
+    let config = client_config(roster, identity, &roster.installed(layout));
     write_file(
         &layout.config(&name),
         &config_text(&format!("Zenoh client config of {name}"), &config),
@@ -291,7 +304,7 @@ fn write_identity(
 
 fn write_roster_and_router(layout: &Layout, roster: &Roster) -> anyhow::Result<()> {
     write_file(&layout.roster(), &roster.to_text())?;
-    let config = router_config(roster, layout)?;
+    let config = router_config(roster, &roster.installed(layout))?;
     write_file(
         &layout.config(ROUTER),
         &config_text("Zenoh config of the router: mTLS listener and ACL", &config),

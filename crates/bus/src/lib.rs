@@ -18,6 +18,7 @@
 //! `glasshouse-proto`; a payload that fails is counted in [`DropCounters`] and skipped.
 
 mod config;
+pub mod probe;
 mod queue;
 
 pub use config::{router_config, zenoh_config};

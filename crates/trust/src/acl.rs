@@ -210,7 +210,14 @@ fn dashboard_grants() -> Vec<Grant> {
     reads.push(keys::all_planner_status().as_str().to_owned());
     reads.push(keys::all_detector_status().as_str().to_owned());
     reads.push(FLEET_FRUITS.to_owned());
-    subscribe(reads).to_vec()
+    let mut grants = subscribe(reads).to_vec();
+    // Who is live: the fleet page's membership, and what `secure probe` watches for fake tokens.
+    grants.extend(watch(&[
+        MemberKind::Planner,
+        MemberKind::Trolley,
+        MemberKind::Detector,
+    ]));
+    grants
 }
 
 /// Everything `identity` may do; anything else is denied.
@@ -410,11 +417,12 @@ mod tests {
         ];
         for key in every_key {
             for message in AclMessage::ALL {
-                let subscribing = message == DeclareSubscriber && !key.contains("snapshot");
                 let alive = key.starts_with("gh/alive");
+                let subscribing = message == DeclareSubscriber && !key.contains("snapshot");
+                let watching = message == DeclareLivelinessSubscriber;
                 assert_eq!(
                     may(W, "web1", Ingress, message, key),
-                    subscribing && !alive,
+                    if alive { watching } else { subscribing },
                     "{message:?} {key}"
                 );
             }
@@ -427,6 +435,13 @@ mod tests {
             "gh/trolley/*/rgbd"
         ));
         assert!(may(W, "web1", Egress, Put, "gh/trolley/t9/truth"));
+        assert!(may(
+            W,
+            "web1",
+            Egress,
+            LivelinessToken,
+            "gh/alive/planner/p1"
+        ));
     }
 
     #[test]

@@ -28,6 +28,8 @@ pub enum TrustError {
     NoRouterHost,
     #[error("roster: {0}")]
     Parse(String),
+    #[error("install_dir {0:?} is not an absolute path")]
+    InstallDir(String),
 }
 
 pub type Result<T, E = TrustError> = std::result::Result<T, E>;
@@ -100,6 +102,10 @@ pub struct Roster {
     /// Where clients connect: `tls/HOST:PORT`; the router listens on that port.
     #[serde(default = "default_router_endpoint")]
     pub router_endpoint: String,
+    /// Where the processes read the PKI's files when not where it was made (an absolute path;
+    /// the configs name the files there), e.g. `/etc/glasshouse/pki` in a container.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub install_dir: Option<String>,
 }
 
 /// The router's certificate names unless the roster says otherwise.
@@ -123,6 +129,7 @@ impl Default for Roster {
             dashboards: Vec::new(),
             router_hosts: default_router_hosts(),
             router_endpoint: default_router_endpoint(),
+            install_dir: None,
         }
     }
 }
@@ -196,7 +203,20 @@ impl Roster {
         if self.router_hosts.is_empty() {
             return Err(TrustError::NoRouterHost);
         }
+        if let Some(dir) = &self.install_dir {
+            if !Path::new(dir).is_absolute() {
+                return Err(TrustError::InstallDir(dir.clone()));
+            }
+        }
         self.router_port().map(|_| ())
+    }
+
+    /// Where the configs name the files: [`Roster::install_dir`], else where they are made.
+    pub fn installed(&self, made: &Layout) -> Layout {
+        match &self.install_dir {
+            Some(dir) => Layout::new(Path::new(dir)),
+            None => made.clone(),
+        }
     }
 
     /// The port of [`Roster::router_endpoint`].
@@ -394,6 +414,28 @@ mod tests {
         assert_eq!(r.add(&t3), Err(TrustError::Duplicate("trolley-t3".into())));
         assert_eq!(Roster::parse(&r.to_text()).expect("round trip"), r);
         assert!(Identity::new(Kind::Dashboard, "").is_err());
+    }
+
+    #[test]
+    fn configs_name_the_files_where_they_are_installed() {
+        let made = Layout::new(Path::new("/tmp/pki"));
+        let mut roster = roster();
+        assert_eq!(roster.installed(&made).dir, made.dir);
+        roster.install_dir = Some("/etc/glasshouse/pki".into());
+        let text = roster.to_text();
+        assert_eq!(Roster::parse(&text), Ok(roster.clone()));
+        let installed = roster.installed(&made);
+        let t1 = Identity::new(Kind::Trolley, "t1").expect("valid");
+        let config = client_config(&roster, &t1, &installed);
+        assert_eq!(
+            config["transport"]["link"]["tls"]["connect_private_key"],
+            "/etc/glasshouse/pki/trolley-t1.key"
+        );
+        roster.install_dir = Some("relative/pki".into());
+        assert_eq!(
+            roster.validate(),
+            Err(TrustError::InstallDir("relative/pki".into()))
+        );
     }
 
     #[test]

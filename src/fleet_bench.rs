@@ -7,6 +7,12 @@
 //! memory come from `/proc`. Half-way through (`--kill-at-s`) the planner that owns the first
 //! trolley is killed with SIGKILL; the takeover time is the time until that trolley's views come
 //! from another planner.
+//!
+//! Several trolley counts (`--trolleys 4,8,16,24`) make a capacity sweep: one fleet per count,
+//! one after the other, then a table with a row per count and, with `--plot`, a PNG of frame ->
+//! views latency against trolleys (`sweep`).
+
+mod sweep;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -23,8 +29,18 @@ use serde::Serialize;
 
 #[derive(clap::Args, Debug)]
 pub struct FleetBenchArgs {
-    /// Simulated trolleys (one edge process each, trolley ids t1..tN, seeds 1..N).
-    #[arg(long, default_value_t = 8)]
+    /// Simulated trolleys (one edge process each, trolley ids t1..tN, seeds 1..N). Several
+    /// counts, comma-separated (4,8,16,24), make a capacity sweep: one fleet per count, run one
+    /// after the other, and a table with a row per count.
+    #[arg(
+        long = "trolleys",
+        value_name = "N[,N...]",
+        value_delimiter = ',',
+        default_value = "8"
+    )]
+    pub trolley_counts: Vec<u32>,
+    /// The count of the run in progress (one of `trolley_counts`).
+    #[arg(skip)]
     pub trolleys: u32,
     /// Planner processes (p1..pN).
     #[arg(long, default_value_t = 3)]
@@ -50,9 +66,12 @@ pub struct FleetBenchArgs {
     /// Zenoh link lease of every process: how soon a killed planner is noticed.
     #[arg(long, default_value_t = 1000)]
     pub lease_ms: u64,
-    /// Also write the report as JSON here.
+    /// Also write the report as JSON here (a sweep: every count's report, in a list).
     #[arg(long, value_name = "FILE")]
     pub json: Option<PathBuf>,
+    /// Also draw p99 (and p50) frame -> views against trolleys as a PNG here.
+    #[arg(long, value_name = "FILE")]
+    pub plot: Option<PathBuf>,
     /// Keep the processes' logs in this folder (default: a temporary one, removed).
     #[arg(long, value_name = "DIR")]
     pub logs: Option<PathBuf>,
@@ -157,6 +176,9 @@ struct Observed {
     drops: BTreeMap<String, u64>,
     owned: BTreeMap<String, Vec<String>>,
     corrupt: u64,
+    /// RGB-D frames seen and their payload bytes (as encoded on the wire).
+    rgbd_frames: u64,
+    rgbd_bytes: u64,
 }
 
 fn percentile(values: &[f64], p: f64) -> Option<f64> {
@@ -198,6 +220,16 @@ struct Report {
     observer_corrupt: u64,
     killed_planner: Option<String>,
     takeover_s: Option<f64>,
+    /// Mean RGB-D frame payload on the wire.
+    bytes_per_frame: Option<f64>,
+    /// Share of the arms' time spent waiting for the views on their frames (the sum of frame ->
+    /// views latencies over trolleys x time; frames never answered are not counted).
+    arm_wait_share: f64,
+    /// Planner CPU (all planners) per frame of the fleet.
+    planner_cpu_ms_per_frame: Option<f64>,
+    /// Resident memory of all planners divided by the trolleys, one minute in and at the end.
+    planner_rss_mib_per_trolley_minute1: Option<f64>,
+    planner_rss_mib_per_trolley_end: Option<f64>,
     per_kind: BTreeMap<String, KindReport>,
 }
 
@@ -221,8 +253,43 @@ fn free_port() -> anyhow::Result<u16> {
     Ok(listener.local_addr()?.port())
 }
 
-pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
+pub async fn run(mut args: FleetBenchArgs) -> anyhow::Result<()> {
     validate(&args)?;
+    let mut reports = Vec::new();
+    for (i, &count) in args.trolley_counts.clone().iter().enumerate() {
+        if args.trolley_counts.len() > 1 {
+            println!(
+                "== capacity sweep: run {} of {}, {count} trolleys",
+                i + 1,
+                args.trolley_counts.len()
+            );
+        }
+        args.trolleys = count;
+        let report = run_fleet(&args).await?;
+        print_report(&report);
+        reports.push(report);
+    }
+    if reports.len() > 1 {
+        sweep::print_table(&reports);
+    }
+    if let Some(path) = &args.json {
+        let text = match &reports[..] {
+            [one] => serde_json::to_string_pretty(one)?,
+            all => serde_json::to_string_pretty(all)?,
+        };
+        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+        println!("report written to {}", path.display());
+    }
+    if let Some(path) = &args.plot {
+        let png = sweep::plot(&reports)?;
+        std::fs::write(path, png).with_context(|| format!("writing {}", path.display()))?;
+        println!("plot written to {}", path.display());
+    }
+    Ok(())
+}
+
+/// One fleet of `args.trolleys` trolleys: started, warmed up, measured, stopped.
+async fn run_fleet(args: &FleetBenchArgs) -> anyhow::Result<Report> {
     let measured = Duration::from_secs_f64(args.minutes * 60.0);
     let kill_at = Duration::from_secs_f64(
         args.kill_at_s
@@ -231,37 +298,31 @@ pub async fn run(args: FleetBenchArgs) -> anyhow::Result<()> {
     );
     let kill_enabled = args.kill_at_s != Some(0.0) && args.planners >= 2;
 
-    let mut fleet = Fleet::new(&args)?;
+    let mut fleet = Fleet::new(args)?;
     fleet.spawn_router()?;
     let observer = glasshouse_bus::open(&fleet.session_of(BENCH_OBSERVER)).await?;
     let observed = Arc::new(Mutex::new(Observed::default()));
     let subscriber = subscribe_observer(&observer, observed.clone()).await?;
-    fleet.spawn_services(&args).await?;
-    warm_up(&observed, &args, &fleet.logs).await?;
+    fleet.spawn_services(args).await?;
+    warm_up(&observed, args, &fleet.logs).await?;
     let measurement = measure(&mut fleet.procs, &observed, measured, kill_enabled, kill_at).await;
     let per_kind = per_kind_usage(&fleet.procs, &measurement);
     let report = {
         let o = observed
             .lock()
             .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
-        build_report(&args, &o, &measurement, per_kind)
+        build_report(args, &o, &measurement, per_kind)
     };
-    print_report(&report);
-    if let Some(path) = &args.json {
-        std::fs::write(path, serde_json::to_string_pretty(&report)?)
-            .with_context(|| format!("writing {}", path.display()))?;
-        println!("report written to {}", path.display());
-    }
     drop(subscriber);
     let _ = observer.close().await;
     fleet.stop();
-    Ok(())
+    Ok(report)
 }
 
 fn validate(args: &FleetBenchArgs) -> anyhow::Result<()> {
     ensure!(
-        (1..=64).contains(&args.trolleys),
-        "--trolleys must be 1..=64"
+        !args.trolley_counts.is_empty() && args.trolley_counts.iter().all(|n| (1..=64).contains(n)),
+        "--trolleys must be counts within 1..=64"
     );
     ensure!(
         (1..=16).contains(&args.planners),
@@ -514,6 +575,16 @@ fn record_sample(observed: &Mutex<Observed>, sample: &glasshouse_bus::zenoh::sam
         o.corrupt += 1;
         return;
     };
+    if matches!(
+        key,
+        ParsedKey::Trolley {
+            topic: TrolleyTopic::Rgbd,
+            ..
+        }
+    ) {
+        o.rgbd_frames += 1;
+        o.rgbd_bytes += bytes.len() as u64;
+    }
     o.record(&key, &header, message, now);
 }
 
@@ -610,6 +681,18 @@ struct Measurement {
     killed: Option<(String, Instant)>,
     /// CPU seconds of each killed process at its kill.
     cpu_at_kill: HashMap<String, f64>,
+    /// Resident memory of the live planners together, one minute in and at the end.
+    planner_rss_kib_minute1: Option<u64>,
+    planner_rss_kib_end: Option<u64>,
+}
+
+/// Resident memory of the live planners together.
+fn planner_rss_kib(procs: &[Proc]) -> Option<u64> {
+    procs
+        .iter()
+        .filter(|p| p.kind == "planner" && !p.killed)
+        .map(|p| rss_kib(p.child.id()))
+        .sum()
 }
 
 /// The measured run: resets the observer's logs, samples memory, kills t1's owner at `kill_at`.
@@ -626,6 +709,8 @@ async fn measure(
             *t = TrolleyLog::default();
         }
         o.corrupt = 0;
+        o.rgbd_frames = 0;
+        o.rgbd_bytes = 0;
     }
     let drops_at_start: BTreeMap<String, u64> =
         observed.lock().map(|o| o.drops.clone()).unwrap_or_default();
@@ -641,6 +726,7 @@ async fn measure(
     bar.set_message("fleet-bench");
     let mut killed: Option<(String, Instant)> = None;
     let mut cpu_at_kill: HashMap<String, f64> = HashMap::new();
+    let mut planner_rss_kib_minute1 = None;
     while started.elapsed() < measured {
         tokio::time::sleep(Duration::from_millis(250)).await;
         for p in procs.iter_mut().filter(|p| !p.killed) {
@@ -657,6 +743,9 @@ async fn measure(
                 ));
             }
         }
+        if planner_rss_kib_minute1.is_none() && started.elapsed() >= Duration::from_secs(60) {
+            planner_rss_kib_minute1 = planner_rss_kib(procs);
+        }
         bar.set_position(started.elapsed().as_secs().min(measured.as_secs()));
     }
     bar.finish_and_clear();
@@ -665,6 +754,8 @@ async fn measure(
         drops_at_start,
         killed,
         cpu_at_kill,
+        planner_rss_kib_minute1,
+        planner_rss_kib_end: planner_rss_kib(procs),
     }
 }
 
@@ -758,6 +849,10 @@ fn build_report(
         .sum();
     let n = f64::from(args.trolleys);
     let elapsed_s = m.elapsed_s;
+    let planner_cpu_s = per_kind
+        .get("planner")
+        .map_or(0.0, |k| k.cpu_percent_of_one_core / 100.0 * elapsed_s);
+    let per_trolley_mib = |kib: Option<u64>| kib.map(|k| k as f64 / 1024.0 / n);
     Report {
         trolleys: args.trolleys,
         planners: args.planners,
@@ -778,12 +873,21 @@ fn build_report(
         observer_corrupt: o.corrupt,
         killed_planner: m.killed.as_ref().map(|(p, _)| p.clone()),
         takeover_s,
+        bytes_per_frame: (o.rgbd_frames > 0).then(|| o.rgbd_bytes as f64 / o.rgbd_frames as f64),
+        arm_wait_share: all_views.iter().sum::<f64>() / 1e3 / (elapsed_s * n),
+        planner_cpu_ms_per_frame: (frames > 0).then(|| planner_cpu_s * 1e3 / frames as f64),
+        planner_rss_mib_per_trolley_minute1: per_trolley_mib(m.planner_rss_kib_minute1),
+        planner_rss_mib_per_trolley_end: per_trolley_mib(m.planner_rss_kib_end),
         per_kind,
     }
 }
 
 fn ms(v: Option<f64>) -> String {
     v.map_or("–".into(), |v| format!("{v:.0} ms"))
+}
+
+fn mib(v: Option<f64>) -> String {
+    v.map_or("–".into(), |v| format!("{v:.0} MiB"))
 }
 
 fn print_report(r: &Report) {
@@ -820,6 +924,17 @@ fn print_report(r: &Report) {
     println!(
         "  messages dropped     {} (services' counters) + {} corrupt at the observer",
         r.messages_dropped, r.observer_corrupt
+    );
+    println!(
+        "  arms waiting for views {:.0} % of the time; planner CPU per frame {}; RGB-D frame {} on the wire",
+        100.0 * r.arm_wait_share,
+        ms(r.planner_cpu_ms_per_frame),
+        r.bytes_per_frame.map_or("–".into(), |b| format!("{:.0} kB", b / 1e3))
+    );
+    println!(
+        "  planner RSS per trolley: {} at minute 1, {} at the end",
+        mib(r.planner_rss_mib_per_trolley_minute1),
+        mib(r.planner_rss_mib_per_trolley_end)
     );
     match (&r.killed_planner, r.takeover_s) {
         (Some(p), Some(t)) => {

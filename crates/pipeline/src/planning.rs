@@ -1,8 +1,6 @@
 //! Planning: one trolley's map, fruit tracker, fits and next best views ([`TrolleyPlanner`]),
 //! with the settings and seeds the planner service and the experiments share.
 
-use std::collections::HashSet;
-
 use glasshouse_arm::Robot;
 use glasshouse_nbv::fit::{FitConfig, FittedShape, ShapeKind};
 use glasshouse_nbv::{
@@ -13,7 +11,9 @@ use glasshouse_proto::{
     FittedEllipsoid, FrameId, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
     TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
 };
-use glasshouse_roimap::{MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey};
+use glasshouse_roimap::{
+    KeySet, MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey,
+};
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
@@ -183,7 +183,7 @@ pub struct TrolleyPlanner {
     map_seq: u64,
     /// Voxels last published as occupied or ROI: MapUpdate carries solid voxels and the ones
     /// that stopped being solid, not every newly freed voxel (those would dominate the traffic).
-    published_solid: HashSet<VoxelKey>,
+    published_solid: KeySet,
 }
 
 impl TrolleyPlanner {
@@ -203,7 +203,7 @@ impl TrolleyPlanner {
             fits_stale: false,
             last_refits: 0,
             map_seq: 0,
-            published_solid: HashSet::new(),
+            published_solid: KeySet::default(),
         })
     }
 
@@ -363,18 +363,21 @@ impl TrolleyPlanner {
     pub fn map_update(&mut self, based_on_seq: u64, pid: &str) -> MapUpdate {
         self.map_seq += 1;
         let mut voxels = Vec::new();
-        for (key, voxel) in self.map.take_changes() {
-            let change = voxel_change(&self.map, key, voxel);
+        let published_solid = &mut self.published_solid;
+        self.map.drain_changes(|key, voxel, is_roi| {
+            let change = voxel_change(key, voxel, is_roi);
             let was_solid = if change.state == VoxelState::Free {
-                self.published_solid.remove(&key)
+                published_solid.remove(&key)
             } else {
-                self.published_solid.insert(key);
+                published_solid.insert(key);
                 true
             };
             if was_solid {
                 voxels.push(change);
             }
-        }
+        });
+        // Only the few kept voxels are sorted (by key, for a deterministic message).
+        voxels.sort_unstable_by_key(|c| c.key);
         MapUpdate {
             resolution_m: self.settings.resolution_m as f32,
             map_seq: self.map_seq,
@@ -441,10 +444,10 @@ impl TrolleyPlanner {
     }
 }
 
-fn voxel_change(map: &RoiMap, key: VoxelKey, voxel: Voxel) -> VoxelChange {
-    let state = if map.is_roi(key) {
+fn voxel_change(key: VoxelKey, voxel: Voxel, is_roi: bool) -> VoxelChange {
+    let state = if is_roi {
         VoxelState::Roi
-    } else if map.occupancy(key) == Occupancy::Occupied {
+    } else if voxel.occupancy() == Occupancy::Occupied {
         VoxelState::Occupied
     } else {
         VoxelState::Free

@@ -643,22 +643,28 @@ impl RoiMap {
     /// Voxels changed since the last call (sorted by key, with current values); clears the record.
     pub fn take_changes(&mut self) -> Vec<(VoxelKey, Voxel)> {
         let mut out = Vec::new();
+        self.drain_changes(|key, voxel, _| out.push((key, voxel)));
+        out.sort_unstable_by_key(|(k, _)| *k);
+        out
+    }
+
+    /// Visits the voxels changed since the last call, block by block in no set order, with their
+    /// current values and whether each is ROI ([`RoiMap::is_roi`], read from its block: no
+    /// lookup per voxel); clears the record. A scan changes hundreds of thousands of voxels,
+    /// mostly freed ones: a caller that keeps a few of them need not sort them all.
+    pub fn drain_changes(&mut self, mut visit: impl FnMut(VoxelKey, Voxel, bool)) {
         for bi in self.dirty_blocks.drain() {
             let b = &mut self.store.blocks[bi as usize];
             let bk = self.store.coords[bi as usize];
             for_each_bit(&b.dirty, |l| {
-                out.push((
-                    key_at(bk, l),
-                    Voxel {
-                        occupancy_logodds: b.occ_at(l),
-                        roi_logodds: b.roi_at(l),
-                    },
-                ))
+                let voxel = Voxel {
+                    occupancy_logodds: b.occ_at(l),
+                    roi_logodds: b.roi_at(l),
+                };
+                visit(key_at(bk, l), voxel, mask_test(&b.roi_mask, l));
             });
             b.dirty = EMPTY;
         }
-        out.sort_unstable_by_key(|(k, _)| *k);
-        out
     }
 
     /// Overwrites voxel values (for replicas and dashboards) and records them as changes when

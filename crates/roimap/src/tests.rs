@@ -304,6 +304,38 @@ fn take_changes_returns_each_change_once() {
 }
 
 #[test]
+fn drained_changes_are_the_taken_ones_with_their_roi_state() {
+    let origin = Point3::new(0.005, 0.005, 0.005);
+    // Two fans of rays, ROI on every other end point, the second scan over the first.
+    let fan = |dz: f64| -> Vec<Point3<f32>> {
+        (0..40)
+            .map(|i| p32(0.3, -0.2 + 0.01 * f64::from(i), 0.05 + dz))
+            .collect()
+    };
+    let roi: Vec<bool> = (0..40).map(|i| i % 2 == 0).collect();
+    let (mut taken, mut drained) = (map(), map());
+    let mut seen_roi = 0;
+    for dz in [0.0, 0.0, 0.02] {
+        for m in [&mut taken, &mut drained] {
+            m.insert_scan(&origin, &fan(dz), &roi).expect("valid scan");
+        }
+        let mut visited = Vec::new();
+        drained.drain_changes(|key, voxel, is_roi| {
+            assert_eq!(is_roi, taken.is_roi(key), "{key:?}");
+            seen_roi += usize::from(is_roi);
+            visited.push((key, voxel));
+        });
+        visited.sort_unstable_by_key(|(key, _)| *key);
+        assert_eq!(visited, taken.take_changes());
+        assert!(!visited.is_empty());
+    }
+    assert!(seen_roi > 0, "the scans made ROI voxels");
+    let mut after = 0;
+    drained.drain_changes(|_, _, _| after += 1);
+    assert_eq!(after, 0, "the record is cleared");
+}
+
+#[test]
 fn negative_coordinates_floor() {
     let m = map();
     assert_eq!(m.key_of(&Point3::new(-0.001, 0.001, -0.015)), k(-1, 0, -2));

@@ -183,3 +183,102 @@ async fn the_probe_reports_what_a_router_without_the_acl_lets_through() {
     let _ = router.close().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The payload sizes a session's subscriber on `key` receives, in arrival order.
+async fn sizes_on(
+    session: &zenoh::Session,
+    key: &'static str,
+) -> (
+    zenoh::pubsub::Subscriber<()>,
+    tokio::sync::mpsc::UnboundedReceiver<usize>,
+) {
+    let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+    let subscriber = session
+        .declare_subscriber(key)
+        .callback(move |sample| {
+            let _ = tx.send(sample.payload().len());
+        })
+        .await
+        .expect("subscriber");
+    (subscriber, rx)
+}
+
+/// The sizes received up to and including the first of `last` bytes.
+async fn sizes_until(
+    rx: &mut tokio::sync::mpsc::UnboundedReceiver<usize>,
+    last: usize,
+) -> Vec<usize> {
+    let mut seen = Vec::new();
+    while seen.last() != Some(&last) {
+        seen.push(rx.recv().await.expect("subscriber alive"));
+    }
+    seen
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn an_oversized_frame_is_dropped_by_the_detectors_transport() {
+    build_binaries();
+    let dir = std::env::temp_dir().join(format!("glasshouse-oversized-{}", std::process::id()));
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let (pki, _) = make_pkis(&dir, &endpoint);
+    let router = open(&BusArgs {
+        listen: vec![endpoint],
+        ..identity(&pki, "router")
+    })
+    .await;
+    let trolley = open(&identity(&pki, "trolley-t2")).await;
+    let detector = open(&identity(&pki, "detector-d1")).await;
+    let dashboard = open(&identity(&pki, "dashboard-web1")).await;
+    let frames = "gh/trolley/*/rgbd";
+    let (_d, mut at_detector) = sizes_on(&detector, frames).await;
+    let (_w, mut at_dashboard) = sizes_on(&dashboard, frames).await;
+    let put = |bytes: usize| {
+        trolley
+            .put("gh/trolley/t2/rgbd", vec![7u8; bytes])
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+    };
+    // Small puts until both subscribers are known to the trolley and got one.
+    const SMALL: usize = 1000;
+    within(
+        30,
+        "a small frame at the detector and the dashboard",
+        async {
+            let (mut detector_got, mut dashboard_got) = (false, false);
+            while !(detector_got && dashboard_got) {
+                put(SMALL).await.expect("put");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                detector_got |= at_detector.try_recv().is_ok();
+                dashboard_got |= at_dashboard.try_recv().is_ok();
+            }
+        },
+    )
+    .await;
+    // 20 MB: within the router's and the dashboard's limits, over the detector's (9 MiB).
+    const BIG: usize = 20 << 20;
+    put(BIG).await.expect("put");
+    put(SMALL + 1).await.expect("put");
+    let at_dashboard = within(
+        60,
+        "the control at the dashboard",
+        sizes_until(&mut at_dashboard, SMALL + 1),
+    )
+    .await;
+    assert!(
+        at_dashboard.contains(&BIG),
+        "the router forwarded the big put to the dashboard: {at_dashboard:?}"
+    );
+    let at_detector = within(
+        60,
+        "the control at the detector",
+        sizes_until(&mut at_detector, SMALL + 1),
+    )
+    .await;
+    assert!(
+        !at_detector.contains(&BIG),
+        "the detector's transport dropped the big put: {at_detector:?}"
+    );
+    for session in [trolley, detector, dashboard, router] {
+        let _ = session.close().await;
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -287,10 +287,33 @@ fn path_text(path: &Path) -> String {
 /// Bytes above the largest protocol message that a Zenoh message may add (headers, attachment).
 pub const MESSAGE_HEADROOM_BYTES: usize = 1 << 20;
 
-/// The largest message the transport reassembles: the largest payload the protocol accepts
-/// ([`glasshouse_proto::max_bytes_any`]) plus headroom. Larger ones are dropped on receipt.
+/// The largest message the router's transport reassembles: the largest payload the protocol
+/// accepts ([`glasshouse_proto::max_bytes_any`], a map snapshot it forwards between planners)
+/// plus headroom. Larger ones are dropped on receipt.
 pub fn max_message_bytes() -> usize {
     glasshouse_proto::max_bytes_any() + MESSAGE_HEADROOM_BYTES
+}
+
+/// The largest message `kind`'s transport reassembles: the largest payload its role receives,
+/// plus headroom. A trolley takes only views, a detector frames; a dashboard everything but
+/// snapshots; a planner snapshots too. An oversized put that the ACL lets through on the way
+/// (a trolley's own frame of 50 MB) is dropped by each receiver's transport before a service
+/// copies it.
+pub fn max_message_bytes_for(kind: Kind) -> usize {
+    use glasshouse_proto::MessageKind as M;
+    let largest = |kinds: &[M]| kinds.iter().map(|m| m.max_bytes()).max().unwrap_or(0);
+    let received = match kind {
+        Kind::Trolley => largest(&[M::RankedViews]),
+        Kind::Detector => largest(&[M::RgbdFrame]),
+        Kind::Dashboard => largest(
+            &M::ALL
+                .into_iter()
+                .filter(|&m| m != M::MapSnapshot)
+                .collect::<Vec<_>>(),
+        ),
+        Kind::Planner => glasshouse_proto::max_bytes_any(),
+    };
+    received + MESSAGE_HEADROOM_BYTES
 }
 
 /// The router's Zenoh config: an mTLS listener, the roster's ACL, bounded messages.
@@ -327,7 +350,7 @@ pub fn client_config(roster: &Roster, identity: &Identity, layout: &Layout) -> V
                 "connect_certificate": path_text(&layout.cert(&stem)),
                 "enable_mtls": true,
             },
-            "rx": { "max_message_size": max_message_bytes() },
+            "rx": { "max_message_size": max_message_bytes_for(identity.kind) },
         } },
     })
 }
@@ -461,13 +484,27 @@ mod tests {
             "/pki/router.key"
         );
         assert_eq!(router["access_control"]["default_permission"], "deny");
-        for config in [&client, &router] {
-            let max = config["transport"]["link"]["rx"]["max_message_size"]
+        let max = router["transport"]["link"]["rx"]["max_message_size"]
+            .as_u64()
+            .expect("a size");
+        assert!(max as usize > glasshouse_proto::max_bytes_any());
+        assert!(max < 1 << 30, "below Zenoh's default of 1 GiB");
+        let rx_max = |kind: Kind| {
+            let id = Identity::new(kind, "x").expect("valid");
+            let config = client_config(&r, &id, &layout);
+            config["transport"]["link"]["rx"]["max_message_size"]
                 .as_u64()
-                .expect("a size");
-            assert!(max as usize > glasshouse_proto::max_bytes_any());
-            assert!(max < 1 << 30, "below Zenoh's default of 1 GiB");
-        }
+                .expect("a size") as usize
+        };
+        let headroom = MESSAGE_HEADROOM_BYTES;
+        assert_eq!(rx_max(Kind::Trolley), 256 * 1024 + headroom, "views only");
+        assert_eq!(rx_max(Kind::Detector), 8 * 1024 * 1024 + headroom, "frames");
+        assert_eq!(
+            rx_max(Kind::Dashboard),
+            64 * 1024 * 1024 + headroom,
+            "map updates"
+        );
+        assert_eq!(rx_max(Kind::Planner), max_message_bytes(), "snapshots");
         let text = config_text("router", &router);
         assert!(text.starts_with("// router."));
         let parsed: Value = json5::from_str(&text).expect("the file reads back as JSON5");

@@ -19,6 +19,7 @@ mod edge;
 mod fits;
 mod order;
 mod planning;
+mod published;
 mod reach;
 
 pub use capture::{

@@ -11,13 +11,12 @@ use glasshouse_proto::{
     FittedEllipsoid, FrameId, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
     TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
 };
-use glasshouse_roimap::{
-    KeySet, MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey,
-};
+use glasshouse_roimap::{MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey};
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
 use crate::fits::FitCache;
+use crate::published::PublishedSolid;
 use crate::{FrameOrder, FrameVerdict, ReachFilter};
 
 /// Why a planning step failed; the trolley's state is left as it was before the step.
@@ -183,7 +182,7 @@ pub struct TrolleyPlanner {
     map_seq: u64,
     /// Voxels last published as occupied or ROI: MapUpdate carries solid voxels and the ones
     /// that stopped being solid, not every newly freed voxel (those would dominate the traffic).
-    published_solid: KeySet,
+    published_solid: PublishedSolid,
 }
 
 impl TrolleyPlanner {
@@ -203,7 +202,7 @@ impl TrolleyPlanner {
             fits_stale: false,
             last_refits: 0,
             map_seq: 0,
-            published_solid: KeySet::default(),
+            published_solid: PublishedSolid::default(),
         })
     }
 
@@ -367,7 +366,7 @@ impl TrolleyPlanner {
         self.map.drain_changes(|key, voxel, is_roi| {
             let change = voxel_change(key, voxel, is_roi);
             let was_solid = if change.state == VoxelState::Free {
-                published_solid.remove(&key)
+                published_solid.remove(key)
             } else {
                 published_solid.insert(key);
                 true

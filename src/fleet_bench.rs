@@ -72,7 +72,8 @@ pub struct FleetBenchArgs {
     /// Also draw p99 (and p50) frame -> views against trolleys as a PNG here.
     #[arg(long, value_name = "FILE")]
     pub plot: Option<PathBuf>,
-    /// Keep the processes' logs in this folder (default: a temporary one, removed).
+    /// Keep the processes' logs in this folder (default: a temporary one, removed); a sweep
+    /// keeps each count's in DIR/<N>-trolleys.
     #[arg(long, value_name = "DIR")]
     pub logs: Option<PathBuf>,
     /// Run every edge with --realtime: each view's simulated arm motion and capture time
@@ -256,6 +257,7 @@ fn free_port() -> anyhow::Result<u16> {
 pub async fn run(mut args: FleetBenchArgs) -> anyhow::Result<()> {
     validate(&args)?;
     let mut reports = Vec::new();
+    let sweep_logs = args.logs.clone().filter(|_| args.trolley_counts.len() > 1);
     for (i, &count) in args.trolley_counts.clone().iter().enumerate() {
         if args.trolley_counts.len() > 1 {
             println!(
@@ -265,6 +267,10 @@ pub async fn run(mut args: FleetBenchArgs) -> anyhow::Result<()> {
             );
         }
         args.trolleys = count;
+        // A sweep keeps each count's logs apart (one folder would hold only the last run's).
+        if let Some(dir) = &sweep_logs {
+            args.logs = Some(dir.join(format!("{count}-trolleys")));
+        }
         let report = run_fleet(&args).await?;
         print_report(&report);
         reports.push(report);

@@ -90,6 +90,7 @@ fn synthetic_cloud(frame: FrameId) -> RoiCloud {
         source_frame_epoch_ns: frame.epoch_ns,
         invalid_pixels: 0,
         detector_id: "bench".into(),
+        roi_confidence: Vec::new(),
     }
 }
 

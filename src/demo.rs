@@ -110,6 +110,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         width: args.width,
         height: args.width * 3 / 4,
         perception_noise: args.perception.noise()?,
+        fruit_colour: args.perception.fruit_colour,
         ..EdgeConfig::default()
     };
     edge_config.validate()?;
@@ -259,7 +260,10 @@ impl Pipeline {
         ));
         let detector = tokio::spawn(glasshouse_detector::run(
             glasshouse_bus::open(&sessions.fleet.detector).await?,
-            DetectorSettings::default(),
+            DetectorSettings {
+                fruit_model: args.perception.fruit_model.clone(),
+                ..DetectorSettings::default()
+            },
             shutdown.clone(),
             Arc::new(DetectorCounters::default()),
         ));

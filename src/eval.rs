@@ -20,19 +20,20 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, ensure, Context};
+use glasshouse_detect::FruitDetector;
 use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
 use glasshouse_eval::report::{self, method_label, MethodRuns};
-use glasshouse_eval::{run_trial, ComputeTime, TrialConfig, TrialResult};
+use glasshouse_eval::{run_trial_with, ComputeTime, TrialConfig, TrialResult};
 use glasshouse_nbv::Method;
-use glasshouse_sim::{PerceptionNoise, ScenarioKind, MAX_SILHOUETTE_PX};
+use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind, MAX_SILHOUETTE_PX};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// The simulated detector's errors (`demo` and `eval`).
-#[derive(clap::Args, Debug, Clone, Copy, Default)]
+#[derive(clap::Args, Debug, Clone, Default)]
 pub struct PerceptionArgs {
     /// Detector label noise: probability in [0, 1] that each pixel's fruit/non-fruit label
     /// flips (0 = the perfect colour detector).
@@ -42,6 +43,13 @@ pub struct PerceptionArgs {
     /// mixes foreground and background (0 = none, at most 8).
     #[arg(long, value_name = "PX", default_value_t = 0)]
     pub silhouette_px: u32,
+    /// Colour of the simulated fruit: red (ripe, what the HSI rule finds) or green (unripe).
+    #[arg(long, value_name = "COLOUR", default_value_t = FruitColour::Red)]
+    pub fruit_colour: FruitColour,
+    /// Label fruit with this ONNX segmentation model (detector-service/model/) instead of
+    /// the HSI colour rule.
+    #[arg(long, value_name = "FILE")]
+    pub fruit_model: Option<PathBuf>,
 }
 
 impl PerceptionArgs {
@@ -62,6 +70,13 @@ impl PerceptionArgs {
             noise.silhouette_px
         );
         Ok(noise)
+    }
+
+    /// The detector these flags ask for: the model of --fruit-model, else the HSI rule.
+    pub fn fruit_detector(&self) -> anyhow::Result<Arc<dyn FruitDetector>> {
+        let model = self.fruit_model.as_deref();
+        glasshouse_detector::load_fruit_detector(model)
+            .with_context(|| format!("--fruit-model {}", model.unwrap_or(Path::new("")).display()))
     }
 }
 
@@ -110,6 +125,7 @@ struct Plan {
     compute_time: ComputeTime,
     jobs: usize,
     perception_noise: PerceptionNoise,
+    fruit_detector: Arc<dyn FruitDetector>,
 }
 
 fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
@@ -150,6 +166,7 @@ fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
         compute_time,
         jobs,
         perception_noise: args.perception.noise()?,
+        fruit_detector: args.perception.fruit_detector()?,
     })
 }
 
@@ -164,7 +181,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let height = args.width * 3 / 4;
     let configs = trial_configs(&args, &plan, height)?;
     let started = Instant::now();
-    let results = run_trials(&configs, plan.jobs, args.budget_s)?;
+    let results = run_trials(&configs, &plan, args.budget_s)?;
     let (runs, wall_times) = group_by_method(&plan, &configs, results)?;
     let wall_s = started.elapsed().as_secs_f64();
 
@@ -189,6 +206,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "width": args.width,
         "height": height,
         "perception_noise": plan.perception_noise,
+        "fruit_colour": args.perception.fruit_colour,
+        "detector": plan.fruit_detector.name(),
+        "fruit_model": args.perception.fruit_model,
     });
     let summary = report::summary_json(&runs, settings);
     write(
@@ -235,6 +255,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 budget_s: args.budget_s,
                 compute_time: plan.compute_time,
                 perception_noise: plan.perception_noise,
+                fruit_colour: args.perception.fruit_colour,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -248,6 +269,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
 /// What the trial threads share: the next trial to take, the results and the first error.
 struct TrialQueue<'a> {
     configs: &'a [TrialConfig],
+    fruit_detector: Arc<dyn FruitDetector>,
     next: AtomicUsize,
     done: AtomicUsize,
     results: Mutex<Vec<Option<(TrialResult, f64)>>>,
@@ -258,7 +280,7 @@ struct TrialQueue<'a> {
 /// Runs the trials on `jobs` threads; returns (result, wall seconds) per config, in order.
 fn run_trials(
     configs: &[TrialConfig],
-    jobs: usize,
+    plan: &Plan,
     budget_s: f64,
 ) -> anyhow::Result<Vec<Option<(TrialResult, f64)>>> {
     // Progress in simulated seconds over all trials; the message counts finished trials.
@@ -272,8 +294,10 @@ fn run_trials(
     );
     bar.set_message(format!("0/{}", configs.len()));
     bar.enable_steady_tick(Duration::from_millis(500));
+    let jobs = plan.jobs;
     let queue = TrialQueue {
         configs,
+        fruit_detector: plan.fruit_detector.clone(),
         next: AtomicUsize::new(0),
         done: AtomicUsize::new(0),
         results: Mutex::new((0..configs.len()).map(|_| None).collect()),
@@ -312,7 +336,7 @@ impl TrialQueue<'_> {
             }
             let trial_started = Instant::now();
             let mut reported = 0.0;
-            let outcome = run_trial(*config, |clock_s| {
+            let outcome = run_trial_with(*config, self.fruit_detector.clone(), |clock_s| {
                 let step = ((clock_s - reported) * 10.0).max(0.0);
                 self.bar.inc(step.round() as u64);
                 reported += step.round() / 10.0;
@@ -516,7 +540,7 @@ mod tests {
             EvalArgs {
                 perception: PerceptionArgs {
                     label_noise: 1.5,
-                    silhouette_px: 0,
+                    ..PerceptionArgs::default()
                 },
                 ..args(out.clone())
             },
@@ -524,6 +548,14 @@ mod tests {
                 perception: PerceptionArgs {
                     label_noise: 0.3,
                     silhouette_px: 9,
+                    ..PerceptionArgs::default()
+                },
+                ..args(out.clone())
+            },
+            EvalArgs {
+                perception: PerceptionArgs {
+                    fruit_model: Some(out.join("no-such-model.onnx")),
+                    ..PerceptionArgs::default()
                 },
                 ..args(out.clone())
             },

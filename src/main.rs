@@ -2,6 +2,7 @@
 
 mod bench_map;
 mod dashboard_bench;
+mod dataset;
 mod demo;
 mod eval;
 mod fleet_bench;
@@ -36,6 +37,9 @@ enum Command {
     /// Run the paper's experiments on the simulator: seeded trials per method, Table I, p-values,
     /// per-trial CSVs and plots.
     Eval(eval::EvalArgs),
+    /// Write simulator frames with per-pixel fruit labels (from the renderer's hit ids) as NumPy
+    /// arrays, to train a learned detector (`scripts/train-detector`).
+    Dataset(dataset::DatasetArgs),
     /// Render what the simulated camera sees to a colour PNG and a colour-mapped depth PNG.
     Render(render::RenderArgs),
     /// Secure a deployment: a CA, a certificate per identity, the router's mTLS listener and
@@ -63,6 +67,7 @@ async fn main() -> anyhow::Result<()> {
         Command::BenchMap(args) => bench_map::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Render(args) => render::run(args),
+        Command::Dataset(args) => dataset::run(args),
         Command::Secure(args) => secure::run(args).await,
         Command::Router { bus } => {
             let config = glasshouse_bus::router_config(&bus, DEFAULT_ROUTER_LISTEN)?;

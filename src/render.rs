@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use glasshouse_geom::look_along;
-use glasshouse_sim::{CameraModel, RgbdImage, ScenarioKind, Scene};
+use glasshouse_sim::{CameraModel, FruitColour, RgbdImage, ScenarioKind, Scene};
 use nalgebra::{Isometry3, Point3, Vector3};
 
 #[derive(clap::Args, Debug)]
@@ -18,6 +18,9 @@ pub struct RenderArgs {
     /// Scene seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Colour of the fruit: red (ripe) or green (unripe).
+    #[arg(long, value_name = "COLOUR", default_value_t = FruitColour::Red)]
+    pub fruit_colour: FruitColour,
     /// Camera pose `x,y,z,yaw,pitch` (metres in the world frame, z up; degrees: yaw about +z
     /// from +x, pitch up from the horizontal). Default: the scenario's initial camera pose.
     #[arg(long, value_name = "X,Y,Z,YAW,PITCH", allow_hyphen_values = true)]
@@ -61,7 +64,7 @@ pub fn run(args: RenderArgs) -> anyhow::Result<()> {
     if args.width < 4 || args.width > 4096 {
         bail!("--width {} is out of range 4..=4096", args.width);
     }
-    let scene = Scene::generate(kind, args.seed);
+    let scene = Scene::generate_with_fruit(kind, args.seed, args.fruit_colour);
     let world_from_camera = match &args.camera {
         Some(text) => parse_camera(text)?,
         None => scene.initial_camera_pose(),

@@ -22,10 +22,13 @@ use glasshouse_bus::{
     declare_alive, wall_clock_ns, DropCounters, MemberEvent, MemberWatch, Publisher, Received,
     Shutdown, Subscriber,
 };
-use glasshouse_detect::DetectorConfig;
-use glasshouse_pipeline::detect_frame;
+use std::path::{Path, PathBuf};
+
+use glasshouse_detect::{DetectorConfig, FruitDetector, HsiRule};
+use glasshouse_pipeline::detect_frame_with;
 use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{DetectorStatus, Header, RgbdFrame, RoiCloud};
+use glasshouse_segment::OnnxFruitModel;
 use serde::Deserialize;
 use zenoh::Session;
 
@@ -37,6 +40,9 @@ pub struct DetectorSettings {
     /// Down-sampling voxel size in metres (the map resolution).
     pub voxel_size_m: f64,
     pub status_period_ms: u64,
+    /// ONNX fruit segmentation model (detector-service/model/fruit-segmenter.onnx); unset =
+    /// the paper's HSI colour rule.
+    pub fruit_model: Option<PathBuf>,
 }
 
 impl Default for DetectorSettings {
@@ -45,6 +51,7 @@ impl Default for DetectorSettings {
             detector_id: "d1".into(),
             voxel_size_m: 0.01,
             status_period_ms: 1000,
+            fruit_model: None,
         }
     }
 }
@@ -59,6 +66,19 @@ impl DetectorSettings {
         );
         Ok(())
     }
+}
+
+/// The fruit detector of `model`: the ONNX model in that file (loaded and checked now), else
+/// the HSI rule.
+pub fn load_fruit_detector(model: Option<&Path>) -> anyhow::Result<Arc<dyn FruitDetector>> {
+    let Some(path) = model else {
+        return Ok(Arc::new(HsiRule::default()));
+    };
+    let bytes = std::fs::read(path)
+        .with_context(|| format!("cannot read the fruit model {}", path.display()))?;
+    let model = OnnxFruitModel::from_bytes(&bytes)
+        .with_context(|| format!("fruit model {}", path.display()))?;
+    Ok(Arc::new(model))
 }
 
 /// Counters a detector exposes to tests and its status message.
@@ -131,6 +151,7 @@ struct Detector {
     epoch_ns: u64,
     session: Session,
     config: Arc<DetectorConfig>,
+    fruit_detector: Arc<dyn FruitDetector>,
     counters: Arc<DetectorCounters>,
     /// Where the forwarders put the served trolleys' frames.
     frame_tx: tokio::sync::mpsc::Sender<Received<RgbdFrame>>,
@@ -210,12 +231,20 @@ impl Detector {
         }
         let started = Instant::now();
         let cfg = self.config.clone();
+        let fruit_detector = self.fruit_detector.clone();
         let detector_id = self.did.clone();
         let (seq, frame_id) = (header.seq, header.frame());
-        let result =
-            tokio::task::spawn_blocking(move || detect_frame(&frame, frame_id, &detector_id, &cfg))
-                .await
-                .context("detection task failed")?;
+        let result = tokio::task::spawn_blocking(move || {
+            detect_frame_with(
+                &frame,
+                frame_id,
+                &detector_id,
+                &cfg,
+                fruit_detector.as_ref(),
+            )
+        })
+        .await
+        .context("detection task failed")?;
         let cloud = match result {
             Ok(cloud) => cloud,
             Err(e) => {
@@ -311,6 +340,7 @@ pub async fn run(
     counters: Arc<DetectorCounters>,
 ) -> anyhow::Result<()> {
     settings.validate()?;
+    let fruit_detector = load_fruit_detector(settings.fruit_model.as_deref())?;
     let did = settings.detector_id.clone();
     let (frame_tx, frame_rx) = tokio::sync::mpsc::channel::<Received<RgbdFrame>>(FRAME_QUEUE);
     let mut inputs = Inputs {
@@ -336,6 +366,7 @@ pub async fn run(
             voxel_size_m: settings.voxel_size_m,
             ..DetectorConfig::default()
         }),
+        fruit_detector,
         counters: counters.clone(),
         frame_tx,
         frame_tasks: HashMap::new(),
@@ -346,7 +377,7 @@ pub async fn run(
         total_ms: 0.0,
         status_seq: 0,
     };
-    tracing::info!(detector = %did, "detector started");
+    tracing::info!(detector = %did, fruit_detector = detector.fruit_detector.name(), "detector started");
     while let Some(event) = inputs.next(&mut shutdown).await {
         if detector.handle(event).await? {
             detector.update_served().await?;

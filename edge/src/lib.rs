@@ -28,7 +28,7 @@ use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{
     ArmState, FruitEstimates, Header, ImageEncoding, RgbdFrame, TrolleyInfo, TrolleyStatus,
 };
-use glasshouse_sim::{PerceptionNoise, ScenarioKind};
+use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind};
 use serde::Deserialize;
 use source::{FrameRecorder, ReplaySource};
 use tokio::time::Instant;
@@ -67,6 +67,8 @@ pub struct EdgeConfig {
     pub frame_interval_ms: u64,
     /// Simulated detector label noise and silhouette depth artefacts (clean by default).
     pub perception_noise: PerceptionNoise,
+    /// Colour of the simulated fruit: `red` (ripe, the default) or `green` (unripe).
+    pub fruit_colour: FruitColour,
     /// Send frames compressed (lossless left delta + zstd per plane, ~10x smaller); false sends
     /// the raw planes, for readers that predate `ImageEncoding`.
     pub compress_frames: bool,
@@ -93,6 +95,7 @@ impl Default for EdgeConfig {
             record_frames_dir: None,
             frame_interval_ms: 0,
             perception_noise: PerceptionNoise::default(),
+            fruit_colour: FruitColour::Red,
             compress_frames: true,
             realtime: false,
         }
@@ -129,6 +132,7 @@ impl EdgeConfig {
         let size = (self.width, self.height);
         SimTrolleySettings {
             perception_noise: self.perception_noise,
+            fruit_colour: self.fruit_colour,
             ..SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
         }
     }

@@ -11,7 +11,8 @@ use glasshouse_edge::EdgeConfig;
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
 /// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir,
-/// perception_noise: { label_noise, silhouette_px }, compress_frames, realtime), then the flags
+/// perception_noise: { label_noise, silhouette_px }, fruit_colour, compress_frames, realtime),
+/// then the flags
 /// below.
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
@@ -52,6 +53,10 @@ struct Cli {
     /// missing or mixes foreground and background (0 = none, at most 8).
     #[arg(long, value_name = "PX")]
     silhouette_px: Option<u32>,
+    /// Colour of the simulated fruit: red (ripe, what the HSI rule finds) or green (unripe,
+    /// for a learned detector).
+    #[arg(long, value_name = "COLOUR")]
+    fruit_colour: Option<glasshouse_sim::FruitColour>,
     /// Send (and record) frames uncompressed: 1.5 MB per 640x480 frame instead of ~0.13 MB, for
     /// readers that predate the frame encodings.
     #[arg(long)]
@@ -84,6 +89,7 @@ fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
     set_flag(&mut c.record_frames_dir, cli.record_frames.map(Some));
     set_flag(&mut c.perception_noise.label_noise, cli.label_noise);
     set_flag(&mut c.perception_noise.silhouette_px, cli.silhouette_px);
+    set_flag(&mut c.fruit_colour, cli.fruit_colour);
     if cli.raw_frames {
         c.compress_frames = false;
     }

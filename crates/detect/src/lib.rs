@@ -57,6 +57,44 @@ pub fn rgb_to_hsi(r: u8, g: u8, b: u8) -> (i32, i32, i32) {
     (h, s, i)
 }
 
+/// Fruit confidence (0 to 1) at and above which an averaged point is ROI.
+pub const ROI_CONFIDENCE_THRESHOLD: f32 = 0.5;
+
+/// What decides which points are fruit. Two stages, so a colour rule can label each voxel by its
+/// averaged colour (as the paper does) while a learned model labels pixels before averaging:
+/// [`FruitDetector::pixel_probabilities`] runs once per frame, [`FruitDetector::voxel_confidence`]
+/// once per averaged point.
+pub trait FruitDetector: Send + Sync {
+    /// A short name for logs and reports (`hsi`, `onnx`).
+    fn name(&self) -> &str;
+
+    /// One fruit probability in [0, 1] per pixel of the row-major RGB8 image, or `None` when
+    /// the detector labels voxels by their averaged colour alone.
+    fn pixel_probabilities(&self, rgb: &[u8], width: u32, height: u32) -> Result<Option<Vec<f32>>>;
+
+    /// The fruit confidence in [0, 1] of a voxel from its mean colour and, when
+    /// [`FruitDetector::pixel_probabilities`] gave them, the mean probability of its pixels.
+    fn voxel_confidence(&self, mean_rgb: [u8; 3], mean_probability: Option<f32>) -> f32;
+}
+
+impl FruitDetector for HsiRule {
+    fn name(&self) -> &str {
+        "hsi"
+    }
+
+    fn pixel_probabilities(&self, _: &[u8], _: u32, _: u32) -> Result<Option<Vec<f32>>> {
+        Ok(None)
+    }
+
+    fn voxel_confidence(&self, [r, g, b]: [u8; 3], _: Option<f32>) -> f32 {
+        if self.is_roi(r, g, b) {
+            1.0
+        } else {
+            0.0
+        }
+    }
+}
+
 /// Detector settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DetectorConfig {
@@ -93,6 +131,9 @@ pub struct DepthFrame<'a> {
 pub struct LabelledCloud {
     pub points_in_world: Vec<Point3<f32>>,
     pub roi: Vec<bool>,
+    /// Each point's fruit confidence in [0, 1] (a colour rule gives 0 or 1); `roi` is
+    /// confidence >= [`ROI_CONFIDENCE_THRESHOLD`].
+    pub confidence: Vec<f32>,
     /// Camera centre in the world: the origin of every ray for the map update.
     pub sensor_origin_in_world: Point3<f64>,
     /// Pixels skipped for zero or out-of-range depth.
@@ -120,6 +161,8 @@ pub enum DetectError {
     NonFinitePose,
     #[error("invalid detector configuration: {0}")]
     InvalidConfig(String),
+    #[error("the fruit model failed: {0}")]
+    Model(String),
 }
 
 pub type Result<T, E = DetectError> = std::result::Result<T, E>;
@@ -134,6 +177,8 @@ const KEY_OFFSET: i64 = 1 << (KEY_BITS - 1);
 struct VoxelSum {
     position_m: [f64; 3],
     rgb: [u32; 3],
+    /// Sum of the pixels' fruit probabilities (learned detectors only).
+    probability: f32,
     count: u32,
 }
 
@@ -143,6 +188,7 @@ impl VoxelSum {
             self.position_m[a] += other.position_m[a];
             self.rgb[a] += other.rgb[a];
         }
+        self.probability += other.probability;
         self.count += other.count;
     }
 }
@@ -260,13 +306,35 @@ fn validate(
     Ok(())
 }
 
-/// Turns one RGB-D frame into ROI-labelled, voxel-averaged points in the world frame.
+/// Turns one RGB-D frame into ROI-labelled, voxel-averaged points in the world frame, labelled
+/// by the configured HSI rule.
 pub fn detect(
     frame: &DepthFrame,
     world_from_camera: &Isometry3<f64>,
     config: &DetectorConfig,
 ) -> Result<LabelledCloud> {
+    detect_with(frame, world_from_camera, config, &config.rule)
+}
+
+/// [`detect`] with the points labelled by `detector` instead of the configured HSI rule.
+pub fn detect_with(
+    frame: &DepthFrame,
+    world_from_camera: &Isometry3<f64>,
+    config: &DetectorConfig,
+    detector: &dyn FruitDetector,
+) -> Result<LabelledCloud> {
     validate(frame, world_from_camera, config)?;
+    let pixel_probability =
+        detector.pixel_probabilities(frame.rgb, frame.intrinsics.width, frame.intrinsics.height)?;
+    if let Some(p) = &pixel_probability {
+        if p.len() != frame.depth.len() {
+            return Err(DetectError::Model(format!(
+                "{} probabilities for {} pixels",
+                p.len(),
+                frame.depth.len()
+            )));
+        }
+    }
     let k = frame.intrinsics;
     let width = k.width as usize;
     let rotation = world_from_camera.rotation.to_rotation_matrix();
@@ -296,8 +364,9 @@ pub fn detect(
         .depth
         .chunks_exact(width)
         .zip(frame.rgb.chunks_exact(3 * width));
-    for ((depth_row, rgb_row), &ys) in rows.zip(&y_slope) {
-        for ((&raw, rgb), &xs) in depth_row.iter().zip(rgb_row.chunks_exact(3)).zip(&x_slope) {
+    for (v, ((depth_row, rgb_row), &ys)) in rows.zip(&y_slope).enumerate() {
+        let pixels = depth_row.iter().zip(rgb_row.chunks_exact(3)).zip(&x_slope);
+        for (u, ((&raw, rgb), &xs)) in pixels.enumerate() {
             let depth_m = raw as f64 * frame.depth_scale_m;
             if raw == 0 || depth_m < config.min_depth_m || depth_m > config.max_depth_m {
                 invalid_pixels += 1;
@@ -328,6 +397,9 @@ pub fn detect(
                 run.position_m[a] += p[a];
                 run.rgb[a] += rgb[a] as u32;
             }
+            if let Some(p) = &pixel_probability {
+                run.probability += p.get(v * width + u).copied().unwrap_or(0.0);
+            }
             run.count += 1;
         }
     }
@@ -339,17 +411,30 @@ pub fn detect(
     cells.sort_unstable_by_key(|(key, _)| *key);
     let mut points_in_world = Vec::with_capacity(cells.len());
     let mut roi = Vec::with_capacity(cells.len());
+    let mut confidence = Vec::with_capacity(cells.len());
     for sum in cells.iter().filter_map(|&(_, i)| sums.get(i as usize)) {
         let n = sum.count.max(1);
         let mean = sum.position_m.map(|c| (c / n as f64) as f32);
         points_in_world.push(Point3::new(mean[0], mean[1], mean[2]));
         // Integer average of each channel, as PCL's VoxelGrid stores the averaged colour.
-        let [cr, cg, cb] = sum.rgb.map(|c| (c / n).min(255) as u8);
-        roi.push(config.rule.is_roi(cr, cg, cb));
+        let mean_rgb = sum.rgb.map(|c| (c / n).min(255) as u8);
+        let mean_probability = pixel_probability
+            .is_some()
+            .then(|| sum.probability / n as f32);
+        let c = detector.voxel_confidence(mean_rgb, mean_probability);
+        // NaN from a broken model is no evidence of fruit.
+        let c = if c.is_finite() {
+            c.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        roi.push(c >= ROI_CONFIDENCE_THRESHOLD);
+        confidence.push(c);
     }
     Ok(LabelledCloud {
         points_in_world,
         roi,
+        confidence,
         sensor_origin_in_world: Point3::from(t),
         invalid_pixels,
     })

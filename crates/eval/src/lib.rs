@@ -24,4 +24,6 @@ pub use metrics::{
 };
 pub use report::{Better, MethodRuns, DETECTED_SHARE, METRICS};
 pub use stats::{mann_whitney_u, mean_std, Alternative, MannWhitney, MeanStd};
-pub use trial::{run_trial, ComputeTime, EvalError, Sample, Trial, TrialConfig, TrialResult};
+pub use trial::{
+    run_trial, run_trial_with, ComputeTime, EvalError, Sample, Trial, TrialConfig, TrialResult,
+};

@@ -14,17 +14,18 @@
 //! latest estimates available at that instant.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::Instant;
 
-use glasshouse_detect::DetectorConfig;
+use glasshouse_detect::{DetectorConfig, FruitDetector, HsiRule};
 use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
-    detect_frame, ranked_views, CaptureError, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
+    detect_frame_with, ranked_views, CaptureError, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
     EdgeSettings, FruitRecord, PlanningError, PlanningSettings, SimTrolley, SimTrolleySettings,
     TrolleyPlanner, TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame};
-use glasshouse_sim::{PerceptionNoise, ScenarioKind, Scene};
+use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind, Scene};
 use serde::Serialize;
 
 use crate::metrics::{evaluate, BoxEstimate, Metrics};
@@ -72,6 +73,8 @@ pub struct TrialConfig {
     pub segment_length_m: f64,
     /// The simulated detector's label noise and silhouette depth artefacts (clean by default).
     pub perception_noise: PerceptionNoise,
+    /// Ripe red fruit (the paper's scenes) or the unripe green variant.
+    pub fruit_colour: FruitColour,
 }
 
 impl TrialConfig {
@@ -88,6 +91,7 @@ impl TrialConfig {
             capture_time_s: glasshouse_arm::CAPTURE_TIME_S,
             segment_length_m: 1.0,
             perception_noise: PerceptionNoise::default(),
+            fruit_colour: FruitColour::Red,
         }
     }
 
@@ -143,6 +147,7 @@ impl TrialConfig {
         let size = (self.width, self.height);
         SimTrolleySettings {
             perception_noise: self.perception_noise,
+            fruit_colour: self.fruit_colour,
             ..SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
         }
     }
@@ -225,6 +230,8 @@ struct Published {
 pub struct Trial<S: TrolleySource = SimTrolley> {
     config: TrialConfig,
     detector: DetectorConfig,
+    /// What labels the points fruit: the HSI rule unless [`Trial::with_fruit_detector`].
+    fruit_detector: Arc<dyn FruitDetector>,
     scene: Scene,
     source: S,
     planner: TrolleyPlanner,
@@ -259,7 +266,7 @@ impl<S: TrolleySource> Trial<S> {
     pub fn with_source(config: TrialConfig, source: S) -> Result<Self, EvalError> {
         config.validate()?;
         let planning = config.planning();
-        let scene = Scene::generate(config.scenario, config.seed);
+        let scene = Scene::generate_with_fruit(config.scenario, config.seed, config.fruit_colour);
         let empty = Metrics::empty(scene.fruits(), planning.resolution_m);
         // One process on a simulated clock: boot epoch 0, and the one planner owns the trolley.
         let mut edge = EdgeNode::new(config.edge(), 0);
@@ -269,6 +276,7 @@ impl<S: TrolleySource> Trial<S> {
                 voxel_size_m: planning.resolution_m,
                 ..DetectorConfig::default()
             },
+            fruit_detector: Arc::new(HsiRule::default()),
             planner: TrolleyPlanner::new(planning)?,
             actions: edge.handle(EdgeInput::Start).into(),
             edge,
@@ -290,6 +298,12 @@ impl<S: TrolleySource> Trial<S> {
             last_second: config.budget_s.floor() as u32,
             config,
         })
+    }
+
+    /// The same trial with its points labelled by `detector` (a learned model, say).
+    pub fn with_fruit_detector(mut self, detector: Arc<dyn FruitDetector>) -> Self {
+        self.fruit_detector = detector;
+        self
     }
 
     pub fn scene(&self) -> &Scene {
@@ -440,7 +454,13 @@ impl<S: TrolleySource> Trial<S> {
             return Ok(None);
         };
         let frame_id = FrameId::new(0, frame_seq);
-        let cloud = detect_frame(&frame, frame_id, EVAL_ID, &self.detector)?;
+        let cloud = detect_frame_with(
+            &frame,
+            frame_id,
+            EVAL_ID,
+            &self.detector,
+            self.fruit_detector.as_ref(),
+        )?;
         let started = Instant::now();
         self.planner.set_info(self.source.info())?;
         self.planner.integrate(&cloud, 0)?;
@@ -504,6 +524,17 @@ impl<S: TrolleySource> Trial<S> {
 /// Runs one trial on the scene's simulated trolley; `progress` as in [`Trial::run`].
 pub fn run_trial(config: TrialConfig, progress: impl FnMut(f64)) -> Result<TrialResult, EvalError> {
     Trial::new(config)?.run(progress)
+}
+
+/// [`run_trial`] with the points labelled by `detector`.
+pub fn run_trial_with(
+    config: TrialConfig,
+    detector: Arc<dyn FruitDetector>,
+    progress: impl FnMut(f64),
+) -> Result<TrialResult, EvalError> {
+    Trial::new(config)?
+        .with_fruit_detector(detector)
+        .run(progress)
 }
 
 #[cfg(test)]

@@ -4,7 +4,8 @@
 use glasshouse_arm::{Interval, Mount, MountState};
 use glasshouse_proto::{ArmModel, ArmState, Fruit, MountKind, RgbdFrame, TrolleyInfo};
 use glasshouse_sim::{
-    CameraModel, PerceptionNoise, PerceptionNoiseError, ScenarioKind, Scene, Segment, SimArm,
+    CameraModel, FruitColour, PerceptionNoise, PerceptionNoiseError, ScenarioKind, Scene, Segment,
+    SimArm,
 };
 use nalgebra::Isometry3;
 
@@ -86,6 +87,8 @@ pub struct SimTrolleySettings {
     pub segment_length_m: f64,
     /// The detector's label noise and the depth artefacts at silhouettes (clean by default).
     pub perception_noise: PerceptionNoise,
+    /// Ripe red fruit (the paper's scenes) or the unripe green variant.
+    pub fruit_colour: FruitColour,
 }
 
 impl SimTrolleySettings {
@@ -112,6 +115,7 @@ impl SimTrolleySettings {
             height,
             segment_length_m,
             perception_noise: PerceptionNoise::default(),
+            fruit_colour: FruitColour::Red,
         }
     }
 }
@@ -132,7 +136,8 @@ impl SimTrolley {
     pub fn new(settings: SimTrolleySettings) -> Result<Self, CaptureError> {
         settings.validate()?;
         let (w, h) = (settings.width, settings.height);
-        let scene = Scene::generate(settings.scenario, settings.seed);
+        let scene =
+            Scene::generate_with_fruit(settings.scenario, settings.seed, settings.fruit_colour);
         let arm = SimArm::new(&scene).map_err(|e| CaptureError::InitialView(e.to_string()))?;
         let segments = scene.segments(settings.segment_length_m);
         if segments.is_empty() {

@@ -1,6 +1,6 @@
 //! Detection: one RGB-D frame in, its ROI-labelled world cloud out.
 
-use glasshouse_detect::{detect, DepthFrame, DetectError, DetectorConfig};
+use glasshouse_detect::{detect_with, DepthFrame, DetectError, DetectorConfig, FruitDetector};
 use glasshouse_proto::{FrameId, RgbdFrame, RoiCloud};
 
 /// Runs the detector ([`glasshouse_detect::detect`]: 1 cm averaging, the paper's HSI rule,
@@ -11,13 +11,35 @@ pub fn detect_frame(
     detector_id: &str,
     config: &DetectorConfig,
 ) -> Result<RoiCloud, DetectError> {
+    detect_frame_with(frame, frame_id, detector_id, config, &config.rule)
+}
+
+/// [`detect_frame`] with the points labelled by `detector` (the HSI rule or a learned model);
+/// a detector whose confidences are not all 0 or 1 puts them in the cloud.
+pub fn detect_frame_with(
+    frame: &RgbdFrame,
+    frame_id: FrameId,
+    detector_id: &str,
+    config: &DetectorConfig,
+    detector: &dyn FruitDetector,
+) -> Result<RoiCloud, DetectError> {
     let depth_frame = DepthFrame {
         intrinsics: frame.intrinsics,
         depth: &frame.depth,
         depth_scale_m: f64::from(frame.depth_scale_m),
         rgb: &frame.rgb,
     };
-    let cloud = detect(&depth_frame, &frame.world_from_camera, config)?;
+    let cloud = detect_with(&depth_frame, &frame.world_from_camera, config, detector)?;
+    let certain = cloud.confidence.iter().all(|&c| c == 0.0 || c == 1.0);
+    let roi_confidence = if certain {
+        Vec::new()
+    } else {
+        cloud
+            .confidence
+            .iter()
+            .map(|&c| (c * 255.0).round() as u8)
+            .collect()
+    };
     Ok(RoiCloud {
         points_in_world: cloud.points_in_world,
         roi: cloud.roi,
@@ -27,5 +49,6 @@ pub fn detect_frame(
         source_frame_epoch_ns: frame_id.epoch_ns,
         invalid_pixels: cloud.invalid_pixels.min(u32::MAX as usize) as u32,
         detector_id: detector_id.to_owned(),
+        roi_confidence,
     })
 }

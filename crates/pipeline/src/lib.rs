@@ -26,7 +26,7 @@ pub use capture::{
     noise_seed, render_frame, CaptureError, Executed, SimTrolley, SimTrolleySettings,
     TrolleySource, DEPTH_SCALE_M,
 };
-pub use detection::detect_frame;
+pub use detection::{detect_frame, detect_frame_with};
 pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer};
 pub use order::{
     FrameOrder, FrameVerdict, Refusal, MAX_EPOCH_LEAD_NS, MAX_SEQ_STEP, RESYNC_FRAMES,

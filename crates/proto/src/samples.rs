@@ -115,6 +115,7 @@ pub fn roi_cloud() -> RoiCloud {
         source_frame_epoch_ns: SAMPLE_EPOCH_NS,
         invalid_pixels: 5,
         detector_id: "d1".into(),
+        roi_confidence: vec![230, 40, 0],
     }
 }
 

@@ -7,7 +7,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::generate::{LEAF_RANGE, RED_FRUIT_RANGE};
+use crate::generate::LEAF_RANGE;
 
 /// Widest silhouette band accepted, in pixels.
 pub const MAX_SILHOUETTE_PX: u32 = 8;
@@ -32,8 +32,8 @@ const SILHOUETTE_STREAM: u64 = 2;
 #[serde(default, deny_unknown_fields)]
 pub struct PerceptionNoise {
     /// Probability in [0, 1] that a pixel's fruit/non-fruit label flips as the detector sees
-    /// it: a fruit pixel takes a leaf colour, any other surface pixel a fruit colour the HSI
-    /// rule accepts (both shaded like the surface). Sky pixels carry no depth and are left.
+    /// it: a fruit pixel takes a leaf colour, any other surface pixel a colour of the scene's
+    /// fruit (both shaded like the surface). Sky pixels carry no depth and are left.
     pub label_noise: f64,
     /// Width in pixels of the band at plant silhouettes (fruit, leaf and stem edges against
     /// anything more than [`SILHOUETTE_STEP_M`] away in depth) where depth goes missing or
@@ -67,15 +67,22 @@ impl PerceptionNoise {
 /// Flips pixel labels by swapping albedos, one draw per surface pixel in row-major order.
 pub(crate) struct LabelFlips {
     probability: f64,
+    /// Albedo range (per channel) a non-fruit pixel takes when its label flips.
+    fruit_range: [(f32, f32); 3],
     rng: ChaCha8Rng,
 }
 
 impl LabelFlips {
-    pub(crate) fn new(noise: &PerceptionNoise, noise_seed: u64) -> Self {
+    pub(crate) fn new(
+        noise: &PerceptionNoise,
+        noise_seed: u64,
+        fruit_range: [(f32, f32); 3],
+    ) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(noise_seed);
         rng.set_stream(LABEL_STREAM);
         Self {
             probability: noise.label_noise,
+            fruit_range,
             rng,
         }
     }
@@ -87,11 +94,12 @@ impl LabelFlips {
         if self.probability <= 0.0 || self.rng.gen::<f64>() >= self.probability {
             return albedo;
         }
-        // Albedos of these ranges pass (red) or fail (leaf) the HSI rule under any shading.
+        // Albedos of these ranges look like fruit of the scene's colour, or like leaves, under
+        // any shading.
         let range = if is_fruit {
             LEAF_RANGE
         } else {
-            RED_FRUIT_RANGE
+            self.fruit_range
         };
         range.map(|(lo, hi)| lo + (hi - lo) * self.rng.gen::<f32>())
     }

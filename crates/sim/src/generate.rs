@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::shapes::{Bounds, Cylinder, Shape};
-use crate::{FruitTruth, ScenarioKind};
+use crate::{FruitColour, FruitTruth, ScenarioKind};
 
 /// Albedos (linear 0-255). Chosen so that, under every shading factor in [0.45, 1], red fruit passes
 /// the paper's HSI rule and leaves, stems, floor and structures never do (tested in lib.rs).
@@ -19,13 +19,50 @@ pub(crate) const RED_FRUIT_RANGE: [(f32, f32); 3] = [(190.0, 225.0), (20.0, 40.0
 pub(crate) const LEAF_RANGE: [(f32, f32); 3] = [(45.0, 80.0), (115.0, 160.0), (25.0, 50.0)];
 pub(crate) const YELLOW_FRUIT_ALBEDO: [f32; 3] = [230.0, 200.0, 30.0];
 pub(crate) const GREEN_FRUIT_ALBEDO: [f32; 3] = [70.0, 125.0, 30.0];
+/// Unripe fruit albedo range of the [`FruitColour::Unripe`] variant: a light yellow-green, lighter
+/// and yellower than leaves, outside the HSI rule's hue range under every shading factor.
+pub(crate) const UNRIPE_FRUIT_RANGE: [(f32, f32); 3] =
+    [(135.0, 160.0), (170.0, 195.0), (35.0, 60.0)];
 
 /// True for an albedo of the red fruit range: the only colour the HSI rule labels fruit.
 pub(crate) fn is_ripe_colour(albedo: [f32; 3]) -> bool {
-    RED_FRUIT_RANGE
+    in_range(RED_FRUIT_RANGE, albedo)
+}
+
+/// True for an albedo of the fruit range of `colour`: what the scene's detector should find.
+pub(crate) fn is_fruit_colour(colour: FruitColour, albedo: [f32; 3]) -> bool {
+    in_range(colour.albedo_range(), albedo)
+}
+
+fn in_range(range: [(f32, f32); 3], albedo: [f32; 3]) -> bool {
+    range
         .iter()
         .zip(albedo)
         .all(|(&(lo, hi), a)| (lo..=hi).contains(&a))
+}
+
+impl FruitColour {
+    /// Per-channel albedo range (min, max) of the fruit in this variant.
+    pub(crate) fn albedo_range(self) -> [(f32, f32); 3] {
+        match self {
+            FruitColour::Red => RED_FRUIT_RANGE,
+            FruitColour::Green => UNRIPE_FRUIT_RANGE,
+        }
+    }
+}
+
+/// The same relative place in the unripe range as `red` has in the red one, so a green scene
+/// draws exactly the random numbers of its red twin and only the colours differ.
+fn unripe_twin(red: [f32; 3]) -> [f32; 3] {
+    let mut out = [0.0; 3];
+    for (a, ((r_lo, r_hi), (g_lo, g_hi))) in RED_FRUIT_RANGE
+        .into_iter()
+        .zip(UNRIPE_FRUIT_RANGE)
+        .enumerate()
+    {
+        out[a] = g_lo + (red[a] - r_lo) / (r_hi - r_lo) * (g_hi - g_lo);
+    }
+    out
 }
 
 const STEM_RADIUS_M: (f64, f64) = (0.009, 0.012);
@@ -100,7 +137,7 @@ fn place_plants(
     (0..count).map(fallback).collect()
 }
 
-pub(crate) fn build(kind: ScenarioKind, seed: u64) -> Built {
+pub(crate) fn build(kind: ScenarioKind, seed: u64, colour: FruitColour) -> Built {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut solids = Vec::new();
     let (layout, camera_workspace) = match kind {
@@ -213,6 +250,14 @@ pub(crate) fn build(kind: ScenarioKind, seed: u64) -> Built {
                         GREEN_FRUIT_ALBEDO
                     };
                 }
+            }
+        }
+    }
+
+    if colour == FruitColour::Green {
+        for solid in &mut solids {
+            if solid.fruit_index.is_some() && is_ripe_colour(solid.albedo) {
+                solid.albedo = unripe_twin(solid.albedo);
             }
         }
     }

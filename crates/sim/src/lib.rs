@@ -100,6 +100,43 @@ impl fmt::Display for ScenarioKind {
     }
 }
 
+/// The colour of a scene's fruit: ripe red (the paper's scenes, found by the HSI rule) or the
+/// unripe variant, a light yellow-green the HSI rule does not accept. Settings and the command
+/// line spell them `red` and `green`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FruitColour {
+    #[default]
+    Red,
+    Green,
+}
+
+/// A fruit colour that is not `red` or `green`.
+#[derive(thiserror::Error, Debug, Clone, PartialEq, Eq)]
+#[error("unknown fruit colour {0:?}; valid: red, green")]
+pub struct ParseFruitColourError(pub String);
+
+impl FromStr for FruitColour {
+    type Err = ParseFruitColourError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "red" | "ripe" => Ok(FruitColour::Red),
+            "green" | "unripe" => Ok(FruitColour::Green),
+            _ => Err(ParseFruitColourError(s.to_string())),
+        }
+    }
+}
+
+impl fmt::Display for FruitColour {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            FruitColour::Red => "red",
+            FruitColour::Green => "green",
+        })
+    }
+}
+
 /// One part of a scene a trolley works on at a time (see [`Scene::segments`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Segment {
@@ -210,6 +247,7 @@ impl RgbdImage {
 pub struct Scene {
     kind: ScenarioKind,
     seed: u64,
+    fruit_colour: FruitColour,
     fruits: Vec<FruitTruth>,
     plants: Vec<Plant>,
     /// Shapes in BVH order, with per-shape albedo, fruit index, whether the detector's colour
@@ -235,7 +273,13 @@ struct RayHit {
 impl Scene {
     /// Generates the scenario; the same `(kind, seed)` always gives the same scene.
     pub fn generate(kind: ScenarioKind, seed: u64) -> Scene {
-        let built = generate::build(kind, seed);
+        Self::generate_with_fruit(kind, seed, FruitColour::Red)
+    }
+
+    /// [`Scene::generate`] with the fruit in `fruit_colour`: the green scene has exactly the
+    /// geometry of its red twin; only the fruit colours differ.
+    pub fn generate_with_fruit(kind: ScenarioKind, seed: u64, fruit_colour: FruitColour) -> Scene {
+        let built = generate::build(kind, seed, fruit_colour);
         let plant_bounds = built
             .solids
             .iter()
@@ -254,6 +298,7 @@ impl Scene {
         let mut scene = Scene {
             kind,
             seed,
+            fruit_colour,
             fruits: built.fruits,
             plants: built.plants,
             shapes: ordered_shapes,
@@ -261,7 +306,9 @@ impl Scene {
             fruit_index: ordered.iter().map(|s| s.fruit_index).collect(),
             looks_like_fruit: ordered
                 .iter()
-                .map(|s| s.fruit_index.is_some() && generate::is_ripe_colour(s.albedo))
+                .map(|s| {
+                    s.fruit_index.is_some() && generate::is_fruit_colour(fruit_colour, s.albedo)
+                })
                 .collect(),
             is_plant: ordered.iter().map(|s| s.is_plant).collect(),
             bvh,
@@ -275,6 +322,10 @@ impl Scene {
 
     pub fn kind(&self) -> ScenarioKind {
         self.kind
+    }
+
+    pub fn fruit_colour(&self) -> FruitColour {
+        self.fruit_colour
     }
 
     pub fn seed(&self) -> u64 {
@@ -436,7 +487,8 @@ impl Scene {
         perception: &PerceptionNoise,
     ) -> RgbdImage {
         let k = camera.intrinsics;
-        let mut labels = LabelFlips::new(perception, noise_seed);
+        let fruit_range = self.fruit_colour.albedo_range();
+        let mut labels = LabelFlips::new(perception, noise_seed, fruit_range);
         let mut seen = (perception.silhouette_px > 0)
             .then(|| SurfaceImage::new(k.width as usize, k.height as usize));
         let pixel_count = k.pixel_count();
@@ -564,8 +616,41 @@ impl Scene {
         camera: &CameraModel,
         world_from_camera: &Isometry3<f64>,
     ) -> Vec<u32> {
-        let k = camera.intrinsics;
         let mut counts = vec![0u32; self.fruits.len()];
+        self.for_each_fruit_pixel(camera, world_from_camera, |_, fruit| {
+            if let Some(c) = counts.get_mut(fruit as usize) {
+                *c += 1;
+            }
+        });
+        counts
+    }
+
+    /// Row-major per-pixel labels from the renderer's hit ids, noise-free: 1 where a pixel with
+    /// valid depth sees a fruit (of any colour), 0 elsewhere. Training labels for a learned
+    /// detector.
+    pub fn fruit_label_image(
+        &self,
+        camera: &CameraModel,
+        world_from_camera: &Isometry3<f64>,
+    ) -> Vec<u8> {
+        let mut labels = vec![0u8; camera.intrinsics.pixel_count()];
+        self.for_each_fruit_pixel(camera, world_from_camera, |pixel, _| {
+            if let Some(l) = labels.get_mut(pixel) {
+                *l = 1;
+            }
+        });
+        labels
+    }
+
+    /// Calls `visit(pixel, fruit index)` for every pixel whose noise-free ray meets a fruit at a
+    /// depth and angle the camera measures.
+    fn for_each_fruit_pixel(
+        &self,
+        camera: &CameraModel,
+        world_from_camera: &Isometry3<f64>,
+        mut visit: impl FnMut(usize, u32),
+    ) {
+        let k = camera.intrinsics;
         let rotation = world_from_camera.rotation.to_rotation_matrix();
         let mut stack = Vec::with_capacity(64);
         let origin = world_from_camera.translation.vector;
@@ -587,14 +672,11 @@ impl Scene {
                     if ray.dir.dot(&hit.normal).abs() >= camera.grazing_cos_min
                         && (camera.min_range_m..=camera.max_range_m).contains(&depth)
                     {
-                        if let Some(c) = counts.get_mut(f as usize) {
-                            *c += 1;
-                        }
+                        visit(v as usize * k.width as usize + u as usize, f);
                     }
                 }
             }
         }
-        counts
     }
 
     /// Tries views of the first fruit-bearing plant from the workspace side, nearest the preferred

@@ -3006,6 +3006,7 @@ impl<'a> RoiCloud<'a> {
   pub const VT_DETECTOR_ID: ::flatbuffers::VOffsetT = 14;
   pub const VT_WORLD_FROM_CAMERA: ::flatbuffers::VOffsetT = 16;
   pub const VT_SOURCE_FRAME_EPOCH_NS: ::flatbuffers::VOffsetT = 18;
+  pub const VT_ROI_CONFIDENCE: ::flatbuffers::VOffsetT = 20;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3019,6 +3020,7 @@ impl<'a> RoiCloud<'a> {
     let mut builder = RoiCloudBuilder::new(_fbb);
     builder.add_source_frame_epoch_ns(args.source_frame_epoch_ns);
     builder.add_source_frame_seq(args.source_frame_seq);
+    if let Some(x) = args.roi_confidence { builder.add_roi_confidence(x); }
     if let Some(x) = args.world_from_camera { builder.add_world_from_camera(x); }
     if let Some(x) = args.detector_id { builder.add_detector_id(x); }
     builder.add_invalid_pixels(args.invalid_pixels);
@@ -3088,6 +3090,15 @@ impl<'a> RoiCloud<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(RoiCloud::VT_SOURCE_FRAME_EPOCH_NS, Some(0)).unwrap()}
   }
+  /// Each point's fruit confidence, 0..=255 for 0..=1 (a learned detector's probability); empty
+  /// or absent when the labels are certain (a colour rule). roi is confidence >= 128.
+  #[inline]
+  pub fn roi_confidence(&self) -> Option<::flatbuffers::Vector<'a, u8>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(RoiCloud::VT_ROI_CONFIDENCE, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for RoiCloud<'_> {
@@ -3104,6 +3115,7 @@ impl ::flatbuffers::Verifiable for RoiCloud<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("detector_id", Self::VT_DETECTOR_ID, false)?
      .visit_field::<Pose>("world_from_camera", Self::VT_WORLD_FROM_CAMERA, false)?
      .visit_field::<u64>("source_frame_epoch_ns", Self::VT_SOURCE_FRAME_EPOCH_NS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("roi_confidence", Self::VT_ROI_CONFIDENCE, false)?
      .finish();
     Ok(())
   }
@@ -3117,6 +3129,7 @@ pub struct RoiCloudArgs<'a> {
     pub detector_id: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub world_from_camera: Option<&'a Pose>,
     pub source_frame_epoch_ns: u64,
+    pub roi_confidence: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
 }
 impl<'a> Default for RoiCloudArgs<'a> {
   #[inline]
@@ -3130,6 +3143,7 @@ impl<'a> Default for RoiCloudArgs<'a> {
       detector_id: None,
       world_from_camera: None,
       source_frame_epoch_ns: 0,
+      roi_confidence: None,
     }
   }
 }
@@ -3172,6 +3186,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> RoiCloudBuilder<'a, 'b, A> {
     self.fbb_.push_slot::<u64>(RoiCloud::VT_SOURCE_FRAME_EPOCH_NS, source_frame_epoch_ns, 0);
   }
   #[inline]
+  pub fn add_roi_confidence(&mut self, roi_confidence: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , u8>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RoiCloud::VT_ROI_CONFIDENCE, roi_confidence);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> RoiCloudBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     RoiCloudBuilder {
@@ -3197,6 +3215,7 @@ impl ::core::fmt::Debug for RoiCloud<'_> {
       ds.field("detector_id", &self.detector_id());
       ds.field("world_from_camera", &self.world_from_camera());
       ds.field("source_frame_epoch_ns", &self.source_frame_epoch_ns());
+      ds.field("roi_confidence", &self.roi_confidence());
       ds.finish()
   }
 }

@@ -19,6 +19,9 @@ pub struct RoiCloud {
     pub source_frame_epoch_ns: u64,
     pub invalid_pixels: u32,
     pub detector_id: String,
+    /// Each point's fruit confidence, 0..=255 for 0..=1 (a learned detector's probability);
+    /// empty when the labels are certain (a colour rule).
+    pub roi_confidence: Vec<u8>,
 }
 
 impl RoiCloud {
@@ -32,7 +35,7 @@ impl Wire for RoiCloud {
     const KIND: MessageKind = MessageKind::RoiCloud;
 
     fn size_hint(&self) -> usize {
-        self.points_in_world.len() * 13 + 1024
+        self.points_in_world.len() * 13 + self.roi_confidence.len() + 1024
     }
 
     fn write_payload(&self, fbb: &mut FlatBufferBuilder<'_>) -> WIPOffset<UnionWIPOffset> {
@@ -41,6 +44,8 @@ impl Wire for RoiCloud {
         let flags: Vec<u8> = self.roi.iter().map(|&r| u8::from(r)).collect();
         let roi = fbb.create_vector(&flags);
         let detector = fbb.create_string(&self.detector_id);
+        let confidence =
+            (!self.roi_confidence.is_empty()).then(|| fbb.create_vector(&self.roi_confidence));
         let o = self.sensor_origin_in_world;
         let origin = fb::Vec3d::new(o.x, o.y, o.z);
         let pose = pose_to_fb(&self.world_from_camera);
@@ -55,6 +60,7 @@ impl Wire for RoiCloud {
                 detector_id: Some(detector),
                 world_from_camera: Some(&pose),
                 source_frame_epoch_ns: self.source_frame_epoch_ns,
+                roi_confidence: confidence,
             },
         )
         .as_union_value()
@@ -75,6 +81,13 @@ impl Wire for RoiCloud {
                 format!("{} points but {} roi flags", points.len(), roi.len()),
             ));
         }
+        let roi_confidence: Vec<u8> = m.roi_confidence().map(|c| c.iter().collect()).unwrap_or_default();
+        if !roi_confidence.is_empty() && roi_confidence.len() != points.len() {
+            return Err(content(
+                kind,
+                format!("{} points but {} confidences", points.len(), roi_confidence.len()),
+            ));
+        }
         let origin = m
             .sensor_origin()
             .ok_or_else(|| content(kind, "sensor origin is missing"))?;
@@ -93,6 +106,7 @@ impl Wire for RoiCloud {
             source_frame_epoch_ns: m.source_frame_epoch_ns(),
             invalid_pixels: m.invalid_pixels(),
             detector_id: string_or_empty(m.detector_id()),
+            roi_confidence,
         })
     }
 }

@@ -135,8 +135,37 @@ class RoiCloud(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # Each point's fruit confidence, 0..=255 for 0..=1 (a learned detector's probability); empty
+    # or absent when the labels are certain (a colour rule). roi is confidence >= 128.
+    # RoiCloud
+    def RoiConfidence(self, j: int):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 1))
+        return 0
+
+    # RoiCloud
+    def RoiConfidenceAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Uint8Flags, o)
+        return 0
+
+    # RoiCloud
+    def RoiConfidenceLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # RoiCloud
+    def RoiConfidenceIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        return o == 0
+
 def RoiCloudStart(builder: flatbuffers.Builder):
-    builder.StartObject(8)
+    builder.StartObject(9)
 
 def Start(builder: flatbuffers.Builder):
     RoiCloudStart(builder)
@@ -200,6 +229,18 @@ def RoiCloudAddSourceFrameEpochNs(builder: flatbuffers.Builder, sourceFrameEpoch
 
 def AddSourceFrameEpochNs(builder: flatbuffers.Builder, sourceFrameEpochNs: int):
     RoiCloudAddSourceFrameEpochNs(builder, sourceFrameEpochNs)
+
+def RoiCloudAddRoiConfidence(builder: flatbuffers.Builder, roiConfidence: int):
+    builder.PrependUOffsetTRelativeSlot(8, flatbuffers.number_types.UOffsetTFlags.py_type(roiConfidence), 0)
+
+def AddRoiConfidence(builder: flatbuffers.Builder, roiConfidence: int):
+    RoiCloudAddRoiConfidence(builder, roiConfidence)
+
+def RoiCloudStartRoiConfidenceVector(builder, numElems: int) -> int:
+    return builder.StartVector(1, numElems, 1)
+
+def StartRoiConfidenceVector(builder, numElems: int) -> int:
+    return RoiCloudStartRoiConfidenceVector(builder, numElems)
 
 def RoiCloudEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

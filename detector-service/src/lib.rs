@@ -24,7 +24,7 @@ use glasshouse_bus::{
 };
 use std::path::{Path, PathBuf};
 
-use glasshouse_detect::{DetectorConfig, FruitDetector, HsiRule};
+use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
 use glasshouse_pipeline::detect_frame_with;
 use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{DetectorStatus, Header, RgbdFrame, RoiCloud};
@@ -72,7 +72,7 @@ impl DetectorSettings {
 /// the HSI rule.
 pub fn load_fruit_detector(model: Option<&Path>) -> anyhow::Result<Arc<dyn FruitDetector>> {
     let Some(path) = model else {
-        return Ok(Arc::new(HsiRule::default()));
+        return Ok(Arc::new(HsiVotes::default()));
     };
     let bytes = std::fs::read(path)
         .with_context(|| format!("cannot read the fruit model {}", path.display()))?;

@@ -87,10 +87,8 @@ async fn the_learned_detector_finds_green_fruit_and_sends_its_confidence() {
         hsi_roi * 20 <= roi,
         "HSI {hsi_roi} against the model's {roi}"
     );
-    assert!(
-        hsi.roi_confidence.is_empty(),
-        "the colour rule's labels are certain"
-    );
+    // The colour rule's pixel votes are confidences too.
+    assert_eq!(hsi.roi_confidence.len(), hsi.points_in_world.len());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -58,6 +58,17 @@ async fn a_roi_subscriber_receives_clouds_and_drops_other_kinds() {
     let observed = within(30, "an untyped cloud", any.recv())
         .await
         .expect("a cloud");
+    // The subscription may reach the sender between a round's two payloads: keep sending until
+    // a wrong payload has been dropped by both subscribers too.
+    within(30, "a wrong-kind payload dropped by both", async {
+        while typed_drops.corrupt.load(Ordering::Relaxed) == 0 {
+            let _ = typed.recv().await;
+        }
+        while any_drops.corrupt.load(Ordering::Relaxed) == 0 {
+            let _ = any.recv().await;
+        }
+    })
+    .await;
     sending.abort();
 
     assert_eq!(received.key, key.as_str());

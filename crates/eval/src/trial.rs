@@ -17,7 +17,7 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Instant;
 
-use glasshouse_detect::{DetectorConfig, FruitDetector, HsiRule};
+use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
 use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
     detect_frame_with, ranked_views, CaptureError, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
@@ -276,7 +276,7 @@ impl<S: TrolleySource> Trial<S> {
                 voxel_size_m: planning.resolution_m,
                 ..DetectorConfig::default()
             },
-            fruit_detector: Arc::new(HsiRule::default()),
+            fruit_detector: Arc::new(HsiVotes::default()),
             planner: TrolleyPlanner::new(planning)?,
             actions: edge.handle(EdgeInput::Start).into(),
             edge,

@@ -1,6 +1,8 @@
 //! Detection: one RGB-D frame in, its ROI-labelled world cloud out.
 
-use glasshouse_detect::{detect_with, DepthFrame, DetectError, DetectorConfig, FruitDetector};
+use glasshouse_detect::{
+    detect_with, DepthFrame, DetectError, DetectorConfig, FruitDetector, HsiVotes,
+};
 use glasshouse_proto::{FrameId, RgbdFrame, RoiCloud};
 
 /// Runs the detector ([`glasshouse_detect::detect`]: 1 cm averaging, the paper's HSI rule,
@@ -11,7 +13,7 @@ pub fn detect_frame(
     detector_id: &str,
     config: &DetectorConfig,
 ) -> Result<RoiCloud, DetectError> {
-    detect_frame_with(frame, frame_id, detector_id, config, &config.rule)
+    detect_frame_with(frame, frame_id, detector_id, config, &HsiVotes(config.rule))
 }
 
 /// [`detect_frame`] with the points labelled by `detector` (the HSI rule or a learned model);

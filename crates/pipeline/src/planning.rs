@@ -82,6 +82,11 @@ impl PlanningSettings {
         MapConfig {
             resolution_m: self.resolution_m,
             max_range_m: Some(self.max_range_m),
+            // A symmetric ROI sensor model: a non-fruit label is as strong evidence as a fruit
+            // label, so sporadic false labels (a noisy detector) fade instead of adding up to
+            // fruit; two more fruit than non-fruit labels still make an ROI voxel.
+            roi_miss_logodds: -ROI_EVIDENCE_LOGODDS,
+            roi_hit_logodds: ROI_EVIDENCE_LOGODDS,
             ..MapConfig::default()
         }
     }
@@ -94,6 +99,9 @@ impl PlanningSettings {
         }
     }
 }
+
+/// ROI log-odds of one fruit or non-fruit label: a detector right 70 % of the time.
+pub const ROI_EVIDENCE_LOGODDS: f32 = 0.8473;
 
 /// Seed of the plan made on frame `frame_seq` by a planner seeded with `seed`.
 pub fn plan_seed(seed: u64, frame_seq: u64) -> u64 {

@@ -367,14 +367,14 @@ impl RoiMap {
         }
         for &key in &g.overflow_roi {
             stats.roi_updates += 1;
-            self.update_voxel(key, None, Some(cfg.hit_logodds), &mut log);
+            self.update_voxel(key, None, Some(cfg.roi_hit_logodds), &mut log);
         }
         for key in g.overflow_non_roi.drain() {
             if g.overflow_roi.contains(&key) {
                 continue; // ROI wins within a scan
             }
             stats.non_roi_updates += 1;
-            self.update_voxel(key, None, Some(cfg.miss_logodds), &mut log);
+            self.update_voxel(key, None, Some(cfg.roi_miss_logodds), &mut log);
         }
         g.overflow_roi.clear();
 
@@ -453,6 +453,11 @@ impl RoiMap {
             lo: cfg.clamp_min_logodds,
             hi: cfg.clamp_max_logodds,
         };
+        let roi_step = Step {
+            hit: cfg.roi_hit_logodds,
+            miss: cfg.roi_miss_logodds,
+            ..step
+        };
         let thr = cfg.roi_threshold_logodds;
         let (mut touched, mut roi_touched) = (EMPTY, EMPTY);
         for w in 0..8 {
@@ -471,7 +476,7 @@ impl RoiMap {
         let (roi_changed_values, roi_now) = if roi_touched == EMPTY {
             (EMPTY, EMPTY)
         } else {
-            block.roi.update(&roi_touched, roi, step, |v| v >= thr)
+            block.roi.update(&roi_touched, roi, roi_step, |v| v >= thr)
         };
         let mut state_changed = EMPTY;
         let mut roi_changed = EMPTY;

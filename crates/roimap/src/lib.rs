@@ -129,10 +129,17 @@ impl Neighbourhood {
 pub struct MapConfig {
     /// Voxel edge length in metres.
     pub resolution_m: f64,
-    /// Occupancy/ROI log-odds added on a hit (p = 0.7).
+    /// Occupancy log-odds added on a hit (p = 0.7).
     pub hit_logodds: f32,
-    /// Occupancy/ROI log-odds added on a miss (p = 0.4).
+    /// Occupancy log-odds added on a miss (p = 0.4).
     pub miss_logodds: f32,
+    /// ROI log-odds added when a scan's end point in the voxel is labelled fruit (the paper:
+    /// the occupancy hit, +0.8473).
+    pub roi_hit_logodds: f32,
+    /// ROI log-odds added when a scan's end points in the voxel are all labelled non-fruit (the
+    /// paper: the occupancy miss, −0.4055). With a noisy detector the paper's asymmetry lets
+    /// sporadic false labels win; the planner uses a symmetric model (−0.8473).
+    pub roi_miss_logodds: f32,
     /// Lower clamp of both log-odds values (p = 0.12).
     pub clamp_min_logodds: f32,
     /// Upper clamp of both log-odds values (p = 0.97).
@@ -149,6 +156,8 @@ impl Default for MapConfig {
             resolution_m: 0.01,
             hit_logodds: 0.8473,
             miss_logodds: -0.4055,
+            roi_hit_logodds: 0.8473,
+            roi_miss_logodds: -0.4055,
             clamp_min_logodds: -2.0,
             clamp_max_logodds: 3.5110,
             roi_threshold_logodds: 1.0,
@@ -177,6 +186,18 @@ impl MapConfig {
             return bad(format!(
                 "miss_logodds must be finite and < 0, got {}",
                 self.miss_logodds
+            ));
+        }
+        if !(self.roi_hit_logodds.is_finite() && self.roi_hit_logodds > 0.0) {
+            return bad(format!(
+                "roi_hit_logodds must be finite and > 0, got {}",
+                self.roi_hit_logodds
+            ));
+        }
+        if !(self.roi_miss_logodds.is_finite() && self.roi_miss_logodds < 0.0) {
+            return bad(format!(
+                "roi_miss_logodds must be finite and < 0, got {}",
+                self.roi_miss_logodds
             ));
         }
         // New voxels start at 0, so the clamp interval must contain it.

@@ -5,14 +5,14 @@
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `GHRM` |
-//! | 2 | format version (2) |
+//! | 2 | format version (3) |
 //! | 2 | kind: 0 snapshot |
 //! | 8 | length of the compressed body in bytes |
 //! | body | the LZ4 block (`lz4_flex`, uncompressed size as a u32 first) of the body below |
 //! | 4 | CRC-32 (IEEE) of everything before it |
 //!
-//! Body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI threshold as
-//! f32, `max_range_m` f64 with −1 for none), `scans_inserted` u64, the block count u32, then per
+//! Body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI threshold,
+//! ROI hit, ROI miss as f32, `max_range_m` f64 with −1 for none), `scans_inserted` u64, the block count u32, then per
 //! block its coordinate (3 × i32), its known mask (8 × u64, bit `z*64 + y*8 + x`) and the
 //! occupancy, then the ROI log-odds of its known voxels: tag 0 and one f32 (all equal), tag 1, the
 //! palette size − 1 (u8), the palette (f32 each) and each known voxel's index in bit order packed
@@ -31,7 +31,7 @@ use crate::{ChangeLog, MapConfig, MapError, RoiMap, VoxelKey};
 
 const MAGIC: &[u8; 4] = b"GHRM";
 /// Current format version.
-pub const FORMAT_VERSION: u16 = 2;
+pub const FORMAT_VERSION: u16 = 3;
 pub(crate) const KIND_SNAPSHOT: u16 = 0;
 pub(crate) const HEADER_BYTES: usize = 16;
 
@@ -345,6 +345,8 @@ impl RoiMap {
             c.clamp_min_logodds,
             c.clamp_max_logodds,
             c.roi_threshold_logodds,
+            c.roi_hit_logodds,
+            c.roi_miss_logodds,
         ] {
             body.extend_from_slice(&v.to_le_bytes());
         }
@@ -382,6 +384,8 @@ impl RoiMap {
         let clamp_min_logodds = c.f32()?;
         let clamp_max_logodds = c.f32()?;
         let roi_threshold_logodds = c.f32()?;
+        let roi_hit_logodds = c.f32()?;
+        let roi_miss_logodds = c.f32()?;
         let max_range = c.f64()?;
         let config = MapConfig {
             resolution_m,
@@ -390,6 +394,8 @@ impl RoiMap {
             clamp_min_logodds,
             clamp_max_logodds,
             roi_threshold_logodds,
+            roi_hit_logodds,
+            roi_miss_logodds,
             max_range_m: (max_range >= 0.0).then_some(max_range),
         };
         let mut map = RoiMap::new(config)?;

@@ -156,6 +156,43 @@ fn clamping_after_many_scans() {
     assert_eq!(free.roi_logodds, 0.0, "free voxels get no ROI update");
 }
 
+/// One voxel labelled fruit and non-fruit equally often: the paper's asymmetric ROI update
+/// (+0.85 / −0.41) makes it fruit, the symmetric model does not; a snapshot keeps the model.
+#[test]
+fn a_symmetric_roi_model_does_not_let_false_fruit_labels_add_up() {
+    let labels = [
+        false, false, true, true, false, true, false, false, true, true,
+    ];
+    let run = |config: MapConfig| {
+        let mut m = RoiMap::new(config).expect("valid config");
+        let origin = Point3::new(0.005, 0.005, 0.005);
+        for &fruit in &labels {
+            m.insert_scan(&origin, &[p32(0.205, 0.005, 0.005)], &[fruit])
+                .expect("valid scan");
+        }
+        m
+    };
+    let paper = run(MapConfig::default());
+    assert!(paper.is_roi(k(20, 0, 0)), "{:?}", paper.get(k(20, 0, 0)));
+    let symmetric = MapConfig {
+        roi_hit_logodds: 0.8473,
+        roi_miss_logodds: -0.8473,
+        ..MapConfig::default()
+    };
+    let m = run(symmetric);
+    assert!(!m.is_roi(k(20, 0, 0)), "{:?}", m.get(k(20, 0, 0)));
+    // Occupancy keeps OctoMap's rule whatever the ROI model.
+    assert_eq!(
+        m.get(k(20, 0, 0)).map(|v| v.occupancy_logodds),
+        paper.get(k(20, 0, 0)).map(|v| v.occupancy_logodds)
+    );
+    let mut bytes = Vec::new();
+    m.write_snapshot(&mut bytes).expect("write");
+    let back = RoiMap::read_snapshot(bytes.as_slice()).expect("read");
+    assert_eq!(back.config(), &symmetric);
+    assert_eq!(back.get(k(20, 0, 0)), m.get(k(20, 0, 0)));
+}
+
 #[test]
 fn beyond_range_frees_up_to_range_and_marks_nothing() {
     let config = MapConfig {

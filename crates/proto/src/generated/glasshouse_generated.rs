@@ -3090,8 +3090,8 @@ impl<'a> RoiCloud<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(RoiCloud::VT_SOURCE_FRAME_EPOCH_NS, Some(0)).unwrap()}
   }
-  /// Each point's fruit confidence, 0..=255 for 0..=1 (a learned detector's probability); empty
-  /// or absent when the labels are certain (a colour rule). roi is confidence >= 128.
+  /// Each point's fruit confidence, 0..=255 for 0..=1 (its pixels' smoothed vote); empty
+  /// or absent when every label is certain (0 or 1). roi is confidence >= 128.
   #[inline]
   pub fn roi_confidence(&self) -> Option<::flatbuffers::Vector<'a, u8>> {
     // Safety:

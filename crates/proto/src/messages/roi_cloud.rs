@@ -20,7 +20,7 @@ pub struct RoiCloud {
     pub invalid_pixels: u32,
     pub detector_id: String,
     /// Each point's fruit confidence, 0..=255 for 0..=1 (a learned detector's probability);
-    /// empty when the labels are certain (a colour rule).
+    /// empty when the labels are certain (0 or 1, e.g. the colour rule on mean colours).
     pub roi_confidence: Vec<u8>,
 }
 

@@ -135,8 +135,8 @@ class RoiCloud(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
-    # Each point's fruit confidence, 0..=255 for 0..=1 (a learned detector's probability); empty
-    # or absent when the labels are certain (a colour rule). roi is confidence >= 128.
+    # Each point's fruit confidence, 0..=255 for 0..=1 (its pixels' smoothed vote); empty
+    # or absent when every label is certain (0 or 1). roi is confidence >= 128.
     # RoiCloud
     def RoiConfidence(self, j: int):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))

@@ -5,6 +5,8 @@
 //! into `--out`:
 //!
 //! - `trials/<method>-<trial>.csv`: the metrics at every simulated second;
+//! - `trials/<method>-<trial>-fruits.csv`: the final estimates against the true fruits, a row
+//!   per true fruit and per false fruit (fitted and box centre distance and volume accuracy);
 //! - `table.md`: Table I (mean ± std at the end of the budget) and the Mann-Whitney p-values;
 //! - `summary.json`: `{"<method>": {"<metric>": {"mean", "std", "n"}}, "fruits_total", "p_values",
 //!   "settings"}`;
@@ -27,6 +29,7 @@ use anyhow::{bail, ensure, Context};
 use glasshouse_detect::FruitDetector;
 use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
 use glasshouse_eval::report::{self, method_label, MethodRuns};
+use glasshouse_eval::RoiEvidence;
 use glasshouse_eval::{run_trial_with, ComputeTime, TrialConfig, TrialResult};
 use glasshouse_nbv::Method;
 use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind, MAX_SILHOUETTE_PX};
@@ -114,6 +117,10 @@ pub struct EvalArgs {
     /// Trials run in parallel (default: the number of cores).
     #[arg(long)]
     pub jobs: Option<usize>,
+    /// How detections enter the ROI map: `labels` (full-strength labels, the planner's default)
+    /// or `confidence` (each voxel's detection confidence as its log-odds, capped).
+    #[arg(long, value_name = "HOW", default_value_t = RoiEvidence::Labels)]
+    pub roi_evidence: RoiEvidence,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -190,6 +197,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         for (t, result) in run.trials.iter().enumerate() {
             let path = trials_dir.join(format!("{}-{t}.csv", run.method));
             write(&path, report::trial_csv(result))?;
+            let path = trials_dir.join(format!("{}-{t}-fruits.csv", run.method));
+            write(&path, report::fruits_csv(result))?;
         }
     }
     let mut table = report::table_markdown(&plan.scenario.to_string(), &runs, args.budget_s);
@@ -207,6 +216,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "height": height,
         "perception_noise": plan.perception_noise,
         "fruit_colour": args.perception.fruit_colour,
+        "roi_evidence": args.roi_evidence,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -256,6 +266,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 compute_time: plan.compute_time,
                 perception_noise: plan.perception_noise,
                 fruit_colour: args.perception.fruit_colour,
+                roi_evidence: args.roi_evidence,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -505,6 +516,7 @@ mod tests {
             compute_ms: Some(50.0),
             width: 64,
             jobs: Some(2),
+            roi_evidence: RoiEvidence::Labels,
             perception: PerceptionArgs::default(),
         }
     }
@@ -572,6 +584,13 @@ mod tests {
         let _ = std::fs::remove_file(&file);
     }
 
+    fn summary_fruits_total(out: &Path) -> usize {
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap())
+                .unwrap();
+        summary["fruits_total"].as_u64().unwrap() as usize
+    }
+
     #[test]
     fn a_small_run_writes_every_output_and_replays() {
         let base = std::env::temp_dir().join(format!("gh-eval-run-{}", std::process::id()));
@@ -587,9 +606,20 @@ mod tests {
             "count_ratio.png",
             "trials/ours-uu-0.csv",
             "trials/explo-uu-0.csv",
+            "trials/ours-uu-0-fruits.csv",
         ] {
             assert!(a.join(name).is_file(), "{name}");
         }
+        // A row per true fruit at least, every row as wide as the header.
+        let fruits = std::fs::read_to_string(a.join("trials/ours-uu-0-fruits.csv")).unwrap();
+        let total = summary_fruits_total(&a);
+        assert!(fruits.lines().count() > total);
+        let width = fruits.lines().next().unwrap().split(',').count();
+        assert!(fruits.lines().all(|l| l.split(',').count() == width));
+        assert_eq!(
+            fruits,
+            std::fs::read_to_string(b.join("trials/ours-uu-0-fruits.csv")).unwrap()
+        );
         for name in ["trials/ours-uu-0.csv", "trials/explo-uu-0.csv"] {
             let x = std::fs::read_to_string(a.join(name)).unwrap();
             assert_eq!(x, std::fs::read_to_string(b.join(name)).unwrap());

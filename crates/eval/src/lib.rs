@@ -18,6 +18,8 @@ pub mod report;
 pub mod stats;
 pub mod trial;
 
+/// How detections enter the planner's map, an experiment's choice.
+pub use glasshouse_pipeline::RoiEvidence;
 pub use metrics::{
     evaluate, greedy_match, time_to_detect_s, BoxEstimate, FruitCounts, Match, Metrics,
     MATCH_DISTANCE_M,

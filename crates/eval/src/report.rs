@@ -7,6 +7,7 @@ use std::fmt::Write as _;
 use glasshouse_nbv::Method;
 use serde_json::{json, Map, Value};
 
+use crate::metrics::{greedy_match, volume_accuracy, MATCH_DISTANCE_M};
 use crate::stats::{mann_whitney_u, mean_std, Alternative};
 use crate::trial::{Sample, TrialResult};
 
@@ -246,6 +247,80 @@ pub fn trial_csv(result: &TrialResult) -> String {
             csv_num(s.fitted.counts.f1),
             s.fitted.counts.false_fruits,
         );
+    }
+    out
+}
+
+/// Header of the per-trial fruit CSV.
+pub const FRUITS_CSV_HEADER: &str = "truth_id,truth_x_m,truth_y_m,truth_z_m,\
+truth_half_x_m,truth_half_y_m,truth_half_z_m,estimate_id,voxels,fit_kind,fit_confidence,\
+fitted_x_m,fitted_y_m,fitted_z_m,semi_x_m,semi_y_m,semi_z_m,\
+fitted_distance_cm,fitted_volume_accuracy,box_distance_cm,box_volume_accuracy";
+
+/// The final estimates of one trial against the true fruits, one row per true fruit (estimate
+/// columns empty when missed) and one per false fruit (truth columns empty). The pairs are the
+/// fitted estimates' matching, so a row says why a trial's fitted figures are what they are.
+pub fn fruits_csv(result: &TrialResult) -> String {
+    let fitted: Vec<_> = result.fruits.iter().map(|f| f.fitted.centre).collect();
+    let truths: Vec<_> = result.truths.iter().map(|t| t.centre).collect();
+    let matches = greedy_match(&fitted, &truths, MATCH_DISTANCE_M);
+    let mut rows: Vec<(Option<usize>, Option<usize>)> = (0..truths.len())
+        .map(|t| {
+            (
+                Some(t),
+                matches.iter().find(|m| m.truth == t).map(|m| m.estimate),
+            )
+        })
+        .collect();
+    rows.extend(
+        (0..fitted.len())
+            .filter(|e| !matches.iter().any(|m| m.estimate == *e))
+            .map(|e| (None, Some(e))),
+    );
+    let mut out = String::from(FRUITS_CSV_HEADER);
+    out.push('\n');
+    for (truth, estimate) in rows {
+        let mut cells: Vec<String> = Vec::with_capacity(21);
+        let t = truth.map(|t| &result.truths[t]);
+        match t {
+            Some(t) => {
+                cells.push(t.id.to_string());
+                cells.extend(
+                    t.centre
+                        .iter()
+                        .chain(t.half_extents_m.iter())
+                        .map(|v| csv_num(*v)),
+                );
+            }
+            None => cells.extend(std::iter::repeat_n(String::new(), 7)),
+        }
+        match estimate.map(|e| &result.fruits[e]) {
+            Some(f) => {
+                let s = &f.fitted;
+                cells.push(f.estimate.id.to_string());
+                cells.push(f.estimate.voxel_count.to_string());
+                cells.push(format!("{:?}", s.kind).to_lowercase());
+                cells.push(csv_num(s.confidence));
+                cells.extend(
+                    s.centre
+                        .iter()
+                        .chain(s.semi_axes_m.iter())
+                        .map(|v| csv_num(*v)),
+                );
+                let versus = |centre: &nalgebra::Point3<f64>, volume_m3: f64| match t {
+                    Some(t) => [
+                        csv_num((centre - t.centre).norm() * 100.0),
+                        csv_num(volume_accuracy(volume_m3, t.volume_m3)),
+                    ],
+                    None => [String::new(), String::new()],
+                };
+                cells.extend(versus(&s.centre, s.box_volume_m3));
+                cells.extend(versus(&f.estimate.centre, f.estimate.volume_m3));
+            }
+            None => cells.extend(std::iter::repeat_n(String::new(), 14)),
+        }
+        out.push_str(&cells.join(","));
+        out.push('\n');
     }
     out
 }
@@ -584,6 +659,7 @@ mod tests {
             frames_without_reachable_view: 0,
             compute_time_s: 0.002,
             fruits: Vec::new(),
+            truths: Vec::new(),
             plans: Vec::new(),
         }
     }

@@ -21,11 +21,11 @@ use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
 use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
     detect_frame_with, ranked_views, CaptureError, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
-    EdgeSettings, FruitRecord, PlanningError, PlanningSettings, SimTrolley, SimTrolleySettings,
-    TrolleyPlanner, TrolleySource,
+    EdgeSettings, FruitRecord, PlanningError, PlanningSettings, RoiEvidence, SimTrolley,
+    SimTrolleySettings, TrolleyPlanner, TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame};
-use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind, Scene};
+use glasshouse_sim::{FruitColour, FruitTruth, PerceptionNoise, ScenarioKind, Scene};
 use serde::Serialize;
 
 use crate::metrics::{evaluate, BoxEstimate, Metrics};
@@ -75,6 +75,8 @@ pub struct TrialConfig {
     pub perception_noise: PerceptionNoise,
     /// Ripe red fruit (the paper's scenes) or the unripe green variant.
     pub fruit_colour: FruitColour,
+    /// How detections enter the map (the planner's default: labels).
+    pub roi_evidence: RoiEvidence,
 }
 
 impl TrialConfig {
@@ -92,6 +94,7 @@ impl TrialConfig {
             segment_length_m: 1.0,
             perception_noise: PerceptionNoise::default(),
             fruit_colour: FruitColour::Red,
+            roi_evidence: RoiEvidence::Labels,
         }
     }
 
@@ -130,6 +133,7 @@ impl TrialConfig {
             seed: self.seed,
             // Trials run in parallel, one per core, so each plans on its own thread.
             scoring_threads: 1,
+            roi_evidence: self.roi_evidence,
             ..PlanningSettings::default()
         }
     }
@@ -198,6 +202,8 @@ pub struct TrialResult {
     pub compute_time_s: f64,
     /// The estimates at the end of the budget.
     pub fruits: Vec<FruitRecord>,
+    /// The scene's true fruits.
+    pub truths: Vec<FruitTruth>,
     /// The views planned on every frame, in order (what the planner service would publish).
     #[serde(skip)]
     pub plans: Vec<RankedViews>,
@@ -516,6 +522,7 @@ impl<S: TrolleySource> Trial<S> {
             frames_without_reachable_view: self.frames_without_reachable_view,
             compute_time_s: self.compute_time_s,
             fruits: self.published.fruits,
+            truths: self.scene.fruits().to_vec(),
             plans: self.plans,
         })
     }

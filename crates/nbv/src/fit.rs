@@ -82,6 +82,9 @@ pub struct FitConfig {
     pub free_search_margin_m: f64,
     /// Largest accepted RMS surface distance, in voxels.
     pub max_rms_voxels: f64,
+    /// Clusters longer than this along some axis, which no single ellipsoid fits, are tried as
+    /// two touching fruits ([`crate::split::split_touching`]).
+    pub split_extent_m: f64,
     /// Points spread over the surface for the confidence.
     pub surface_samples: usize,
     pub max_iterations: usize,
@@ -97,6 +100,7 @@ impl Default for FitConfig {
             roundness_weight: 3.0,
             free_search_margin_m: 0.06,
             max_rms_voxels: 1.5,
+            split_extent_m: 0.11,
             surface_samples: 256,
             max_iterations: 60,
         }
@@ -680,7 +684,7 @@ mod tests {
 }
 
 #[cfg(test)]
-mod tests_support {
+pub(crate) mod tests_support {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use glasshouse_roimap::MapConfig;
@@ -718,6 +722,13 @@ mod tests_support {
     }
 
     pub fn scan_at(map: &mut RoiMap, c: Point3<f64>, eye: Point3<f64>, axes: &Vector3<f64>) {
+        scan_all(map, &[(c, *axes)], eye)
+    }
+
+    /// [`scan_at`] of several ellipsoids at once, each ray ending on the nearest it hits; aims
+    /// at the first.
+    pub fn scan_all(map: &mut RoiMap, fruits: &[(Point3<f64>, Vector3<f64>)], eye: Point3<f64>) {
+        let c = fruits[0].0;
         let forward = (c - eye).normalize();
         let helper = if forward.z.abs() < 0.9 {
             Vector3::z()
@@ -736,7 +747,11 @@ mod tests_support {
                 let u = half_angle * (2.0 * (i as f64 + 0.5) / steps as f64 - 1.0);
                 let v = half_angle * (2.0 * (j as f64 + 0.5) / steps as f64 - 1.0);
                 let d = (forward + right * u.tan() + up * v.tan()).normalize();
-                match hit_ellipsoid(&eye, &d, &c, axes) {
+                let nearest = fruits
+                    .iter()
+                    .filter_map(|(c, axes)| hit_ellipsoid(&eye, &d, c, axes))
+                    .min_by(f64::total_cmp);
+                match nearest {
                     Some(t) => {
                         points.push((eye + d * t).cast::<f32>());
                         roi.push(true);

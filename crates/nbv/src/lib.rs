@@ -35,6 +35,7 @@
 //! streams derived from it.
 
 pub mod fit;
+pub mod split;
 
 use std::collections::HashMap;
 use std::fmt;

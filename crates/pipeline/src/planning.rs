@@ -3,6 +3,7 @@
 
 use glasshouse_arm::Robot;
 use glasshouse_nbv::fit::{FitConfig, FittedShape, ShapeKind};
+use glasshouse_nbv::split::{fragments, split_touching};
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, Plan, PlanError, PlannerConfig,
     PlanningContext, ReachPredicate,
@@ -49,6 +50,45 @@ pub struct PlanningSettings {
     pub fit: FitConfig,
     /// Threads that score candidates (0: one per core); any count gives the same plan.
     pub scoring_threads: usize,
+    /// How a cloud's detections enter the ROI map.
+    pub roi_evidence: RoiEvidence,
+}
+
+/// How a cloud's detections enter the ROI map.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RoiEvidence {
+    /// Each point's ROI label at full strength, ±[`ROI_EVIDENCE_LOGODDS`]. The detector's
+    /// confidence has already weighted every pixel in the voxel's vote that set the label.
+    #[default]
+    Labels,
+    /// Each point's confidence as its own log-odds, capped at the labels' strength
+    /// ([`roi_evidence_logodds`]): split votes count little. Slower to fill in fruit edges seen
+    /// by few pixels (docs/results.md, "ROI evidence").
+    Confidence,
+}
+
+impl std::str::FromStr for RoiEvidence {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "labels" => Ok(Self::Labels),
+            "confidence" => Ok(Self::Confidence),
+            _ => Err(format!(
+                "ROI evidence must be labels or confidence, got {s:?}"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for RoiEvidence {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Labels => "labels",
+            Self::Confidence => "confidence",
+        })
+    }
 }
 
 impl Default for PlanningSettings {
@@ -61,6 +101,7 @@ impl Default for PlanningSettings {
             min_cluster_voxels: 10,
             fit: FitConfig::default(),
             scoring_threads: 0,
+            roi_evidence: RoiEvidence::Labels,
         }
     }
 }
@@ -102,6 +143,39 @@ impl PlanningSettings {
 
 /// ROI log-odds of one fruit or non-fruit label: a detector right 70 % of the time.
 pub const ROI_EVIDENCE_LOGODDS: f32 = 0.8473;
+
+/// The ROI evidence of each point of a cloud that carries detection confidences: the
+/// confidence's own log-odds, `ln(c / (1 − c))`, capped at ±[`ROI_EVIDENCE_LOGODDS`]. A voxel seen
+/// by many pixels that agree counts fully, a split vote (a few pixels, or a noisy detector's
+/// mixed labels) only a little; so fruit needs consistent evidence over several views before it
+/// is ROI. `None` for clouds without confidences (a detector whose labels are certain), which
+/// the map takes as full-strength labels.
+pub fn roi_evidence_logodds(cloud: &RoiCloud) -> Option<Vec<f32>> {
+    if cloud.roi_confidence.is_empty() {
+        return None;
+    }
+    let table = confidence_logodds_table();
+    Some(
+        cloud
+            .roi_confidence
+            .iter()
+            .map(|&c| table[usize::from(c)])
+            .collect(),
+    )
+}
+
+/// [`roi_evidence_logodds`] of each confidence byte `c` (confidence `c / 255`).
+fn confidence_logodds_table() -> &'static [f32; 256] {
+    static TABLE: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        std::array::from_fn(|c| {
+            let p = c as f64 / 255.0;
+            // p = 0 and 1 give ∓infinity, which the cap turns into the full label.
+            let logodds = (p / (1.0 - p)).ln() as f32;
+            logodds.clamp(-ROI_EVIDENCE_LOGODDS, ROI_EVIDENCE_LOGODDS)
+        })
+    })
+}
 
 /// Seed of the plan made on frame `frame_seq` by a planner seeded with `seed`.
 pub fn plan_seed(seed: u64, frame_seq: u64) -> u64 {
@@ -271,22 +345,34 @@ impl TrolleyPlanner {
             return Ok(verdict);
         }
         if verdict.integrates() {
-            self.map.insert_scan(
-                &cloud.sensor_origin_in_world,
-                &cloud.points_in_world,
-                &cloud.roi,
-            )?;
+            let origin = &cloud.sensor_origin_in_world;
+            let evidence = match self.settings.roi_evidence {
+                RoiEvidence::Labels => None,
+                RoiEvidence::Confidence => roi_evidence_logodds(cloud),
+            };
+            match evidence {
+                Some(evidence) => {
+                    self.map
+                        .insert_scan_evidence(origin, &cloud.points_in_world, &evidence, 1)?
+                }
+                None => self
+                    .map
+                    .insert_scan(origin, &cloud.points_in_world, &cloud.roi)?,
+            };
             self.order.integrated(frame);
         }
-        self.clusters = self.map.clusters(self.settings.min_cluster_voxels);
+        let min_voxels = self.settings.min_cluster_voxels;
+        let clusters = self.map.clusters(min_voxels);
+        self.clusters = split_touching(&self.map, clusters, min_voxels, &self.settings.fit);
         self.estimates = self.tracker.update(&self.clusters);
         self.fits_stale = true;
         Ok(verdict)
     }
 
-    /// Every fruit of the latest clusters with its fitted ellipsoid. Fits are made here, not on
-    /// integration (a replica integrates without them), and only for the fruits whose voxels or
-    /// surroundings changed since their last fit.
+    /// Every fruit of the latest clusters with its fitted ellipsoid, leaving out clusters that
+    /// are a second patch of a fruit another cluster reports ([`fragments`]). Fits are made
+    /// here, not on integration (a replica integrates without them), and only for the fruits
+    /// whose voxels or surroundings changed since their last fit.
     pub fn fruits(&mut self) -> Vec<FruitRecord> {
         if self.fits_stale {
             (self.fits, self.last_refits) =
@@ -294,10 +380,14 @@ impl TrolleyPlanner {
                     .update(&self.map, &self.clusters, &self.settings.fit);
             self.fits_stale = false;
         }
+        let counts: Vec<usize> = self.clusters.iter().map(|c| c.voxels.len()).collect();
+        let fragment = fragments(&self.fits, &counts);
         self.estimates
             .iter()
             .zip(&self.fits)
-            .map(|(estimate, fitted)| FruitRecord {
+            .zip(fragment)
+            .filter(|(_, fragment)| !fragment)
+            .map(|((estimate, fitted), _)| FruitRecord {
                 fitted: fitted.clone(),
                 estimate: estimate.clone(),
             })

@@ -1,7 +1,9 @@
 #![allow(clippy::unwrap_used)]
 
 use glasshouse_detect::DetectorConfig;
-use glasshouse_proto::{FrameId, Header, RankedView, RankedViews, TrolleyState, ViewKind};
+use glasshouse_proto::{
+    FrameId, Header, RankedView, RankedViews, RoiCloud, TrolleyState, ViewKind,
+};
 use glasshouse_sim::ScenarioKind;
 use nalgebra::{Isometry3, Translation3};
 
@@ -470,9 +472,21 @@ fn the_cloud_carries_the_frame_camera_pose() {
 /// Fits every cluster of the planner's map afresh.
 fn fresh_fits(planner: &TrolleyPlanner) -> Vec<glasshouse_nbv::fit::FittedShape> {
     let map = planner.map();
-    let clusters = map.clusters(planner.settings().min_cluster_voxels);
-    let fit = |c| glasshouse_nbv::fit::fit_ellipsoid(map, c, &planner.settings().fit);
-    clusters.iter().map(fit).collect()
+    let (min_voxels, config) = (
+        planner.settings().min_cluster_voxels,
+        &planner.settings().fit,
+    );
+    let clusters = map.clusters(min_voxels);
+    let clusters = glasshouse_nbv::split::split_touching(map, clusters, min_voxels, config);
+    let fit = |c| glasshouse_nbv::fit::fit_ellipsoid(map, c, config);
+    let fits: Vec<_> = clusters.iter().map(fit).collect();
+    let counts: Vec<usize> = clusters.iter().map(|c| c.voxels.len()).collect();
+    let fragment = glasshouse_nbv::split::fragments(&fits, &counts);
+    fits.into_iter()
+        .zip(fragment)
+        .filter(|(_, f)| !f)
+        .map(|(fit, _)| fit)
+        .collect()
 }
 
 #[test]
@@ -568,4 +582,71 @@ fn realtime_pacing_of_an_unreachable_view_and_a_segment_move() {
         7.0,
     );
     assert!((wait_s - 3.5).abs() < 1e-9, "{wait_s}");
+}
+
+fn sorted(
+    map: &glasshouse_roimap::RoiMap,
+) -> Vec<(glasshouse_roimap::VoxelKey, glasshouse_roimap::Voxel)> {
+    let mut v: Vec<_> = map.iter().collect();
+    v.sort_by_key(|(k, _)| *k);
+    v
+}
+
+#[test]
+fn confidences_weight_the_roi_evidence_capped_at_the_labels_strength() {
+    let mut trolley = sim(ScenarioKind::Two);
+    let frame = trolley.capture(1).unwrap().unwrap();
+    let cloud = detect_frame(&frame, FrameId::new(0, 1), "d1", &DetectorConfig::default()).unwrap();
+    let table = |c: u8| {
+        let one = RoiCloud {
+            points_in_world: vec![nalgebra::Point3::new(0.3, 0.0, 0.0)],
+            roi: vec![c >= 128],
+            roi_confidence: vec![c],
+            ..cloud.clone()
+        };
+        roi_evidence_logodds(&one).unwrap()[0]
+    };
+    assert_eq!(table(255), ROI_EVIDENCE_LOGODDS);
+    assert_eq!(table(0), -ROI_EVIDENCE_LOGODDS);
+    // 0.6 → ln(1.5); a split vote is almost no evidence; ≥ 0.7 is capped.
+    assert!((table(153) - 1.5f32.ln()).abs() < 1e-5);
+    assert!(table(128) > 0.0 && table(128) < 0.01);
+    assert!(table(127) < 0.0 && table(127) > -0.01);
+    assert_eq!(table(200), ROI_EVIDENCE_LOGODDS);
+
+    // Through the planner: the same frame's cloud, once with confidences and once without, gives
+    // the same occupancy and, where the votes were split, weaker ROI evidence.
+    assert_eq!(cloud.roi_confidence.len(), cloud.points_in_world.len());
+    let labels_only = RoiCloud {
+        roi_confidence: Vec::new(),
+        ..cloud.clone()
+    };
+    assert!(roi_evidence_logodds(&labels_only).is_none());
+    let confidence = PlanningSettings {
+        roi_evidence: RoiEvidence::Confidence,
+        ..PlanningSettings::default()
+    };
+    let mut weighted = TrolleyPlanner::new(confidence.clone()).unwrap();
+    let mut labelled = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    weighted.integrate(&cloud, 0).unwrap();
+    // The default takes the labels, confidences or not.
+    labelled.integrate(&cloud, 0).unwrap();
+    let mut without = TrolleyPlanner::new(confidence).unwrap();
+    without.integrate(&labels_only, 0).unwrap();
+    assert_eq!(
+        format!("{:?}", sorted(labelled.map())),
+        format!("{:?}", sorted(without.map()))
+    );
+    let (w, l) = (weighted.map(), labelled.map());
+    assert_eq!(w.len(), l.len());
+    let mut weaker = 0;
+    for (key, v) in l.iter() {
+        let u = w.get(key).unwrap();
+        assert_eq!(u.occupancy_logodds, v.occupancy_logodds);
+        assert!(u.roi_logodds.abs() <= v.roi_logodds.abs());
+        assert_eq!(u.roi_logodds > 0.0, v.roi_logodds > 0.0, "{key:?}");
+        weaker += usize::from(u.roi_logodds.abs() < v.roi_logodds.abs());
+    }
+    // Fruit edges seen by few pixels.
+    assert!(weaker > 0);
 }

@@ -15,7 +15,7 @@
 
 use nalgebra::Point3;
 
-use crate::grid::{Mask, BLOCK_EDGE, BLOCK_SHIFT, EMPTY};
+use crate::grid::{block_of, Mask, BLOCK_EDGE, BLOCK_SHIFT, EMPTY};
 use crate::values::Step;
 use crate::walk::{key_of_f32, norm_f32, walk_lanes, LaneVisitor, PlaneGeometry, RaySetup};
 use crate::{ChangeLog, KeySet, MapError, RoiMap, ScanStats, VoxelKey};
@@ -34,7 +34,41 @@ struct RayEnd {
     key_end: VoxelKey,
     /// False for points beyond the maximum range (ray freed up to the range only).
     hit: bool,
-    is_roi: bool,
+    /// ROI log-odds added to the end voxel (the labels' hit or miss, or the caller's evidence).
+    roi_delta: f32,
+}
+
+/// What a scan says about ROI, per point.
+#[derive(Clone, Copy, Debug)]
+pub enum RoiInput<'a> {
+    /// ROI or not: the configured hit or miss, ROI winning within a voxel (OctoMap-style).
+    Labels(&'a [bool]),
+    /// A ROI log-odds delta per point, e.g. from a detector's confidence; within a voxel the
+    /// largest delta wins (a generalisation of "ROI wins"), 0 (or non-finite) adds no evidence.
+    Evidence(&'a [f32]),
+}
+
+impl RoiInput<'_> {
+    fn len(&self) -> usize {
+        match self {
+            Self::Labels(l) => l.len(),
+            Self::Evidence(e) => e.len(),
+        }
+    }
+
+    fn delta(&self, i: usize, hit: f32, miss: f32) -> f32 {
+        match self {
+            Self::Labels(l) => {
+                if l[i] {
+                    hit
+                } else {
+                    miss
+                }
+            }
+            Self::Evidence(e) if e[i].is_finite() => e[i],
+            Self::Evidence(_) => 0.0,
+        }
+    }
 }
 
 /// One thread's free marks.
@@ -210,6 +244,34 @@ impl RoiMap {
         roi: &[bool],
         threads: usize,
     ) -> Result<ScanStats, MapError> {
+        self.insert_scan_input(
+            sensor_origin,
+            points_in_world,
+            RoiInput::Labels(roi),
+            threads,
+        )
+    }
+
+    /// Integrates one scan whose ROI evidence is a log-odds delta per point (see
+    /// [`RoiInput::Evidence`]); occupancy is updated exactly as by [`RoiMap::insert_scan`].
+    pub fn insert_scan_evidence(
+        &mut self,
+        sensor_origin: &Point3<f64>,
+        points_in_world: &[Point3<f32>],
+        roi_logodds: &[f32],
+        threads: usize,
+    ) -> Result<ScanStats, MapError> {
+        let roi = RoiInput::Evidence(roi_logodds);
+        self.insert_scan_input(sensor_origin, points_in_world, roi, threads)
+    }
+
+    fn insert_scan_input(
+        &mut self,
+        sensor_origin: &Point3<f64>,
+        points_in_world: &[Point3<f32>],
+        roi: RoiInput<'_>,
+        threads: usize,
+    ) -> Result<ScanStats, MapError> {
         if points_in_world.len() != roi.len() {
             return Err(MapError::LengthMismatch {
                 points: points_in_world.len(),
@@ -241,7 +303,8 @@ impl RoiMap {
 
         // Pass 1: ray ends in OctoMap's precision and the key box.
         let (mut lo, mut hi) = (key_origin, key_origin);
-        for (p, &is_roi) in points_in_world.iter().zip(roi) {
+        let (roi_hit, roi_miss) = (self.config.roi_hit_logodds, self.config.roi_miss_logodds);
+        for (i, p) in points_in_world.iter().enumerate() {
             if !p.iter().all(|c| c.is_finite()) {
                 stats.skipped_non_finite += 1;
                 continue;
@@ -291,7 +354,7 @@ impl RoiMap {
                 end,
                 key_end,
                 hit,
-                is_roi,
+                roi_delta: roi.delta(i, roi_hit, roi_miss),
             });
         }
 
@@ -328,10 +391,12 @@ impl RoiMap {
             );
             for end in s.ends.iter().filter(|e| e.hit) {
                 g.set(&mut occ, &mut o_occ, end.key_end);
-                if end.is_roi {
-                    g.set(&mut roi_p, &mut o_roi, end.key_end);
-                } else {
-                    g.set(&mut non_roi, &mut o_non, end.key_end);
+                match roi {
+                    RoiInput::Evidence(_) => {}
+                    RoiInput::Labels(_) if end.roi_delta == roi_hit => {
+                        g.set(&mut roi_p, &mut o_roi, end.key_end)
+                    }
+                    RoiInput::Labels(_) => g.set(&mut non_roi, &mut o_non, end.key_end),
                 }
             }
             g.occ = occ;
@@ -377,6 +442,9 @@ impl RoiMap {
             self.update_voxel(key, None, Some(cfg.roi_miss_logodds), &mut log);
         }
         g.overflow_roi.clear();
+        if let RoiInput::Evidence(_) = roi {
+            self.apply_evidence(&s.ends, &mut stats, &mut log);
+        }
 
         // The per-scan buffers are as large as the map itself after a few scans (the scan's key
         // box as bit planes); keeping them would double the map's memory for ~1 ms a scan.
@@ -386,6 +454,32 @@ impl RoiMap {
         self.refresh_derived(&log);
         self.scans_inserted += 1;
         Ok(stats)
+    }
+
+    /// Adds each hit end voxel's largest ROI delta (the evidence path keeps no ROI planes).
+    fn apply_evidence(&mut self, ends: &[RayEnd], stats: &mut ScanStats, log: &mut ChangeLog) {
+        let mut deltas: Vec<(VoxelKey, f32)> = ends
+            .iter()
+            .filter(|e| e.hit)
+            .map(|e| (e.key_end, e.roi_delta))
+            .collect();
+        // Block by block in key order, the largest delta of a voxel first.
+        deltas.sort_unstable_by(|a, b| {
+            (block_of(a.0), a.0)
+                .cmp(&(block_of(b.0), b.0))
+                .then(b.1.total_cmp(&a.1))
+        });
+        deltas.dedup_by_key(|d| d.0);
+        for (key, delta) in deltas {
+            if delta > 0.0 {
+                stats.roi_updates += 1;
+            } else if delta < 0.0 {
+                stats.non_roi_updates += 1;
+            } else {
+                continue;
+            }
+            self.update_voxel(key, None, Some(delta), log);
+        }
     }
 
     /// Applies the dense planes block by block in memory order and zeroes them.

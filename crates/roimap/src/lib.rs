@@ -61,6 +61,7 @@ use crate::grid::{
 use crate::walk::{axis_key, RaySetup, KEY_LIMIT};
 
 pub use crate::batch::RayCount;
+pub use crate::insert::RoiInput;
 pub use crate::snapshot::SnapshotError;
 
 /// Offsets of the 6-neighbourhood (face neighbours).
@@ -833,7 +834,6 @@ impl RoiMap {
     pub fn clusters(&self, min_voxels: usize) -> Vec<RoiCluster> {
         let roi = self.roi_keys();
         let mut unvisited: KeySet = roi.iter().copied().collect();
-        let res = self.config.resolution_m;
         let mut clusters = Vec::new();
         let mut stack = Vec::new();
         // Seeds are taken in sorted order, so each cluster starts at its smallest key and the
@@ -855,30 +855,37 @@ impl RoiMap {
             if members.len() < min_voxels.max(1) {
                 continue;
             }
-            members.sort_unstable();
-            let mut sum = Vector3::zeros();
-            let mut lo = members[0];
-            let mut hi = members[0];
-            for &m in &members {
-                sum += self.centre_of(m).coords;
-                lo = VoxelKey::new(lo.x.min(m.x), lo.y.min(m.y), lo.z.min(m.z));
-                hi = VoxelKey::new(hi.x.max(m.x), hi.y.max(m.y), hi.z.max(m.z));
-            }
-            let corner = |k: VoxelKey, add: i32| {
-                Point3::new(
-                    f64::from(k.x + add) * res,
-                    f64::from(k.y + add) * res,
-                    f64::from(k.z + add) * res,
-                )
-            };
-            clusters.push(RoiCluster {
-                centre: Point3::from(sum / members.len() as f64),
-                min: corner(lo, 0),
-                max: corner(hi, 1),
-                voxels: members,
-            });
+            clusters.push(self.cluster_of(members));
         }
         clusters
+    }
+
+    /// The cluster of the given voxels (sorted here): their mean centre and box. `voxels` must
+    /// not be empty.
+    pub fn cluster_of(&self, mut voxels: Vec<VoxelKey>) -> RoiCluster {
+        voxels.sort_unstable();
+        let res = self.config.resolution_m;
+        let mut sum = Vector3::zeros();
+        let first = voxels.first().copied().unwrap_or(VoxelKey::new(0, 0, 0));
+        let (mut lo, mut hi) = (first, first);
+        for &m in &voxels {
+            sum += self.centre_of(m).coords;
+            lo = VoxelKey::new(lo.x.min(m.x), lo.y.min(m.y), lo.z.min(m.z));
+            hi = VoxelKey::new(hi.x.max(m.x), hi.y.max(m.y), hi.z.max(m.z));
+        }
+        let corner = |k: VoxelKey, add: i32| {
+            Point3::new(
+                f64::from(k.x + add) * res,
+                f64::from(k.y + add) * res,
+                f64::from(k.z + add) * res,
+            )
+        };
+        RoiCluster {
+            centre: Point3::from(sum / voxels.len().max(1) as f64),
+            min: corner(lo, 0),
+            max: corner(hi, 1),
+            voxels,
+        }
     }
 
     /// Whether a voxel with its centre in the box `[lo, hi]` may have changed since the map had

@@ -1355,3 +1355,75 @@ fn changed_since_sees_the_boxes_a_scan_touched_and_only_near_them() {
         .expect("valid scan");
     assert!(m.changed_since(&far.0, &far.1, before + 1));
 }
+
+#[test]
+fn evidence_of_the_labels_hit_and_miss_gives_the_labelled_map() {
+    let w = Workload::small(31, 96, 72, 6, 2);
+    let c = w.map_config();
+    let mut labelled = RoiMap::new(c).expect("valid");
+    let mut evidence = RoiMap::new(c).expect("valid");
+    for s in w.raw_scans() {
+        let deltas: Vec<f32> = s
+            .roi
+            .iter()
+            .map(|&r| {
+                if r {
+                    c.roi_hit_logodds
+                } else {
+                    c.roi_miss_logodds
+                }
+            })
+            .collect();
+        let a = labelled
+            .insert_scan(&s.origin, &s.points, &s.roi)
+            .expect("valid");
+        let b = evidence
+            .insert_scan_evidence(&s.origin, &s.points, &deltas, 2)
+            .expect("valid");
+        assert_eq!(a, b);
+    }
+    assert_eq!(sorted_voxels(&labelled), sorted_voxels(&evidence));
+    assert_eq!(labelled.roi_keys(), evidence.roi_keys());
+}
+
+#[test]
+fn evidence_is_added_per_voxel_the_largest_delta_winning() {
+    let mut m = map();
+    let origin = Point3::new(0.0, 0.0, 0.0);
+    // Two points in one voxel (0.305 and 0.308 m share key 30), one alone, one without evidence,
+    // one with a non-finite delta (no evidence either), one beyond nothing: a plain miss.
+    let pts = [
+        p32(0.305, 0.0, 0.0),
+        p32(0.308, 0.0, 0.0),
+        p32(0.0, 0.405, 0.0),
+        p32(0.0, 0.0, 0.505),
+        p32(0.0, 0.0, -0.505),
+        p32(0.0, -0.405, 0.0),
+    ];
+    let deltas = [0.3, -0.5, 0.6, 0.0, f32::NAN, -0.25];
+    let stats = m
+        .insert_scan_evidence(&origin, &pts, &deltas, 1)
+        .expect("valid");
+    assert_eq!((stats.roi_updates, stats.non_roi_updates), (2, 1));
+    let roi = |p: Point3<f32>| m.roi_logodds(m.key_of(&p.cast()));
+    assert_eq!(roi(pts[0]), Some(0.3));
+    assert_eq!(roi(pts[2]), Some(0.6));
+    assert_eq!(roi(pts[3]), Some(0.0));
+    assert_eq!(roi(pts[4]), Some(0.0));
+    assert_eq!(roi(pts[5]), Some(-0.25));
+    // Occupancy is the labels' path's: every end voxel hit once.
+    for p in pts {
+        assert_eq!(m.occupancy_logodds(m.key_of(&p.cast())), Some(HIT));
+    }
+    // Weak evidence adds up to ROI (threshold 1.0) only over scans, and stays clamped.
+    for _ in 0..2 {
+        m.insert_scan_evidence(&origin, &pts, &deltas, 1)
+            .expect("valid");
+    }
+    assert!(!m.is_roi(m.key_of(&pts[0].cast())));
+    assert!(m.is_roi(m.key_of(&pts[2].cast())));
+    assert!(matches!(
+        m.insert_scan_evidence(&origin, &pts, &deltas[..2], 1),
+        Err(MapError::LengthMismatch { points: 6, roi: 2 })
+    ));
+}

@@ -1,0 +1,276 @@
+//! Touching fruits: one ROI cluster that is two fruits.
+//!
+//! Fruits that touch (or whose surfaces are one voxel apart) grow into one 26-connected cluster.
+//! Reported as one fruit, such a pair costs a fruit in the count and gives a box and an ellipsoid
+//! twice the size of either. [`split_touching`] tries a cluster as two when it is longer than
+//! [`FitConfig::split_extent_m`] along some axis *and* no single ellipsoid fits it
+//! ([`fit_ellipsoid`] falls back to the box). The voxels are divided by 2-means, started at the
+//! two ends of the longest axis; the split is kept only when each half has enough voxels and
+//! fits an ellipsoid of its own. A big single fruit fits one ellipsoid and is never split; a
+//! split half is tried again (three fruits in a row), up to [`MAX_PARTS`].
+//!
+//! The converse, one fruit as two clusters (a leaf across it leaves two patches that do not
+//! touch), is caught after fitting: [`fragments`] marks a cluster whose fitted centre lies inside
+//! the fitted ellipsoid of a larger cluster. Solid fruits cannot hold each other's centres, so
+//! only a second view of the same fruit can.
+
+use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
+use nalgebra::{Point3, Vector3};
+
+use crate::fit::{fit_ellipsoid, FitConfig, FittedShape, ShapeKind};
+
+/// Most fruits one cluster is split into.
+pub const MAX_PARTS: usize = 4;
+/// 2-means iterations (the assignment settles in a few).
+const ITERATIONS: usize = 12;
+
+/// Each cluster, or the touching fruits it is made of (see the module docs), ordered by their
+/// smallest voxel. Parts keep at least `min_voxels` voxels.
+pub fn split_touching(
+    map: &RoiMap,
+    clusters: Vec<RoiCluster>,
+    min_voxels: usize,
+    config: &FitConfig,
+) -> Vec<RoiCluster> {
+    let mut out = Vec::with_capacity(clusters.len());
+    for cluster in clusters {
+        let mut pending = vec![cluster];
+        let mut parts = Vec::new();
+        while let Some(c) = pending.pop() {
+            if parts.len() + pending.len() + 1 >= MAX_PARTS {
+                parts.push(c);
+                continue;
+            }
+            match split_once(map, &c, min_voxels, config) {
+                Some((a, b)) => pending.extend([a, b]),
+                None => parts.push(c),
+            }
+        }
+        out.extend(parts);
+    }
+    out.sort_by_key(|c| c.voxels.first().copied());
+    out
+}
+
+/// For each fit (with its cluster's voxel count), whether it is a fragment of a fruit that a
+/// larger cluster's fitted ellipsoid already holds (see the module docs). Larger clusters are
+/// judged first; a fragment never holds another. Box fallbacks hold nothing.
+pub fn fragments(fits: &[FittedShape], voxel_counts: &[usize]) -> Vec<bool> {
+    let mut order: Vec<usize> = (0..fits.len().min(voxel_counts.len())).collect();
+    order.sort_by_key(|&i| (std::cmp::Reverse(voxel_counts[i]), i));
+    let mut fragment = vec![false; fits.len()];
+    let mut holders: Vec<usize> = Vec::new();
+    for i in order {
+        let centre = fits[i].centre;
+        let held = holders.iter().any(|&h| {
+            let f = &fits[h];
+            (centre - f.centre).component_div(&f.semi_axes_m).norm() < 1.0
+        });
+        if held {
+            fragment[i] = true;
+        } else if fits[i].kind == ShapeKind::Ellipsoid {
+            holders.push(i);
+        }
+    }
+    fragment
+}
+
+fn longest_extent_m(cluster: &RoiCluster) -> f64 {
+    (cluster.max - cluster.min).max()
+}
+
+/// The two fruits `cluster` is made of, when it is one of those.
+fn split_once(
+    map: &RoiMap,
+    cluster: &RoiCluster,
+    min_voxels: usize,
+    config: &FitConfig,
+) -> Option<(RoiCluster, RoiCluster)> {
+    let min_voxels = min_voxels.max(config.min_voxels).max(1);
+    if longest_extent_m(cluster) <= config.split_extent_m || cluster.voxels.len() < 2 * min_voxels {
+        return None;
+    }
+    if fit_ellipsoid(map, cluster, config).kind == ShapeKind::Ellipsoid {
+        return None;
+    }
+    let (a, b) = two_means(map, &cluster.voxels);
+    if a.len() < min_voxels || b.len() < min_voxels {
+        return None;
+    }
+    let (a, b) = (map.cluster_of(a), map.cluster_of(b));
+    let fits = |c: &RoiCluster| fit_ellipsoid(map, c, config).kind == ShapeKind::Ellipsoid;
+    (fits(&a) && fits(&b)).then_some((a, b))
+}
+
+/// Divides voxels into two groups by 2-means on their centres, started at the voxels at either
+/// end of the longest axis of their box (deterministic: no seed needed).
+fn two_means(map: &RoiMap, voxels: &[VoxelKey]) -> (Vec<VoxelKey>, Vec<VoxelKey>) {
+    let points: Vec<Point3<f64>> = voxels.iter().map(|k| map.centre_of(*k)).collect();
+    let (lo, hi) = points.iter().fold(
+        (
+            Vector3::repeat(f64::INFINITY),
+            Vector3::repeat(f64::NEG_INFINITY),
+        ),
+        |(lo, hi), p| (lo.inf(&p.coords), hi.sup(&p.coords)),
+    );
+    let axis = (hi - lo).imax();
+    let end = |pick_max: bool| {
+        points
+            .iter()
+            .copied()
+            .reduce(|a, b| {
+                let b_further = if pick_max {
+                    b[axis] > a[axis]
+                } else {
+                    b[axis] < a[axis]
+                };
+                if b_further {
+                    b
+                } else {
+                    a
+                }
+            })
+            .unwrap_or_else(Point3::origin)
+    };
+    let mut centres = [end(false), end(true)];
+    let mut side = vec![false; points.len()];
+    for _ in 0..ITERATIONS {
+        for (s, p) in side.iter_mut().zip(&points) {
+            *s = (p - centres[1]).norm_squared() < (p - centres[0]).norm_squared();
+        }
+        let mut sums = [Vector3::zeros(); 2];
+        let mut counts = [0usize; 2];
+        for (s, p) in side.iter().zip(&points) {
+            sums[usize::from(*s)] += p.coords;
+            counts[usize::from(*s)] += 1;
+        }
+        let next = [0, 1].map(|i| {
+            if counts[i] == 0 {
+                centres[i]
+            } else {
+                Point3::from(sums[i] / counts[i] as f64)
+            }
+        });
+        if next == centres {
+            break;
+        }
+        centres = next;
+    }
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for (k, s) in voxels.iter().zip(&side) {
+        if *s {
+            b.push(*k);
+        } else {
+            a.push(*k);
+        }
+    }
+    (a, b)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use crate::fit::tests_support::*;
+
+    fn around(map: &mut RoiMap, fruits: &[(Point3<f64>, Vector3<f64>)]) {
+        let c = fruits[0].0;
+        for eye in [
+            Point3::new(c.x - 0.4, c.y - 0.05, c.z + 0.1),
+            Point3::new(c.x + 0.4, c.y + 0.05, c.z + 0.1),
+            Point3::new(c.x + 0.05, c.y - 0.4, c.z - 0.1),
+            Point3::new(c.x, c.y + 0.4, c.z + 0.05),
+        ] {
+            scan_all(map, fruits, eye);
+        }
+    }
+
+    #[test]
+    fn two_touching_fruits_are_split_and_a_big_one_is_not() {
+        let r = Vector3::new(0.035, 0.032, 0.04);
+        let a = centre();
+        let b = a + Vector3::new(0.071, 0.0, 0.004);
+        let mut m = map();
+        around(&mut m, &[(a, r), (b, r)]);
+        let clusters = m.clusters(10);
+        assert_eq!(clusters.len(), 1, "the pair touches");
+        let config = FitConfig::default();
+        let split = split_touching(&m, clusters, 10, &config);
+        assert_eq!(split.len(), 2);
+        let mut found: Vec<Point3<f64>> = split
+            .iter()
+            .map(|c| fit_ellipsoid(&m, c, &config).centre)
+            .collect();
+        found.sort_by(|p, q| p.x.total_cmp(&q.x));
+        assert!((found[0] - a).norm() < 0.01, "{found:?}");
+        assert!((found[1] - b).norm() < 0.01, "{found:?}");
+        assert!(split[0].voxels.first() < split[1].voxels.first());
+
+        // One fruit as long as the pair's half-width plus more: fits one ellipsoid, kept whole.
+        let big = Vector3::new(0.065, 0.04, 0.045);
+        let mut m = map();
+        around(&mut m, &[(a, big)]);
+        let clusters = m.clusters(10);
+        assert_eq!(clusters.len(), 1);
+        assert!(longest_extent_m(&clusters[0]) > config.split_extent_m);
+        assert_eq!(split_touching(&m, clusters.clone(), 10, &config), clusters);
+    }
+
+    #[test]
+    fn a_second_patch_of_one_fruit_is_a_fragment_and_neighbours_are_not() {
+        // A leaf band across the fruit at x = c.x ± 0.006 leaves two patches.
+        let r = Vector3::new(0.035, 0.032, 0.04);
+        let c = centre();
+        let mut m = map();
+        around(&mut m, &[(c, r)]);
+        let mut whole = m.clusters(10);
+        assert_eq!(whole.len(), 1);
+        let (left, right): (Vec<_>, Vec<_>) = whole
+            .remove(0)
+            .voxels
+            .into_iter()
+            .filter(|k| (m.centre_of(*k).x - c.x).abs() > 0.006)
+            .partition(|k| m.centre_of(*k).x < c.x);
+        let config = FitConfig::default();
+        let fit = |v: &Vec<VoxelKey>| fit_ellipsoid(&m, &m.cluster_of(v.clone()), &config);
+        let (fl, fr) = (fit(&left), fit(&right));
+        assert_eq!(fl.kind, ShapeKind::Ellipsoid);
+        let counts = [left.len(), right.len()];
+        let marked = fragments(&[fl.clone(), fr.clone()], &counts);
+        assert_eq!(marked.iter().filter(|f| **f).count(), 1, "{fl:?} {fr:?}");
+
+        // Two fruits side by side, and a box fallback, hold nothing.
+        let other = FittedShape {
+            centre: fl.centre + Vector3::new(2.0 * r.x + 0.002, 0.0, 0.0),
+            ..fl.clone()
+        };
+        assert_eq!(fragments(&[fl.clone(), other], &[50, 40]), [false, false]);
+        let boxed = FittedShape {
+            kind: ShapeKind::Box,
+            ..fl.clone()
+        };
+        assert_eq!(fragments(&[boxed, fl.clone()], &[50, 40]), [false, false]);
+        assert_eq!(fragments(&[fl.clone(), fl], &[40, 50]), [true, false]);
+    }
+
+    #[test]
+    fn small_clusters_and_disabled_splitting_are_left_alone() {
+        let r = Vector3::new(0.035, 0.032, 0.04);
+        let a = centre();
+        let b = a + Vector3::new(0.071, 0.0, 0.004);
+        let mut m = map();
+        around(&mut m, &[(a, r), (b, r)]);
+        let clusters = m.clusters(10);
+        let off = FitConfig {
+            split_extent_m: f64::INFINITY,
+            ..FitConfig::default()
+        };
+        assert_eq!(split_touching(&m, clusters.clone(), 10, &off), clusters);
+        // Halves must keep the minimum size.
+        let n = clusters[0].voxels.len();
+        let config = FitConfig::default();
+        assert_eq!(split_touching(&m, clusters.clone(), n, &config), clusters);
+        assert!(split_touching(&m, Vec::new(), 10, &config).is_empty());
+    }
+}

@@ -2,14 +2,15 @@
 //! simulated minutes with the planner's compute measured; every minute it prints the planner's
 //! mean compute per frame over that minute (integrate, cluster, track and plan; the fits are
 //! made when the fruits are published), the fruits refitted per frame, and, timed on the map
-//! held then, ROI clustering over the whole map, fitting every fruit afresh, and one plan. A
-//! stage whose time grows from minute 1 to the end works over the whole row rather than what
-//! the scan changed. `cargo bench -p glasshouse-eval --bench row_stages [-- MINUTES]` (default 10).
+//! held then, ROI clustering over the whole map, the touching-fruit split over its clusters,
+//! fitting every fruit afresh, and one plan. A stage whose time grows from minute 1 to the end
+//! works over the whole row rather than what the scan changed. `cargo bench -p glasshouse-eval --bench row_stages [-- MINUTES]` (default 10).
 
 use std::time::Instant;
 
 use glasshouse_eval::{ComputeTime, Trial, TrialConfig};
 use glasshouse_nbv::fit::fit_ellipsoid;
+use glasshouse_nbv::split::split_touching;
 use glasshouse_nbv::Method;
 use glasshouse_sim::ScenarioKind;
 
@@ -42,6 +43,14 @@ fn report(trial: &Trial, minute: &Totals) {
     let fit_config = planner.settings().fit;
     let (pose, seq) = (trial.world_from_camera(), trial.frame_seq());
     let cluster_ms = median_ms(5, || _ = std::hint::black_box(map.clusters(min_voxels)));
+    let split_ms = median_ms(5, || {
+        _ = std::hint::black_box(split_touching(
+            map,
+            clusters.clone(),
+            min_voxels,
+            &fit_config,
+        ))
+    });
     let fit_all_ms = median_ms(3, || {
         clusters
             .iter()
@@ -52,7 +61,7 @@ fn report(trial: &Trial, minute: &Totals) {
     });
     let frames = minute.frames.max(1) as f64;
     println!(
-        "{:>6.0} {:>6} {:>10} {:>7} {:>6} {:>12.1} {:>8.1} {:>10.1} {:>10.1} {:>8.1}",
+        "{:>6.0} {:>6} {:>10} {:>7} {:>6} {:>12.1} {:>8.1} {:>10.1} {:>8.1} {:>10.1} {:>8.1}",
         trial.clock_s(),
         seq,
         map.len(),
@@ -61,6 +70,7 @@ fn report(trial: &Trial, minute: &Totals) {
         minute.compute_s * 1e3 / frames,
         minute.refits as f64 / frames,
         cluster_ms,
+        split_ms,
         fit_all_ms,
         plan_ms,
     );
@@ -76,7 +86,7 @@ fn main() {
     config.budget_s = f64::from(minutes) * 60.0;
     let mut trial = Trial::new(config).expect("row trial");
     println!(
-        "{:>6} {:>6} {:>10} {:>7} {:>6} {:>12} {:>8} {:>10} {:>10} {:>8}",
+        "{:>6} {:>6} {:>10} {:>7} {:>6} {:>12} {:>8} {:>10} {:>8} {:>10} {:>8}",
         "sim_s",
         "frame",
         "known_vox",
@@ -85,6 +95,7 @@ fn main() {
         "planner_ms/f",
         "refits/f",
         "cluster_ms",
+        "split_ms",
         "fit_all_ms",
         "plan_ms"
     );

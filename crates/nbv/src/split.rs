@@ -186,14 +186,21 @@ mod tests {
         }
     }
 
-    #[test]
-    fn two_touching_fruits_are_split_and_a_big_one_is_not() {
+    /// Two fruits whose surfaces touch along x, scanned all round: the map, their centres and
+    /// the map's clusters.
+    fn touching_pair() -> (RoiMap, [Point3<f64>; 2], Vec<RoiCluster>) {
         let r = Vector3::new(0.035, 0.032, 0.04);
         let a = centre();
         let b = a + Vector3::new(0.071, 0.0, 0.004);
         let mut m = map();
         around(&mut m, &[(a, r), (b, r)]);
         let clusters = m.clusters(10);
+        (m, [a, b], clusters)
+    }
+
+    #[test]
+    fn two_touching_fruits_are_split_and_a_big_one_is_not() {
+        let (m, [a, b], clusters) = touching_pair();
         assert_eq!(clusters.len(), 1, "the pair touches");
         let config = FitConfig::default();
         let split = split_touching(&m, clusters, 10, &config);
@@ -256,12 +263,7 @@ mod tests {
 
     #[test]
     fn small_clusters_and_disabled_splitting_are_left_alone() {
-        let r = Vector3::new(0.035, 0.032, 0.04);
-        let a = centre();
-        let b = a + Vector3::new(0.071, 0.0, 0.004);
-        let mut m = map();
-        around(&mut m, &[(a, r), (b, r)]);
-        let clusters = m.clusters(10);
+        let (m, _, clusters) = touching_pair();
         let off = FitConfig {
             split_extent_m: f64::INFINITY,
             ..FitConfig::default()

@@ -114,25 +114,10 @@ fn two_means(map: &RoiMap, voxels: &[VoxelKey]) -> (Vec<VoxelKey>, Vec<VoxelKey>
         |(lo, hi), p| (lo.inf(&p.coords), hi.sup(&p.coords)),
     );
     let axis = (hi - lo).imax();
-    let end = |pick_max: bool| {
-        points
-            .iter()
-            .copied()
-            .reduce(|a, b| {
-                let b_further = if pick_max {
-                    b[axis] > a[axis]
-                } else {
-                    b[axis] < a[axis]
-                };
-                if b_further {
-                    b
-                } else {
-                    a
-                }
-            })
-            .unwrap_or_else(Point3::origin)
-    };
-    let mut centres = [end(false), end(true)];
+    // The first voxel at each end (min_by keeps the first of equals).
+    let lowest = points.iter().min_by(|a, b| a[axis].total_cmp(&b[axis]));
+    let highest = points.iter().min_by(|a, b| b[axis].total_cmp(&a[axis]));
+    let mut centres = [lowest, highest].map(|p| p.copied().unwrap_or_else(Point3::origin));
     let mut side = vec![false; points.len()];
     for _ in 0..ITERATIONS {
         for (s, p) in side.iter_mut().zip(&points) {

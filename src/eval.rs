@@ -29,8 +29,8 @@ use anyhow::{bail, ensure, Context};
 use glasshouse_detect::FruitDetector;
 use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
 use glasshouse_eval::report::{self, method_label, MethodRuns};
-use glasshouse_eval::RoiEvidence;
 use glasshouse_eval::{run_trial_with, ComputeTime, TrialConfig, TrialResult};
+use glasshouse_eval::{RoiEvidence, RoiTargets};
 use glasshouse_nbv::Method;
 use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind, MAX_SILHOUETTE_PX};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -121,6 +121,10 @@ pub struct EvalArgs {
     /// or `confidence` (each voxel's detection confidence as its log-odds, capped).
     #[arg(long, value_name = "HOW", default_value_t = RoiEvidence::Labels)]
     pub roi_evidence: RoiEvidence,
+    /// Which ROI voxels ROI-targeted sampling aims at: `patches` (those with an ROI face
+    /// neighbour, the planner's default) or `every` (the paper).
+    #[arg(long, value_name = "WHICH", default_value_t = RoiTargets::Patches)]
+    pub roi_targets: RoiTargets,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -217,6 +221,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "perception_noise": plan.perception_noise,
         "fruit_colour": args.perception.fruit_colour,
         "roi_evidence": args.roi_evidence,
+        "roi_targets": args.roi_targets,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -267,6 +272,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 perception_noise: plan.perception_noise,
                 fruit_colour: args.perception.fruit_colour,
                 roi_evidence: args.roi_evidence,
+                roi_targets: args.roi_targets,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -517,6 +523,7 @@ mod tests {
             width: 64,
             jobs: Some(2),
             roi_evidence: RoiEvidence::Labels,
+            roi_targets: RoiTargets::Patches,
             perception: PerceptionArgs::default(),
         }
     }

@@ -19,7 +19,7 @@ pub mod stats;
 pub mod trial;
 
 /// How detections enter the planner's map, an experiment's choice.
-pub use glasshouse_pipeline::RoiEvidence;
+pub use glasshouse_pipeline::{RoiEvidence, RoiTargets};
 pub use metrics::{
     evaluate, greedy_match, time_to_detect_s, BoxEstimate, FruitCounts, Match, Metrics,
     MATCH_DISTANCE_M,

@@ -21,8 +21,8 @@ use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
 use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
     detect_frame_with, ranked_views, CaptureError, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
-    EdgeSettings, FruitRecord, PlanningError, PlanningSettings, RoiEvidence, SimTrolley,
-    SimTrolleySettings, TrolleyPlanner, TrolleySource,
+    EdgeSettings, FruitRecord, PlanningError, PlanningSettings, RoiEvidence, RoiTargets,
+    SimTrolley, SimTrolleySettings, TrolleyPlanner, TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame};
 use glasshouse_sim::{FruitColour, FruitTruth, PerceptionNoise, ScenarioKind, Scene};
@@ -77,6 +77,8 @@ pub struct TrialConfig {
     pub fruit_colour: FruitColour,
     /// How detections enter the map (the planner's default: labels).
     pub roi_evidence: RoiEvidence,
+    /// Which ROI voxels ROI-targeted sampling aims at (the planner's default: patches).
+    pub roi_targets: RoiTargets,
 }
 
 impl TrialConfig {
@@ -95,6 +97,7 @@ impl TrialConfig {
             perception_noise: PerceptionNoise::default(),
             fruit_colour: FruitColour::Red,
             roi_evidence: RoiEvidence::Labels,
+            roi_targets: RoiTargets::default(),
         }
     }
 
@@ -134,6 +137,7 @@ impl TrialConfig {
             // Trials run in parallel, one per core, so each plans on its own thread.
             scoring_threads: 1,
             roi_evidence: self.roi_evidence,
+            roi_targets: self.roi_targets,
             ..PlanningSettings::default()
         }
     }

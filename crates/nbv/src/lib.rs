@@ -4,7 +4,8 @@
 //! defects fixed:
 //!
 //! - **ROI-targeted sampling**: targets are the map's ROI frontier (free voxels next to fruit with
-//!   unknown space beside them); the camera sits on a random sphere of radius U(0.3, 0.5) m around a
+//!   unknown space beside them; with the map's `roi_target_needs_neighbour`, lone ROI voxels
+//!   are left out); the camera sits on a random sphere of radius U(0.3, 0.5) m around a
 //!   target, looking at it, inside the camera workspace and with no occupied voxel
 //!   (log-odds > ln(0.6/0.4)) on the segment target→camera.
 //! - **Exploration sampling**: frontier voxels (free, with an unknown and an occupied face

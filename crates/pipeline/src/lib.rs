@@ -33,7 +33,7 @@ pub use order::{
 };
 pub use planning::{
     plan_seed, ranked_views, roi_evidence_logodds, FruitRecord, PlanningError, PlanningSettings,
-    RoiEvidence, TrolleyPlanner, ROI_EVIDENCE_LOGODDS,
+    RoiEvidence, RoiTargets, TrolleyPlanner, ROI_EVIDENCE_LOGODDS,
 };
 pub use reach::ReachFilter;
 

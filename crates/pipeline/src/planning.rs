@@ -52,6 +52,42 @@ pub struct PlanningSettings {
     pub scoring_threads: usize,
     /// How a cloud's detections enter the ROI map.
     pub roi_evidence: RoiEvidence,
+    /// Which ROI voxels ROI-targeted sampling aims at.
+    pub roi_targets: RoiTargets,
+}
+
+/// Which ROI voxels ROI-targeted sampling aims at (their free neighbours next to unknown space).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RoiTargets {
+    /// Every ROI voxel (the paper).
+    Every,
+    /// ROI voxels with an ROI face neighbour: fruit surfaces are patches, while the lone ROI
+    /// voxels a noisy detector leaves on leaves would draw views to nothing. Which voxels are
+    /// ROI, and so the fruits, is unchanged.
+    #[default]
+    Patches,
+}
+
+impl std::str::FromStr for RoiTargets {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "every" => Ok(Self::Every),
+            "patches" => Ok(Self::Patches),
+            _ => Err(format!("ROI targets must be every or patches, got {s:?}")),
+        }
+    }
+}
+
+impl std::fmt::Display for RoiTargets {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Every => "every",
+            Self::Patches => "patches",
+        })
+    }
 }
 
 /// How a cloud's detections enter the ROI map.
@@ -102,6 +138,7 @@ impl Default for PlanningSettings {
             fit: FitConfig::default(),
             scoring_threads: 0,
             roi_evidence: RoiEvidence::Labels,
+            roi_targets: RoiTargets::default(),
         }
     }
 }
@@ -128,6 +165,7 @@ impl PlanningSettings {
             // fruit; two more fruit than non-fruit labels still make an ROI voxel.
             roi_miss_logodds: -ROI_EVIDENCE_LOGODDS,
             roi_hit_logodds: ROI_EVIDENCE_LOGODDS,
+            roi_target_needs_neighbour: self.roi_targets == RoiTargets::Patches,
             ..MapConfig::default()
         }
     }

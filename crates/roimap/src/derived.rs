@@ -5,7 +5,7 @@ use crate::grid::{
     faces_touched, for_each_bit, has_neighbour_in, key_at, mask_count, mask_is_empty, mask_test,
     Block, Mask, EMPTY, FACE_OFFSETS,
 };
-use crate::{ChangeLog, KeySet, RoiMap};
+use crate::{ChangeLog, KeySet, RoiMap, VoxelKey};
 
 const FULL: Mask = [u64::MAX; 8];
 
@@ -24,7 +24,7 @@ fn frontier_masks(b: &Block, n: [Option<&Block>; 6]) -> (Mask, Mask) {
     let not_known = |m: &Mask| m.map(|w| !w);
     let n_unknown = n.map(|o| o.map_or(FULL, |b| not_known(&b.known)));
     let n_occ = n.map(|o| o.map_or(EMPTY, |b| b.occupied));
-    let n_roi = n.map(|o| o.map_or(EMPTY, |b| b.roi_mask));
+    let n_target = n.map(|o| o.map_or(EMPTY, |b| b.roi_target));
     let near_unknown = has_neighbour_in(&unknown, &n_unknown);
     let mut base = EMPTY;
     for w in 0..8 {
@@ -34,7 +34,7 @@ fn frontier_masks(b: &Block, n: [Option<&Block>; 6]) -> (Mask, Mask) {
         return (EMPTY, EMPTY);
     }
     let near_occ = has_neighbour_in(&b.occupied, &n_occ);
-    let near_roi = has_neighbour_in(&b.roi_mask, &n_roi);
+    let near_roi = has_neighbour_in(&b.roi_target, &n_target);
     let mut expl = EMPTY;
     let mut roi = EMPTY;
     for w in 0..8 {
@@ -74,17 +74,43 @@ impl RoiMap {
         for k in &removed {
             self.roi_set.remove(k);
         }
-        // Frontiers: the changed blocks, and the face neighbours next to changed voxels.
+        // The changed blocks, and the face neighbours next to changed voxels.
         let mut todo = KeySet::default();
         for (&bi, (state, _)) in &log.blocks {
             let bk = self.store.coords[bi as usize];
-            todo.insert(bk);
-            for (touches, (dx, dy, dz)) in faces_touched(state).into_iter().zip(FACE_OFFSETS) {
-                if touches {
-                    todo.insert(bk.offset(dx, dy, dz));
-                }
+            add_with_touched_faces(&mut todo, bk, state);
+        }
+        // ROI targets there; a changed target also changes the frontier beside it.
+        let mut frontier_todo = todo.clone();
+        for &bk in &todo {
+            if let Some(changed) = self.refresh_targets(bk) {
+                add_with_touched_faces(&mut frontier_todo, bk, &changed);
             }
         }
+        self.refresh_frontiers(frontier_todo);
+    }
+
+    /// Recomputes the ROI targets of block `bk`; returns the voxels whose target state changed.
+    fn refresh_targets(&mut self, bk: VoxelKey) -> Option<Mask> {
+        let &bi = self.store.index.get(&bk)?;
+        let b = &self.store.blocks[bi as usize];
+        let targets = if self.config.roi_target_needs_neighbour {
+            let n_roi = self
+                .store
+                .face_neighbours(bk)
+                .map(|o| o.map_or(EMPTY, |n| n.roi_mask));
+            let supported = has_neighbour_in(&b.roi_mask, &n_roi);
+            std::array::from_fn(|w| b.roi_mask[w] & supported[w])
+        } else {
+            b.roi_mask
+        };
+        let changed: Mask = std::array::from_fn(|w| targets[w] ^ b.roi_target[w]);
+        self.store.blocks[bi as usize].roi_target = targets;
+        (!mask_is_empty(&changed)).then_some(changed)
+    }
+
+    /// Recomputes the frontier masks and counts of the blocks in `todo`.
+    fn refresh_frontiers(&mut self, todo: KeySet) {
         for bk in todo {
             let Some(&bi) = self.store.index.get(&bk) else {
                 continue; // no block: no free voxel, no frontier
@@ -107,6 +133,16 @@ impl RoiMap {
             let b = &mut self.store.blocks[bi as usize];
             b.expl_frontier = expl;
             b.roi_frontier = roi;
+        }
+    }
+}
+
+/// Adds block `bk` and the face neighbours that the voxels of `voxels` touch.
+fn add_with_touched_faces(todo: &mut KeySet, bk: VoxelKey, voxels: &Mask) {
+    todo.insert(bk);
+    for (touches, (dx, dy, dz)) in faces_touched(voxels).into_iter().zip(FACE_OFFSETS) {
+        if touches {
+            todo.insert(bk.offset(dx, dy, dz));
         }
     }
 }

@@ -130,9 +130,11 @@ pub(crate) struct Block {
     pub occupied: Mask,
     /// ROI log-odds >= threshold.
     pub roi_mask: Mask,
+    /// ROI targets: `roi_mask`, or its voxels with an ROI face neighbour (`MapConfig::roi_target_needs_neighbour`).
+    pub roi_target: Mask,
     /// Exploration-frontier voxels (free, unknown and occupied 6-neighbours).
     pub expl_frontier: Mask,
-    /// ROI-frontier voxels (free, unknown and ROI 6-neighbours).
+    /// ROI-frontier voxels (free, unknown and ROI-target 6-neighbours).
     pub roi_frontier: Mask,
     /// Changed since the last `take_changes`.
     pub dirty: Mask,
@@ -148,6 +150,7 @@ impl Block {
             known: EMPTY,
             occupied: EMPTY,
             roi_mask: EMPTY,
+            roi_target: EMPTY,
             expl_frontier: EMPTY,
             roi_frontier: EMPTY,
             dirty: EMPTY,

@@ -147,6 +147,11 @@ pub struct MapConfig {
     pub clamp_max_logodds: f32,
     /// A voxel is ROI when its ROI log-odds is at least this.
     pub roi_threshold_logodds: f32,
+    /// ROI-targeted sampling aims at the free face neighbours (with an unknown face neighbour)
+    /// of *ROI targets*. `false` (the paper): every ROI voxel is a target. `true`: only an ROI
+    /// voxel with an ROI face neighbour is, so the lone ROI voxels a noisy detector leaves on
+    /// leaves draw no views; fruit surfaces are patches, and the ROI set itself is unchanged.
+    pub roi_target_needs_neighbour: bool,
     /// Sensor range in metres; `None` means unlimited (OctoMap's `maxrange < 0`).
     pub max_range_m: Option<f64>,
 }
@@ -162,6 +167,7 @@ impl Default for MapConfig {
             clamp_min_logodds: -2.0,
             clamp_max_logodds: 3.5110,
             roi_threshold_logodds: 1.0,
+            roi_target_needs_neighbour: false,
             max_range_m: None,
         }
     }

@@ -5,14 +5,15 @@
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `GHRM` |
-//! | 2 | format version (3) |
+//! | 2 | format version (4) |
 //! | 2 | kind: 0 snapshot |
 //! | 8 | length of the compressed body in bytes |
 //! | body | the LZ4 block (`lz4_flex`, uncompressed size as a u32 first) of the body below |
 //! | 4 | CRC-32 (IEEE) of everything before it |
 //!
 //! Body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI threshold,
-//! ROI hit, ROI miss as f32, `max_range_m` f64 with −1 for none), `scans_inserted` u64, the block count u32, then per
+//! ROI hit, ROI miss as f32, `max_range_m` f64 with −1 for none, whether an ROI target needs an ROI
+//! neighbour as a u8), `scans_inserted` u64, the block count u32, then per
 //! block its coordinate (3 × i32), its known mask (8 × u64, bit `z*64 + y*8 + x`) and the
 //! occupancy, then the ROI log-odds of its known voxels: tag 0 and one f32 (all equal), tag 1, the
 //! palette size − 1 (u8), the palette (f32 each) and each known voxel's index in bit order packed
@@ -31,7 +32,7 @@ use crate::{ChangeLog, MapConfig, MapError, RoiMap, VoxelKey};
 
 const MAGIC: &[u8; 4] = b"GHRM";
 /// Current format version.
-pub const FORMAT_VERSION: u16 = 3;
+pub const FORMAT_VERSION: u16 = 4;
 pub(crate) const KIND_SNAPSHOT: u16 = 0;
 pub(crate) const HEADER_BYTES: usize = 16;
 
@@ -351,6 +352,7 @@ impl RoiMap {
             body.extend_from_slice(&v.to_le_bytes());
         }
         body.extend_from_slice(&c.max_range_m.unwrap_or(-1.0).to_le_bytes());
+        body.push(u8::from(c.roi_target_needs_neighbour));
         body.extend_from_slice(&self.scans_inserted.to_le_bytes());
         let blocks: Vec<usize> = (0..self.store.blocks.len())
             .filter(|&i| mask_count(&self.store.blocks[i].known) > 0)
@@ -387,6 +389,11 @@ impl RoiMap {
         let roi_hit_logodds = c.f32()?;
         let roi_miss_logodds = c.f32()?;
         let max_range = c.f64()?;
+        let roi_target_needs_neighbour = match c.u8()? {
+            0 => false,
+            1 => true,
+            v => return Err(SnapshotError::Corrupt(format!("ROI target rule {v}"))),
+        };
         let config = MapConfig {
             resolution_m,
             hit_logodds,
@@ -396,6 +403,7 @@ impl RoiMap {
             roi_threshold_logodds,
             roi_hit_logodds,
             roi_miss_logodds,
+            roi_target_needs_neighbour,
             max_range_m: (max_range >= 0.0).then_some(max_range),
         };
         let mut map = RoiMap::new(config)?;

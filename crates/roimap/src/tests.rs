@@ -784,6 +784,24 @@ fn frontiers_on_a_hand_built_map() {
     assert!(m.roi_frontier(&everywhere).is_empty());
     assert_eq!(m.exploration_frontier(&everywhere), vec![k(4, 0, 0)]);
 
+    // A lone ROI voxel is a target of the paper's map, not of one that needs an ROI neighbour;
+    // a second ROI voxel beside it (across a block face) makes both targets. The ROI set is the
+    // same either way.
+    let mut supported = RoiMap::new(MapConfig {
+        roi_target_needs_neighbour: true,
+        ..MapConfig::default()
+    })
+    .expect("valid");
+    set(&mut supported, &cube(k(0, 0, 0), k(4, 0, 0)), -1.0, 0.0);
+    set(&mut supported, &[k(2, 1, 0)], 2.0, 2.0);
+    assert!(supported.roi_frontier(&everywhere).is_empty());
+    assert_eq!(supported.roi_keys(), vec![k(2, 1, 0)]);
+    set(&mut supported, &[k(2, 1, -1)], 2.0, 2.0);
+    assert_eq!(supported.roi_frontier(&everywhere), vec![k(2, 0, 0)]);
+    // The neighbour stops being ROI: the lone voxel is no target again.
+    set(&mut supported, &[k(2, 1, -1)], 2.0, -1.0);
+    assert!(supported.roi_frontier(&everywhere).is_empty());
+
     // A voxel with one miss counts as free (documented rule).
     let mut m2 = map();
     set(&mut m2, &[k(0, 0, 0)], MISS, 0.0);
@@ -801,7 +819,7 @@ fn memory_and_debug_are_cheap() {
     m.insert_scan(&origin, &pts, &roi).expect("valid scan");
     assert!(m.memory_bytes() >= m.len() * std::mem::size_of::<(VoxelKey, Voxel)>());
     let dbg = format!("{m:?}");
-    assert!(dbg.len() < 300);
+    assert!(dbg.len() < 400, "no voxels in Debug: {dbg}");
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -915,8 +933,13 @@ fn workload_scans_match_the_reference_with_range_limit() {
     assert!(got == reference.cells);
 }
 
-/// Brute-force frontier definitions (paper-method §3), over all known voxels.
+/// Brute-force frontier definitions (paper-method §3), over all known voxels; ROI targets are
+/// the ROI voxels, with an ROI face neighbour when the configuration asks for one.
 fn brute_frontiers(m: &RoiMap) -> (Vec<VoxelKey>, Vec<VoxelKey>) {
+    let needs_neighbour = m.config().roi_target_needs_neighbour;
+    let is_target = |x: VoxelKey| {
+        m.is_roi(x) && (!needs_neighbour || x.neighbours(Neighbourhood::Six).any(|y| m.is_roi(y)))
+    };
     let mut expl = Vec::new();
     let mut roi = Vec::new();
     for (k, v) in m.iter() {
@@ -931,7 +954,7 @@ fn brute_frontiers(m: &RoiMap) -> (Vec<VoxelKey>, Vec<VoxelKey>) {
         if n.iter().any(|&x| m.occupancy(x) == Occupancy::Occupied) {
             expl.push(k);
         }
-        if n.iter().any(|&x| m.is_roi(x)) {
+        if n.iter().any(|&x| is_target(x)) {
             roi.push(k);
         }
     }
@@ -943,7 +966,22 @@ fn brute_frontiers(m: &RoiMap) -> (Vec<VoxelKey>, Vec<VoxelKey>) {
 #[test]
 fn incremental_frontiers_roi_set_and_counts_match_recomputation() {
     let w = Workload::small(33, 96, 72, 12, 4);
-    let mut m = RoiMap::new(w.map_config()).expect("valid");
+    check_incremental_state(&w, w.map_config());
+}
+
+#[test]
+fn incremental_frontiers_match_recomputation_with_lone_roi_voxels_untargeted() {
+    let w = Workload::small(34, 96, 72, 12, 4);
+    let config = MapConfig {
+        roi_miss_logodds: -0.8473,
+        roi_target_needs_neighbour: true,
+        ..w.map_config()
+    };
+    check_incremental_state(&w, config);
+}
+
+fn check_incremental_state(w: &Workload, config: MapConfig) {
+    let mut m = RoiMap::new(config).expect("valid");
     let everywhere = Aabb::new(Point3::new(-9.0, -9.0, -9.0), Point3::new(9.0, 9.0, 9.0));
     for (i, s) in w.filtered_scans().iter().enumerate() {
         m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
@@ -960,7 +998,7 @@ fn incremental_frontiers_roi_set_and_counts_match_recomputation() {
         assert_eq!(m.roi_keys(), brute_roi);
         if i >= 1 {
             assert!(!brute_roi.is_empty(), "two observations make ROI voxels");
-            assert!(!roi.is_empty());
+            assert!(!roi.is_empty(), "scan {i}: ROI targets");
         }
         let c = m.counts();
         assert_eq!(c.known, m.iter().count());
@@ -992,6 +1030,29 @@ fn incremental_frontiers_roi_set_and_counts_match_recomputation() {
     assert_eq!(m.exploration_frontier(&everywhere), expl);
     assert_eq!(m.roi_frontier(&everywhere), roi);
     assert_eq!(m.roi_keys().len(), roi_now.len() - cleared.len());
+}
+
+#[test]
+fn snapshot_keeps_the_roi_target_rule_and_its_frontier() {
+    let w = Workload::small(6, 64, 48, 4, 2);
+    let config = MapConfig {
+        roi_miss_logodds: -0.8473,
+        roi_target_needs_neighbour: true,
+        ..w.map_config()
+    };
+    let mut m = RoiMap::new(config).expect("valid");
+    for s in w.filtered_scans() {
+        m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+    }
+    let mut bytes = Vec::new();
+    m.write_snapshot(&mut bytes).expect("write");
+    let back = RoiMap::read_snapshot(bytes.as_slice()).expect("read");
+    assert_eq!(back.config(), m.config());
+    let everywhere = Aabb::new(Point3::new(-9.0, -9.0, -9.0), Point3::new(9.0, 9.0, 9.0));
+    let targets = m.roi_frontier(&everywhere);
+    assert!(!targets.is_empty());
+    assert_eq!(back.roi_frontier(&everywhere), targets);
+    assert_eq!(brute_frontiers(&back).1, targets);
 }
 
 #[test]

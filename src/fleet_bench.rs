@@ -85,6 +85,10 @@ pub struct FleetBenchArgs {
     /// measure what TLS and the ACL cost against a plain run.
     #[arg(long)]
     pub secure: bool,
+    /// Every planner's `--replica-refresh-clouds`: clouds a standby replica keeps before it
+    /// asks the owner for a snapshot (planner default 8); 0: replicas integrate every cloud.
+    #[arg(long)]
+    pub replica_refresh_clouds: Option<usize>,
 }
 
 /// One process of the fleet.
@@ -208,6 +212,8 @@ struct Report {
     /// "mtls+acl" (`--secure`) or "tcp".
     transport: &'static str,
     realtime: bool,
+    /// The planners' `--replica-refresh-clouds` (None: their default).
+    replica_refresh_clouds: Option<usize>,
     width: u32,
     fps_per_trolley_max: f64,
     measured_s: f64,
@@ -470,7 +476,10 @@ impl Fleet {
             self.spawn_client("detector", format!("d{i}"), "detector-service", &extra)?;
         }
         for i in 1..=args.planners {
-            let extra = ["--planner-id".into(), format!("p{i}")];
+            let mut extra = vec!["--planner-id".into(), format!("p{i}")];
+            if let Some(n) = args.replica_refresh_clouds {
+                extra.extend(["--replica-refresh-clouds".into(), n.to_string()]);
+            }
             self.spawn_client("planner", format!("p{i}"), "planner-service", &extra)?;
         }
         // Let the planners and detectors find each other before the trolleys appear.
@@ -866,6 +875,7 @@ fn build_report(
         scenario: args.scenario.clone(),
         transport: if args.secure { "mtls+acl" } else { "tcp" },
         realtime: args.realtime,
+        replica_refresh_clouds: args.replica_refresh_clouds,
         width: args.width,
         fps_per_trolley_max: args.fps,
         measured_s: elapsed_s,

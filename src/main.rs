@@ -1,6 +1,7 @@
 //! The glasshouse command line: demo, router and user-facing tools.
 
 mod bench_map;
+mod bench_replica;
 mod dashboard_bench;
 mod dataset;
 mod demo;
@@ -34,6 +35,9 @@ enum Command {
     FleetBench(fleet_bench::FleetBenchArgs),
     /// Time the ROI map's scan insertion (OctoMap semantics) on your own PLY clouds.
     BenchMap(bench_map::BenchMapArgs),
+    /// Measure what a trolley's replica planner costs next to its owner (hot or standby), its
+    /// takeover time, and the owner's time per frame at the start and end of a run.
+    BenchReplica(bench_replica::BenchReplicaArgs),
     /// Run the paper's experiments on the simulator: seeded trials per method, Table I, p-values,
     /// per-trial CSVs and plots.
     Eval(eval::EvalArgs),
@@ -65,6 +69,7 @@ async fn main() -> anyhow::Result<()> {
         Command::DashboardBench(args) => dashboard_bench::run(args).await,
         Command::FleetBench(args) => fleet_bench::run(args).await,
         Command::BenchMap(args) => bench_map::run(args),
+        Command::BenchReplica(args) => bench_replica::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Render(args) => render::run(args),
         Command::Dataset(args) => dataset::run(args),

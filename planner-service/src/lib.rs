@@ -2,11 +2,14 @@
 //!
 //! Planners form a cluster. From the liveliness tokens of planners and trolleys every planner
 //! computes the same assignment ([`glasshouse_fleet`]: rendezvous hashing): each trolley has one
-//! *owner* and, with two or more planners, one *replica*. Both keep the trolley's
-//! [`glasshouse_pipeline::TrolleyPlanner`] and integrate each of its RoiClouds; only the owner
-//! fits the fruits, plans the next views (seeded from the planner seed and the frame sequence, so
-//! a run replays exactly) and publishes RankedViews, FruitEstimates and MapUpdate. When the owner
-//! is lost the replica already holds the map and takes over; a planner that gains a trolley
+//! *owner* and, with two or more planners, one *replica*. The owner keeps the trolley's
+//! [`glasshouse_pipeline::TrolleyPlanner`], integrates each of its RoiClouds, fits the fruits,
+//! plans the next views (seeded from the planner seed and the frame sequence, so a run replays
+//! exactly) and publishes RankedViews, FruitEstimates and MapUpdate. The replica stands by: it
+//! keeps the clouds, and every few clouds loads a snapshot of the owner's map and drops the
+//! clouds it holds. When the owner is lost the replica integrates the clouds it kept and takes
+//! over with the owner's map (`replica_refresh_clouds: 0` makes it integrate every cloud
+//! instead); a planner that gains a trolley
 //! without a map asks the planners that may hold one for a snapshot (the queryable
 //! `gh/planner/{pid}/snapshot/{tid}`), buffers the trolley's clouds meanwhile, loads the snapshot
 //! and integrates the buffered clouds newer than it, so no scan is lost.
@@ -46,6 +49,9 @@ pub struct PlannerSettings {
     /// This planner's id in the cluster (one key chunk).
     pub planner_id: String,
     pub status_period_ms: u64,
+    /// A replica stands by with this many of the trolley's clouds before it asks the owner for
+    /// a snapshot (a takeover integrates at most this many); 0: it integrates every cloud.
+    pub replica_refresh_clouds: usize,
     /// Method, seed, map and fit settings (the experiments use the same defaults).
     pub planning: PlanningSettings,
 }
@@ -62,6 +68,7 @@ impl PlannerSettings {
         Self {
             planner_id: planner_id.to_owned(),
             status_period_ms: 1000,
+            replica_refresh_clouds: node::REPLICA_REFRESH_CLOUDS,
             planning: PlanningSettings::default(),
         }
     }
@@ -368,7 +375,9 @@ pub async fn run(
     let mut out = Outputs::declare(&session, &pid, &drops, events_tx).await?;
     let _alive = declare_alive(&session, MemberKind::Planner, &pid).await?;
     let epoch_ns = wall_clock_ns();
-    let mut node = Box::new(PlannerNode::new(&pid, settings.planning.clone(), epoch_ns));
+    let node = PlannerNode::new(&pid, settings.planning.clone(), epoch_ns)
+        .with_replica_refresh(settings.replica_refresh_clouds);
+    let mut node = Box::new(node);
     tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
     while let Some(event) = inputs.next(&mut shutdown, &drops).await {
         // Integration, fits and planning are heavy: the node works on a blocking thread.

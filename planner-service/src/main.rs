@@ -7,7 +7,8 @@ use glasshouse_planner::PlannerSettings;
 /// Integrates ROI clouds into a voxel map per trolley, publishes ranked next best views and
 /// fruit estimates.
 ///
-/// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms, and
+/// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
+/// replica_refresh_clouds, and
 /// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
 /// scoring_threads }`), then the flags below.
 #[derive(Parser, Debug)]
@@ -22,6 +23,10 @@ struct Cli {
     /// Planner seed (views are seeded from it and the frame sequence).
     #[arg(long)]
     seed: Option<u64>,
+    /// Clouds a standby replica keeps before it asks the owner for a snapshot (default 8; a
+    /// takeover integrates at most this many); 0 makes replicas integrate every cloud.
+    #[arg(long)]
+    replica_refresh_clouds: Option<usize>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -32,5 +37,6 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.planner_id, cli.planner_id);
     set_flag(&mut s.planning.method, cli.method);
     set_flag(&mut s.planning.seed, cli.seed);
+    set_flag(&mut s.replica_refresh_clouds, cli.replica_refresh_clouds);
     s.validate()
 }

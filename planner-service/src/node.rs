@@ -14,9 +14,11 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Instant;
 
-use glasshouse_fleet::{Assignment, Membership, OwnershipChange, Role};
+use glasshouse_fleet::{Assignment, Membership, OwnershipChange};
+pub use glasshouse_fleet::Role;
 use glasshouse_pipeline::{ranked_views, FrameVerdict, PlanningSettings, TrolleyPlanner};
 use glasshouse_proto::keys;
+use glasshouse_proto::FrameId;
 use glasshouse_proto::{
     FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus, RankedViews,
     RoiCloud, TrolleyInfo,
@@ -166,6 +168,31 @@ struct Slot {
     sync: SyncState,
     /// The latest cloud: a planner that takes over plans on it at once.
     last_cloud: Option<ReceivedCloud>,
+    /// A standby replica's copy: the owner's latest snapshot, kept encoded (a tenth of the
+    /// decoded map's memory, no decoding work until it is needed) and decoded when the replica
+    /// catches up. While it is held, `planner` holds no map.
+    held: Option<Box<MapSnapshot>>,
+    /// A standby replica's clouds newer than its copy, in arrival order: integrated when it
+    /// catches up, dropped once a snapshot of the owner's map holds them.
+    pending: Vec<ReceivedCloud>,
+    /// A standby replica asked its owner for a snapshot and waits for the answer.
+    refresh_asked: bool,
+}
+
+impl Slot {
+    /// The last frame the copy holds: the held snapshot's, else the map's.
+    fn copy_mark(&self) -> Option<FrameId> {
+        match &self.held {
+            Some(snapshot) => based_on(snapshot),
+            None => self.planner.last_frame(),
+        }
+    }
+}
+
+/// The last frame a snapshot holds; None for a map without frames.
+fn based_on(snapshot: &MapSnapshot) -> Option<FrameId> {
+    let frame = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
+    (frame != FrameId::default()).then_some(frame)
 }
 
 /// The planner (see the module docs).
@@ -187,7 +214,13 @@ pub struct PlannerNode {
     status_seq: u64,
     /// While a `Clouds` batch is handled: per trolley, its clouds still to come in the batch.
     queued_clouds: BTreeMap<String, usize>,
+    /// See [`PlannerNode::with_replica_refresh`]; 0: a hot replica.
+    replica_refresh_clouds: usize,
 }
+
+/// Clouds a standby replica holds before it asks its owner for a snapshot (the default of
+/// [`PlannerNode::with_replica_refresh`]): a takeover integrates at most this many.
+pub const REPLICA_REFRESH_CLOUDS: usize = 8;
 
 fn describe(a: &Option<Assignment>) -> String {
     match a {
@@ -233,7 +266,22 @@ impl PlannerNode {
             stats: PlannerStats::default(),
             status_seq: 0,
             queued_clouds: BTreeMap::new(),
+            replica_refresh_clouds: REPLICA_REFRESH_CLOUDS,
         }
+    }
+
+    /// How a replica keeps its copy. With `clouds` > 0 it stands by: it keeps the trolley's
+    /// clouds without integrating them and, once `clouds` are held, asks the owner for a
+    /// snapshot of its map and drops the clouds the snapshot holds; when it takes over it
+    /// integrates the ones left. With 0 it is hot: it integrates every cloud as the owner does.
+    pub fn with_replica_refresh(mut self, clouds: usize) -> Self {
+        self.replica_refresh_clouds = clouds;
+        self
+    }
+
+    /// This planner's id.
+    pub fn pid(&self) -> &str {
+        &self.pid
     }
 
     pub fn stats(&self) -> PlannerStats {
@@ -243,6 +291,11 @@ impl PlannerNode {
     /// This planner's role for `tid`, if it holds the trolley.
     pub fn role(&self, tid: &str) -> Option<Role> {
         self.slots.get(tid).map(|s| s.role)
+    }
+
+    /// Clouds a standby copy of `tid` keeps, not yet integrated.
+    pub fn pending_clouds(&self, tid: &str) -> usize {
+        self.slots.get(tid).map_or(0, |s| s.pending.len())
     }
 
     /// Whether the copy of `tid` waits for a snapshot.
@@ -307,11 +360,22 @@ impl PlannerNode {
                 }
                 Vec::new()
             }
-            PlannerEvent::SnapshotLoaded { tid, snapshot } => self.on_snapshot(&tid, snapshot),
-            PlannerEvent::SnapshotAsked { query_id, tid } => vec![PlannerAction::ReplySnapshot {
-                query_id,
-                answer: self.snapshot_of(&tid),
-            }],
+            PlannerEvent::SnapshotLoaded { tid, snapshot } => {
+                let refreshing = self.slots.get(&tid).is_some_and(|s| s.refresh_asked);
+                match refreshing {
+                    true => self.on_refresh(&tid, snapshot),
+                    false => self.on_snapshot(&tid, snapshot),
+                }
+            }
+            PlannerEvent::SnapshotAsked { query_id, tid } => {
+                // A standby copy answers with every cloud it holds integrated.
+                let mut actions = self.catch_up(&tid, false);
+                actions.push(PlannerAction::ReplySnapshot {
+                    query_id,
+                    answer: self.snapshot_of(&tid),
+                });
+                actions
+            }
             PlannerEvent::StatusTick {
                 dropped_messages,
                 now_ns,
@@ -361,9 +425,102 @@ impl PlannerNode {
             buffered.push(received);
             return actions;
         }
+        if slot.role == Role::Replica && self.replica_refresh_clouds > 0 {
+            actions.extend(self.stand_by(&tid, received));
+            return actions;
+        }
         let plan = slot.role == Role::Owner && latest;
         actions.extend(self.integrate(&tid, received, plan));
         actions
+    }
+
+    /// A standby replica keeps the cloud (unless its map already holds the frame) and asks the
+    /// owner for a snapshot once enough are kept.
+    fn stand_by(&mut self, tid: &str, received: ReceivedCloud) -> Vec<PlannerAction> {
+        let owner = self.membership.assignment(tid).map(|a| a.owner);
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
+        };
+        let mark = slot.copy_mark();
+        let held = mark.is_some_and(|m| received.cloud.source_frame() <= m);
+        slot.last_cloud = Some(received.clone());
+        if !held {
+            slot.pending.push(received);
+        }
+        match owner {
+            Some(owner) if !slot.refresh_asked && slot.pending.len() >= self.replica_refresh_clouds => {
+                slot.refresh_asked = true;
+                vec![PlannerAction::AskSnapshot {
+                    tid: tid.to_owned(),
+                    sources: vec![owner],
+                }]
+            }
+            _ => Vec::new(),
+        }
+    }
+
+    /// Integrates a standby copy's pending clouds in order; with `plan_last` (a takeover) the
+    /// last is planned on, or, with none pending, the latest cloud again (the edge may wait on
+    /// it).
+    fn catch_up(&mut self, tid: &str, plan_last: bool) -> Vec<PlannerAction> {
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
+        };
+        if let Some(snapshot) = slot.held.take() {
+            if let Err(e) = slot.planner.restore(&snapshot) {
+                tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
+                    "the owner's snapshot does not load: the kept clouds go on the copy as it is");
+            }
+        }
+        let pending = std::mem::take(&mut slot.pending);
+        let last = slot.last_cloud.clone();
+        if pending.is_empty() {
+            return match (plan_last, last) {
+                (true, Some(last)) => self.integrate(tid, last, true),
+                _ => Vec::new(),
+            };
+        }
+        let n = pending.len();
+        let mut actions = Vec::new();
+        for (i, received) in pending.into_iter().enumerate() {
+            actions.extend(self.integrate(tid, received, plan_last && i + 1 == n));
+        }
+        actions
+    }
+
+    /// The owner's snapshot for a standby replica: it becomes the copy (kept encoded), and the
+    /// pending clouds it holds are dropped. A snapshot that is missing, damaged or older than
+    /// the copy leaves the copy as it is and the pending clouds are integrated instead (they
+    /// stay bounded either way).
+    fn on_refresh(&mut self, tid: &str, snapshot: Option<Box<MapSnapshot>>) -> Vec<PlannerAction> {
+        let pid = self.pid.clone();
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
+        };
+        slot.refresh_asked = false;
+        if slot.role != Role::Replica {
+            return Vec::new();
+        }
+        let mark = slot.copy_mark();
+        let usable = snapshot.filter(|snapshot| {
+            let newer = mark.is_none_or(|m| based_on(snapshot).is_some_and(|b| b >= m));
+            let intact = TrolleyPlanner::check_snapshot(snapshot);
+            if let Err(e) = &intact {
+                tracing::warn!(planner = %pid, trolley = %tid, error = %e, "owner's snapshot damaged");
+            }
+            newer && intact.is_ok()
+        });
+        let Some(snapshot) = usable else {
+            return self.catch_up(tid, false);
+        };
+        let based_on = based_on(&snapshot);
+        slot.pending
+            .retain(|c| based_on.is_none_or(|b| c.cloud.source_frame() > b));
+        slot.held = Some(snapshot);
+        if let Err(e) = slot.planner.clear() {
+            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "copy not cleared");
+        }
+        Vec::new()
     }
 
     /// Handles a batch of clouds one by one, so that a trolley's clouds queued behind a later
@@ -464,8 +621,8 @@ impl PlannerNode {
                     if took_over {
                         tracing::info!(planner = %pid, trolley = %tid, "took over as owner");
                     }
-                    if let (true, true, Some(last)) = (took_over, live, slot.last_cloud.clone()) {
-                        actions.extend(self.integrate(&tid, last, true));
+                    if took_over && live {
+                        actions.extend(self.catch_up(&tid, true));
                     }
                 }
                 (Some(role), None) => actions.extend(self.take_on(change, role)),
@@ -488,6 +645,9 @@ impl PlannerNode {
                 buffered: Vec::new(),
             },
             last_cloud: None,
+            held: None,
+            pending: Vec::new(),
+            refresh_asked: false,
         };
         self.slots.insert(tid.clone(), slot);
         let sources = snapshot_sources(change, &self.pid);

@@ -1,6 +1,8 @@
 //! (e) Planner failover: three planner processes share a trolley; the owner is killed (SIGKILL)
-//! mid-run, the hot replica takes over, views resume, and the survivor's map equals the map
-//! rebuilt offline from every ROI cloud the trolley's detector published: no scan is lost.
+//! mid-run, the standby replica takes over, views resume, and the survivor's map equals the map
+//! rebuilt offline from every ROI cloud the trolley's detector published: no scan is lost. The
+//! replica refreshes from the owner's snapshot every 2 clouds here (8 by default), so snapshots
+//! go over the bus before the kill and clouds are still pending at it.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
@@ -97,7 +99,11 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
             };
             (
                 pid.to_owned(),
-                start(name, "planner-service", &["--planner-id", pid]),
+                start(
+                    name,
+                    "planner-service",
+                    &["--planner-id", pid, "--replica-refresh-clouds", "2"],
+                ),
             )
         })
         .collect();
@@ -148,7 +154,7 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
                 };
                 let (owners, replicas) = (of_role(|r| r.0), of_role(|r| r.1));
                 if let ([o], [r], Some(v)) = (&owners[..], &replicas[..], &views_from) {
-                    if views >= 3 && o == v && o != r {
+                    if views >= 7 && o == v && o != r {
                         return (o.clone(), r.clone());
                     }
                 }

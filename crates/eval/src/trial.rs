@@ -24,7 +24,7 @@ use glasshouse_pipeline::{
     EdgeSettings, FruitRecord, PlanningError, PlanningSettings, RoiEvidence, RoiTargets,
     SimTrolley, SimTrolleySettings, TrolleyPlanner, TrolleySource,
 };
-use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame};
+use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame, RoiCloud, TrolleyInfo};
 use glasshouse_sim::{FruitColour, FruitTruth, PerceptionNoise, ScenarioKind, Scene};
 use serde::Serialize;
 
@@ -258,6 +258,8 @@ pub struct Trial<S: TrolleySource = SimTrolley> {
     plans: Vec<RankedViews>,
     /// Whole seconds 0..=last_second are sampled.
     last_second: u32,
+    /// The ROI cloud of the latest frame planned on.
+    last_cloud: Option<RoiCloud>,
 }
 
 /// The id the trial's detector and planner sign their messages with.
@@ -306,6 +308,7 @@ impl<S: TrolleySource> Trial<S> {
             samples: Vec::new(),
             plans: Vec::new(),
             last_second: config.budget_s.floor() as u32,
+            last_cloud: None,
             config,
         })
     }
@@ -314,6 +317,16 @@ impl<S: TrolleySource> Trial<S> {
     pub fn with_fruit_detector(mut self, detector: Arc<dyn FruitDetector>) -> Self {
         self.fruit_detector = detector;
         self
+    }
+
+    /// The ROI cloud of the latest frame planned on, taken (a bench replays the stream).
+    pub fn take_last_cloud(&mut self) -> Option<RoiCloud> {
+        self.last_cloud.take()
+    }
+
+    /// The trolley's workspace and arm, as its edge announces them.
+    pub fn info(&self) -> TrolleyInfo {
+        self.source.info()
     }
 
     pub fn scene(&self) -> &Scene {
@@ -489,6 +502,7 @@ impl<S: TrolleySource> Trial<S> {
             return Ok(None);
         }
         self.publish(frame_seq);
+        self.last_cloud = Some(cloud);
         if let Some(views) = &views {
             self.plans.push(views.clone());
         }

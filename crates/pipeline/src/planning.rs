@@ -579,6 +579,34 @@ impl TrolleyPlanner {
     }
 }
 
+impl TrolleyPlanner {
+    /// Replaces the map, fruit ids and frame mark with a snapshot's, keeping the trolley's info
+    /// and reach filter (a standby replica catching up with its owner). On an error nothing
+    /// changes.
+    pub fn restore(&mut self, snapshot: &MapSnapshot) -> Result<(), PlanningError> {
+        let mut restored = Self::from_snapshot(self.settings.clone(), snapshot)?;
+        restored.info = self.info.take();
+        restored.reach = self.reach.take();
+        *self = restored;
+        Ok(())
+    }
+
+    /// Whether a snapshot's map arrived whole (framing and checksum), without decoding it.
+    pub fn check_snapshot(snapshot: &MapSnapshot) -> Result<(), PlanningError> {
+        RoiMap::check_snapshot(&snapshot.map).map_err(|e| PlanningError::Snapshot(e.to_string()))
+    }
+
+    /// Forgets the map and everything derived from it, keeping the trolley's info and reach
+    /// filter (a standby replica holds the owner's snapshot instead).
+    pub fn clear(&mut self) -> Result<(), PlanningError> {
+        let mut fresh = Self::new(self.settings.clone())?;
+        fresh.info = self.info.take();
+        fresh.reach = self.reach.take();
+        *self = fresh;
+        Ok(())
+    }
+}
+
 fn voxel_change(key: VoxelKey, voxel: Voxel, is_roi: bool) -> VoxelChange {
     let state = if is_roi {
         VoxelState::Roi

@@ -374,6 +374,13 @@ impl RoiMap {
         frame(KIND_SNAPSHOT, &packed, &mut w)
     }
 
+    /// Checks a snapshot's framing (magic, version, kind, length) and checksum without decoding
+    /// its body: a truncated or damaged snapshot fails here as it would in
+    /// [`RoiMap::read_snapshot`].
+    pub fn check_snapshot(bytes: &[u8]) -> Result<(), SnapshotError> {
+        unframe(KIND_SNAPSHOT, &mut &bytes[..]).map(|_| ())
+    }
+
     /// Reads a snapshot written by [`RoiMap::write_snapshot`]. The restored map has no pending
     /// changes.
     pub fn read_snapshot(mut r: impl Read) -> Result<RoiMap, SnapshotError> {

@@ -66,8 +66,13 @@ fn info_event(info: &TrolleyInfo) -> PlannerEvent {
     }
 }
 
-/// A planner that knows detector d1.
+/// A planner that knows detector d1, with hot replicas (they integrate every cloud).
 fn node(pid: &str) -> PlannerNode {
+    node_with_refresh(pid, 0)
+}
+
+/// A planner that knows detector d1; its replicas stand by for `refresh` clouds (0: hot).
+fn node_with_refresh(pid: &str, refresh: usize) -> PlannerNode {
     let mut node = PlannerNode::new(
         pid,
         PlanningSettings {
@@ -75,7 +80,8 @@ fn node(pid: &str) -> PlannerNode {
             ..PlanningSettings::default()
         },
         NOW_NS,
-    );
+    )
+    .with_replica_refresh(refresh);
     assert!(node
         .handle(PlannerEvent::DetectorJoined("d1".into()))
         .is_empty());
@@ -107,7 +113,12 @@ fn views_of(actions: &[PlannerAction]) -> Vec<RankedViews> {
 
 /// Two planners that both know each other and t1, with empty, live copies of t1.
 fn pair() -> (PlannerNode, PlannerNode) {
-    let (mut a, mut b) = (node("p1"), node("p2"));
+    pair_with_refresh(0)
+}
+
+/// [`pair`] with replicas that stand by for `refresh` clouds.
+fn pair_with_refresh(refresh: usize) -> (PlannerNode, PlannerNode) {
+    let (mut a, mut b) = (node_with_refresh("p1", refresh), node_with_refresh("p2", refresh));
     for (n, other) in [(&mut a, "p2"), (&mut b, "p1")] {
         n.handle(PlannerEvent::PlannerJoined(other.into()));
         let actions = n.handle(PlannerEvent::TrolleyJoined("t1".into()));
@@ -608,4 +619,193 @@ fn buffered_clouds_the_snapshot_holds_are_not_inserted_again() {
     assert_eq!(m2.scans_inserted(), 6);
     assert_eq!(m1.scans_inserted(), m2.scans_inserted());
     assert!(m1.len() == m2.len() && m1.iter().all(|(k, v)| m2.get(k) == Some(v)));
+}
+
+/// Whether two planners hold the same map of `tid`: the same voxels, values and scan count.
+fn same_map(a: &PlannerNode, b: &PlannerNode, tid: &str) -> bool {
+    let (a, b) = (a.planner(tid).unwrap().map(), b.planner(tid).unwrap().map());
+    a.len() == b.len()
+        && a.scans_inserted() == b.scans_inserted()
+        && a.iter().all(|(key, voxel)| b.get(key) == Some(voxel))
+}
+
+/// Answers the replica's snapshot requests in `actions` from `owner`; returns how many.
+fn answer_refreshes(
+    owner: &mut PlannerNode,
+    replica: &mut PlannerNode,
+    actions: Vec<PlannerAction>,
+) -> usize {
+    let asked = asks(&actions);
+    for (tid, sources) in &asked {
+        assert_eq!(sources, &vec![owner.pid.clone()], "a standby asks its owner");
+        let reply = owner.handle(PlannerEvent::SnapshotAsked {
+            query_id: 1,
+            tid: tid.clone(),
+        });
+        let snapshot = reply.into_iter().find_map(|a| match a {
+            PlannerAction::ReplySnapshot { answer, .. } => answer.ok().map(|(_, s)| s),
+            _ => None,
+        });
+        assert!(snapshot.is_some(), "the owner answers");
+        replica.handle(PlannerEvent::SnapshotLoaded {
+            tid: tid.clone(),
+            snapshot,
+        });
+    }
+    asked.len()
+}
+
+#[test]
+fn a_standby_replica_keeps_clouds_and_refreshes_from_the_owner() {
+    let (info, clouds) = trolley_clouds(7);
+    let (mut owner, mut replica) = roles(pair_with_refresh(3));
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+    }
+    let mut refreshes = Vec::new();
+    for cloud in &clouds {
+        owner.handle(cloud_event(cloud));
+        let actions = replica.handle(cloud_event(cloud));
+        assert!(views_of(&actions).is_empty(), "a replica never plans");
+        refreshes.push(answer_refreshes(&mut owner, &mut replica, actions));
+    }
+    // A snapshot after the 3rd and the 6th cloud; the replica integrated nothing itself, keeps
+    // the snapshot encoded and holds no decoded map.
+    assert_eq!(refreshes, vec![0, 0, 1, 0, 0, 1, 0]);
+    assert_eq!(replica.stats().clouds_integrated, 0);
+    assert_eq!(replica.pending_clouds("t1"), 1);
+    assert!(replica.planner("t1").unwrap().map().is_empty());
+    // Caught up (here by a snapshot query): the snapshot of frame 6 plus frame 7.
+    replica.handle(PlannerEvent::SnapshotAsked {
+        query_id: 2,
+        tid: "t1".into(),
+    });
+    assert_eq!(replica.stats().clouds_integrated, 1);
+    assert!(same_map(&replica, &owner, "t1"));
+    let copy = replica.planner("t1").unwrap();
+    assert_eq!(copy.last_frame(), Some(FrameId::new(EDGE_EPOCH_NS, 7)));
+    assert!(copy.filters_reach(), "the refresh keeps the trolley's arm");
+}
+
+#[test]
+fn a_damaged_snapshot_is_not_kept_and_the_clouds_are_integrated() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut owner, mut replica) = roles(pair_with_refresh(2));
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+        for cloud in &clouds {
+            n.handle(cloud_event(cloud));
+        }
+    }
+    let Ok((_, mut damaged)) = owner.snapshot_of("t1") else {
+        panic!("the owner holds t1")
+    };
+    let middle = damaged.map.len() / 2;
+    damaged.map[middle] ^= 0x10;
+    replica.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(damaged),
+    });
+    assert_eq!(replica.pending_clouds("t1"), 0);
+    assert_eq!(replica.stats().clouds_integrated, 2);
+    assert!(same_map(&replica, &owner, "t1"));
+}
+
+#[test]
+fn a_standby_replica_takes_over_with_the_owners_map_and_plans_at_once() {
+    let (info, clouds) = trolley_clouds(5);
+    let (mut owner, mut replica) = roles(pair_with_refresh(3));
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+    }
+    for cloud in &clouds {
+        owner.handle(cloud_event(cloud));
+        let actions = replica.handle(cloud_event(cloud));
+        answer_refreshes(&mut owner, &mut replica, actions);
+    }
+    // Frames 4 and 5 are pending: integrated at the takeover, the last one planned on.
+    let actions = replica.handle(PlannerEvent::PlannerLeft(owner.pid.clone()));
+    assert_eq!(replica.role("t1"), Some(Role::Owner));
+    let views = views_of(&actions);
+    assert_eq!(views.len(), 1, "{actions:?}");
+    assert_eq!(views[0].based_on_seq, 5);
+    assert_eq!(replica.stats().clouds_integrated, 2);
+    assert!(same_map(&replica, &owner, "t1"));
+    let ids = |p: &PlannerNode| {
+        let mut p = p.planner("t1").unwrap().clone();
+        p.fruits().iter().map(|f| f.estimate.id).collect::<Vec<_>>()
+    };
+    assert_eq!(ids(&replica), ids(&owner), "fruit ids carry over");
+}
+
+#[test]
+fn a_standby_replica_asked_for_a_snapshot_answers_with_every_cloud() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut owner, mut replica) = roles(pair_with_refresh(8));
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+        for cloud in &clouds {
+            n.handle(cloud_event(cloud));
+        }
+    }
+    assert_eq!(replica.stats().clouds_integrated, 0);
+    let reply = replica.handle(PlannerEvent::SnapshotAsked {
+        query_id: 4,
+        tid: "t1".into(),
+    });
+    let [PlannerAction::ReplySnapshot {
+        answer: Ok((_, snapshot)),
+        ..
+    }] = &reply[..]
+    else {
+        panic!("{reply:?}")
+    };
+    assert_eq!(snapshot.based_on_seq, 2);
+    assert!(same_map(&replica, &owner, "t1"));
+}
+
+#[test]
+fn a_refresh_without_answer_integrates_the_pending_clouds() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut owner, mut replica) = roles(pair_with_refresh(2));
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+    }
+    for cloud in &clouds {
+        owner.handle(cloud_event(cloud));
+        replica.handle(cloud_event(cloud));
+    }
+    replica.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    assert_eq!(replica.stats().clouds_integrated, 2);
+    assert!(same_map(&replica, &owner, "t1"));
+}
+
+#[test]
+fn a_refresh_answered_after_the_takeover_is_ignored() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut owner, mut replica) = roles(pair_with_refresh(2));
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+    }
+    for cloud in &clouds[..2] {
+        owner.handle(cloud_event(cloud));
+        assert!(views_of(&replica.handle(cloud_event(cloud))).is_empty());
+    }
+    // The owner answered with frames 1..=2, then the replica took over and took frame 3.
+    let Ok((_, late)) = owner.snapshot_of("t1") else {
+        panic!("the owner holds t1")
+    };
+    owner.handle(cloud_event(&clouds[2]));
+    replica.handle(PlannerEvent::PlannerLeft(owner.pid.clone()));
+    replica.handle(cloud_event(&clouds[2]));
+    replica.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(late),
+    });
+    let copy = replica.planner("t1").unwrap();
+    assert_eq!(copy.last_frame(), Some(FrameId::new(EDGE_EPOCH_NS, 3)));
+    assert!(same_map(&replica, &owner, "t1"));
 }

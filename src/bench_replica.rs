@@ -1,0 +1,288 @@
+//! `glasshouse bench-replica`: what a trolley's replica costs next to its owner.
+//!
+//! One process, no bus: a simulated trolley's run (the experiments' trial loop) gives the stream
+//! of ROI clouds, which two [`PlannerNode`]s (the same state machine the planner service runs)
+//! take as owner and replica. The snapshot queries between them are passed by hand, as the
+//! driver would. Each node's time per cloud is measured on this thread; at the end the owner is
+//! lost, the replica's takeover is timed, and its map is compared with the owner's voxel for
+//! voxel.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use glasshouse_eval::{ComputeTime, Trial, TrialConfig};
+use glasshouse_nbv::Method;
+use glasshouse_planner::node::{PlannerAction, PlannerEvent, PlannerNode, Role, TrolleyOutput};
+use glasshouse_proto::{Header, RoiCloud, TrolleyInfo};
+use glasshouse_roimap::RoiMap;
+use glasshouse_sim::ScenarioKind;
+use serde::Serialize;
+
+const TROLLEY: &str = "t1";
+const DETECTOR: &str = "d1";
+
+#[derive(clap::Args, Debug)]
+pub struct BenchReplicaArgs {
+    /// Simulated scenario: 1, 2 or row.
+    #[arg(long, default_value = "row")]
+    scenario: ScenarioKind,
+    /// Scene and planner seed.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Frames of the trolley's run replayed into owner and replica.
+    #[arg(long, default_value_t = 60)]
+    frames: usize,
+    /// Replica settings compared, side by side on the same clouds: clouds a standby replica
+    /// keeps before it asks for a snapshot (`replica_refresh_clouds`); 0 is a hot replica.
+    #[arg(long, value_delimiter = ',', default_value = "0,8")]
+    refresh: Vec<usize>,
+    /// Frames at the start and at the end of the run whose owner times are compared.
+    #[arg(long, default_value_t = 10)]
+    window: usize,
+    /// Also write the results as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+/// One replica setting's figures (times in ms on this thread).
+#[derive(Debug, Serialize)]
+struct ReplicaRun {
+    replica_refresh_clouds: usize,
+    frames: usize,
+    owner_ms_per_frame: f64,
+    /// The replica's own handling plus the owner's answers to its snapshot queries.
+    replica_ms_per_frame: f64,
+    replica_share_of_owner: f64,
+    snapshots: usize,
+    owner_ms_first_frames: f64,
+    owner_ms_last_frames: f64,
+    takeover_ms: f64,
+    takeover_plans: bool,
+    maps_equal: bool,
+    map_voxels: usize,
+}
+
+pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
+    if args.frames == 0 || args.refresh.is_empty() {
+        bail!("--frames and --refresh need at least one value");
+    }
+    let config = TrialConfig {
+        budget_s: 86_400.0,
+        compute_time: ComputeTime::Fixed { ms: 100.0 },
+        ..TrialConfig::new(args.scenario, Method::OursUu, args.seed)
+    };
+    let (info, clouds) = record_stream(&config, args.frames)?;
+    let mut runs = Vec::new();
+    for &refresh in &args.refresh {
+        let run = replay(&config, args.window, refresh, &info, &clouds)?;
+        print_run(&run);
+        runs.push(run);
+    }
+    if let Some(path) = &args.json {
+        let text = serde_json::to_string_pretty(&runs)?;
+        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+    }
+    if runs.iter().any(|r| !r.maps_equal || !r.takeover_plans) {
+        bail!("a replica's takeover did not reproduce the owner's map and plan");
+    }
+    Ok(())
+}
+
+/// The trolley's info and the ROI clouds of its first `frames` planned frames.
+fn record_stream(
+    config: &TrialConfig,
+    frames: usize,
+) -> anyhow::Result<(TrolleyInfo, Vec<RoiCloud>)> {
+    let mut trial = Trial::new(*config)?;
+    let bar = indicatif::ProgressBar::new(frames as u64);
+    let mut clouds = Vec::with_capacity(frames);
+    while clouds.len() < frames && trial.step()? {
+        clouds.extend(trial.take_last_cloud());
+        bar.set_position(clouds.len() as u64);
+    }
+    bar.finish_and_clear();
+    if clouds.is_empty() {
+        bail!("the trolley's run planned on no frame");
+    }
+    Ok((trial.info(), clouds))
+}
+
+/// Owner and replica of one trolley, the owner first.
+struct Pair {
+    owner: PlannerNode,
+    replica: PlannerNode,
+    queries: u64,
+}
+
+impl Pair {
+    fn new(config: &TrialConfig, refresh: usize, info: &TrolleyInfo) -> anyhow::Result<Self> {
+        let node = |pid: &str| {
+            PlannerNode::new(pid, config.planning(), 0).with_replica_refresh(refresh)
+        };
+        let mut nodes = [(node("p1"), "p2"), (node("p2"), "p1")];
+        let header = Header {
+            trolley_id: TROLLEY.into(),
+            source_id: "edge".into(),
+            ..Header::default()
+        };
+        for (node, other) in &mut nodes {
+            let events = [
+                PlannerEvent::PlannerJoined(other.to_string()),
+                PlannerEvent::DetectorJoined(DETECTOR.into()),
+                PlannerEvent::TrolleyJoined(TROLLEY.into()),
+                PlannerEvent::SnapshotLoaded {
+                    tid: TROLLEY.into(),
+                    snapshot: None,
+                },
+                PlannerEvent::Info {
+                    header: header.clone(),
+                    info: info.clone(),
+                },
+            ];
+            for event in events {
+                node.handle(event);
+            }
+        }
+        let [(a, _), (b, _)] = nodes;
+        let (owner, replica) = match a.role(TROLLEY) {
+            Some(Role::Owner) => (a, b),
+            _ => (b, a),
+        };
+        if replica.role(TROLLEY) != Some(Role::Replica) {
+            bail!("the two planners did not split the trolley into owner and replica");
+        }
+        Ok(Self {
+            owner,
+            replica,
+            queries: 0,
+        })
+    }
+
+    /// The replica's snapshot queries, answered by the owner; returns how many.
+    fn answer(&mut self, actions: Vec<PlannerAction>) -> usize {
+        let mut answered = 0;
+        for action in actions {
+            let PlannerAction::AskSnapshot { tid, .. } = action else {
+                continue;
+            };
+            self.queries += 1;
+            let asked = PlannerEvent::SnapshotAsked {
+                query_id: self.queries,
+                tid: tid.clone(),
+            };
+            let snapshot = self.owner.handle(asked).into_iter().find_map(|a| match a {
+                PlannerAction::ReplySnapshot { answer, .. } => answer.ok().map(|(_, s)| s),
+                _ => None,
+            });
+            self.replica
+                .handle(PlannerEvent::SnapshotLoaded { tid, snapshot });
+            answered += 1;
+        }
+        answered
+    }
+}
+
+fn cloud_event(seq: usize, cloud: &RoiCloud) -> PlannerEvent {
+    PlannerEvent::Cloud {
+        header: Header {
+            seq: seq as u64 + 1,
+            trolley_id: TROLLEY.into(),
+            source_id: DETECTOR.into(),
+            ..Header::default()
+        },
+        cloud: cloud.clone(),
+        received_ns: 0,
+    }
+}
+
+fn ms_since(started: Instant) -> f64 {
+    started.elapsed().as_secs_f64() * 1e3
+}
+
+fn replay(
+    config: &TrialConfig,
+    window: usize,
+    refresh: usize,
+    info: &TrolleyInfo,
+    clouds: &[RoiCloud],
+) -> anyhow::Result<ReplicaRun> {
+    let mut pair = Pair::new(config, refresh, info)?;
+    let (mut owner_ms, mut replica_ms) = (Vec::new(), 0.0);
+    let mut snapshots = 0;
+    let bar = indicatif::ProgressBar::new(clouds.len() as u64);
+    for (seq, cloud) in clouds.iter().enumerate() {
+        let started = Instant::now();
+        pair.owner.handle(cloud_event(seq, cloud));
+        owner_ms.push(ms_since(started));
+        let started = Instant::now();
+        let actions = pair.replica.handle(cloud_event(seq, cloud));
+        snapshots += pair.answer(actions);
+        replica_ms += ms_since(started);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let owner_pid = pair.owner.pid().to_string();
+    let started = Instant::now();
+    let actions = pair.replica.handle(PlannerEvent::PlannerLeft(owner_pid));
+    let takeover_ms = ms_since(started);
+    let takeover_plans = actions.iter().any(|a| {
+        matches!(
+            a,
+            PlannerAction::Publish {
+                output: TrolleyOutput::Views(_),
+                ..
+            }
+        )
+    });
+    let owner_map = pair.owner.planner(TROLLEY).context("owner holds t1")?.map();
+    let replica_map = pair.replica.planner(TROLLEY).context("replica holds t1")?.map();
+    let frames = clouds.len();
+    let owner_total: f64 = owner_ms.iter().sum();
+    let window = window.clamp(1, frames);
+    let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
+    Ok(ReplicaRun {
+        replica_refresh_clouds: refresh,
+        frames,
+        owner_ms_per_frame: owner_total / frames as f64,
+        replica_ms_per_frame: replica_ms / frames as f64,
+        replica_share_of_owner: replica_ms / owner_total,
+        snapshots,
+        owner_ms_first_frames: mean(&owner_ms[..window]),
+        owner_ms_last_frames: mean(&owner_ms[frames - window..]),
+        takeover_ms,
+        takeover_plans,
+        maps_equal: same_map(owner_map, replica_map),
+        map_voxels: owner_map.len(),
+    })
+}
+
+/// Whether both maps hold the same voxels with the same values and scan count.
+fn same_map(a: &RoiMap, b: &RoiMap) -> bool {
+    a.len() == b.len()
+        && a.scans_inserted() == b.scans_inserted()
+        && a.iter().all(|(key, voxel)| b.get(key) == Some(voxel))
+}
+
+fn print_run(run: &ReplicaRun) {
+    let mode = match run.replica_refresh_clouds {
+        0 => "hot replica (integrates every cloud)".to_string(),
+        n => format!("standby replica (snapshot every {n} clouds)"),
+    };
+    println!("{mode}, {} frames:", run.frames);
+    println!(
+        "  owner {:.1} ms/frame, replica {:.1} ms/frame ({:.0} % of the owner), {} snapshots",
+        run.owner_ms_per_frame,
+        run.replica_ms_per_frame,
+        run.replica_share_of_owner * 100.0,
+        run.snapshots
+    );
+    println!(
+        "  owner at the start / end of the run: {:.1} / {:.1} ms/frame",
+        run.owner_ms_first_frames, run.owner_ms_last_frames
+    );
+    println!(
+        "  takeover {:.1} ms (plans: {}), maps equal voxel for voxel: {} ({} voxels)",
+        run.takeover_ms, run.takeover_plans, run.maps_equal, run.map_voxels
+    );
+}

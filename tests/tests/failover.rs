@@ -170,6 +170,9 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
         .expect("the owner is one of ours");
     victim.kill();
     eprintln!("killed owner {owner}; replica {replica}");
+    // The replica stood by: the owner answered its snapshot queries before the kill.
+    let answered = victim.log_text().matches("snapshot asked").count();
+    assert!(answered >= 1, "the owner answered no snapshot query");
     // The loop goes on: views on three new frames from the replica.
     let takeover = within(
         120,

@@ -356,6 +356,10 @@ async fn perform(
         PlannerAction::AskSnapshot { tid, sources } => out.ask_snapshot(tid, sources),
         PlannerAction::ReplySnapshot { query_id, answer } => inputs.reply(query_id, answer).await,
         PlannerAction::Release { tid } => out.release(&tid).await,
+        PlannerAction::CatchUp { tid } => {
+            // Back into the event queue: the node picks it up after what is already waiting.
+            let _ = out.events.send(PlannerEvent::CatchUp { tid });
+        }
     }
     Ok(())
 }

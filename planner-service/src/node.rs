@@ -79,6 +79,8 @@ pub enum PlannerEvent {
         query_id: u64,
         tid: String,
     },
+    /// A trolley this planner took over catches up now (see [`PlannerAction::CatchUp`]).
+    CatchUp { tid: String },
     /// Time to publish the status; `dropped_messages` is the bus's drop count, `now_ns` this
     /// process's wall clock (Unix ns).
     StatusTick {
@@ -124,6 +126,12 @@ pub enum PlannerAction {
     },
     /// This planner no longer publishes for `tid`: close its result publishers.
     Release {
+        tid: String,
+    },
+    /// Feed `PlannerEvent::CatchUp { tid }` back once the actions before it are done: a planner
+    /// that takes over several trolleys at once catches them up one event at a time, so each
+    /// trolley's views go out as soon as its own copy is ready.
+    CatchUp {
         tid: String,
     },
 }
@@ -177,9 +185,37 @@ struct Slot {
     pending: Vec<ReceivedCloud>,
     /// A standby replica asked its owner for a snapshot and waits for the answer.
     refresh_asked: bool,
+    /// Taken over, not yet caught up and planned on.
+    takeover_pending: bool,
 }
 
 impl Slot {
+    /// Whether the copy is behind what this planner received (an owner catches up first).
+    fn behind(&self) -> bool {
+        self.held.is_some() || !self.pending.is_empty() || self.takeover_pending
+    }
+
+    /// Keeps `snapshot` encoded as the copy when it is whole and not older than the copy, and
+    /// drops the pending clouds it holds; returns whether it was kept.
+    fn hold(&mut self, snapshot: Box<MapSnapshot>, pid: &str, tid: &str) -> bool {
+        let snapshot_frame = based_on(&snapshot);
+        let mark = self.copy_mark();
+        if mark.is_some_and(|m| snapshot_frame.is_none_or(|b| b < m)) {
+            return false;
+        }
+        if let Err(e) = TrolleyPlanner::check_snapshot(&snapshot) {
+            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "snapshot damaged");
+            return false;
+        }
+        self.pending
+            .retain(|c| snapshot_frame.is_none_or(|b| c.cloud.source_frame() > b));
+        self.held = Some(snapshot);
+        if let Err(e) = self.planner.clear() {
+            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "copy not cleared");
+        }
+        true
+    }
+
     /// The last frame the copy holds: the held snapshot's, else the map's.
     fn copy_mark(&self) -> Option<FrameId> {
         match &self.held {
@@ -376,6 +412,15 @@ impl PlannerNode {
                 });
                 actions
             }
+            PlannerEvent::CatchUp { tid } => {
+                let due = self.slots.get(&tid).is_some_and(|s| {
+                    s.role == Role::Owner && s.behind() && matches!(s.sync, SyncState::Live)
+                });
+                match due {
+                    true => self.catch_up(&tid, true),
+                    false => Vec::new(),
+                }
+            }
             PlannerEvent::StatusTick {
                 dropped_messages,
                 now_ns,
@@ -429,6 +474,11 @@ impl PlannerNode {
             actions.extend(self.stand_by(&tid, received));
             return actions;
         }
+        if slot.role == Role::Owner && slot.behind() {
+            slot.pending.push(received);
+            actions.extend(self.catch_up(&tid, latest));
+            return actions;
+        }
         let plan = slot.role == Role::Owner && latest;
         actions.extend(self.integrate(&tid, received, plan));
         actions
@@ -466,6 +516,7 @@ impl PlannerNode {
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
+        slot.takeover_pending = false;
         if let Some(snapshot) = slot.held.take() {
             if let Err(e) = slot.planner.restore(&snapshot) {
                 tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
@@ -501,26 +552,10 @@ impl PlannerNode {
         if slot.role != Role::Replica {
             return Vec::new();
         }
-        let mark = slot.copy_mark();
-        let usable = snapshot.filter(|snapshot| {
-            let newer = mark.is_none_or(|m| based_on(snapshot).is_some_and(|b| b >= m));
-            let intact = TrolleyPlanner::check_snapshot(snapshot);
-            if let Err(e) = &intact {
-                tracing::warn!(planner = %pid, trolley = %tid, error = %e, "owner's snapshot damaged");
-            }
-            newer && intact.is_ok()
-        });
-        let Some(snapshot) = usable else {
-            return self.catch_up(tid, false);
-        };
-        let based_on = based_on(&snapshot);
-        slot.pending
-            .retain(|c| based_on.is_none_or(|b| c.cloud.source_frame() > b));
-        slot.held = Some(snapshot);
-        if let Err(e) = slot.planner.clear() {
-            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "copy not cleared");
+        match snapshot.is_some_and(|snapshot| slot.hold(snapshot, &pid, tid)) {
+            true => Vec::new(),
+            false => self.catch_up(tid, false),
         }
-        Vec::new()
     }
 
     /// Handles a batch of clouds one by one, so that a trolley's clouds queued behind a later
@@ -598,6 +633,7 @@ impl PlannerNode {
     /// lost owner's answer).
     fn apply(&mut self, changes: &[OwnershipChange]) -> Vec<PlannerAction> {
         let mut actions = Vec::new();
+        let mut caught_up = false;
         for change in changes {
             let pid = &self.pid;
             let tid = change.trolley.clone();
@@ -621,8 +657,13 @@ impl PlannerNode {
                     if took_over {
                         tracing::info!(planner = %pid, trolley = %tid, "took over as owner");
                     }
-                    if took_over && live {
+                    // The first trolley taken over catches up at once, the others one event each.
+                    if took_over && live && !caught_up {
+                        caught_up = true;
                         actions.extend(self.catch_up(&tid, true));
+                    } else if took_over && live {
+                        slot.takeover_pending = true;
+                        actions.push(PlannerAction::CatchUp { tid });
                     }
                 }
                 (Some(role), None) => actions.extend(self.take_on(change, role)),
@@ -648,6 +689,7 @@ impl PlannerNode {
             held: None,
             pending: Vec::new(),
             refresh_asked: false,
+            takeover_pending: false,
         };
         self.slots.insert(tid.clone(), slot);
         let sources = snapshot_sources(change, &self.pid);
@@ -656,6 +698,7 @@ impl PlannerNode {
 
     fn on_snapshot(&mut self, tid: &str, snapshot: Option<Box<MapSnapshot>>) -> Vec<PlannerAction> {
         let pid = self.pid.clone();
+        let standby = self.replica_refresh_clouds > 0;
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
@@ -663,6 +706,15 @@ impl PlannerNode {
         else {
             return Vec::new();
         };
+        // A standby replica keeps the snapshot encoded and the buffered clouds pending.
+        if standby && slot.role == Role::Replica {
+            slot.pending = buffered;
+            slot.last_cloud = slot.pending.last().cloned();
+            if let Some(snapshot) = snapshot {
+                slot.hold(snapshot, &pid, tid);
+            }
+            return Vec::new();
+        }
         if let Some(snapshot) = snapshot {
             match TrolleyPlanner::from_snapshot(self.planning.clone(), &snapshot) {
                 Ok(mut loaded) => {

@@ -809,3 +809,115 @@ fn a_refresh_answered_after_the_takeover_is_ignored() {
     assert_eq!(copy.last_frame(), Some(FrameId::new(EDGE_EPOCH_NS, 3)));
     assert!(same_map(&replica, &owner, "t1"));
 }
+
+fn cloud_for(tid: &str, cloud: &RoiCloud) -> PlannerEvent {
+    PlannerEvent::Cloud {
+        header: header(tid, cloud.source_frame_seq),
+        cloud: cloud.clone(),
+        received_ns: NOW_NS,
+    }
+}
+
+#[test]
+fn trolleys_taken_over_together_catch_up_one_event_each() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut a, mut b) = (node_with_refresh("p1", 8), node_with_refresh("p2", 8));
+    let tids: Vec<String> = (1..=8).map(|i| format!("t{i}")).collect();
+    for (n, other) in [(&mut a, "p2"), (&mut b, "p1")] {
+        n.handle(PlannerEvent::PlannerJoined(other.into()));
+        for tid in &tids {
+            n.handle(PlannerEvent::TrolleyJoined(tid.clone()));
+            n.handle(PlannerEvent::SnapshotLoaded {
+                tid: tid.clone(),
+                snapshot: None,
+            });
+        }
+    }
+    // Three trolleys p2 owns and p1 stands by for, each with two clouds.
+    let owned: Vec<String> = tids
+        .iter()
+        .filter(|t| b.role(t) == Some(Role::Owner))
+        .take(3)
+        .cloned()
+        .collect();
+    assert_eq!(owned.len(), 3, "rendezvous hashing gives p2 three of eight");
+    for tid in &owned {
+        for n in [&mut a, &mut b] {
+            n.handle(PlannerEvent::Info {
+                header: header(tid, 0),
+                info: info.clone(),
+            });
+            for cloud in &clouds {
+                n.handle(cloud_for(tid, cloud));
+            }
+        }
+    }
+    let actions = a.handle(PlannerEvent::PlannerLeft("p2".into()));
+    let deferred: Vec<String> = actions
+        .iter()
+        .filter_map(|x| match x {
+            PlannerAction::CatchUp { tid } => Some(tid.clone()),
+            _ => None,
+        })
+        .collect();
+    // One trolley is planned on at once, the other two wait for their own event.
+    assert_eq!(views_of(&actions).len(), 1);
+    assert_eq!(deferred.len(), 2);
+    let caught = a.handle(PlannerEvent::CatchUp {
+        tid: deferred[0].clone(),
+    });
+    assert_eq!(views_of(&caught).len(), 1);
+    // A cloud of the last one catches it up first; its CatchUp then finds nothing to do.
+    let (_, later) = trolley_clouds(3);
+    let planned = a.handle(cloud_for(&deferred[1], &later[2]));
+    assert_eq!(views_of(&planned)[0].based_on_seq, 3);
+    let copy = a.planner(&deferred[1]).unwrap();
+    assert_eq!(copy.map().scans_inserted(), 3);
+    assert!(a
+        .handle(PlannerEvent::CatchUp {
+            tid: deferred[1].clone(),
+        })
+        .is_empty());
+    for tid in &owned {
+        assert!(same_map(&a, &b, tid) || tid == &deferred[1]);
+    }
+}
+
+#[test]
+fn a_new_standby_replica_keeps_the_snapshot_encoded() {
+    let (info, clouds) = trolley_clouds(3);
+    // p2 alone owns t1 with two clouds; p1 joins and ranks second for t1: the new replica.
+    let mut p2 = node_with_refresh("p2", 8);
+    p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p2.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    p2.handle(info_event(&info));
+    for cloud in &clouds[..2] {
+        p2.handle(cloud_event(cloud));
+    }
+    let mut p1 = node_with_refresh("p1", 8);
+    p1.handle(PlannerEvent::PlannerJoined("p2".into()));
+    p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p2.handle(PlannerEvent::PlannerJoined("p1".into()));
+    assert_eq!(p1.role("t1"), Some(Role::Replica));
+    p1.handle(info_event(&info));
+    let Ok((_, snapshot)) = p2.snapshot_of("t1") else {
+        panic!("p2 holds t1")
+    };
+    for n in [&mut p1, &mut p2] {
+        n.handle(cloud_event(&clouds[2]));
+    }
+    p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot),
+    });
+    assert!(!p1.is_loading("t1"));
+    assert_eq!(p1.stats().clouds_integrated, 0);
+    assert_eq!(p1.pending_clouds("t1"), 1, "frame 3 came after the snapshot");
+    assert!(p1.planner("t1").unwrap().map().is_empty());
+    let actions = p1.handle(PlannerEvent::PlannerLeft("p2".into()));
+    assert_eq!(views_of(&actions)[0].based_on_seq, 3);
+    assert!(same_map(&p1, &p2, "t1"));
+}

@@ -517,24 +517,26 @@ impl PlannerNode {
             return Vec::new();
         };
         slot.takeover_pending = false;
-        if let Some(snapshot) = slot.held.take() {
-            if let Err(e) = slot.planner.restore(&snapshot) {
-                tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
-                    "the owner's snapshot does not load: the kept clouds go on the copy as it is");
-            }
+        let started = Instant::now();
+        let decoded = slot.held.take().map(|snapshot| slot.planner.restore(&snapshot));
+        if let Some(Err(e)) = &decoded {
+            tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
+                "the owner's snapshot does not load: the kept clouds go on the copy as it is");
         }
+        let decode_ms = started.elapsed().as_secs_f64() * 1e3;
         let pending = std::mem::take(&mut slot.pending);
         let last = slot.last_cloud.clone();
-        if pending.is_empty() {
-            return match (plan_last, last) {
-                (true, Some(last)) => self.integrate(tid, last, true),
-                _ => Vec::new(),
-            };
-        }
         let n = pending.len();
         let mut actions = Vec::new();
         for (i, received) in pending.into_iter().enumerate() {
             actions.extend(self.integrate(tid, received, plan_last && i + 1 == n));
+        }
+        if let (0, true, Some(last)) = (n, plan_last, last) {
+            actions.extend(self.integrate(tid, last, true));
+        }
+        if decoded.is_some() {
+            let total_ms = started.elapsed().as_secs_f64() * 1e3;
+            tracing::info!(planner = %self.pid, trolley = %tid, decode_ms, clouds = n, total_ms, "caught up");
         }
         actions
     }

@@ -562,11 +562,7 @@ impl TrolleyPlanner {
             ));
         }
         let mut planner = Self::new(settings)?;
-        planner.published_solid = map
-            .iter()
-            .filter(|(key, voxel)| voxel.occupancy() == Occupancy::Occupied || map.is_roi(*key))
-            .map(|(key, _)| key)
-            .collect();
+        planner.published_solid = map.solid_keys().collect();
         planner.map = map;
         let tracked = snapshot.tracked_fruits.iter();
         planner.tracker = FruitTracker::from_state(

@@ -656,6 +656,21 @@ impl RoiMap {
             })
     }
 
+    /// Keys of the voxels that are occupied or ROI, block by block, from the masks alone (no
+    /// value is read; a map is mostly free space).
+    pub fn solid_keys(&self) -> impl Iterator<Item = VoxelKey> + '_ {
+        self.store
+            .blocks
+            .iter()
+            .zip(&self.store.coords)
+            .flat_map(|(b, &bk)| {
+                let solid: Mask = std::array::from_fn(|w| b.occupied[w] | b.roi_mask[w]);
+                let mut out = Vec::with_capacity(grid::mask_count(&solid));
+                for_each_bit(&solid, |l| out.push(key_at(bk, l)));
+                out
+            })
+    }
+
     /// Keys of all ROI voxels, sorted.
     pub fn roi_keys(&self) -> Vec<VoxelKey> {
         let mut keys: Vec<VoxelKey> = self.roi_set.iter().copied().collect();

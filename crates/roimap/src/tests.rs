@@ -1488,3 +1488,22 @@ fn evidence_is_added_per_voxel_the_largest_delta_winning() {
         Err(MapError::LengthMismatch { points: 6, roi: 2 })
     ));
 }
+
+#[test]
+fn solid_keys_are_the_occupied_and_roi_voxels() {
+    let w = Workload::small(35, 96, 72, 12, 3);
+    let mut m = RoiMap::new(w.map_config()).expect("valid");
+    for s in w.filtered_scans() {
+        m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+    }
+    let mut from_masks: Vec<VoxelKey> = m.solid_keys().collect();
+    from_masks.sort_unstable();
+    let mut from_values: Vec<VoxelKey> = m
+        .iter()
+        .filter(|(key, voxel)| voxel.occupancy() == Occupancy::Occupied || m.is_roi(*key))
+        .map(|(key, _)| key)
+        .collect();
+    from_values.sort_unstable();
+    assert!(!m.roi_voxels().is_empty() && from_values.len() > m.roi_voxels().len());
+    assert_eq!(from_masks, from_values);
+}

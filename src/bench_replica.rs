@@ -35,7 +35,7 @@ pub struct BenchReplicaArgs {
     frames: usize,
     /// Replica settings compared, side by side on the same clouds: clouds a standby replica
     /// keeps before it asks for a snapshot (`replica_refresh_clouds`); 0 is a hot replica.
-    #[arg(long, value_delimiter = ',', default_value = "0,8")]
+    #[arg(long, value_delimiter = ',', default_value = "0,4")]
     refresh: Vec<usize>,
     /// Frames at the start and at the end of the run whose owner times are compared.
     #[arg(long, default_value_t = 10)]

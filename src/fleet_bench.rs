@@ -86,7 +86,7 @@ pub struct FleetBenchArgs {
     #[arg(long)]
     pub secure: bool,
     /// Every planner's `--replica-refresh-clouds`: clouds a standby replica keeps before it
-    /// asks the owner for a snapshot (planner default 8); 0: replicas integrate every cloud.
+    /// asks the owner for a snapshot (planner default 4); 0: replicas integrate every cloud.
     #[arg(long)]
     pub replica_refresh_clouds: Option<usize>,
 }

@@ -1,7 +1,7 @@
 //! (e) Planner failover: three planner processes share a trolley; the owner is killed (SIGKILL)
 //! mid-run, the standby replica takes over, views resume, and the survivor's map equals the map
 //! rebuilt offline from every ROI cloud the trolley's detector published: no scan is lost. The
-//! replica refreshes from the owner's snapshot every 2 clouds here (8 by default), so snapshots
+//! replica refreshes from the owner's snapshot every 2 clouds here (4 by default), so snapshots
 //! go over the bus before the kill and clouds are still pending at it.
 
 use std::collections::{BTreeMap, BTreeSet};

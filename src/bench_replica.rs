@@ -117,9 +117,8 @@ struct Pair {
 
 impl Pair {
     fn new(config: &TrialConfig, refresh: usize, info: &TrolleyInfo) -> anyhow::Result<Self> {
-        let node = |pid: &str| {
-            PlannerNode::new(pid, config.planning(), 0).with_replica_refresh(refresh)
-        };
+        let node =
+            |pid: &str| PlannerNode::new(pid, config.planning(), 0).with_replica_refresh(refresh);
         let mut nodes = [(node("p1"), "p2"), (node("p2"), "p1")];
         let header = Header {
             trolley_id: TROLLEY.into(),
@@ -236,7 +235,11 @@ fn replay(
         )
     });
     let owner_map = pair.owner.planner(TROLLEY).context("owner holds t1")?.map();
-    let replica_map = pair.replica.planner(TROLLEY).context("replica holds t1")?.map();
+    let replica_map = pair
+        .replica
+        .planner(TROLLEY)
+        .context("replica holds t1")?
+        .map();
     let frames = clouds.len();
     let owner_total: f64 = owner_ms.iter().sum();
     let window = window.clamp(1, frames);

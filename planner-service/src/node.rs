@@ -14,8 +14,8 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Instant;
 
-use glasshouse_fleet::{Assignment, Membership, OwnershipChange};
 pub use glasshouse_fleet::Role;
+use glasshouse_fleet::{Assignment, Membership, OwnershipChange};
 use glasshouse_pipeline::{ranked_views, FrameVerdict, PlanningSettings, TrolleyPlanner};
 use glasshouse_proto::keys;
 use glasshouse_proto::FrameId;
@@ -80,7 +80,9 @@ pub enum PlannerEvent {
         tid: String,
     },
     /// A trolley this planner took over catches up now (see [`PlannerAction::CatchUp`]).
-    CatchUp { tid: String },
+    CatchUp {
+        tid: String,
+    },
     /// Time to publish the status; `dropped_messages` is the bus's drop count, `now_ns` this
     /// process's wall clock (Unix ns).
     StatusTick {
@@ -498,7 +500,9 @@ impl PlannerNode {
             slot.pending.push(received);
         }
         match owner {
-            Some(owner) if !slot.refresh_asked && slot.pending.len() >= self.replica_refresh_clouds => {
+            Some(owner)
+                if !slot.refresh_asked && slot.pending.len() >= self.replica_refresh_clouds =>
+            {
                 slot.refresh_asked = true;
                 vec![PlannerAction::AskSnapshot {
                     tid: tid.to_owned(),
@@ -518,7 +522,10 @@ impl PlannerNode {
         };
         slot.takeover_pending = false;
         let started = Instant::now();
-        let decoded = slot.held.take().map(|snapshot| slot.planner.restore(&snapshot));
+        let decoded = slot
+            .held
+            .take()
+            .map(|snapshot| slot.planner.restore(&snapshot));
         if let Some(Err(e)) = &decoded {
             tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
                 "the owner's snapshot does not load: the kept clouds go on the copy as it is");

@@ -118,7 +118,10 @@ fn pair() -> (PlannerNode, PlannerNode) {
 
 /// [`pair`] with replicas that stand by for `refresh` clouds.
 fn pair_with_refresh(refresh: usize) -> (PlannerNode, PlannerNode) {
-    let (mut a, mut b) = (node_with_refresh("p1", refresh), node_with_refresh("p2", refresh));
+    let (mut a, mut b) = (
+        node_with_refresh("p1", refresh),
+        node_with_refresh("p2", refresh),
+    );
     for (n, other) in [(&mut a, "p2"), (&mut b, "p1")] {
         n.handle(PlannerEvent::PlannerJoined(other.into()));
         let actions = n.handle(PlannerEvent::TrolleyJoined("t1".into()));
@@ -637,7 +640,11 @@ fn answer_refreshes(
 ) -> usize {
     let asked = asks(&actions);
     for (tid, sources) in &asked {
-        assert_eq!(sources, &vec![owner.pid.clone()], "a standby asks its owner");
+        assert_eq!(
+            sources,
+            &vec![owner.pid.clone()],
+            "a standby asks its owner"
+        );
         let reply = owner.handle(PlannerEvent::SnapshotAsked {
             query_id: 1,
             tid: tid.clone(),
@@ -915,7 +922,11 @@ fn a_new_standby_replica_keeps_the_snapshot_encoded() {
     });
     assert!(!p1.is_loading("t1"));
     assert_eq!(p1.stats().clouds_integrated, 0);
-    assert_eq!(p1.pending_clouds("t1"), 1, "frame 3 came after the snapshot");
+    assert_eq!(
+        p1.pending_clouds("t1"),
+        1,
+        "frame 3 came after the snapshot"
+    );
     assert!(p1.planner("t1").unwrap().map().is_empty());
     let actions = p1.handle(PlannerEvent::PlannerLeft("p2".into()));
     assert_eq!(views_of(&actions)[0].based_on_seq, 3);

@@ -405,24 +405,8 @@ impl PlannerNode {
                     false => self.on_snapshot(&tid, snapshot),
                 }
             }
-            PlannerEvent::SnapshotAsked { query_id, tid } => {
-                // A standby copy answers with every cloud it holds integrated.
-                let mut actions = self.catch_up(&tid, false);
-                actions.push(PlannerAction::ReplySnapshot {
-                    query_id,
-                    answer: self.snapshot_of(&tid),
-                });
-                actions
-            }
-            PlannerEvent::CatchUp { tid } => {
-                let due = self.slots.get(&tid).is_some_and(|s| {
-                    s.role == Role::Owner && s.behind() && matches!(s.sync, SyncState::Live)
-                });
-                match due {
-                    true => self.catch_up(&tid, true),
-                    false => Vec::new(),
-                }
-            }
+            PlannerEvent::SnapshotAsked { query_id, tid } => self.on_snapshot_asked(query_id, &tid),
+            PlannerEvent::CatchUp { tid } => self.on_catch_up(&tid),
             PlannerEvent::StatusTick {
                 dropped_messages,
                 now_ns,
@@ -430,6 +414,27 @@ impl PlannerNode {
                 self.expire_unknown_sources(now_ns);
                 self.status(dropped_messages)
             }
+        }
+    }
+
+    /// A standby copy answers with every cloud it holds integrated.
+    fn on_snapshot_asked(&mut self, query_id: u64, tid: &str) -> Vec<PlannerAction> {
+        let mut actions = self.catch_up(tid, false);
+        actions.push(PlannerAction::ReplySnapshot {
+            query_id,
+            answer: self.snapshot_of(tid),
+        });
+        actions
+    }
+
+    /// A deferred takeover: caught up unless a cloud already did it.
+    fn on_catch_up(&mut self, tid: &str) -> Vec<PlannerAction> {
+        let due = self.slots.get(tid).is_some_and(|s| {
+            s.role == Role::Owner && s.behind() && matches!(s.sync, SyncState::Live)
+        });
+        match due {
+            true => self.catch_up(tid, true),
+            false => Vec::new(),
         }
     }
 

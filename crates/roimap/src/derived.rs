@@ -74,6 +74,9 @@ impl RoiMap {
         for k in &removed {
             self.roi_set.remove(k);
         }
+        self.roi_changes.clear();
+        self.roi_changes.extend(added.iter().chain(&removed));
+        self.roi_epoch += 1;
         // The changed blocks, and the face neighbours next to changed voxels.
         let mut todo = KeySet::default();
         for (&bi, (state, _)) in &log.blocks {

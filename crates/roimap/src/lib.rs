@@ -37,6 +37,7 @@
 //! ([`RoiMap::write_ply`]) persist and exchange the map.
 
 mod batch;
+mod clusters;
 mod derived;
 #[doc(hidden)]
 pub mod fuzzing;
@@ -61,6 +62,7 @@ use crate::grid::{
 use crate::walk::{axis_key, RaySetup, KEY_LIMIT};
 
 pub use crate::batch::RayCount;
+pub use crate::clusters::{ClusterUpdate, Clusters};
 pub use crate::insert::RoiInput;
 pub use crate::snapshot::SnapshotError;
 
@@ -412,6 +414,42 @@ impl ChangeLog {
     }
 }
 
+/// The block coordinates of a box of blocks, x fastest.
+struct BlockRange {
+    lo: VoxelKey,
+    hi: VoxelKey,
+    next: Option<VoxelKey>,
+}
+
+impl BlockRange {
+    fn len(&self) -> usize {
+        let span = |a: i32, b: i32| usize::try_from(i64::from(b) - i64::from(a) + 1).unwrap_or(0);
+        span(self.lo.x, self.hi.x)
+            .saturating_mul(span(self.lo.y, self.hi.y))
+            .saturating_mul(span(self.lo.z, self.hi.z))
+    }
+}
+
+impl Iterator for BlockRange {
+    type Item = VoxelKey;
+
+    fn next(&mut self) -> Option<VoxelKey> {
+        let current = self.next?;
+        let mut n = current;
+        n.x += 1;
+        if n.x > self.hi.x {
+            n.x = self.lo.x;
+            n.y += 1;
+            if n.y > self.hi.y {
+                n.y = self.lo.y;
+                n.z += 1;
+            }
+        }
+        self.next = (n.z <= self.hi.z).then_some(n);
+        Some(current)
+    }
+}
+
 /// The ROI voxel map. See the crate docs for the update rules.
 #[derive(Clone)]
 pub struct RoiMap {
@@ -421,6 +459,10 @@ pub struct RoiMap {
     /// Blocks (by index) with voxels changed since the last `take_changes`.
     dirty_blocks: HashSet<u32, KeyBuildHasher>,
     roi_set: KeySet,
+    /// The voxels whose ROI state the latest update changed, and the count of updates
+    /// ([`RoiMap::roi_epoch`]): what [`Clusters`] needs to regrow only what changed.
+    roi_changes: Vec<VoxelKey>,
+    roi_epoch: u64,
     /// Blocks (by coordinate) with frontier voxels.
     expl_blocks: KeySet,
     roi_front_blocks: KeySet,
@@ -454,6 +496,8 @@ impl RoiMap {
             store: Storage::default(),
             dirty_blocks: HashSet::default(),
             roi_set: KeySet::default(),
+            roi_changes: Vec::new(),
+            roi_epoch: 0,
             expl_blocks: KeySet::default(),
             roi_front_blocks: KeySet::default(),
             known_count: 0,
@@ -683,6 +727,17 @@ impl RoiMap {
         &self.roi_set
     }
 
+    /// Counts the map's updates (scans, applied voxels, a snapshot read); the voxels whose ROI
+    /// state the latest one changed are [`RoiMap::last_roi_changes`].
+    pub fn roi_epoch(&self) -> u64 {
+        self.roi_epoch
+    }
+
+    /// The voxels whose ROI state the latest update ([`RoiMap::roi_epoch`]) changed.
+    pub fn last_roi_changes(&self) -> &[VoxelKey] {
+        &self.roi_changes
+    }
+
     /// Voxels changed since the last call (sorted by key, with current values); clears the record.
     pub fn take_changes(&mut self) -> Vec<(VoxelKey, Voxel)> {
         let mut out = Vec::new();
@@ -835,7 +890,14 @@ impl RoiMap {
         mask: impl Fn(&grid::Block) -> &Mask,
     ) -> Vec<VoxelKey> {
         let mut out = Vec::new();
-        for &bk in blocks {
+        // A row's map holds far more frontier blocks than one trolley position's region: walk
+        // the region's blocks then, so the cost follows the region, not the row.
+        let in_region = self.blocks_in(region).filter(|r| r.len() < blocks.len());
+        let candidates: Box<dyn Iterator<Item = VoxelKey>> = match in_region {
+            Some(r) => Box::new(r.filter(|bk| blocks.contains(bk))),
+            None => Box::new(blocks.iter().copied()),
+        };
+        for bk in candidates {
             let Some(b) = self.store.find(bk) else {
                 continue;
             };
@@ -848,6 +910,18 @@ impl RoiMap {
         }
         out.sort_unstable();
         out
+    }
+
+    /// The block coordinates of the blocks overlapping `region` (None when it reaches past the
+    /// keys' range).
+    fn blocks_in(&self, region: &Aabb) -> Option<BlockRange> {
+        let lo = grid::block_of(self.try_key_of(&region.min)?);
+        let hi = grid::block_of(self.try_key_of(&region.max)?);
+        Some(BlockRange {
+            lo,
+            hi,
+            next: (lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z).then_some(lo),
+        })
     }
 
     /// ROI voxels grown into 26-connected clusters; clusters with at least `min_voxels` voxels,
@@ -949,6 +1023,7 @@ impl RoiMap {
                 + self.expl_blocks.capacity()
                 + self.roi_front_blocks.capacity())
                 * key
+            + self.roi_changes.capacity() * std::mem::size_of::<VoxelKey>()
             + self.scratch.heap_bytes()
     }
 }

@@ -1507,3 +1507,84 @@ fn solid_keys_are_the_occupied_and_roi_voxels() {
     assert!(!m.roi_voxels().is_empty() && from_values.len() > m.roi_voxels().len());
     assert_eq!(from_masks, from_values);
 }
+
+// Incremental clusters.
+
+fn same_clusters(clusters: &Clusters, map: &RoiMap, min_voxels: usize, what: &str) {
+    let kept: Vec<RoiCluster> = clusters.iter().cloned().collect();
+    assert_eq!(kept, map.clusters(min_voxels), "{what}");
+}
+
+#[test]
+fn incremental_clusters_match_recomputation_over_scans() {
+    let w = Workload::small(35, 96, 72, 12, 6);
+    let mut m = RoiMap::new(w.map_config()).expect("valid");
+    let mut clusters = Clusters::new(3);
+    let mut regrown_only_some = false;
+    for (i, s) in w.filtered_scans().iter().enumerate() {
+        m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+        let update = clusters.update(&m);
+        assert_eq!(
+            update.full,
+            i == 0,
+            "scan {i}: only the first grows everything"
+        );
+        regrown_only_some |= update.kept > 0;
+        same_clusters(&clusters, &m, 3, &format!("scan {i}"));
+    }
+    assert!(!clusters.is_empty());
+    assert!(regrown_only_some, "later scans keep untouched clusters");
+}
+
+#[test]
+fn incremental_clusters_follow_merges_splits_and_removals() {
+    // ROI voxels switched on and off at random in a thin slab, so clusters merge, split, shrink
+    // below the minimum and vanish; one update in five is skipped (a full regrow follows).
+    let mut rng = TestRng(36);
+    let mut m = map();
+    let mut clusters = Clusters::new(2);
+    let (roi, free) = (
+        Voxel {
+            occupancy_logodds: 2.0,
+            roi_logodds: 2.0,
+        },
+        Voxel {
+            occupancy_logodds: 2.0,
+            roi_logodds: -1.0,
+        },
+    );
+    let (mut full, mut fewer, mut more) = (0, 0, 0);
+    for step in 0..300 {
+        let edits: Vec<(VoxelKey, Voxel)> = (0..6)
+            .map(|_| {
+                let mut c = || (rng.next_u64() % 16) as i32 - 8;
+                let key = k(c(), c(), (rng.next_u64() % 2) as i32);
+                (
+                    key,
+                    if rng.next_u64().is_multiple_of(2) {
+                        free
+                    } else {
+                        roi
+                    },
+                )
+            })
+            .collect();
+        m.apply_voxels(&edits);
+        if step % 5 == 4 {
+            continue;
+        }
+        let before = clusters.len();
+        full += usize::from(clusters.update(&m).full);
+        same_clusters(&clusters, &m, 2, &format!("step {step}"));
+        fewer += usize::from(clusters.len() < before);
+        more += usize::from(clusters.len() > before);
+    }
+    assert!(
+        full > 1 && full < 100,
+        "skipped updates regrow everything: {full}"
+    );
+    assert!(
+        fewer > 10 && more > 10,
+        "clusters merged or vanished {fewer}, appeared {more}"
+    );
+}

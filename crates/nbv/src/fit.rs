@@ -353,6 +353,23 @@ pub fn box_shape(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> Fitt
     shape(ShapeKind::Box, centre, axes, confidence, f64::NAN)
 }
 
+/// The box (min, max corners) holding every voxel [`fit_ellipsoid`] read to fit `shape` to
+/// `cluster`: the free-voxel search box around the cluster and the fitted surface's box (its
+/// observed share), padded by two voxels for rounding to keys. While no voxel in it changes, the
+/// fit comes out the same.
+pub fn fit_read_box(
+    map: &RoiMap,
+    cluster: &RoiCluster,
+    shape: &FittedShape,
+    config: &FitConfig,
+) -> (Point3<f64>, Point3<f64>) {
+    let pad = Vector3::repeat(config.free_search_margin_m.max(0.0));
+    let slack = Vector3::repeat(2.0 * map.config().resolution_m);
+    let min = (cluster.min - pad).inf(&shape.box_min) - slack;
+    let max = (cluster.max + pad).sup(&shape.box_max) + slack;
+    (min, max)
+}
+
 /// Fits an axis-aligned ellipsoid to `cluster` (see the module docs). Never panics; degenerate
 /// input gives the box fallback.
 pub fn fit_ellipsoid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> FittedShape {

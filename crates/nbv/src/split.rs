@@ -17,7 +17,7 @@
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
-use crate::fit::{fit_ellipsoid, FitConfig, FittedShape, ShapeKind};
+use crate::fit::{fit_ellipsoid, fit_read_box, FitConfig, FittedShape, ShapeKind};
 
 /// Most fruits one cluster is split into.
 pub const MAX_PARTS: usize = 4;
@@ -34,22 +34,44 @@ pub fn split_touching(
 ) -> Vec<RoiCluster> {
     let mut out = Vec::with_capacity(clusters.len());
     for cluster in clusters {
-        let mut pending = vec![cluster];
-        let mut parts = Vec::new();
-        while let Some(c) = pending.pop() {
-            if parts.len() + pending.len() + 1 >= MAX_PARTS {
-                parts.push(c);
-                continue;
-            }
-            match split_once(map, &c, min_voxels, config) {
-                Some((a, b)) => pending.extend([a, b]),
-                None => parts.push(c),
-            }
-        }
-        out.extend(parts);
+        out.extend(split_cluster(map, cluster, min_voxels, config).parts);
     }
     out.sort_by_key(|c| c.voxels.first().copied());
     out
+}
+
+/// One cluster as the fruits it is made of, with the part of the map the split read.
+#[derive(Clone, Debug)]
+pub struct Split {
+    /// The cluster itself, or its parts (in no particular order).
+    pub parts: Vec<RoiCluster>,
+    /// The box (min, max corners) holding every voxel the fits tried read; `None` when the
+    /// cluster is too short or too small to be tried, so nothing but its voxels decided.
+    pub read: Option<(Point3<f64>, Point3<f64>)>,
+}
+
+/// [`split_touching`] for one cluster: the same parts, and what was read to find them (so a
+/// caller can keep the result while that part of the map is unchanged).
+pub fn split_cluster(
+    map: &RoiMap,
+    cluster: RoiCluster,
+    min_voxels: usize,
+    config: &FitConfig,
+) -> Split {
+    let mut pending = vec![cluster];
+    let mut parts = Vec::new();
+    let mut read = None;
+    while let Some(c) = pending.pop() {
+        if parts.len() + pending.len() + 1 >= MAX_PARTS {
+            parts.push(c);
+            continue;
+        }
+        match split_once(map, &c, min_voxels, config, &mut read) {
+            Some((a, b)) => pending.extend([a, b]),
+            None => parts.push(c),
+        }
+    }
+    Split { parts, read }
 }
 
 /// For each fit (with its cluster's voxel count), whether it is a fragment of a fruit that a
@@ -79,18 +101,29 @@ fn longest_extent_m(cluster: &RoiCluster) -> f64 {
     (cluster.max - cluster.min).max()
 }
 
-/// The two fruits `cluster` is made of, when it is one of those.
+/// The two fruits `cluster` is made of, when it is one of those; grows `read` by what the fits
+/// read.
 fn split_once(
     map: &RoiMap,
     cluster: &RoiCluster,
     min_voxels: usize,
     config: &FitConfig,
+    read: &mut Option<(Point3<f64>, Point3<f64>)>,
 ) -> Option<(RoiCluster, RoiCluster)> {
     let min_voxels = min_voxels.max(config.min_voxels).max(1);
     if longest_extent_m(cluster) <= config.split_extent_m || cluster.voxels.len() < 2 * min_voxels {
         return None;
     }
-    if fit_ellipsoid(map, cluster, config).kind == ShapeKind::Ellipsoid {
+    let mut fits = |c: &RoiCluster| {
+        let shape = fit_ellipsoid(map, c, config);
+        let (lo, hi) = fit_read_box(map, c, &shape, config);
+        *read = Some(match *read {
+            Some((a, b)) => (a.inf(&lo), b.sup(&hi)),
+            None => (lo, hi),
+        });
+        shape.kind == ShapeKind::Ellipsoid
+    };
+    if fits(cluster) {
         return None;
     }
     let (a, b) = two_means(map, &cluster.voxels);
@@ -98,7 +131,6 @@ fn split_once(
         return None;
     }
     let (a, b) = (map.cluster_of(a), map.cluster_of(b));
-    let fits = |c: &RoiCluster| fit_ellipsoid(map, c, config).kind == ShapeKind::Ellipsoid;
     (fits(&a) && fits(&b)).then_some((a, b))
 }
 

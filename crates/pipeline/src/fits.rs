@@ -1,13 +1,15 @@
 //! Fruit fits kept while nothing they read has changed. A fit reads its cluster's voxels and the
 //! map in a box around them (the free voxels beside the cluster, the observed share of the fitted
 //! surface), so a scan that changed neither leaves the fit exactly as it was. The per-frame fit
-//! cost then follows what the scan touched, not how many fruits the row holds.
+//! cost then follows what the scan touched, not how many fruits the row holds. The same holds
+//! for the touching-fruit splits ([`SplitCache`]).
 
 use std::collections::HashMap;
 
-use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, FittedShape};
+use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FittedShape};
+use glasshouse_nbv::split::split_cluster;
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
-use nalgebra::{Point3, Vector3};
+use nalgebra::Point3;
 
 /// A fit with what it read: the cluster's voxels, the box of the map it looked at and the map's
 /// scan count then.
@@ -61,17 +63,74 @@ impl FitCache {
 
 fn fit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> CachedFit {
     let shape = fit_ellipsoid(map, cluster, config);
-    // What the fit reads: the free-voxel search box around the cluster and the fitted surface's
-    // box (its observed share), padded by two voxels for rounding to keys.
-    let pad = Vector3::repeat(config.free_search_margin_m.max(0.0));
-    let slack = Vector3::repeat(2.0 * map.config().resolution_m);
-    let min = (cluster.min - pad).inf(&shape.box_min) - slack;
-    let max = (cluster.max + pad).sup(&shape.box_max) + slack;
+    let (min, max) = fit_read_box(map, cluster, &shape, config);
     CachedFit {
         voxels: cluster.voxels.clone(),
         read_min: min,
         read_max: max,
         at_scans: map.scans_inserted(),
         shape,
+    }
+}
+
+/// A split of one ROI cluster with what it read: the cluster's voxels, the box of the map its
+/// fits looked at and the map's scan count then.
+#[derive(Clone, Debug)]
+struct CachedSplit {
+    voxels: Vec<VoxelKey>,
+    read_min: Point3<f64>,
+    read_max: Point3<f64>,
+    at_scans: u64,
+    parts: Vec<RoiCluster>,
+}
+
+/// The touching-fruit splits of the latest ROI clusters ([`split_cluster`]), keyed by each
+/// cluster's smallest voxel and kept while neither the cluster nor what its fits read changed:
+/// a cluster long enough to be tried costs up to three fits, and a row holds many of them.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct SplitCache {
+    by_first_voxel: HashMap<VoxelKey, CachedSplit>,
+}
+
+impl SplitCache {
+    /// The fruit clusters of `clusters` on `map`, ordered by their smallest voxel: equal to
+    /// [`glasshouse_nbv::split::split_touching`], trying again only the clusters whose voxels
+    /// or surroundings changed since their last split; also returns how many were tried again.
+    pub(crate) fn update<'a>(
+        &mut self,
+        map: &RoiMap,
+        clusters: impl Iterator<Item = &'a RoiCluster>,
+        min_voxels: usize,
+        config: &FitConfig,
+    ) -> (Vec<RoiCluster>, usize) {
+        let mut previous = std::mem::take(&mut self.by_first_voxel);
+        let (mut out, mut tries) = (Vec::new(), 0);
+        for cluster in clusters {
+            let first = cluster.voxels[0];
+            let kept = previous.remove(&first).filter(|cached| {
+                cached.voxels == cluster.voxels
+                    && !map.changed_since(&cached.read_min, &cached.read_max, cached.at_scans)
+            });
+            if let Some(cached) = kept {
+                out.extend(cached.parts.iter().cloned());
+                self.by_first_voxel.insert(first, cached);
+                continue;
+            }
+            let split = split_cluster(map, cluster.clone(), min_voxels, config);
+            out.extend(split.parts.iter().cloned());
+            if let Some((read_min, read_max)) = split.read {
+                tries += 1;
+                let cached = CachedSplit {
+                    voxels: cluster.voxels.clone(),
+                    read_min,
+                    read_max,
+                    at_scans: map.scans_inserted(),
+                    parts: split.parts,
+                };
+                self.by_first_voxel.insert(first, cached);
+            }
+        }
+        out.sort_by_key(|c| c.voxels.first().copied());
+        (out, tries)
     }
 }

@@ -3,7 +3,7 @@
 
 use glasshouse_arm::Robot;
 use glasshouse_nbv::fit::{FitConfig, FittedShape, ShapeKind};
-use glasshouse_nbv::split::{fragments, split_touching};
+use glasshouse_nbv::split::fragments;
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, Plan, PlanError, PlannerConfig,
     PlanningContext, ReachPredicate,
@@ -12,11 +12,13 @@ use glasshouse_proto::{
     FittedEllipsoid, FrameId, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
     TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
 };
-use glasshouse_roimap::{MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey};
+use glasshouse_roimap::{
+    Clusters, MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey,
+};
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
-use crate::fits::FitCache;
+use crate::fits::{FitCache, SplitCache};
 use crate::published::PublishedSolid;
 use crate::{FrameOrder, FrameVerdict, ReachFilter};
 
@@ -290,6 +292,11 @@ pub struct TrolleyPlanner {
     reach: Option<ReachFilter>,
     /// Which frames the map takes (the last one integrated, see [`FrameOrder`]).
     order: FrameOrder,
+    /// The map's ROI clusters, regrown only where a scan changed ROI voxels.
+    roi_clusters: Clusters,
+    /// The touching-fruit splits of the ROI clusters, kept while what they read is unchanged.
+    split_cache: SplitCache,
+    /// The fruit clusters: the ROI clusters with touching fruits split apart.
     clusters: Vec<RoiCluster>,
     estimates: Vec<FruitEstimate>,
     /// The fitted shape of each cluster, and the fits kept between frames.
@@ -310,6 +317,8 @@ impl TrolleyPlanner {
         settings.validate()?;
         Ok(Self {
             map: RoiMap::new(settings.map_config())?,
+            roi_clusters: Clusters::new(settings.min_cluster_voxels),
+            split_cache: SplitCache::default(),
             settings,
             tracker: FruitTracker::default(),
             info: None,
@@ -369,42 +378,68 @@ impl TrolleyPlanner {
 
     /// Inserts the cloud into the map when [`FrameOrder`] takes its frame (each frame once: a
     /// re-announced frame comes back as the same cloud), then updates the ROI clusters and the
-    /// fruit ids. `now_ns` is the receiver's wall clock (0 where frames carry epoch 0, as in the
-    /// experiments). Returns the verdict on the frame; a refused cloud changes nothing, and a
-    /// cloud the map rejects leaves the map untouched.
+    /// fruit ids: [`TrolleyPlanner::insert`], [`TrolleyPlanner::cluster`] and
+    /// [`TrolleyPlanner::track`] in turn. `now_ns` is the receiver's wall clock (0 where frames
+    /// carry epoch 0, as in the experiments). Returns the verdict on the frame; a refused cloud
+    /// changes nothing, and a cloud the map rejects leaves the map untouched.
     pub fn integrate(
         &mut self,
         cloud: &RoiCloud,
         now_ns: u64,
     ) -> Result<FrameVerdict, PlanningError> {
+        let verdict = self.insert(cloud, now_ns)?;
+        if !matches!(verdict, FrameVerdict::Refused(_)) {
+            self.cluster();
+            self.track();
+        }
+        Ok(verdict)
+    }
+
+    /// The map part of [`TrolleyPlanner::integrate`]: the cloud goes into the map when its frame
+    /// is taken. Unless the verdict is a refusal, [`TrolleyPlanner::cluster`] and
+    /// [`TrolleyPlanner::track`] must follow (they are separate steps so that a service can
+    /// time each).
+    pub fn insert(&mut self, cloud: &RoiCloud, now_ns: u64) -> Result<FrameVerdict, PlanningError> {
         let frame = cloud.source_frame();
         let verdict = self.order.judge(frame, now_ns);
-        if let FrameVerdict::Refused(_) = verdict {
+        if !verdict.integrates() {
             return Ok(verdict);
         }
-        if verdict.integrates() {
-            let origin = &cloud.sensor_origin_in_world;
-            let evidence = match self.settings.roi_evidence {
-                RoiEvidence::Labels => None,
-                RoiEvidence::Confidence => roi_evidence_logodds(cloud),
-            };
-            match evidence {
-                Some(evidence) => {
-                    self.map
-                        .insert_scan_evidence(origin, &cloud.points_in_world, &evidence, 1)?
-                }
-                None => self
-                    .map
-                    .insert_scan(origin, &cloud.points_in_world, &cloud.roi)?,
-            };
-            self.order.integrated(frame);
-        }
+        let origin = &cloud.sensor_origin_in_world;
+        let evidence = match self.settings.roi_evidence {
+            RoiEvidence::Labels => None,
+            RoiEvidence::Confidence => roi_evidence_logodds(cloud),
+        };
+        match evidence {
+            Some(evidence) => {
+                self.map
+                    .insert_scan_evidence(origin, &cloud.points_in_world, &evidence, 1)?
+            }
+            None => self
+                .map
+                .insert_scan(origin, &cloud.points_in_world, &cloud.roi)?,
+        };
+        self.order.integrated(frame);
+        Ok(verdict)
+    }
+
+    /// The fruit clusters after an insert: the ROI clusters (regrown only where the scan changed
+    /// ROI voxels), with touching fruits split apart.
+    pub fn cluster(&mut self) {
         let min_voxels = self.settings.min_cluster_voxels;
-        let clusters = self.map.clusters(min_voxels);
-        self.clusters = split_touching(&self.map, clusters, min_voxels, &self.settings.fit);
+        self.roi_clusters.update(&self.map);
+        (self.clusters, _) = self.split_cache.update(
+            &self.map,
+            self.roi_clusters.iter(),
+            min_voxels,
+            &self.settings.fit,
+        );
+    }
+
+    /// The fruit ids of the clusters after [`TrolleyPlanner::cluster`].
+    pub fn track(&mut self) {
         self.estimates = self.tracker.update(&self.clusters);
         self.fits_stale = true;
-        Ok(verdict)
     }
 
     /// Every fruit of the latest clusters with its fitted ellipsoid, leaving out clusters that

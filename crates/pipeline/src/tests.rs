@@ -526,6 +526,59 @@ fn kept_fits_equal_fresh_fits_and_only_touched_fruits_are_refitted() {
     );
 }
 
+#[test]
+fn kept_splits_equal_fresh_splits_and_a_change_beside_a_cluster_tries_it_again() {
+    let mut trolley = sim(ScenarioKind::Row);
+    let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    planner.set_info(trolley.info()).unwrap();
+    for seq in 1..=6 {
+        let frame = trolley.capture(seq).unwrap().unwrap();
+        let id = FrameId::new(EPOCH_NS, seq);
+        let cloud = detect_frame(&frame, id, "d1", &DetectorConfig::default()).unwrap();
+        planner.integrate(&cloud, EPOCH_NS).unwrap();
+    }
+    let min_voxels = planner.settings().min_cluster_voxels;
+    // Clusters of 2 cm and longer are tried (the default, a fruit's length, leaves few after
+    // six frames from one place).
+    let config = glasshouse_nbv::fit::FitConfig {
+        split_extent_m: 0.02,
+        ..planner.settings().fit
+    };
+    let mut map = planner.map().clone();
+    let clusters = map.clusters(min_voxels);
+    let fresh = |map: &glasshouse_roimap::RoiMap| {
+        glasshouse_nbv::split::split_touching(map, map.clusters(min_voxels), min_voxels, &config)
+    };
+    let mut cache = crate::fits::SplitCache::default();
+    let (first, tried) = cache.update(&map, clusters.iter(), min_voxels, &config);
+    assert_eq!(first, fresh(&map));
+    assert!(tried > 0, "the row holds clusters long enough to be tried");
+    let (again, tried_again) = cache.update(&map, clusters.iter(), min_voxels, &config);
+    assert_eq!(
+        (again, tried_again),
+        (first, 0),
+        "nothing changed: every split kept"
+    );
+    // A free voxel just outside the first tried cluster's box changes: that cluster's fits
+    // read it, so it is tried again (its voxels are the same).
+    let long = clusters
+        .iter()
+        .find(|c| (c.max - c.min).max() > config.split_extent_m)
+        .expect("a long cluster");
+    let beside = map.key_of(&(long.min - nalgebra::Vector3::repeat(0.005)));
+    let voxel = glasshouse_roimap::Voxel {
+        occupancy_logodds: -1.5,
+        roi_logodds: -0.5,
+    };
+    map.apply_voxels(&[(beside, voxel)]);
+    let (after, tried_after) = cache.update(&map, clusters.iter(), min_voxels, &config);
+    assert_eq!(after, fresh(&map));
+    assert!(
+        tried_after >= 1 && tried_after < tried,
+        "{tried_after} of {tried} tried again"
+    );
+}
+
 /// Feeds `input` to the node and every action it returns through the pacer at wall time
 /// `now_s`; the wait before the last action, in seconds.
 fn pace(pacer: &mut RealtimePacer, node: &mut EdgeNode, input: EdgeInput, now_s: f64) -> f64 {

@@ -7,6 +7,7 @@
 //! lost, the replica's takeover is timed, and its map is compared with the owner's voxel for
 //! voxel.
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -14,7 +15,7 @@ use anyhow::{bail, Context};
 use glasshouse_eval::{ComputeTime, Trial, TrialConfig};
 use glasshouse_nbv::Method;
 use glasshouse_planner::node::{PlannerAction, PlannerEvent, PlannerNode, Role, TrolleyOutput};
-use glasshouse_proto::{Header, RoiCloud, TrolleyInfo};
+use glasshouse_proto::{Header, RoiCloud, StageTimes, TrolleyInfo};
 use glasshouse_roimap::RoiMap;
 use glasshouse_sim::ScenarioKind;
 use serde::Serialize;
@@ -57,6 +58,9 @@ struct ReplicaRun {
     snapshots: usize,
     owner_ms_first_frames: f64,
     owner_ms_last_frames: f64,
+    /// The owner's ms per frame in each stage, over the first and the last `window` frames.
+    owner_stages_first_frames: BTreeMap<&'static str, f64>,
+    owner_stages_last_frames: BTreeMap<&'static str, f64>,
     takeover_ms: f64,
     takeover_plans: bool,
     maps_equal: bool,
@@ -209,8 +213,18 @@ fn replay(
     let mut pair = Pair::new(config, refresh, info)?;
     let (mut owner_ms, mut replica_ms) = (Vec::new(), 0.0);
     let mut snapshots = 0;
+    let frames = clouds.len();
+    let window = window.clamp(1, frames);
+    // The owner's stage totals after the first window and before the last one.
+    let mut stages_at = (StageTimes::default(), StageTimes::default());
     let bar = indicatif::ProgressBar::new(clouds.len() as u64);
     for (seq, cloud) in clouds.iter().enumerate() {
+        if seq == window {
+            stages_at.0 = pair.owner.stats().stages;
+        }
+        if seq == frames - window {
+            stages_at.1 = pair.owner.stats().stages;
+        }
         let started = Instant::now();
         pair.owner.handle(cloud_event(seq, cloud));
         owner_ms.push(ms_since(started));
@@ -240,9 +254,14 @@ fn replay(
         .planner(TROLLEY)
         .context("replica holds t1")?
         .map();
-    let frames = clouds.len();
     let owner_total: f64 = owner_ms.iter().sum();
-    let window = window.clamp(1, frames);
+    let per_frame = |from: &StageTimes, to: &StageTimes| {
+        let (from, to) = (from.named(), to.named());
+        let stage = |((name, a), (_, b)): (&(&'static str, f64), &(&'static str, f64))| {
+            (*name, (b - a) / window as f64)
+        };
+        from.iter().zip(to.iter()).map(stage).collect()
+    };
     let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
     Ok(ReplicaRun {
         replica_refresh_clouds: refresh,
@@ -253,6 +272,8 @@ fn replay(
         snapshots,
         owner_ms_first_frames: mean(&owner_ms[..window]),
         owner_ms_last_frames: mean(&owner_ms[frames - window..]),
+        owner_stages_first_frames: per_frame(&StageTimes::default(), &stages_at.0),
+        owner_stages_last_frames: per_frame(&stages_at.1, &pair.owner.stats().stages),
         takeover_ms,
         takeover_plans,
         maps_equal: same_map(owner_map, replica_map),
@@ -283,6 +304,23 @@ fn print_run(run: &ReplicaRun) {
     println!(
         "  owner at the start / end of the run: {:.1} / {:.1} ms/frame",
         run.owner_ms_first_frames, run.owner_ms_last_frames
+    );
+    let stages = |s: &BTreeMap<&'static str, f64>| {
+        let named = StageTimes::default().named();
+        let ms = |name: &str| s.get(name).copied().unwrap_or(0.0);
+        let parts: Vec<String> = named
+            .iter()
+            .map(|(name, _)| format!("{name} {:.1}", ms(name)))
+            .collect();
+        parts.join(", ")
+    };
+    println!(
+        "  owner stages, ms/frame, start: {}",
+        stages(&run.owner_stages_first_frames)
+    );
+    println!(
+        "  owner stages, ms/frame, end:   {}",
+        stages(&run.owner_stages_last_frames)
     );
     println!(
         "  takeover {:.1} ms (plans: {}), maps equal voxel for voxel: {} ({} voxels)",

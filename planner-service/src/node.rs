@@ -21,7 +21,7 @@ use glasshouse_proto::keys;
 use glasshouse_proto::FrameId;
 use glasshouse_proto::{
     FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus, RankedViews,
-    RoiCloud, TrolleyInfo,
+    RoiCloud, StageTimes, TrolleyInfo,
 };
 
 use crate::fleet_fruits;
@@ -153,6 +153,27 @@ pub struct PlannerStats {
     pub last_planning_time_ms: f32,
     pub total_planning_time_ms: f64,
     pub plans: u64,
+    /// Time in each stage of cloud handling (this thread's wall clock around each step).
+    pub stages: StageTimes,
+    /// Time catching up trolleys taken over (decode and replay; the replay also counts in
+    /// `stages`).
+    pub catch_up_ms: f64,
+}
+
+/// Milliseconds between successive laps: the stages of one cloud's handling, timed in turn.
+struct Laps(Instant);
+
+impl Laps {
+    fn start() -> Self {
+        Self(Instant::now())
+    }
+
+    fn lap_ms(&mut self) -> f64 {
+        let now = Instant::now();
+        let ms = (now - self.0).as_secs_f64() * 1e3;
+        self.0 = now;
+        ms
+    }
 }
 
 /// How far this planner's copy of a trolley is.
@@ -420,10 +441,10 @@ impl PlannerNode {
     /// A standby copy answers with every cloud it holds integrated.
     fn on_snapshot_asked(&mut self, query_id: u64, tid: &str) -> Vec<PlannerAction> {
         let mut actions = self.catch_up(tid, false);
-        actions.push(PlannerAction::ReplySnapshot {
-            query_id,
-            answer: self.snapshot_of(tid),
-        });
+        let mut laps = Laps::start();
+        let answer = self.snapshot_of(tid);
+        self.stats.stages.publish_ms += laps.lap_ms();
+        actions.push(PlannerAction::ReplySnapshot { query_id, answer });
         actions
     }
 
@@ -548,6 +569,7 @@ impl PlannerNode {
         }
         if decoded.is_some() {
             let total_ms = started.elapsed().as_secs_f64() * 1e3;
+            self.stats.catch_up_ms += total_ms;
             tracing::info!(planner = %self.pid, trolley = %tid, decode_ms, clouds = n, total_ms, "caught up");
         }
         actions
@@ -801,9 +823,12 @@ impl PlannerNode {
             return Vec::new();
         };
         let started = Instant::now();
+        let mut laps = Laps::start();
         let (header, cloud) = (&received.header, &received.cloud);
         let frame = cloud.source_frame();
-        match slot.planner.integrate(cloud, received.received_ns) {
+        let inserted = slot.planner.insert(cloud, received.received_ns);
+        self.stats.stages.integrate_ms += laps.lap_ms();
+        match inserted {
             Err(e) => {
                 self.stats.clouds_rejected += 1;
                 tracing::warn!(trolley = %tid, seq = header.seq, error = %e, "cloud dropped");
@@ -823,17 +848,24 @@ impl PlannerNode {
             Ok(FrameVerdict::Stale) => self.stats.clouds_stale += 1,
             Ok(FrameVerdict::Fresh | FrameVerdict::Repeat) => {}
         }
+        slot.planner.cluster();
+        self.stats.stages.cluster_ms += laps.lap_ms();
+        slot.planner.track();
+        self.stats.stages.track_ms += laps.lap_ms();
         self.stats.clouds_integrated += 1;
         let map = slot.planner.map_update(frame.seq, &pid);
+        self.stats.stages.publish_ms += laps.lap_ms();
         let camera = cloud.world_from_camera;
         let header = received.header.clone();
         slot.last_cloud = Some(received);
         let seq = frame.seq;
         if !plan {
-            return match slot.role {
+            let actions = match slot.role {
                 Role::Owner => self.publish(tid, &header, None, None, map),
                 Role::Replica => Vec::new(),
             };
+            self.stats.stages.publish_ms += laps.lap_ms();
+            return actions;
         }
         let fruits = FruitEstimates {
             fruits: slot
@@ -845,7 +877,10 @@ impl PlannerNode {
             based_on_seq: seq,
             planner_id: pid.clone(),
         };
-        let views = match slot.planner.plan(&camera, seq) {
+        self.stats.stages.fit_ms += laps.lap_ms();
+        let planned = slot.planner.plan(&camera, seq);
+        self.stats.stages.plan_ms += laps.lap_ms();
+        let views = match planned {
             Ok(Some(plan)) => {
                 let ms = (started.elapsed().as_secs_f64() * 1e3) as f32;
                 Some(ranked_views(&plan, frame, ms, &pid))
@@ -859,7 +894,9 @@ impl PlannerNode {
                 None
             }
         };
-        self.publish(tid, &header, views, Some(fruits), map)
+        let actions = self.publish(tid, &header, views, Some(fruits), map);
+        self.stats.stages.publish_ms += laps.lap_ms();
+        actions
     }
 
     fn publish(
@@ -918,6 +955,8 @@ impl PlannerNode {
             },
             dropped_messages: dropped_messages + s.clouds_rejected,
             refused_clouds: s.clouds_refused,
+            stage_totals: s.stages,
+            catch_up_ms: s.catch_up_ms,
             map_voxels: self
                 .slots
                 .values()

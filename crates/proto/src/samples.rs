@@ -192,6 +192,15 @@ pub fn planner_status() -> PlannerStatus {
         dropped_messages: 1,
         map_voxels: 12345,
         refused_clouds: 1,
+        stage_totals: StageTimes {
+            integrate_ms: 500.0,
+            cluster_ms: 20.5,
+            track_ms: 1.25,
+            fit_ms: 80.0,
+            plan_ms: 300.0,
+            publish_ms: 40.0,
+        },
+        catch_up_ms: 210.0,
     }
 }
 

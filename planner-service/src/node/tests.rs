@@ -175,6 +175,16 @@ fn the_owner_plans_and_publishes_the_replica_only_integrates() {
     let (om, rm) = (owner.planner("t1").unwrap(), replica.planner("t1").unwrap());
     assert_eq!(om.map().len(), rm.map().len());
     assert_eq!(om.last_frame(), Some(FrameId::new(EDGE_EPOCH_NS, 2)));
+    // Every stage is timed on the owner; the replica integrates, clusters and tracks only.
+    let (o, r) = (owner.stats().stages, replica.stats().stages);
+    assert!(o.integrate_ms > 0.0 && o.fit_ms > 0.0 && o.plan_ms > 0.0 && o.publish_ms > 0.0);
+    assert!(r.integrate_ms > 0.0 && r.cluster_ms > 0.0);
+    assert_eq!((r.fit_ms, r.plan_ms), (0.0, 0.0));
+    let actions = owner.handle(status_tick(NOW_NS));
+    let PlannerAction::PublishStatus { status, .. } = &actions[0] else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(status.stage_totals, o);
 }
 
 #[test]

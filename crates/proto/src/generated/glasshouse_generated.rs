@@ -2089,6 +2089,265 @@ impl<'a> VoxelChange {
 
 }
 
+/// A planner's time in each stage of its cloud handling, ms summed since it started (one thread,
+/// so it is CPU time): inserting clouds into maps, growing and splitting ROI clusters, tracking
+/// fruit ids, fitting fruits, planning views, and building what it publishes (map changes,
+/// snapshots for peers).
+// struct StageTimes, aligned to 8
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct StageTimes(pub [u8; 48]);
+impl Default for StageTimes { 
+  fn default() -> Self { 
+    Self([0; 48])
+  }
+}
+impl ::core::fmt::Debug for StageTimes {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("StageTimes")
+      .field("integrate_ms", &self.integrate_ms())
+      .field("cluster_ms", &self.cluster_ms())
+      .field("track_ms", &self.track_ms())
+      .field("fit_ms", &self.fit_ms())
+      .field("plan_ms", &self.plan_ms())
+      .field("publish_ms", &self.publish_ms())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for StageTimes {}
+impl<'a> ::flatbuffers::Follow<'a> for StageTimes {
+  type Inner = &'a StageTimes;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a StageTimes>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a StageTimes {
+  type Inner = &'a StageTimes;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<StageTimes>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for StageTimes {
+    type Output = StageTimes;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const StageTimes as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(8)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for StageTimes {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> StageTimes {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    integrate_ms: f64,
+    cluster_ms: f64,
+    track_ms: f64,
+    fit_ms: f64,
+    plan_ms: f64,
+    publish_ms: f64,
+  ) -> Self {
+    let mut s = Self([0; 48]);
+    s.set_integrate_ms(integrate_ms);
+    s.set_cluster_ms(cluster_ms);
+    s.set_track_ms(track_ms);
+    s.set_fit_ms(fit_ms);
+    s.set_plan_ms(plan_ms);
+    s.set_publish_ms(publish_ms);
+    s
+  }
+
+  pub fn integrate_ms(&self) -> f64 {
+    let mut mem = ::core::mem::MaybeUninit::<<f64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_integrate_ms(&mut self, x: f64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn cluster_ms(&self) -> f64 {
+    let mut mem = ::core::mem::MaybeUninit::<<f64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[8..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_cluster_ms(&mut self, x: f64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[8..].as_mut_ptr(),
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn track_ms(&self) -> f64 {
+    let mut mem = ::core::mem::MaybeUninit::<<f64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[16..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_track_ms(&mut self, x: f64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[16..].as_mut_ptr(),
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn fit_ms(&self) -> f64 {
+    let mut mem = ::core::mem::MaybeUninit::<<f64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[24..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_fit_ms(&mut self, x: f64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[24..].as_mut_ptr(),
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn plan_ms(&self) -> f64 {
+    let mut mem = ::core::mem::MaybeUninit::<<f64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[32..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_plan_ms(&mut self, x: f64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[32..].as_mut_ptr(),
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn publish_ms(&self) -> f64 {
+    let mut mem = ::core::mem::MaybeUninit::<<f64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[40..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_publish_ms(&mut self, x: f64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[40..].as_mut_ptr(),
+        ::core::mem::size_of::<<f64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
 /// A fruit the tracker follows, so fruit ids survive a planner takeover.
 // struct TrackedFruit, aligned to 4
 #[repr(transparent)]
@@ -4110,6 +4369,8 @@ impl<'a> PlannerStatus<'a> {
   pub const VT_DROPPED_MESSAGES: ::flatbuffers::VOffsetT = 18;
   pub const VT_MAP_VOXELS: ::flatbuffers::VOffsetT = 20;
   pub const VT_REFUSED_CLOUDS: ::flatbuffers::VOffsetT = 22;
+  pub const VT_STAGE_TOTALS: ::flatbuffers::VOffsetT = 24;
+  pub const VT_CATCH_UP_MS: ::flatbuffers::VOffsetT = 26;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4121,11 +4382,13 @@ impl<'a> PlannerStatus<'a> {
     args: &'args PlannerStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<PlannerStatus<'bldr>> {
     let mut builder = PlannerStatusBuilder::new(_fbb);
+    builder.add_catch_up_ms(args.catch_up_ms);
     builder.add_refused_clouds(args.refused_clouds);
     builder.add_map_voxels(args.map_voxels);
     builder.add_dropped_messages(args.dropped_messages);
     builder.add_views_published(args.views_published);
     builder.add_clouds_integrated(args.clouds_integrated);
+    if let Some(x) = args.stage_totals { builder.add_stage_totals(x); }
     builder.add_mean_planning_time_ms(args.mean_planning_time_ms);
     builder.add_last_planning_time_ms(args.last_planning_time_ms);
     if let Some(x) = args.standby_trolleys { builder.add_standby_trolleys(x); }
@@ -4206,6 +4469,22 @@ impl<'a> PlannerStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(PlannerStatus::VT_REFUSED_CLOUDS, Some(0)).unwrap()}
   }
+  #[inline]
+  pub fn stage_totals(&self) -> Option<&'a StageTimes> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<StageTimes>(PlannerStatus::VT_STAGE_TOTALS, None)}
+  }
+  /// ms spent catching up trolleys taken over from a lost owner (decoding the owner's snapshot
+  /// and replaying the clouds kept since; the replayed clouds' stages count in stage_totals too).
+  #[inline]
+  pub fn catch_up_ms(&self) -> f64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f64>(PlannerStatus::VT_CATCH_UP_MS, Some(0.0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
@@ -4224,6 +4503,8 @@ impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
      .visit_field::<u64>("dropped_messages", Self::VT_DROPPED_MESSAGES, false)?
      .visit_field::<u64>("map_voxels", Self::VT_MAP_VOXELS, false)?
      .visit_field::<u64>("refused_clouds", Self::VT_REFUSED_CLOUDS, false)?
+     .visit_field::<StageTimes>("stage_totals", Self::VT_STAGE_TOTALS, false)?
+     .visit_field::<f64>("catch_up_ms", Self::VT_CATCH_UP_MS, false)?
      .finish();
     Ok(())
   }
@@ -4239,6 +4520,8 @@ pub struct PlannerStatusArgs<'a> {
     pub dropped_messages: u64,
     pub map_voxels: u64,
     pub refused_clouds: u64,
+    pub stage_totals: Option<&'a StageTimes>,
+    pub catch_up_ms: f64,
 }
 impl<'a> Default for PlannerStatusArgs<'a> {
   #[inline]
@@ -4254,6 +4537,8 @@ impl<'a> Default for PlannerStatusArgs<'a> {
       dropped_messages: 0,
       map_voxels: 0,
       refused_clouds: 0,
+      stage_totals: None,
+      catch_up_ms: 0.0,
     }
   }
 }
@@ -4304,6 +4589,14 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> PlannerStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(PlannerStatus::VT_REFUSED_CLOUDS, refused_clouds, 0);
   }
   #[inline]
+  pub fn add_stage_totals(&mut self, stage_totals: &StageTimes) {
+    self.fbb_.push_slot_always::<&StageTimes>(PlannerStatus::VT_STAGE_TOTALS, stage_totals);
+  }
+  #[inline]
+  pub fn add_catch_up_ms(&mut self, catch_up_ms: f64) {
+    self.fbb_.push_slot::<f64>(PlannerStatus::VT_CATCH_UP_MS, catch_up_ms, 0.0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> PlannerStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     PlannerStatusBuilder {
@@ -4331,6 +4624,8 @@ impl ::core::fmt::Debug for PlannerStatus<'_> {
       ds.field("dropped_messages", &self.dropped_messages());
       ds.field("map_voxels", &self.map_voxels());
       ds.field("refused_clouds", &self.refused_clouds());
+      ds.field("stage_totals", &self.stage_totals());
+      ds.field("catch_up_ms", &self.catch_up_ms());
       ds.finish()
   }
 }

@@ -18,6 +18,62 @@ pub struct PlannerStatus {
     pub map_voxels: u64,
     /// RoiClouds refused: not from a live detector, or a frame id no honest trolley sends.
     pub refused_clouds: u64,
+    /// Time in each stage of cloud handling, summed since the planner started.
+    pub stage_totals: StageTimes,
+    /// Time spent catching up trolleys taken over from a lost owner (snapshot decode and the
+    /// clouds kept since; the replayed clouds also count in `stage_totals`).
+    pub catch_up_ms: f64,
+}
+
+/// A planner's time per stage of its cloud handling, ms (see the schema's `StageTimes`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StageTimes {
+    pub integrate_ms: f64,
+    pub cluster_ms: f64,
+    pub track_ms: f64,
+    pub fit_ms: f64,
+    pub plan_ms: f64,
+    pub publish_ms: f64,
+}
+
+impl StageTimes {
+    /// The stages by name, in pipeline order.
+    pub fn named(&self) -> [(&'static str, f64); 6] {
+        [
+            ("integrate", self.integrate_ms),
+            ("cluster", self.cluster_ms),
+            ("track", self.track_ms),
+            ("fit", self.fit_ms),
+            ("plan", self.plan_ms),
+            ("publish", self.publish_ms),
+        ]
+    }
+
+    pub fn total_ms(&self) -> f64 {
+        self.named().iter().map(|(_, ms)| ms).sum()
+    }
+
+    fn to_fb(self) -> fb::StageTimes {
+        fb::StageTimes::new(
+            self.integrate_ms,
+            self.cluster_ms,
+            self.track_ms,
+            self.fit_ms,
+            self.plan_ms,
+            self.publish_ms,
+        )
+    }
+
+    fn from_fb(t: &fb::StageTimes) -> Self {
+        Self {
+            integrate_ms: t.integrate_ms(),
+            cluster_ms: t.cluster_ms(),
+            track_ms: t.track_ms(),
+            fit_ms: t.fit_ms(),
+            plan_ms: t.plan_ms(),
+            publish_ms: t.publish_ms(),
+        }
+    }
 }
 
 impl Wire for PlannerStatus {
@@ -27,6 +83,7 @@ impl Wire for PlannerStatus {
         let pid = fbb.create_string(&self.planner_id);
         let owned = strings(fbb, &self.owned_trolleys);
         let standby = strings(fbb, &self.standby_trolleys);
+        let stages = self.stage_totals.to_fb();
         fb::PlannerStatus::create(
             fbb,
             &fb::PlannerStatusArgs {
@@ -40,6 +97,8 @@ impl Wire for PlannerStatus {
                 dropped_messages: self.dropped_messages,
                 map_voxels: self.map_voxels,
                 refused_clouds: self.refused_clouds,
+                stage_totals: Some(&stages),
+                catch_up_ms: self.catch_up_ms,
             },
         )
         .as_union_value()
@@ -58,6 +117,11 @@ impl Wire for PlannerStatus {
             dropped_messages: m.dropped_messages(),
             map_voxels: m.map_voxels(),
             refused_clouds: m.refused_clouds(),
+            stage_totals: m
+                .stage_totals()
+                .map(StageTimes::from_fb)
+                .unwrap_or_default(),
+            catch_up_ms: m.catch_up_ms(),
         })
     }
 }

@@ -5,6 +5,7 @@
 import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
+from glasshouse.wire.StageTimes import StageTimes
 from typing import Optional
 np = import_numpy()
 
@@ -127,8 +128,27 @@ class PlannerStatus(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # PlannerStatus
+    def StageTotals(self) -> Optional[StageTimes]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            x = o + self._tab.Pos
+            obj = StageTimes()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # ms spent catching up trolleys taken over from a lost owner (decoding the owner's snapshot
+    # and replaying the clouds kept since; the replayed clouds' stages count in stage_totals too).
+    # PlannerStatus
+    def CatchUpMs(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
+        return 0.0
+
 def PlannerStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(10)
+    builder.StartObject(12)
 
 def Start(builder: flatbuffers.Builder):
     PlannerStatusStart(builder)
@@ -204,6 +224,18 @@ def PlannerStatusAddRefusedClouds(builder: flatbuffers.Builder, refusedClouds: i
 
 def AddRefusedClouds(builder: flatbuffers.Builder, refusedClouds: int):
     PlannerStatusAddRefusedClouds(builder, refusedClouds)
+
+def PlannerStatusAddStageTotals(builder: flatbuffers.Builder, stageTotals: Any):
+    builder.PrependStructSlot(10, flatbuffers.number_types.UOffsetTFlags.py_type(stageTotals), 0)
+
+def AddStageTotals(builder: flatbuffers.Builder, stageTotals: Any):
+    PlannerStatusAddStageTotals(builder, stageTotals)
+
+def PlannerStatusAddCatchUpMs(builder: flatbuffers.Builder, catchUpMs: float):
+    builder.PrependFloat64Slot(11, catchUpMs, 0.0)
+
+def AddCatchUpMs(builder: flatbuffers.Builder, catchUpMs: float):
+    PlannerStatusAddCatchUpMs(builder, catchUpMs)
 
 def PlannerStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -45,13 +45,48 @@ pub fn split_touching(
 pub struct Split {
     /// The cluster itself, or its parts (in no particular order).
     pub parts: Vec<RoiCluster>,
-    /// The box (min, max corners) holding every voxel the fits tried read; `None` when the
-    /// cluster is too short or too small to be tried, so nothing but its voxels decided.
-    pub read: Option<(Point3<f64>, Point3<f64>)>,
+    /// Each part's fit when the split made one (same order as `parts`), with the box it read:
+    /// exactly what [`fit_ellipsoid`] and [`fit_read_box`] give for that part on this map.
+    pub fits: Vec<Option<(FittedShape, ReadBox)>>,
+    /// The box holding every voxel the fits tried read; `None` when the cluster is too short or
+    /// too small to be tried, so nothing but its voxels decided.
+    pub read: Option<ReadBox>,
 }
 
-/// [`split_touching`] for one cluster: the same parts, and what was read to find them (so a
-/// caller can keep the result while that part of the map is unchanged).
+/// A box of the map (min, max corners, world frame) that a computation read.
+pub type ReadBox = (Point3<f64>, Point3<f64>);
+
+/// The fits made while splitting one cluster, each made once.
+#[derive(Default)]
+struct Fits(Vec<(Vec<VoxelKey>, FittedShape, ReadBox)>);
+
+impl Fits {
+    /// Whether `c` fits one ellipsoid, fitting it unless it was fitted before.
+    fn ellipsoid(&mut self, map: &RoiMap, c: &RoiCluster, config: &FitConfig) -> bool {
+        if let Some((_, shape, _)) = self.0.iter().find(|(v, _, _)| *v == c.voxels) {
+            return shape.kind == ShapeKind::Ellipsoid;
+        }
+        let shape = fit_ellipsoid(map, c, config);
+        let read = fit_read_box(map, c, &shape, config);
+        let ellipsoid = shape.kind == ShapeKind::Ellipsoid;
+        self.0.push((c.voxels.clone(), shape, read));
+        ellipsoid
+    }
+
+    fn of(&self, c: &RoiCluster) -> Option<(FittedShape, ReadBox)> {
+        let found = self.0.iter().find(|(v, _, _)| *v == c.voxels);
+        found.map(|(_, shape, read)| (shape.clone(), *read))
+    }
+
+    fn read(&self) -> Option<ReadBox> {
+        let boxes = self.0.iter().map(|(_, _, read)| *read);
+        boxes.reduce(|(a, b), (lo, hi)| (a.inf(&lo), b.sup(&hi)))
+    }
+}
+
+/// [`split_touching`] for one cluster: the same parts, their fits where the split made them,
+/// and what was read to find them (so a caller can keep the result while that part of the map
+/// is unchanged).
 pub fn split_cluster(
     map: &RoiMap,
     cluster: RoiCluster,
@@ -60,18 +95,22 @@ pub fn split_cluster(
 ) -> Split {
     let mut pending = vec![cluster];
     let mut parts = Vec::new();
-    let mut read = None;
+    let mut fits = Fits::default();
     while let Some(c) = pending.pop() {
         if parts.len() + pending.len() + 1 >= MAX_PARTS {
             parts.push(c);
             continue;
         }
-        match split_once(map, &c, min_voxels, config, &mut read) {
+        match split_once(map, &c, min_voxels, config, &mut fits) {
             Some((a, b)) => pending.extend([a, b]),
             None => parts.push(c),
         }
     }
-    Split { parts, read }
+    Split {
+        fits: parts.iter().map(|p| fits.of(p)).collect(),
+        read: fits.read(),
+        parts,
+    }
 }
 
 /// For each fit (with its cluster's voxel count), whether it is a fragment of a fruit that a
@@ -101,29 +140,20 @@ fn longest_extent_m(cluster: &RoiCluster) -> f64 {
     (cluster.max - cluster.min).max()
 }
 
-/// The two fruits `cluster` is made of, when it is one of those; grows `read` by what the fits
-/// read.
+/// The two fruits `cluster` is made of, when it is one of those (the fits tried are kept in
+/// `fits`).
 fn split_once(
     map: &RoiMap,
     cluster: &RoiCluster,
     min_voxels: usize,
     config: &FitConfig,
-    read: &mut Option<(Point3<f64>, Point3<f64>)>,
+    fits: &mut Fits,
 ) -> Option<(RoiCluster, RoiCluster)> {
     let min_voxels = min_voxels.max(config.min_voxels).max(1);
     if longest_extent_m(cluster) <= config.split_extent_m || cluster.voxels.len() < 2 * min_voxels {
         return None;
     }
-    let mut fits = |c: &RoiCluster| {
-        let shape = fit_ellipsoid(map, c, config);
-        let (lo, hi) = fit_read_box(map, c, &shape, config);
-        *read = Some(match *read {
-            Some((a, b)) => (a.inf(&lo), b.sup(&hi)),
-            None => (lo, hi),
-        });
-        shape.kind == ShapeKind::Ellipsoid
-    };
-    if fits(cluster) {
+    if fits.ellipsoid(map, cluster, config) {
         return None;
     }
     let (a, b) = two_means(map, &cluster.voxels);
@@ -131,7 +161,7 @@ fn split_once(
         return None;
     }
     let (a, b) = (map.cluster_of(a), map.cluster_of(b));
-    (fits(&a) && fits(&b)).then_some((a, b))
+    (fits.ellipsoid(map, &a, config) && fits.ellipsoid(map, &b, config)).then_some((a, b))
 }
 
 /// Divides voxels into two groups by 2-means on their centres, started at the voxels at either

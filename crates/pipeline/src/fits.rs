@@ -7,7 +7,7 @@
 use std::collections::HashMap;
 
 use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FittedShape};
-use glasshouse_nbv::split::split_cluster;
+use glasshouse_nbv::split::{split_cluster, ReadBox};
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 use nalgebra::Point3;
 
@@ -61,6 +61,27 @@ impl FitCache {
     }
 }
 
+impl FitCache {
+    /// A fit of `cluster` made elsewhere (by its split) on the map at scan count `at_scans`,
+    /// reading `read`: kept as if made here, so the cluster is not fitted twice.
+    pub(crate) fn offer(
+        &mut self,
+        cluster: &RoiCluster,
+        shape: FittedShape,
+        read: ReadBox,
+        at_scans: u64,
+    ) {
+        let cached = CachedFit {
+            voxels: cluster.voxels.clone(),
+            read_min: read.0,
+            read_max: read.1,
+            at_scans,
+            shape,
+        };
+        self.by_first_voxel.insert(cluster.voxels[0], cached);
+    }
+}
+
 fn fit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> CachedFit {
     let shape = fit_ellipsoid(map, cluster, config);
     let (min, max) = fit_read_box(map, cluster, &shape, config);
@@ -96,12 +117,14 @@ impl SplitCache {
     /// The fruit clusters of `clusters` on `map`, ordered by their smallest voxel: equal to
     /// [`glasshouse_nbv::split::split_touching`], trying again only the clusters whose voxels
     /// or surroundings changed since their last split; also returns how many were tried again.
+    /// The fits a split makes of its parts go to `fits`.
     pub(crate) fn update<'a>(
         &mut self,
         map: &RoiMap,
         clusters: impl Iterator<Item = &'a RoiCluster>,
         min_voxels: usize,
         config: &FitConfig,
+        fits: &mut FitCache,
     ) -> (Vec<RoiCluster>, usize) {
         let mut previous = std::mem::take(&mut self.by_first_voxel);
         let (mut out, mut tries) = (Vec::new(), 0);
@@ -118,6 +141,11 @@ impl SplitCache {
             }
             let split = split_cluster(map, cluster.clone(), min_voxels, config);
             out.extend(split.parts.iter().cloned());
+            for (part, fit) in split.parts.iter().zip(split.fits) {
+                if let Some((shape, read)) = fit {
+                    fits.offer(part, shape, read, map.scans_inserted());
+                }
+            }
             if let Some((read_min, read_max)) = split.read {
                 tries += 1;
                 let cached = CachedSplit {

@@ -433,6 +433,7 @@ impl TrolleyPlanner {
             self.roi_clusters.iter(),
             min_voxels,
             &self.settings.fit,
+            &mut self.fit_cache,
         );
     }
 

@@ -550,10 +550,22 @@ fn kept_splits_equal_fresh_splits_and_a_change_beside_a_cluster_tries_it_again()
         glasshouse_nbv::split::split_touching(map, map.clusters(min_voxels), min_voxels, &config)
     };
     let mut cache = crate::fits::SplitCache::default();
-    let (first, tried) = cache.update(&map, clusters.iter(), min_voxels, &config);
+    let mut fits = crate::fits::FitCache::default();
+    let (first, tried) = cache.update(&map, clusters.iter(), min_voxels, &config, &mut fits);
     assert_eq!(first, fresh(&map));
     assert!(tried > 0, "the row holds clusters long enough to be tried");
-    let (again, tried_again) = cache.update(&map, clusters.iter(), min_voxels, &config);
+    // The fits the splits made are kept: fitting the parts now refits only the others, and
+    // gives what fitting each afresh gives.
+    let (shapes, refits) = fits.update(&map, &first, &config);
+    assert!(
+        refits + tried <= first.len(),
+        "{refits} refits, {tried} tried, {} parts",
+        first.len()
+    );
+    let fresh_fit = |c| glasshouse_nbv::fit::fit_ellipsoid(&map, c, &config);
+    let afresh: Vec<_> = first.iter().map(fresh_fit).collect();
+    assert_eq!(format!("{shapes:?}"), format!("{afresh:?}"));
+    let (again, tried_again) = cache.update(&map, clusters.iter(), min_voxels, &config, &mut fits);
     assert_eq!(
         (again, tried_again),
         (first, 0),
@@ -571,7 +583,7 @@ fn kept_splits_equal_fresh_splits_and_a_change_beside_a_cluster_tries_it_again()
         roi_logodds: -0.5,
     };
     map.apply_voxels(&[(beside, voxel)]);
-    let (after, tried_after) = cache.update(&map, clusters.iter(), min_voxels, &config);
+    let (after, tried_after) = cache.update(&map, clusters.iter(), min_voxels, &config, &mut fits);
     assert_eq!(after, fresh(&map));
     assert!(
         tried_after >= 1 && tried_after < tried,

@@ -12,6 +12,8 @@
 //! one after the other, then a table with a row per count and, with `--plot`, a PNG of frame ->
 //! views latency against trolleys (`sweep`).
 
+mod cost;
+mod lost;
 mod sweep;
 
 use std::collections::{BTreeMap, HashMap};
@@ -23,7 +25,7 @@ use std::time::{Duration, Instant};
 use anyhow::{ensure, Context};
 use glasshouse_bus::BusArgs;
 use glasshouse_proto::keys::{self, ParsedKey, TrolleyTopic};
-use glasshouse_proto::{decode_as, Header, Message};
+use glasshouse_proto::{decode_as, Header, Message, StageTimes};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
@@ -184,6 +186,11 @@ struct Observed {
     /// RGB-D frames seen and their payload bytes (as encoded on the wire).
     rgbd_frames: u64,
     rgbd_bytes: u64,
+    /// Each planner's latest stage totals and catch-up time (its status).
+    stages: BTreeMap<String, StageTimes>,
+    catch_up_ms: BTreeMap<String, f64>,
+    /// Every ROI cloud of t1 since the fleet started (for the scans-lost check).
+    t1_clouds: Vec<glasshouse_proto::RoiCloud>,
 }
 
 fn percentile(values: &[f64], p: f64) -> Option<f64> {
@@ -234,6 +241,17 @@ struct Report {
     arm_wait_share: f64,
     /// Planner CPU (all planners) per frame of the fleet.
     planner_cpu_ms_per_frame: Option<f64>,
+    /// The same over the first and over the last minute of the run (flat along the row or not).
+    planner_cpu_ms_per_frame_minute1: Option<f64>,
+    planner_cpu_ms_per_frame_last_minute: Option<f64>,
+    /// The planners' own account of that CPU, ms per frame by stage (integrate, cluster, track,
+    /// fit, plan, publish), from their status.
+    planner_stage_ms_per_frame: BTreeMap<String, f64>,
+    /// Time the planners spent catching up trolleys taken over.
+    planner_catch_up_ms: f64,
+    /// After the run: t1's map at its owner (the survivor of the kill) against the offline
+    /// rebuild from every cloud of t1.
+    t1_scans: Option<lost::LostReport>,
     /// Resident memory of all planners divided by the trolleys, one minute in and at the end.
     planner_rss_mib_per_trolley_minute1: Option<f64>,
     planner_rss_mib_per_trolley_end: Option<f64>,
@@ -319,12 +337,21 @@ async fn run_fleet(args: &FleetBenchArgs) -> anyhow::Result<Report> {
     warm_up(&observed, args, &fleet.logs).await?;
     let measurement = measure(&mut fleet.procs, &observed, measured, kill_enabled, kill_at).await;
     let per_kind = per_kind_usage(&fleet.procs, &measurement);
-    let report = {
+    let mut report = {
         let o = observed
             .lock()
             .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
         build_report(args, &o, &measurement, per_kind)
     };
+    if kill_enabled {
+        report.t1_scans = match lost::check_t1(&observer, &observed, &mut fleet.procs).await {
+            Ok(check) => Some(check),
+            Err(e) => {
+                eprintln!("fleet-bench: scans lost not measured: {e:#}");
+                None
+            }
+        };
+    }
     drop(subscriber);
     let _ = observer.close().await;
     fleet.stop();
@@ -613,6 +640,8 @@ impl Observed {
                 self.drops
                     .insert(format!("planner/{pid}"), s.dropped_messages);
                 self.owned.insert(pid.clone(), s.owned_trolleys);
+                self.stages.insert(pid.clone(), s.stage_totals);
+                self.catch_up_ms.insert(pid.clone(), s.catch_up_ms);
             }
             (ParsedKey::DetectorStatus { did }, Message::DetectorStatus(s)) => {
                 self.drops
@@ -636,6 +665,9 @@ impl Observed {
                 t.frame_at.entry(header.seq).or_insert(now);
             }
             (TrolleyTopic::Roi, Message::RoiCloud(c)) => {
+                if tid == "t1" {
+                    self.t1_clouds.push(c.clone());
+                }
                 let seq = c.source_frame_seq;
                 if let std::collections::hash_map::Entry::Vacant(e) = t.cloud_at.entry(seq) {
                     e.insert(now);
@@ -699,6 +731,26 @@ struct Measurement {
     /// Resident memory of the live planners together, one minute in and at the end.
     planner_rss_kib_minute1: Option<u64>,
     planner_rss_kib_end: Option<u64>,
+    started: Instant,
+    /// The planners' CPU along the run, and their stage totals and catch-up time at its start.
+    planner_cpu: cost::CpuSamples,
+    stages_at_start: BTreeMap<String, StageTimes>,
+    catch_up_ms_at_start: BTreeMap<String, f64>,
+}
+
+/// CPU seconds of the planners together since the measured run started (a killed one's up to
+/// its kill).
+fn planners_cpu_s(procs: &[Proc], cpu_at_kill: &HashMap<String, f64>) -> f64 {
+    let planners = procs.iter().filter(|p| p.kind == "planner");
+    planners
+        .map(|p| {
+            let now = match p.killed {
+                true => cpu_at_kill.get(&p.name).copied(),
+                false => cpu_seconds(p.child.id()),
+            };
+            now.unwrap_or(p.cpu_at_start_s) - p.cpu_at_start_s
+        })
+        .sum()
 }
 
 /// Resident memory of the live planners together.
@@ -727,8 +779,11 @@ async fn measure(
         o.rgbd_frames = 0;
         o.rgbd_bytes = 0;
     }
-    let drops_at_start: BTreeMap<String, u64> =
-        observed.lock().map(|o| o.drops.clone()).unwrap_or_default();
+    let (drops_at_start, stages_at_start, catch_up_ms_at_start) = observed
+        .lock()
+        .map(|o| (o.drops.clone(), o.stages.clone(), o.catch_up_ms.clone()))
+        .unwrap_or_default();
+    let mut planner_cpu = cost::CpuSamples::default();
     for p in procs.iter_mut() {
         p.cpu_at_start_s = cpu_seconds(p.child.id()).unwrap_or(0.0);
     }
@@ -742,8 +797,13 @@ async fn measure(
     let mut killed: Option<(String, Instant)> = None;
     let mut cpu_at_kill: HashMap<String, f64> = HashMap::new();
     let mut planner_rss_kib_minute1 = None;
+    let mut next_cpu_sample = Duration::ZERO;
     while started.elapsed() < measured {
         tokio::time::sleep(Duration::from_millis(250)).await;
+        if started.elapsed() >= next_cpu_sample {
+            planner_cpu.push(started.elapsed(), planners_cpu_s(procs, &cpu_at_kill));
+            next_cpu_sample += Duration::from_secs(5);
+        }
         for p in procs.iter_mut().filter(|p| !p.killed) {
             if let Some(rss) = rss_kib(p.child.id()) {
                 p.peak_rss_kib = p.peak_rss_kib.max(rss);
@@ -764,7 +824,12 @@ async fn measure(
         bar.set_position(started.elapsed().as_secs().min(measured.as_secs()));
     }
     bar.finish_and_clear();
+    planner_cpu.push(started.elapsed(), planners_cpu_s(procs, &cpu_at_kill));
     Measurement {
+        started,
+        planner_cpu,
+        stages_at_start,
+        catch_up_ms_at_start,
         elapsed_s: started.elapsed().as_secs_f64(),
         drops_at_start,
         killed,
@@ -868,7 +933,26 @@ fn build_report(
         .get("planner")
         .map_or(0.0, |k| k.cpu_percent_of_one_core / 100.0 * elapsed_s);
     let per_trolley_mib = |kib: Option<u64>| kib.map(|k| k as f64 / 1024.0 / n);
+    let clouds: Vec<Instant> = o
+        .trolleys
+        .values()
+        .flat_map(|t| t.cloud_at.values().copied())
+        .collect();
+    let minute = Duration::from_secs(60);
+    let end = Duration::from_secs_f64(elapsed_s);
+    let cpu_per_frame =
+        |from, to| cost::cpu_ms_per_frame(&m.planner_cpu, m.started, &clouds, from, to);
+    let catch_up_ms: f64 = o
+        .catch_up_ms
+        .iter()
+        .map(|(pid, ms)| ms - m.catch_up_ms_at_start.get(pid).copied().unwrap_or(0.0))
+        .sum();
     Report {
+        planner_cpu_ms_per_frame_minute1: cpu_per_frame(Duration::ZERO, minute.min(end)),
+        planner_cpu_ms_per_frame_last_minute: cpu_per_frame(end.saturating_sub(minute), end),
+        planner_stage_ms_per_frame: cost::stage_ms_per_frame(&m.stages_at_start, &o.stages, frames),
+        planner_catch_up_ms: catch_up_ms,
+        t1_scans: None,
         trolleys: args.trolleys,
         planners: args.planners,
         detectors: args.detectors,
@@ -948,6 +1032,12 @@ fn print_report(r: &Report) {
         r.bytes_per_frame.map_or("–".into(), |b| format!("{:.0} kB", b / 1e3))
     );
     println!(
+        "  planner CPU per frame in the first / last minute: {} / {}; by stage (planners' own count, ms per frame): {}",
+        ms(r.planner_cpu_ms_per_frame_minute1),
+        ms(r.planner_cpu_ms_per_frame_last_minute),
+        cost::stages_text(&r.planner_stage_ms_per_frame)
+    );
+    println!(
         "  planner RSS per trolley: {} at minute 1, {} at the end",
         mib(r.planner_rss_mib_per_trolley_minute1),
         mib(r.planner_rss_mib_per_trolley_end)
@@ -960,6 +1050,12 @@ fn print_report(r: &Report) {
             println!("  takeover: t1's owner {p} killed; NO views from another planner afterwards")
         }
         _ => println!("  takeover: no planner killed"),
+    }
+    if let Some(t) = &r.t1_scans {
+        println!(
+            "  scans lost: {} (t1's map at {}: {} scans, rebuilt offline from {} clouds: {} scans; equal voxel for voxel: {})",
+            t.scans_lost, t.survivor, t.scans_in_survivor_map, t.clouds_observed, t.scans_rebuilt, t.maps_equal
+        );
     }
     println!("  per process kind: CPU (% of one core, all processes of the kind) and peak RSS per process");
     for (kind, k) in &r.per_kind {

@@ -13,24 +13,56 @@ pub(super) fn print_table(reports: &[Report]) {
     println!();
     println!("capacity sweep ({} runs)", reports.len());
     println!(
-        "| trolleys | frames/s per trolley | frame -> views p50 / p99 | arms waiting | planner CPU per frame | planner RSS per trolley, minute 1 / end | bytes per frame | drops | takeover |"
+        "| trolleys | frames/s per trolley | frame -> views p50 / p99 | arms waiting | planner CPU per frame: run / minute 1 / last minute | planner RSS per trolley, minute 1 / end | bytes per frame | drops | takeover | scans lost |"
     );
-    println!("|---:|---:|---|---:|---:|---|---:|---:|---:|");
+    println!("|---:|---:|---|---:|---:|---|---:|---:|---:|---:|");
     for r in reports {
         println!(
-            "| {} | {:.2} | {} / {} | {:.0} % | {} | {} / {} | {} | {} | {} |",
+            "| {} | {:.2} | {} / {} | {:.0} % | {} / {} / {} | {} / {} | {} | {} | {} | {} |",
             r.trolleys,
             r.frames_per_s_per_trolley,
             ms(r.frame_to_views_ms_p50),
             ms(r.frame_to_views_ms_p99),
             100.0 * r.arm_wait_share,
             ms(r.planner_cpu_ms_per_frame),
+            ms(r.planner_cpu_ms_per_frame_minute1),
+            ms(r.planner_cpu_ms_per_frame_last_minute),
             mib(r.planner_rss_mib_per_trolley_minute1),
             mib(r.planner_rss_mib_per_trolley_end),
             r.bytes_per_frame
                 .map_or("–".into(), |b| format!("{:.0} kB", b / 1e3)),
             r.messages_dropped,
             r.takeover_s.map_or("–".into(), |s| format!("{s:.2} s")),
+            r.t1_scans
+                .as_ref()
+                .map_or("–".into(), |t| match t.maps_equal {
+                    true => format!("{} (maps equal)", t.scans_lost),
+                    false => format!("{} (maps differ)", t.scans_lost),
+                }),
+        );
+    }
+    println!();
+    println!("planner time per frame by stage (the planners' own count, ms), and catch-ups after the kill");
+    println!(
+        "| trolleys | integrate | cluster | track | fit | plan | publish | catch-ups (s, all) |"
+    );
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in reports {
+        let stage = |name: &str| {
+            r.planner_stage_ms_per_frame
+                .get(name)
+                .map_or("–".into(), |ms| format!("{ms:.1}"))
+        };
+        println!(
+            "| {} | {} | {} | {} | {} | {} | {} | {:.2} |",
+            r.trolleys,
+            stage("integrate"),
+            stage("cluster"),
+            stage("track"),
+            stage("fit"),
+            stage("plan"),
+            stage("publish"),
+            r.planner_catch_up_ms / 1e3,
         );
     }
 }

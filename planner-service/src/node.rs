@@ -16,7 +16,9 @@ use std::time::Instant;
 
 pub use glasshouse_fleet::Role;
 use glasshouse_fleet::{Assignment, Membership, OwnershipChange};
-use glasshouse_pipeline::{ranked_views, FrameVerdict, PlanningSettings, TrolleyPlanner};
+use glasshouse_pipeline::{
+    ranked_views, FrameVerdict, PlanningError, PlanningSettings, TrolleyPlanner,
+};
 use glasshouse_proto::keys;
 use glasshouse_proto::FrameId;
 use glasshouse_proto::{
@@ -828,25 +830,9 @@ impl PlannerNode {
         let frame = cloud.source_frame();
         let inserted = slot.planner.insert(cloud, received.received_ns);
         self.stats.stages.integrate_ms += laps.lap_ms();
-        match inserted {
-            Err(e) => {
-                self.stats.clouds_rejected += 1;
-                tracing::warn!(trolley = %tid, seq = header.seq, error = %e, "cloud dropped");
-                return Vec::new();
-            }
-            Ok(FrameVerdict::Refused(why)) => {
-                self.stats.clouds_refused += 1;
-                if self.logged_refusals.insert(format!("frame {tid}")) {
-                    tracing::warn!(planner = %pid, trolley = %tid, %frame, source = %header.source_id, reason = %why,
-                        "cloud refused: no trolley sends this frame (logged once per trolley)");
-                }
-                return Vec::new();
-            }
-            Ok(FrameVerdict::Resync { mark }) => {
-                tracing::warn!(planner = %pid, trolley = %tid, %frame, %mark, "the trolley's stream overrides the map's last frame");
-            }
-            Ok(FrameVerdict::Stale) => self.stats.clouds_stale += 1,
-            Ok(FrameVerdict::Fresh | FrameVerdict::Repeat) => {}
+        let (stats, refusals) = (&mut self.stats, &mut self.logged_refusals);
+        if !note_insert(stats, refusals, (&pid, tid), header, frame, inserted) {
+            return Vec::new();
         }
         slot.planner.cluster();
         self.stats.stages.cluster_ms += laps.lap_ms();
@@ -983,6 +969,39 @@ impl PlannerNode {
         }
         actions
     }
+}
+
+/// Counts and logs planner `pid`'s map verdict on a cloud of trolley `tid`; whether the cloud
+/// goes on to clustering (a cloud the map rejects or refuses changes nothing).
+fn note_insert(
+    stats: &mut PlannerStats,
+    logged_refusals: &mut BTreeSet<String>,
+    (pid, tid): (&str, &str),
+    header: &Header,
+    frame: FrameId,
+    inserted: Result<FrameVerdict, PlanningError>,
+) -> bool {
+    match inserted {
+        Err(e) => {
+            stats.clouds_rejected += 1;
+            tracing::warn!(trolley = %tid, seq = header.seq, error = %e, "cloud dropped");
+            return false;
+        }
+        Ok(FrameVerdict::Refused(why)) => {
+            stats.clouds_refused += 1;
+            if logged_refusals.insert(format!("frame {tid}")) {
+                tracing::warn!(planner = %pid, trolley = %tid, %frame, source = %header.source_id, reason = %why,
+                    "cloud refused: no trolley sends this frame (logged once per trolley)");
+            }
+            return false;
+        }
+        Ok(FrameVerdict::Resync { mark }) => {
+            tracing::warn!(planner = %pid, trolley = %tid, %frame, %mark, "the trolley's stream overrides the map's last frame");
+        }
+        Ok(FrameVerdict::Stale) => stats.clouds_stale += 1,
+        Ok(FrameVerdict::Fresh | FrameVerdict::Repeat) => {}
+    }
+    true
 }
 
 #[cfg(test)]

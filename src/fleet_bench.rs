@@ -896,6 +896,47 @@ fn per_kind_usage(procs: &[Proc], m: &Measurement) -> BTreeMap<String, KindRepor
         .collect()
 }
 
+/// Seconds from the kill of t1's owner to t1's first views from another planner.
+fn takeover_s(o: &Observed, m: &Measurement) -> Option<f64> {
+    let (pid, at) = m.killed.as_ref()?;
+    let t1 = o.trolleys.get("t1")?;
+    t1.views_from
+        .iter()
+        .find(|(when, from)| when > at && from != pid)
+        .map(|(when, _)| when.duration_since(*at).as_secs_f64())
+}
+
+/// The planners' cost along the run and by stage (see `cost`).
+struct PlannerCost {
+    cpu_ms_per_frame_minute1: Option<f64>,
+    cpu_ms_per_frame_last_minute: Option<f64>,
+    stage_ms_per_frame: BTreeMap<String, f64>,
+    catch_up_ms: f64,
+}
+
+fn planner_cost(o: &Observed, m: &Measurement, frames: usize) -> PlannerCost {
+    let clouds: Vec<Instant> = o
+        .trolleys
+        .values()
+        .flat_map(|t| t.cloud_at.values().copied())
+        .collect();
+    let minute = Duration::from_secs(60);
+    let end = Duration::from_secs_f64(m.elapsed_s);
+    let cpu_per_frame =
+        |from, to| cost::cpu_ms_per_frame(&m.planner_cpu, m.started, &clouds, from, to);
+    let catch_up_ms = o
+        .catch_up_ms
+        .iter()
+        .map(|(pid, ms)| ms - m.catch_up_ms_at_start.get(pid).copied().unwrap_or(0.0))
+        .sum();
+    PlannerCost {
+        cpu_ms_per_frame_minute1: cpu_per_frame(Duration::ZERO, minute.min(end)),
+        cpu_ms_per_frame_last_minute: cpu_per_frame(end.saturating_sub(minute), end),
+        stage_ms_per_frame: cost::stage_ms_per_frame(&m.stages_at_start, &o.stages, frames),
+        catch_up_ms,
+    }
+}
+
 fn build_report(
     args: &FleetBenchArgs,
     o: &Observed,
@@ -914,14 +955,7 @@ fn build_report(
         .collect();
     let frames: usize = o.trolleys.values().map(|t| t.cloud_at.len()).sum();
     let views: u64 = o.trolleys.values().map(|t| t.views).sum();
-    let takeover_s = m.killed.as_ref().and_then(|(pid, at)| {
-        o.trolleys.get("t1").and_then(|t| {
-            t.views_from
-                .iter()
-                .find(|(when, from)| when > at && from != pid)
-                .map(|(when, _)| when.duration_since(*at).as_secs_f64())
-        })
-    });
+    let takeover_s = takeover_s(o, m);
     let dropped: u64 = o
         .drops
         .iter()
@@ -933,25 +967,12 @@ fn build_report(
         .get("planner")
         .map_or(0.0, |k| k.cpu_percent_of_one_core / 100.0 * elapsed_s);
     let per_trolley_mib = |kib: Option<u64>| kib.map(|k| k as f64 / 1024.0 / n);
-    let clouds: Vec<Instant> = o
-        .trolleys
-        .values()
-        .flat_map(|t| t.cloud_at.values().copied())
-        .collect();
-    let minute = Duration::from_secs(60);
-    let end = Duration::from_secs_f64(elapsed_s);
-    let cpu_per_frame =
-        |from, to| cost::cpu_ms_per_frame(&m.planner_cpu, m.started, &clouds, from, to);
-    let catch_up_ms: f64 = o
-        .catch_up_ms
-        .iter()
-        .map(|(pid, ms)| ms - m.catch_up_ms_at_start.get(pid).copied().unwrap_or(0.0))
-        .sum();
+    let cost = planner_cost(o, m, frames);
     Report {
-        planner_cpu_ms_per_frame_minute1: cpu_per_frame(Duration::ZERO, minute.min(end)),
-        planner_cpu_ms_per_frame_last_minute: cpu_per_frame(end.saturating_sub(minute), end),
-        planner_stage_ms_per_frame: cost::stage_ms_per_frame(&m.stages_at_start, &o.stages, frames),
-        planner_catch_up_ms: catch_up_ms,
+        planner_cpu_ms_per_frame_minute1: cost.cpu_ms_per_frame_minute1,
+        planner_cpu_ms_per_frame_last_minute: cost.cpu_ms_per_frame_last_minute,
+        planner_stage_ms_per_frame: cost.stage_ms_per_frame,
+        planner_catch_up_ms: cost.catch_up_ms,
         t1_scans: None,
         trolleys: args.trolleys,
         planners: args.planners,

@@ -3,7 +3,8 @@
 //! `cargo bench -p glasshouse-roimap -- --warm-up-time 1 --measurement-time 3`
 //!
 //! Rows: one filtered scan and one raw scan inserted into the map of the other nine scans (1 and
-//! 2 threads), the unobserved-voxel gain over a 200×150-ray fan, the frontier queries (incremental)
+//! 2 threads; `/portable` = the walk capped at the build's baseline vector unit, beside the
+//! widest this CPU has), the unobserved-voxel gain over a 200×150-ray fan, the frontier queries (incremental)
 //! next to a from-scratch recomputation, clustering, and snapshot writing. The memory of the
 //! 10-scan map is printed once. The `row` group sweeps a simulated row segment by segment.
 
@@ -12,7 +13,7 @@ use std::hint::black_box;
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use glasshouse_geom::Aabb;
 use glasshouse_roimap::testdata::{unobserved_gain, unobserved_gain_batch, Scan, Workload};
-use glasshouse_roimap::{Neighbourhood, Occupancy, RoiMap, VoxelKey};
+use glasshouse_roimap::{simd, Neighbourhood, Occupancy, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
 const SEED: u64 = 1;
@@ -43,9 +44,11 @@ fn insertion(c: &mut Criterion) {
     );
     let mut g = c.benchmark_group("insert");
     g.sample_size(20);
-    for threads in [1usize, 2] {
+    let levels = [(simd::detected(), ""), (simd::Level::Portable, "/portable")];
+    for (threads, (level, suffix)) in [(1usize, levels[0]), (1, levels[1]), (2, levels[0])] {
+        simd::set_cap(level);
         for (name, s) in [("filtered_scan", &filtered[9]), ("raw_scan", &raw_last)] {
-            g.bench_function(format!("{name}/{threads}_thread"), |b| {
+            g.bench_function(format!("{name}/{threads}_thread{suffix}"), |b| {
                 b.iter_batched_ref(
                     || nine.clone(),
                     |m| {
@@ -57,6 +60,7 @@ fn insertion(c: &mut Criterion) {
             });
         }
     }
+    simd::set_cap(simd::detected());
     g.finish();
 }
 
@@ -72,6 +76,11 @@ fn queries(c: &mut Criterion) {
     g.bench_function("gain_fan_200x150/batch", |b| {
         b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &fan, 1.5))
     });
+    simd::set_cap(simd::Level::Portable);
+    g.bench_function("gain_fan_200x150/batch/portable", |b| {
+        b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &fan, 1.5))
+    });
+    simd::set_cap(simd::detected());
     let region = Aabb::new(Point3::new(0.3, -1.0, -1.0), Point3::new(1.6, 1.0, 1.0));
     g.bench_function("frontiers/incremental_query", |b| {
         b.iter(|| {

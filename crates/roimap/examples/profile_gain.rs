@@ -5,6 +5,13 @@ use std::time::Instant;
 use glasshouse_roimap::testdata::{unobserved_gain, unobserved_gain_batch, Workload};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // `--simd=portable|avx2|avx512` caps the walk's vector unit.
+    if let Some(level) = std::env::args()
+        .filter_map(|a| a.strip_prefix("--simd=").map(str::to_owned))
+        .find_map(|n| glasshouse_roimap::simd::Level::from_name(&n))
+    {
+        glasshouse_roimap::simd::set_cap(level);
+    }
     // Arguments: number of runs, `--batch` for the batch walk.
     let batch = std::env::args().any(|a| a == "--batch");
     let runs: usize = std::env::args()

@@ -12,6 +12,13 @@ fn cpu_ns() -> Option<u64> {
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // `--simd=portable|avx2|avx512` caps the walk's vector unit.
+    if let Some(level) = std::env::args()
+        .filter_map(|a| a.strip_prefix("--simd=").map(str::to_owned))
+        .find_map(|n| glasshouse_roimap::simd::Level::from_name(&n))
+    {
+        glasshouse_roimap::simd::set_cap(level);
+    }
     let raw = std::env::args().any(|a| a == "--raw");
     let w = Workload::standard(1);
     let scans = if raw {

@@ -44,6 +44,7 @@ pub mod fuzzing;
 mod grid;
 mod insert;
 pub mod ply;
+pub mod simd;
 pub mod snapshot;
 pub mod testdata;
 mod values;

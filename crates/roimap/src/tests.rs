@@ -1588,3 +1588,86 @@ fn incremental_clusters_follow_merges_splits_and_removals() {
         "clusters merged or vanished {fewer}, appeared {more}"
     );
 }
+
+/// Some rays stop early, as the gain queries do at occupied voxels.
+fn stops_early(ray: u32, c: [i32; 3]) -> bool {
+    ray.is_multiple_of(3) && (c[0] + c[1] + c[2]).rem_euclid(41) == 0
+}
+
+/// Everything a lane walk gives its visitor, in order.
+#[derive(Debug, Default, PartialEq)]
+struct LaneRecord {
+    /// (ray, key, bit index when inside the plane's box).
+    visits: Vec<(u32, [i32; 3], Option<i32>)>,
+    ends: Vec<(u32, [i32; 3])>,
+}
+
+impl walk::LaneVisitor for LaneRecord {
+    fn voxel(&mut self, _: usize, ray: u32, c: [i32; 3], index: i32, inside: bool) -> bool {
+        self.visits.push((ray, c, inside.then_some(index)));
+        !stops_early(ray, c)
+    }
+
+    fn end(&mut self, ray: u32, key_end: [i32; 3]) {
+        self.ends.push((ray, key_end));
+    }
+}
+
+/// The lane walk compiled for every vector unit this CPU has gives the visitor exactly the same
+/// calls, in the same order, as the portable build, and each ray's voxels are the scalar walk's:
+/// seeded rays from near and far-off origins, plane boxes that cut rays off, early stops.
+#[test]
+fn every_vector_unit_walks_the_same_voxels() {
+    use walk::{walk_lanes_at, PlaneGeometry, RaySetup};
+    let mut rng = TestRng(2026);
+    let res = 0.01;
+    let inv_res = 1.0 / res;
+    for origin in [[0.013f32, -0.2, 0.31], [-4321.5, 2103.25, 7.0]] {
+        let key_origin = walk::key_of_f32(origin, inv_res).expect("in range");
+        let rays: Vec<(u32, RaySetup)> = (0..500u32)
+            .filter_map(|ray| {
+                let end = origin.map(|o| o + rng.uniform(-1.2, 1.2) as f32);
+                let key_end = walk::key_of_f32(end, inv_res)?;
+                RaySetup::octomap(origin, end, key_origin, key_end, res).map(|s| (ray, s))
+            })
+            .collect();
+        let ko = [key_origin.x, key_origin.y, key_origin.z];
+        // The whole reach, and a box that cuts most rays off.
+        for half in [125i32, 40] {
+            let g =
+                PlaneGeometry::new(ko.map(|k| k - half), [2 * half as u32; 3]).expect("small box");
+            let mut portable = LaneRecord::default();
+            walk_lanes_at(
+                simd::Level::Portable,
+                rays.iter().copied(),
+                &g,
+                &mut portable,
+            );
+            for (ray, s) in &rays {
+                let mut scalar = Vec::new();
+                s.walk(|c| {
+                    scalar.push(c);
+                    !stops_early(*ray, c)
+                });
+                let lanes: Vec<[i32; 3]> = portable
+                    .visits
+                    .iter()
+                    .filter(|(r, _, _)| r == ray)
+                    .map(|&(_, c, _)| c)
+                    .collect();
+                assert_eq!(lanes, scalar, "ray {ray}");
+                for &(_, c, index) in portable.visits.iter().filter(|(r, _, _)| r == ray) {
+                    assert_eq!(index, g.index(c).map(|i| i as i32));
+                }
+            }
+            assert!(portable.ends.len() > 100 && portable.visits.len() > 10_000);
+            for level in [simd::Level::Avx2, simd::Level::Avx512] {
+                if level <= simd::detected() {
+                    let mut wide = LaneRecord::default();
+                    walk_lanes_at(level, rays.iter().copied(), &g, &mut wide);
+                    assert!(wide == portable, "{level:?} differs from the portable walk");
+                }
+            }
+        }
+    }
+}

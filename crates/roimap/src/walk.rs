@@ -285,6 +285,7 @@ impl Lanes {
         }
     }
 
+    #[inline(always)]
     fn load(&mut self, j: usize, ray: u32, s: &RaySetup, g: &PlaneGeometry) {
         let c = [s.key_origin.x, s.key_origin.y, s.key_origin.z];
         let e = [s.key_end.x, s.key_end.y, s.key_end.z];
@@ -359,10 +360,12 @@ impl Lanes {
         (bits(&done), bits(&outside))
     }
 
+    #[inline(always)]
     fn key(&self, j: usize) -> [i32; 3] {
         [self.c[0][j], self.c[1][j], self.c[2][j]]
     }
 
+    #[inline(always)]
     fn key_end(&self, j: usize) -> [i32; 3] {
         [self.e[0][j], self.e[1][j], self.e[2][j]]
     }
@@ -373,6 +376,75 @@ impl Lanes {
 /// Gives `v` every free voxel of every ray, exactly as [`RaySetup::walk`] would, interleaved
 /// between rays but in order within a ray, with its bit index in `g`'s plane.
 pub(crate) fn walk_lanes<V: LaneVisitor>(
+    rays: impl Iterator<Item = (u32, RaySetup)>,
+    g: &PlaneGeometry,
+    v: &mut V,
+) {
+    walk_lanes_at(crate::simd::level(), rays, g, v)
+}
+
+/// [`walk_lanes`] on a given vector unit (`level` must not exceed [`crate::simd::detected`]).
+pub(crate) fn walk_lanes_at<V: LaneVisitor>(
+    level: crate::simd::Level,
+    rays: impl Iterator<Item = (u32, RaySetup)>,
+    g: &PlaneGeometry,
+    v: &mut V,
+) {
+    let level = level.min(crate::simd::detected());
+    #[cfg(target_arch = "x86_64")]
+    match level {
+        crate::simd::Level::Avx512 => return x86::walk_lanes_avx512(rays, g, v),
+        crate::simd::Level::Avx2 => return x86::walk_lanes_avx2(rays, g, v),
+        crate::simd::Level::Portable => {}
+    }
+    walk_lanes_portable(rays, g, v)
+}
+
+/// The same walk compiled for wider vector units; chosen at run time by [`crate::simd::level`].
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,popcnt,lzcnt")]
+    unsafe fn avx2<V: LaneVisitor>(
+        rays: impl Iterator<Item = (u32, RaySetup)>,
+        g: &PlaneGeometry,
+        v: &mut V,
+    ) {
+        walk_lanes_portable(rays, g, v)
+    }
+
+    #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma,bmi1,bmi2,popcnt,lzcnt")]
+    unsafe fn avx512<V: LaneVisitor>(
+        rays: impl Iterator<Item = (u32, RaySetup)>,
+        g: &PlaneGeometry,
+        v: &mut V,
+    ) {
+        walk_lanes_portable(rays, g, v)
+    }
+
+    pub(super) fn walk_lanes_avx2<V: LaneVisitor>(
+        rays: impl Iterator<Item = (u32, RaySetup)>,
+        g: &PlaneGeometry,
+        v: &mut V,
+    ) {
+        // SAFETY: `simd::level` returns Avx2 only when the CPU reports these features.
+        unsafe { avx2(rays, g, v) }
+    }
+
+    pub(super) fn walk_lanes_avx512<V: LaneVisitor>(
+        rays: impl Iterator<Item = (u32, RaySetup)>,
+        g: &PlaneGeometry,
+        v: &mut V,
+    ) {
+        // SAFETY: `simd::level` returns Avx512 only when the CPU reports these features.
+        unsafe { avx512(rays, g, v) }
+    }
+}
+
+#[inline(always)]
+fn walk_lanes_portable<V: LaneVisitor>(
     mut rays: impl Iterator<Item = (u32, RaySetup)>,
     g: &PlaneGeometry,
     v: &mut V,
@@ -409,6 +481,7 @@ pub(crate) fn walk_lanes<V: LaneVisitor>(
 }
 
 /// Puts the next ray whose origin voxel does not stop it into lane `j`; false when none is left.
+#[inline(always)]
 fn refill(
     rays: &mut impl Iterator<Item = (u32, RaySetup)>,
     lanes: &mut Lanes,

@@ -15,6 +15,10 @@ use clap::{Parser, Subcommand};
 use glasshouse_bus::BusArgs;
 
 /// Glasshouse: robot eyes that find every fruit on a row of plants.
+///
+/// Environment: GLASSHOUSE_SIMD=portable|avx2|avx512 caps the vector unit of the map's voxel
+/// walks, here and in the services a bench starts (default: the widest the CPU has; every unit
+/// gives the same map).
 #[derive(Parser, Debug)]
 #[command(name = "glasshouse", version)]
 struct Cli {
@@ -64,6 +68,7 @@ const DEFAULT_ROUTER_LISTEN: &str = "tcp/0.0.0.0:7447";
 async fn main() -> anyhow::Result<()> {
     glasshouse_bus::use_in_process_runtime_pools();
     glasshouse_bus::init_tracing();
+    glasshouse_planner::cap_simd_from_env()?;
     match Cli::parse().command {
         Command::Demo(args) => demo::run(args).await,
         Command::DashboardBench(args) => dashboard_bench::run(args).await,

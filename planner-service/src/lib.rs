@@ -414,6 +414,21 @@ pub async fn run(
     Ok(())
 }
 
+/// Environment variable that caps the map's vector unit (`portable`, `avx2` or `avx512`), for
+/// side-by-side measurements; unset, the voxel walks use the widest unit the CPU has.
+pub const SIMD_ENV: &str = "GLASSHOUSE_SIMD";
+
+/// Applies [`SIMD_ENV`] when set; an unknown value is an error naming the accepted ones.
+pub fn cap_simd_from_env() -> anyhow::Result<()> {
+    let Ok(name) = std::env::var(SIMD_ENV) else {
+        return Ok(());
+    };
+    let level = glasshouse_roimap::simd::Level::from_name(&name)
+        .with_context(|| format!("{SIMD_ENV}={name}: expected portable, avx2 or avx512"))?;
+    glasshouse_roimap::simd::set_cap(level);
+    Ok(())
+}
+
 /// Every trolley's latest fruits merged into the fleet map (de-duplicated where rows overlap).
 pub fn fleet_fruits(latest: &BTreeMap<String, FruitEstimates>, pid: &str) -> FleetFruits {
     let inputs: Vec<FleetFruitInput> = latest

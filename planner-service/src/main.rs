@@ -11,6 +11,9 @@ use glasshouse_planner::PlannerSettings;
 /// replica_refresh_clouds, and
 /// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
 /// scoring_threads }`), then the flags below.
+///
+/// Environment: GLASSHOUSE_SIMD=portable|avx2|avx512 caps the vector unit of the map's voxel
+/// walks (default: the widest the CPU has; every unit gives the same map).
 #[derive(Parser, Debug)]
 #[command(name = "planner-service", version)]
 struct Cli {
@@ -30,6 +33,7 @@ struct Cli {
 }
 
 fn main() -> anyhow::Result<()> {
+    glasshouse_planner::cap_simd_from_env()?;
     glasshouse_bus::service_main(apply_flags, glasshouse_planner::run)
 }
 

@@ -17,7 +17,7 @@ use nalgebra::Point3;
 
 use crate::grid::{block_of, Mask, BLOCK_EDGE, BLOCK_SHIFT, EMPTY};
 use crate::values::Step;
-use crate::walk::{key_of_f32, norm_f32, walk_lanes, LaneVisitor, PlaneGeometry, RaySetup};
+use crate::walk::{key_of_f32, norm_f32, walk_lanes, LaneVisitor, PlaneGeometry, RaySetup, LANES};
 use crate::{ChangeLog, KeySet, MapError, RoiMap, ScanStats, VoxelKey};
 
 /// Largest dense grid in blocks (2^17 blocks = 64M voxels, 8 MB per bit plane).
@@ -80,12 +80,24 @@ struct Worker {
 }
 
 /// Marks the walk's voxels in a free plane (keys outside the box in a set).
-struct FreeMarker<'a> {
-    free: &'a mut [u64],
-    overflow: &'a mut KeySet,
+pub(crate) struct FreeMarker<'a> {
+    pub(crate) free: &'a mut [u64],
+    pub(crate) overflow: &'a mut KeySet,
 }
 
 impl LaneVisitor for FreeMarker<'_> {
+    const MARKS_ONLY: bool = true;
+
+    #[inline(always)]
+    fn mark_lanes(&mut self, index: &[i32; LANES]) {
+        for &i in index {
+            let i = i as u32 as usize;
+            if let Some(w) = self.free.get_mut(i >> 6) {
+                *w |= 1 << (i & 63);
+            }
+        }
+    }
+
     #[inline(always)]
     fn voxel(&mut self, _: usize, _: u32, c: [i32; 3], index: i32, inside: bool) -> bool {
         if inside {

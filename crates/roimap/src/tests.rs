@@ -1613,6 +1613,22 @@ impl walk::LaneVisitor for LaneRecord {
     }
 }
 
+/// Insertion's free marks of `rays` on `level`: the plane and the keys outside it.
+fn free_marks(
+    level: simd::Level,
+    rays: &[(u32, walk::RaySetup)],
+    g: &walk::PlaneGeometry,
+) -> (Vec<u64>, BTreeSet<VoxelKey>) {
+    let mut free = vec![0u64; (g.n.iter().map(|&n| n as usize).product::<usize>()).div_ceil(64)];
+    let mut overflow = KeySet::default();
+    let mut marker = insert::FreeMarker {
+        free: &mut free,
+        overflow: &mut overflow,
+    };
+    walk::walk_lanes_at(level, rays.iter().copied(), g, &mut marker);
+    (free, overflow.into_iter().collect())
+}
+
 /// The lane walk compiled for every vector unit this CPU has gives the visitor exactly the same
 /// calls, in the same order, as the portable build, and each ray's voxels are the scalar walk's:
 /// seeded rays from near and far-off origins, plane boxes that cut rays off, early stops.
@@ -1661,11 +1677,24 @@ fn every_vector_unit_walks_the_same_voxels() {
                 }
             }
             assert!(portable.ends.len() > 100 && portable.visits.len() > 10_000);
+            let marks = free_marks(simd::Level::Portable, &rays, &g);
+            // Insertion's marker (whole steps at once where it can) marks what the visits name,
+            // except the voxels after an early stop, which its rays walk too.
+            for &(_, c, index) in &portable.visits {
+                match index {
+                    Some(i) => assert!(marks.0[i as usize >> 6] >> (i & 63) & 1 == 1),
+                    None => assert!(marks.1.contains(&VoxelKey::new(c[0], c[1], c[2]))),
+                }
+            }
             for level in [simd::Level::Avx2, simd::Level::Avx512] {
                 if level <= simd::detected() {
                     let mut wide = LaneRecord::default();
                     walk_lanes_at(level, rays.iter().copied(), &g, &mut wide);
                     assert!(wide == portable, "{level:?} differs from the portable walk");
+                    assert!(
+                        free_marks(level, &rays, &g) == marks,
+                        "{level:?} marks differ"
+                    );
                 }
             }
         }

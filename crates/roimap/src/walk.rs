@@ -242,6 +242,12 @@ impl PlaneGeometry {
 pub(crate) trait LaneVisitor {
     /// False when the visitor ignores bit indices and boxes (the walk then skips them).
     const PLANE: bool = true;
+    /// True when [`LaneVisitor::voxel`] only marks the bit index of voxels inside the box and
+    /// never stops a ray: steps where every lane is busy and inside then go to
+    /// [`LaneVisitor::mark_lanes`] in one call, without the per-lane bookkeeping.
+    const MARKS_ONLY: bool = false;
+    /// One step of all [`LANES`] lanes, every voxel inside the plane (only with `MARKS_ONLY`).
+    fn mark_lanes(&mut self, _index: &[i32; LANES]) {}
     /// Voxel `c` of ray `ray`, walked in lane `lane`; `index` is its bit index in the plane when
     /// `inside` the plane's box. Returns false to stop the ray (no [`LaneVisitor::end`] then).
     fn voxel(&mut self, lane: usize, ray: u32, c: [i32; 3], index: i32, inside: bool) -> bool;
@@ -251,6 +257,8 @@ pub(crate) trait LaneVisitor {
 
 /// Rays walked side by side by [`walk_lanes`].
 pub(crate) const LANES: usize = 8;
+/// The lane mask with every lane set.
+const ALL_LANES: u32 = (1 << LANES) - 1;
 
 /// [`LANES`] rays in flight, one array per field, so that one step of every lane is the same
 /// arithmetic on arrays (the compiler turns the loop in [`Lanes::advance`] into vector code).
@@ -459,6 +467,10 @@ fn walk_lanes_portable<V: LaneVisitor>(
     while active != 0 {
         // A constant per visitor type: the unused plane arithmetic is compiled out.
         let (done, outside) = lanes.advance(g, V::PLANE);
+        if V::MARKS_ONLY && active == ALL_LANES && done | outside == 0 {
+            v.mark_lanes(&lanes.index);
+            continue;
+        }
         let mut finished = done & active;
         for j in 0..LANES {
             if (active & !done) >> j & 1 != 0 {

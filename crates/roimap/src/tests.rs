@@ -1638,11 +1638,19 @@ fn every_vector_unit_walks_the_same_voxels() {
     let mut rng = TestRng(2026);
     let res = 0.01;
     let inv_res = 1.0 / res;
-    for origin in [[0.013f32, -0.2, 0.31], [-4321.5, 2103.25, 7.0]] {
+    // The last origin has equal coordinates, so its diagonal rays tie between axes at every
+    // step (OctoMap's tie rule decides their voxels).
+    for origin in [[0.013f32, -0.2, 0.31], [-4321.5, 2103.25, 7.0], [0.255; 3]] {
         let key_origin = walk::key_of_f32(origin, inv_res).expect("in range");
-        let rays: Vec<(u32, RaySetup)> = (0..500u32)
-            .filter_map(|ray| {
-                let end = origin.map(|o| o + rng.uniform(-1.2, 1.2) as f32);
+        let random = (0..500).map(|_| [(); 3].map(|_| rng.uniform(-1.2, 1.2) as f32));
+        let diagonal = (0..27 * 2).map(|i| {
+            let length = [0.3f32, 0.77][i / 27];
+            [i % 3, i / 3 % 3, i / 9 % 3].map(|d| (d as f32 - 1.0) * length)
+        });
+        let rays: Vec<(u32, RaySetup)> = (0u32..)
+            .zip(random.chain(diagonal))
+            .filter_map(|(ray, offset)| {
+                let end = [0, 1, 2].map(|i| origin[i] + offset[i]);
                 let key_end = walk::key_of_f32(end, inv_res)?;
                 RaySetup::octomap(origin, end, key_origin, key_end, res).map(|s| (ray, s))
             })

@@ -425,11 +425,102 @@ mod x86 {
 
     #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma,bmi1,bmi2,popcnt,lzcnt")]
     unsafe fn avx512<V: LaneVisitor>(
-        rays: impl Iterator<Item = (u32, RaySetup)>,
+        mut rays: impl Iterator<Item = (u32, RaySetup)>,
         g: &PlaneGeometry,
         v: &mut V,
     ) {
-        walk_lanes_portable(rays, g, v)
+        if !(V::MARKS_ONLY && V::PLANE) {
+            return walk_lanes_portable(rays, g, v);
+        }
+        // While every lane holds a ray, the steps run in registers (`clean_steps`); the last
+        // rays, fewer than eight, finish on the compiled walk.
+        let (mut lanes, mut active) = start_lanes(&mut rays, g, v);
+        while active == ALL_LANES {
+            let masks = clean_steps(&mut lanes, g, v);
+            active = settle(&mut lanes, active, masks, &mut rays, g, v);
+        }
+        finish_lanes(lanes, active, rays, g, v)
+    }
+
+    /// [`Lanes::advance`] with the lanes held in AVX-512 registers: steps every lane and marks
+    /// the eight voxels with [`LaneVisitor::mark_lanes`] for as long as no lane is done or
+    /// outside the plane; returns the (done, outside) masks of the first step where one is, as
+    /// `advance` does, with the lanes stored back. The same `f64` operations as `advance`: a
+    /// compare for each of its `<`, a masked add where it adds `td` or `+0.0`, `min` as its
+    /// `if a < b { a } else { b }`.
+    #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2")]
+    fn clean_steps<V: LaneVisitor>(lanes: &mut Lanes, g: &PlaneGeometry, v: &mut V) -> (u32, u32) {
+        use std::arch::x86_64::*;
+        // SAFETY: every pointer is to an array of eight `f64` (64 bytes) or eight `i32`/`u32`
+        // (32 bytes) in `lanes` or on the stack, loaded and stored unaligned.
+        unsafe {
+            let ld_t = |a: &[f64; LANES]| _mm512_loadu_pd(a.as_ptr());
+            let ld_i = |a: &[i32; LANES]| _mm256_loadu_si256(a.as_ptr().cast());
+            let (mut t0, mut t1, mut t2) =
+                (ld_t(&lanes.t[0]), ld_t(&lanes.t[1]), ld_t(&lanes.t[2]));
+            let (td0, td1, td2) = (ld_t(&lanes.td[0]), ld_t(&lanes.td[1]), ld_t(&lanes.td[2]));
+            let (mut c0, mut c1, mut c2) =
+                (ld_i(&lanes.c[0]), ld_i(&lanes.c[1]), ld_i(&lanes.c[2]));
+            let (e0, e1, e2) = (ld_i(&lanes.e[0]), ld_i(&lanes.e[1]), ld_i(&lanes.e[2]));
+            let (s0, s1, s2) = (
+                ld_i(&lanes.step[0]),
+                ld_i(&lanes.step[1]),
+                ld_i(&lanes.step[2]),
+            );
+            let (d0, d1, d2) = (
+                ld_i(&lanes.stride[0]),
+                ld_i(&lanes.stride[1]),
+                ld_i(&lanes.stride[2]),
+            );
+            let mut index = ld_i(&lanes.index);
+            let mut left = _mm256_loadu_si256(lanes.left.as_ptr().cast());
+            let length = ld_t(&lanes.length);
+            let lo = g.lo.map(|k| _mm256_set1_epi32(k));
+            let n = g.n.map(|n| _mm256_set1_epi32(n as i32));
+            let (one, zero) = (_mm256_set1_epi32(1), _mm256_setzero_si256());
+            let mut marks = [0i32; LANES];
+            let (done, outside) = loop {
+                let a = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t0, t1);
+                let x = a & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t0, t2);
+                let y = !a & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t1, t2);
+                let z = !(x | y);
+                t0 = _mm512_mask_add_pd(t0, x, t0, td0);
+                t1 = _mm512_mask_add_pd(t1, y, t1, td1);
+                t2 = _mm512_mask_add_pd(t2, z, t2, td2);
+                c0 = _mm256_mask_add_epi32(c0, x, c0, s0);
+                c1 = _mm256_mask_add_epi32(c1, y, c1, s1);
+                c2 = _mm256_mask_add_epi32(c2, z, c2, s2);
+                index = _mm256_mask_add_epi32(index, x, index, d0);
+                index = _mm256_mask_add_epi32(index, y, index, d1);
+                index = _mm256_mask_add_epi32(index, z, index, d2);
+                left = _mm256_sub_epi32(left, one);
+                let at_end = _mm256_cmpeq_epi32_mask(left, zero)
+                    & _mm256_cmpeq_epi32_mask(c0, e0)
+                    & _mm256_cmpeq_epi32_mask(c1, e1)
+                    & _mm256_cmpeq_epi32_mask(c2, e2);
+                let t_min = _mm512_min_pd(_mm512_min_pd(t0, t1), t2);
+                let done = at_end | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(t_min, length);
+                let outside = _mm256_cmpge_epu32_mask(_mm256_sub_epi32(c0, lo[0]), n[0])
+                    | _mm256_cmpge_epu32_mask(_mm256_sub_epi32(c1, lo[1]), n[1])
+                    | _mm256_cmpge_epu32_mask(_mm256_sub_epi32(c2, lo[2]), n[2]);
+                if done | outside != 0 {
+                    break (u32::from(done), u32::from(outside));
+                }
+                _mm256_storeu_si256(marks.as_mut_ptr().cast(), index);
+                v.mark_lanes(&marks);
+            };
+            let st_t = |a: &mut [f64; LANES], r| _mm512_storeu_pd(a.as_mut_ptr(), r);
+            let st_i = |a: &mut [i32; LANES], r| _mm256_storeu_si256(a.as_mut_ptr().cast(), r);
+            st_t(&mut lanes.t[0], t0);
+            st_t(&mut lanes.t[1], t1);
+            st_t(&mut lanes.t[2], t2);
+            st_i(&mut lanes.c[0], c0);
+            st_i(&mut lanes.c[1], c1);
+            st_i(&mut lanes.c[2], c2);
+            st_i(&mut lanes.index, index);
+            _mm256_storeu_si256(lanes.left.as_mut_ptr().cast(), left);
+            (done, outside)
+        }
     }
 
     pub(super) fn walk_lanes_avx2<V: LaneVisitor>(
@@ -457,13 +548,36 @@ fn walk_lanes_portable<V: LaneVisitor>(
     g: &PlaneGeometry,
     v: &mut V,
 ) {
+    let (lanes, active) = start_lanes(&mut rays, g, v);
+    finish_lanes(lanes, active, rays, g, v)
+}
+
+/// Fills every lane it can; returns the lanes and the mask of those holding a ray.
+#[inline(always)]
+fn start_lanes<V: LaneVisitor>(
+    rays: &mut impl Iterator<Item = (u32, RaySetup)>,
+    g: &PlaneGeometry,
+    v: &mut V,
+) -> (Lanes, u32) {
     let mut lanes = Lanes::new();
     let mut active = 0u32;
     for j in 0..LANES {
-        if refill(&mut rays, &mut lanes, j, g, v) {
+        if refill(rays, &mut lanes, j, g, v) {
             active |= 1 << j;
         }
     }
+    (lanes, active)
+}
+
+/// Steps the lanes until every ray is walked.
+#[inline(always)]
+fn finish_lanes<V: LaneVisitor>(
+    mut lanes: Lanes,
+    mut active: u32,
+    mut rays: impl Iterator<Item = (u32, RaySetup)>,
+    g: &PlaneGeometry,
+    v: &mut V,
+) {
     while active != 0 {
         // A constant per visitor type: the unused plane arithmetic is compiled out.
         let (done, outside) = lanes.advance(g, V::PLANE);
@@ -471,25 +585,40 @@ fn walk_lanes_portable<V: LaneVisitor>(
             v.mark_lanes(&lanes.index);
             continue;
         }
-        let mut finished = done & active;
-        for j in 0..LANES {
-            if (active & !done) >> j & 1 != 0 {
-                let inside = outside >> j & 1 == 0;
-                if !v.voxel(j, lanes.ray[j], lanes.key(j), lanes.index[j], inside) {
-                    finished |= 1 << j;
-                }
-            } else if finished >> j & 1 != 0 {
-                v.end(lanes.ray[j], lanes.key_end(j));
+        active = settle(&mut lanes, active, (done, outside), &mut rays, g, v);
+    }
+}
+
+/// After a step: gives `v` each walking lane's voxel and each finished ray's end, and refills
+/// the finished lanes. Returns the lanes still holding a ray.
+#[inline(always)]
+fn settle<V: LaneVisitor>(
+    lanes: &mut Lanes,
+    mut active: u32,
+    (done, outside): (u32, u32),
+    rays: &mut impl Iterator<Item = (u32, RaySetup)>,
+    g: &PlaneGeometry,
+    v: &mut V,
+) -> u32 {
+    let mut finished = done & active;
+    for j in 0..LANES {
+        if (active & !done) >> j & 1 != 0 {
+            let inside = outside >> j & 1 == 0;
+            if !v.voxel(j, lanes.ray[j], lanes.key(j), lanes.index[j], inside) {
+                finished |= 1 << j;
             }
-        }
-        while finished != 0 {
-            let j = finished.trailing_zeros() as usize;
-            finished &= finished - 1;
-            if !refill(&mut rays, &mut lanes, j, g, v) {
-                active &= !(1 << j);
-            }
+        } else if finished >> j & 1 != 0 {
+            v.end(lanes.ray[j], lanes.key_end(j));
         }
     }
+    while finished != 0 {
+        let j = finished.trailing_zeros() as usize;
+        finished &= finished - 1;
+        if !refill(rays, lanes, j, g, v) {
+            active &= !(1 << j);
+        }
+    }
+    active
 }
 
 /// Puts the next ray whose origin voxel does not stop it into lane `j`; false when none is left.

@@ -415,6 +415,34 @@ impl<'a> GainEvaluator<'a> {
         if self.fan_in_camera.is_empty() {
             return 0.0;
         }
+        if self.proximity.is_some() {
+            return self.gain_ray_by_ray(world_from_camera);
+        }
+        // U_U weighs every unknown voxel 1: the map's batch walk counts them for the whole fan
+        // (the same voxels as `walk_ray`, so the same sum in the same order).
+        let camera_in_world = Point3::from(world_from_camera.translation.vector);
+        let directions: Vec<Vector3<f64>> = self
+            .fan_in_camera
+            .iter()
+            .map(|d| world_from_camera.rotation * d)
+            .collect();
+        let counts =
+            self.map
+                .count_unknown_until_occupied(&camera_in_world, &directions, self.ray_range_m);
+        let total = counts
+            .iter()
+            .filter(|c| c.visited > 0)
+            .fold(0.0, |total, c| {
+                total + f64::from(c.unknown) / f64::from(c.visited)
+            });
+        total / self.fan_in_camera.len() as f64
+    }
+
+    /// [`GainEvaluator::gain`] walking the fan ray by ray (any gain kind).
+    pub fn gain_ray_by_ray(&self, world_from_camera: &Isometry3<f64>) -> f64 {
+        if self.fan_in_camera.is_empty() {
+            return 0.0;
+        }
         let camera_in_world = Point3::from(world_from_camera.translation.vector);
         let mut total = 0.0;
         for dir_in_camera in &self.fan_in_camera {

@@ -202,6 +202,30 @@ fn unobserved_gain_is_one_into_unknown_and_zero_into_known_free() {
 }
 
 #[test]
+fn unobserved_gain_of_the_batch_walk_equals_the_ray_by_ray_walk() {
+    // Known free, occupied and unknown boxes around the camera, looked at from many directions.
+    let mut map = empty_map();
+    set_box(&mut map, k(-30, -30, 70), k(29, 29, 129), -0.4, 0.0);
+    set_box(&mut map, k(12, -8, 90), k(14, 8, 110), 2.0, 0.0);
+    set_box(&mut map, k(-20, 5, 95), k(-18, 25, 125), 0.9, 0.0);
+    set_box(&mut map, k(0, -25, 80), k(6, -20, 84), -2.0, 0.0);
+    let config = PlannerConfig::default();
+    let evaluator = GainEvaluator::new(&map, &config);
+    let eye = Point3::new(0.0031, -0.0127, 1.0049);
+    let mut gains = Vec::new();
+    for (i, &x) in [1.0, -1.0, 0.3, 0.0].iter().enumerate() {
+        for &y in &[0.0, 0.7, -0.2] {
+            let pose = look_along(&eye, &Vector3::new(x, y, 0.1 * i as f64 - 0.1));
+            let batch = evaluator.gain(&pose);
+            assert_eq!(batch.to_bits(), evaluator.gain_ray_by_ray(&pose).to_bits());
+            gains.push(batch);
+        }
+    }
+    // The poses see different mixes of known and unknown voxels.
+    assert!(gains.iter().any(|&g| g > 0.2) && gains.iter().any(|&g| g < 0.9));
+}
+
+#[test]
 fn fan_is_cast_around_the_optical_axis() {
     // Known free column above the camera, unknown everywhere else.
     let mut map = empty_map();

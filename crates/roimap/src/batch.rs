@@ -4,7 +4,7 @@
 
 use nalgebra::{Point3, Vector3};
 
-use crate::grid::{block_of, local_of, mask_test, Block};
+use crate::grid::{block_of, local_of, mask_test, Block, Mask, BLOCK_SHIFT};
 use crate::walk::{walk_lanes, LaneVisitor, PlaneGeometry, RaySetup, KEY_LIMIT, LANES};
 use crate::{RoiMap, Voxel, VoxelKey};
 
@@ -114,7 +114,8 @@ impl RoiMap {
     /// The unobserved-voxel count of a ray fan (paper eq. 1's U_U terms): along each ray from
     /// `origin`, the voxels [`RoiMap::walk_ray`] visits up to and including the first occupied
     /// one, and how many of them are unknown. One entry per direction; equal to counting with
-    /// `walk_ray` ray by ray.
+    /// `walk_ray` ray by ray. The fan's known and occupied masks are first copied into two
+    /// dense bit planes over the box its rays span, so each voxel is two bit tests.
     pub fn count_unknown_until_occupied(
         &self,
         origin: &Point3<f64>,
@@ -123,17 +124,21 @@ impl RoiMap {
     ) -> Vec<RayCount> {
         let mut counts = vec![RayCount::default(); directions.len()];
         let mut cache = BlockCache::new(self);
-        self.walk_batch(origin, directions, max_range_m, |lane, ray, key| {
-            let l = local_of(key);
-            let (known, occupied) = cache.block(lane, key).map_or((false, false), |b| {
-                (mask_test(&b.known, l), mask_test(&b.occupied, l))
-            });
-            if let Some(c) = counts.get_mut(ray) {
-                c.visited += 1;
-                c.unknown += u32::from(!known);
-            }
-            !occupied
+        let mut singles = Vec::new();
+        let setups = self.fan_setups(origin, directions, max_range_m, |ray, key| {
+            singles.push((ray, key))
         });
+        let planes = FanPlanes::new(self, &setups);
+        let mut counter = UnknownCounter {
+            planes: &planes,
+            cache: &mut cache,
+            counts: &mut counts,
+            lane_ray: [0; LANES],
+        };
+        for (ray, key) in singles {
+            counter.count(ray as u32, key, None);
+        }
+        walk_lanes(setups.into_iter(), &planes.geometry, &mut counter);
         counts
     }
 
@@ -146,36 +151,210 @@ impl RoiMap {
         max_range_m: f64,
         mut probe: impl FnMut(usize, usize, VoxelKey) -> bool,
     ) {
+        let setups = self.fan_setups(origin, directions, max_range_m, |ray, key| {
+            probe(LANES, ray, key);
+        });
+        walk_lanes(
+            setups.into_iter(),
+            &PlaneGeometry::unbounded(),
+            &mut Probe(probe),
+        );
+    }
+}
+
+impl RoiMap {
+    /// The walks of a ray fan: one set-up per direction with a walk; `single(ray, key)` for each
+    /// direction that visits one voxel only (not a finite direction, or its end in the origin's
+    /// voxel), as `walk_ray` does. None for an origin off the map's keys or a bad range.
+    fn fan_setups(
+        &self,
+        origin: &Point3<f64>,
+        directions: &[Vector3<f64>],
+        max_range_m: f64,
+        mut single: impl FnMut(usize, VoxelKey),
+    ) -> Vec<(u32, RaySetup)> {
         let Some(key_origin) = self.try_key_of(origin) else {
-            return;
+            return Vec::new();
         };
         if !(max_range_m.is_finite() && max_range_m >= 0.0) {
-            return;
+            return Vec::new();
         }
         let res = self.config.resolution_m;
         let range_m = max_range_m.min(KEY_LIMIT as f64 * res);
-        // Rays with a walk go to the lanes; the others visit one voxel here, as walk_ray does.
         let mut setups = Vec::with_capacity(directions.len());
         for (ray, direction) in directions.iter().enumerate() {
             let Some(unit) = direction
                 .try_normalize(1e-12)
                 .filter(|d| d.iter().all(|c| c.is_finite()))
             else {
-                probe(LANES, ray, key_origin);
+                single(ray, key_origin);
                 continue;
             };
             let key_end = self.key_of(&(origin + unit * range_m));
             match RaySetup::exact(origin, &unit, range_m, key_origin, key_end, res) {
                 Some(s) => setups.push((ray as u32, s)),
-                None => {
-                    probe(LANES, ray, key_end);
+                None => single(ray, key_end),
+            }
+        }
+        setups
+    }
+}
+
+/// Voxels of a fan's dense planes at most (two bits each): larger fans keep to the block cache.
+const FAN_PLANE_VOXELS: u64 = 1 << 25;
+
+/// The known and occupied masks over the block-aligned box a fan's rays span (origin and end
+/// voxels, one voxel of margin), x fastest, as the lane walk indexes them.
+struct FanPlanes {
+    geometry: PlaneGeometry,
+    known: Vec<u64>,
+    occupied: Vec<u64>,
+}
+
+impl FanPlanes {
+    fn new(map: &RoiMap, setups: &[(u32, RaySetup)]) -> Self {
+        let empty = Self {
+            geometry: PlaneGeometry::default(),
+            known: Vec::new(),
+            occupied: Vec::new(),
+        };
+        let Some((_, first)) = setups.first() else {
+            return empty;
+        };
+        let o = first.key_origin;
+        let (mut lo, mut hi) = ([o.x, o.y, o.z], [o.x, o.y, o.z]);
+        for (_, s) in setups {
+            let e = [s.key_end.x, s.key_end.y, s.key_end.z];
+            for i in 0..3 {
+                lo[i] = lo[i].min(e[i]);
+                hi[i] = hi[i].max(e[i]);
+            }
+        }
+        let block_lo = lo.map(|k| (k - 1) >> BLOCK_SHIFT);
+        let block_hi = hi.map(|k| (k + 1) >> BLOCK_SHIFT);
+        let nb = [0, 1, 2].map(|i| (block_hi[i] - block_lo[i] + 1) as u32);
+        let voxels = nb.iter().map(|&n| u64::from(n) * 8).product::<u64>();
+        if voxels > FAN_PLANE_VOXELS {
+            return empty;
+        }
+        let Some(geometry) =
+            PlaneGeometry::new(block_lo.map(|b| b << BLOCK_SHIFT), nb.map(|n| n * 8))
+        else {
+            return empty;
+        };
+        let mut planes = Self {
+            geometry,
+            known: vec![0; voxels.div_ceil(64) as usize],
+            occupied: vec![0; voxels.div_ceil(64) as usize],
+        };
+        for bz in 0..nb[2] as i32 {
+            for by in 0..nb[1] as i32 {
+                for bx in 0..nb[0] as i32 {
+                    let bk = VoxelKey::new(block_lo[0] + bx, block_lo[1] + by, block_lo[2] + bz);
+                    if let Some(block) = map.store.find(bk) {
+                        planes.scatter([bx, by, bz].map(|b| b as usize), block);
+                    }
                 }
             }
         }
-        walk_lanes(
-            setups.into_iter(),
-            &PlaneGeometry::unbounded(),
-            &mut Probe(probe),
+        planes
+    }
+
+    /// Copies one block's masks into the planes (`b`: the block's place in the box, in blocks).
+    fn scatter(&mut self, b: [usize; 3], block: &Block) {
+        let (nx, ny) = (self.geometry.n[0] as usize, self.geometry.n[1] as usize);
+        for z in 0..8 {
+            for y in 0..8 {
+                // A block's row of eight voxels is one byte of the plane (the box is block
+                // aligned).
+                let bit = nx * (b[1] * 8 + y + ny * (b[2] * 8 + z)) + b[0] * 8;
+                let (word, shift) = (bit >> 6, bit & 63);
+                let row = |m: &Mask| (m[z] >> (y * 8)) & 0xff;
+                if let (Some(k), Some(o)) = (self.known.get_mut(word), self.occupied.get_mut(word))
+                {
+                    *k |= row(&block.known) << shift;
+                    *o |= row(&block.occupied) << shift;
+                }
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn test(plane: &[u64], index: i32) -> bool {
+        let i = index as u32 as usize;
+        plane.get(i >> 6).is_some_and(|w| w >> (i & 63) & 1 == 1)
+    }
+}
+
+/// [`RoiMap::count_unknown_until_occupied`]'s visitor: counts each ray's voxels and unknown
+/// ones, stops a ray at its first occupied voxel; voxels in the planes are two bit tests, the
+/// others go through the block cache.
+struct UnknownCounter<'a, 'm> {
+    planes: &'a FanPlanes,
+    cache: &'a mut BlockCache<'m>,
+    counts: &'a mut [RayCount],
+    /// The ray each lane walks (set when its origin voxel is visited).
+    lane_ray: [u32; LANES],
+}
+
+impl UnknownCounter<'_, '_> {
+    /// Counts voxel `key` of `ray` (`index`: its bit in the planes, if inside); returns whether
+    /// it is occupied.
+    #[inline(always)]
+    fn count(&mut self, ray: u32, key: VoxelKey, index: Option<i32>) -> bool {
+        let (known, occupied) = match index {
+            Some(i) => (
+                FanPlanes::test(&self.planes.known, i),
+                FanPlanes::test(&self.planes.occupied, i),
+            ),
+            None => self.cache.block(LANES, key).map_or((false, false), |b| {
+                let l = local_of(key);
+                (mask_test(&b.known, l), mask_test(&b.occupied, l))
+            }),
+        };
+        if let Some(c) = self.counts.get_mut(ray as usize) {
+            c.visited += 1;
+            c.unknown += u32::from(!known);
+        }
+        occupied
+    }
+}
+
+impl LaneVisitor for UnknownCounter<'_, '_> {
+    const WHOLE_STEPS: bool = true;
+
+    #[inline(always)]
+    fn mark_lanes(&mut self, index: &[i32; LANES]) -> bool {
+        if index
+            .iter()
+            .any(|&i| FanPlanes::test(&self.planes.occupied, i))
+        {
+            return false;
+        }
+        for (&i, &ray) in index.iter().zip(&self.lane_ray) {
+            if let Some(c) = self.counts.get_mut(ray as usize) {
+                c.visited += 1;
+                c.unknown += u32::from(!FanPlanes::test(&self.planes.known, i));
+            }
+        }
+        true
+    }
+
+    #[inline(always)]
+    fn voxel(&mut self, lane: usize, ray: u32, c: [i32; 3], index: i32, inside: bool) -> bool {
+        if let Some(r) = self.lane_ray.get_mut(lane) {
+            *r = ray;
+        }
+        let key = VoxelKey::new(c[0], c[1], c[2]);
+        !self.count(ray, key, inside.then_some(index))
+    }
+
+    fn end(&mut self, ray: u32, key_end: [i32; 3]) {
+        let index = self.planes.geometry.index(key_end).map(|i| i as i32);
+        self.count(
+            ray,
+            VoxelKey::new(key_end[0], key_end[1], key_end[2]),
+            index,
         );
     }
 }

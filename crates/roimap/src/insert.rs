@@ -86,16 +86,17 @@ pub(crate) struct FreeMarker<'a> {
 }
 
 impl LaneVisitor for FreeMarker<'_> {
-    const MARKS_ONLY: bool = true;
+    const WHOLE_STEPS: bool = true;
 
     #[inline(always)]
-    fn mark_lanes(&mut self, index: &[i32; LANES]) {
+    fn mark_lanes(&mut self, index: &[i32; LANES]) -> bool {
         for &i in index {
             let i = i as u32 as usize;
             if let Some(w) = self.free.get_mut(i >> 6) {
                 *w |= 1 << (i & 63);
             }
         }
+        true
     }
 
     #[inline(always)]

@@ -242,12 +242,15 @@ impl PlaneGeometry {
 pub(crate) trait LaneVisitor {
     /// False when the visitor ignores bit indices and boxes (the walk then skips them).
     const PLANE: bool = true;
-    /// True when [`LaneVisitor::voxel`] only marks the bit index of voxels inside the box and
-    /// never stops a ray: steps where every lane is busy and inside then go to
+    /// True when steps where every lane is busy and inside the box may go to
     /// [`LaneVisitor::mark_lanes`] in one call, without the per-lane bookkeeping.
-    const MARKS_ONLY: bool = false;
-    /// One step of all [`LANES`] lanes, every voxel inside the plane (only with `MARKS_ONLY`).
-    fn mark_lanes(&mut self, _index: &[i32; LANES]) {}
+    const WHOLE_STEPS: bool = false;
+    /// One step of all [`LANES`] lanes, every voxel inside the plane (only with `WHOLE_STEPS`):
+    /// does what [`LaneVisitor::voxel`] would do for each lane and returns true, or, when a lane
+    /// would stop its ray, does nothing and returns false (the lanes then go to `voxel`).
+    fn mark_lanes(&mut self, _index: &[i32; LANES]) -> bool {
+        false
+    }
     /// Voxel `c` of ray `ray`, walked in lane `lane`; `index` is its bit index in the plane when
     /// `inside` the plane's box. Returns false to stop the ray (no [`LaneVisitor::end`] then).
     fn voxel(&mut self, lane: usize, ray: u32, c: [i32; 3], index: i32, inside: bool) -> bool;
@@ -429,7 +432,7 @@ mod x86 {
         g: &PlaneGeometry,
         v: &mut V,
     ) {
-        if !(V::MARKS_ONLY && V::PLANE) {
+        if !(V::WHOLE_STEPS && V::PLANE) {
             return walk_lanes_portable(rays, g, v);
         }
         // While every lane holds a ray, the steps run in registers (`clean_steps`); the last
@@ -442,10 +445,10 @@ mod x86 {
         finish_lanes(lanes, active, rays, g, v)
     }
 
-    /// [`Lanes::advance`] with the lanes held in AVX-512 registers: steps every lane and marks
-    /// the eight voxels with [`LaneVisitor::mark_lanes`] for as long as no lane is done or
-    /// outside the plane; returns the (done, outside) masks of the first step where one is, as
-    /// `advance` does, with the lanes stored back. The same `f64` operations as `advance`: a
+    /// [`Lanes::advance`] with the lanes held in AVX-512 registers: steps every lane and gives
+    /// the eight voxels to [`LaneVisitor::mark_lanes`] for as long as no lane is done or outside
+    /// the plane and the visitor takes the whole step; returns the (done, outside) masks of the
+    /// first step where that fails, as `advance` does, with the lanes stored back. The same `f64` operations as `advance`: a
     /// compare for each of its `<`, a masked add where it adds `td` or `+0.0`, `min` as its
     /// `if a < b { a } else { b }`.
     #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2")]
@@ -507,7 +510,9 @@ mod x86 {
                     break (u32::from(done), u32::from(outside));
                 }
                 _mm256_storeu_si256(marks.as_mut_ptr().cast(), index);
-                v.mark_lanes(&marks);
+                if !v.mark_lanes(&marks) {
+                    break (0, 0);
+                }
             };
             let st_t = |a: &mut [f64; LANES], r| _mm512_storeu_pd(a.as_mut_ptr(), r);
             let st_i = |a: &mut [i32; LANES], r| _mm256_storeu_si256(a.as_mut_ptr().cast(), r);
@@ -581,8 +586,11 @@ fn finish_lanes<V: LaneVisitor>(
     while active != 0 {
         // A constant per visitor type: the unused plane arithmetic is compiled out.
         let (done, outside) = lanes.advance(g, V::PLANE);
-        if V::MARKS_ONLY && active == ALL_LANES && done | outside == 0 {
-            v.mark_lanes(&lanes.index);
+        if V::WHOLE_STEPS
+            && active == ALL_LANES
+            && done | outside == 0
+            && v.mark_lanes(&lanes.index)
+        {
             continue;
         }
         active = settle(&mut lanes, active, (done, outside), &mut rays, g, v);

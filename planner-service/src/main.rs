@@ -26,7 +26,7 @@ struct Cli {
     /// Planner seed (views are seeded from it and the frame sequence).
     #[arg(long)]
     seed: Option<u64>,
-    /// Clouds a standby replica keeps before it asks the owner for a snapshot (default 4; a
+    /// Clouds a standby replica keeps before it asks the owner for a snapshot (default 8; a
     /// takeover integrates at most this many); 0 makes replicas integrate every cloud.
     #[arg(long)]
     replica_refresh_clouds: Option<usize>,

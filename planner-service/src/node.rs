@@ -281,7 +281,7 @@ pub struct PlannerNode {
 
 /// Clouds a standby replica holds before it asks its owner for a snapshot (the default of
 /// [`PlannerNode::with_replica_refresh`]): a takeover integrates at most this many.
-pub const REPLICA_REFRESH_CLOUDS: usize = 4;
+pub const REPLICA_REFRESH_CLOUDS: usize = 8;
 
 fn describe(a: &Option<Assignment>) -> String {
     match a {

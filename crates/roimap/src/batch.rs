@@ -312,11 +312,17 @@ impl UnknownCounter<'_, '_> {
                 (mask_test(&b.known, l), mask_test(&b.occupied, l))
             }),
         };
+        self.tally(ray, known);
+        occupied
+    }
+
+    /// One more voxel of `ray`, unknown unless `known`.
+    #[inline(always)]
+    fn tally(&mut self, ray: u32, known: bool) {
         if let Some(c) = self.counts.get_mut(ray as usize) {
             c.visited += 1;
             c.unknown += u32::from(!known);
         }
-        occupied
     }
 }
 
@@ -331,11 +337,8 @@ impl LaneVisitor for UnknownCounter<'_, '_> {
         {
             return false;
         }
-        for (&i, &ray) in index.iter().zip(&self.lane_ray) {
-            if let Some(c) = self.counts.get_mut(ray as usize) {
-                c.visited += 1;
-                c.unknown += u32::from(!FanPlanes::test(&self.planes.known, i));
-            }
+        for (&i, ray) in index.iter().zip(self.lane_ray) {
+            self.tally(ray, FanPlanes::test(&self.planes.known, i));
         }
         true
     }

@@ -448,9 +448,9 @@ mod x86 {
     /// [`Lanes::advance`] with the lanes held in AVX-512 registers: steps every lane and gives
     /// the eight voxels to [`LaneVisitor::mark_lanes`] for as long as no lane is done or outside
     /// the plane and the visitor takes the whole step; returns the (done, outside) masks of the
-    /// first step where that fails, as `advance` does, with the lanes stored back. The same `f64` operations as `advance`: a
-    /// compare for each of its `<`, a masked add where it adds `td` or `+0.0`, `min` as its
-    /// `if a < b { a } else { b }`.
+    /// first step where that fails, as `advance` does, with the lanes stored back. The same
+    /// `f64` operations as `advance`: a compare for each of its `<`, a masked add where it adds
+    /// `td` or `+0.0`, `min` as its `if a < b { a } else { b }`.
     #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2")]
     fn clean_steps<V: LaneVisitor>(lanes: &mut Lanes, g: &PlaneGeometry, v: &mut V) -> (u32, u32) {
         use std::arch::x86_64::*;

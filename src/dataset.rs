@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use glasshouse_geom::look_at;
-use glasshouse_sim::{CameraModel, FruitColour, ScenarioKind, Scene};
+use glasshouse_sim::{CameraModel, FruitColour, ScenarioKind, Scene, SceneOptions};
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -24,7 +24,8 @@ pub struct DatasetArgs {
     /// Scenarios the frames cycle through (comma-separated: 1, 2, row).
     #[arg(long, default_value = "1,2,row")]
     pub scenarios: String,
-    /// Fruit colours the frames alternate between (comma-separated: red, green).
+    /// Fruit colours the frames alternate between (comma-separated: red, green, leaf-green);
+    /// they override the world's fruit colour.
     #[arg(long, default_value = "red,green")]
     pub fruit_colours: String,
     /// First scene seed; each frame's scene seed is this plus the frame index divided by the
@@ -34,6 +35,9 @@ pub struct DatasetArgs {
     /// Image width in pixels (height is 3/4 of it).
     #[arg(long, default_value_t = 320)]
     pub width: u32,
+    /// The simulated world the frames are rendered in (light, clutter, fruit shape, depth).
+    #[command(flatten)]
+    pub world: glasshouse_edge::WorldArgs,
 }
 
 /// One frame's scene and camera.
@@ -61,6 +65,7 @@ where
 pub fn run(args: DatasetArgs) -> anyhow::Result<()> {
     let scenarios: Vec<ScenarioKind> = parse_list("--scenarios", &args.scenarios)?;
     let colours: Vec<FruitColour> = parse_list("--fruit-colours", &args.fruit_colours)?;
+    let world = args.world.settings()?;
     if args.frames == 0 || args.frames > 10_000 {
         bail!("--frames {} is out of range 1..=10000", args.frames);
     }
@@ -82,11 +87,15 @@ pub fn run(args: DatasetArgs) -> anyhow::Result<()> {
             fruit_colour: colours[frame as usize % colours.len()],
             scene_seed: args.seed + frame / combos,
         };
-        let scene = Scene::generate_with_fruit(spec.scenario, spec.scene_seed, spec.fruit_colour);
+        let options = SceneOptions {
+            fruit_colour: spec.fruit_colour,
+            ..world.scene
+        };
+        let scene = Scene::generate_with(spec.scenario, spec.scene_seed, &options);
         // Twins (same geometry, other colour) also share the view.
         let view_seed = args.seed ^ (frame / colours.len() as u64).wrapping_mul(0x9e37_79b9);
         let world_from_camera = random_view(&scene, view_seed);
-        let image = scene.render(&camera, &world_from_camera, view_seed);
+        let image = scene.render_with(&camera, &world_from_camera, view_seed, &world.perception);
         let label = scene.fruit_label_image(&camera, &world_from_camera);
         fruit_pixels += label.iter().filter(|&&l| l == 1).count();
         rgb.extend_from_slice(&image.rgb);

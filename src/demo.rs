@@ -109,8 +109,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         max_views: args.views.max(1),
         width: args.width,
         height: args.width * 3 / 4,
-        perception_noise: args.perception.noise()?,
-        fruit_colour: args.perception.fruit_colour,
+        world: args.perception.world()?,
         ..EdgeConfig::default()
     };
     edge_config.validate()?;

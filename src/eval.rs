@@ -32,23 +32,14 @@ use glasshouse_eval::report::{self, method_label, MethodRuns};
 use glasshouse_eval::{run_trial_with, ComputeTime, TrialConfig, TrialResult};
 use glasshouse_eval::{RoiEvidence, RoiTargets};
 use glasshouse_nbv::Method;
-use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind, MAX_SILHOUETTE_PX};
+use glasshouse_sim::{ScenarioKind, WorldSettings};
 use indicatif::{ProgressBar, ProgressStyle};
 
-/// The simulated detector's errors (`demo` and `eval`).
+/// The simulated world and the detector (`demo` and `eval`).
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct PerceptionArgs {
-    /// Detector label noise: probability in [0, 1] that each pixel's fruit/non-fruit label
-    /// flips (0 = the perfect colour detector).
-    #[arg(long, value_name = "P", default_value_t = 0.0)]
-    pub label_noise: f64,
-    /// Depth artefacts at plant silhouettes: band width in pixels where depth goes missing or
-    /// mixes foreground and background (0 = none, at most 8).
-    #[arg(long, value_name = "PX", default_value_t = 0)]
-    pub silhouette_px: u32,
-    /// Colour of the simulated fruit: red (ripe, what the HSI rule finds) or green (unripe).
-    #[arg(long, value_name = "COLOUR", default_value_t = FruitColour::Red)]
-    pub fruit_colour: FruitColour,
+    #[command(flatten)]
+    pub world: glasshouse_edge::WorldArgs,
     /// Label fruit with this ONNX segmentation model (detector-service/model/) instead of
     /// the HSI colour rule.
     #[arg(long, value_name = "FILE")]
@@ -56,23 +47,9 @@ pub struct PerceptionArgs {
 }
 
 impl PerceptionArgs {
-    /// The noise these flags ask for, or an error naming the flag out of range.
-    pub fn noise(&self) -> anyhow::Result<PerceptionNoise> {
-        let noise = PerceptionNoise {
-            label_noise: self.label_noise,
-            silhouette_px: self.silhouette_px,
-        };
-        ensure!(
-            (0.0..=1.0).contains(&noise.label_noise),
-            "--label-noise must be a probability in [0, 1], got {}",
-            noise.label_noise
-        );
-        ensure!(
-            noise.silhouette_px <= MAX_SILHOUETTE_PX,
-            "--silhouette-px must be 0..={MAX_SILHOUETTE_PX}, got {}",
-            noise.silhouette_px
-        );
-        Ok(noise)
+    /// The world these flags ask for, or an error naming the setting out of range.
+    pub fn world(&self) -> anyhow::Result<WorldSettings> {
+        self.world.settings()
     }
 
     /// The detector these flags ask for: the model of --fruit-model, else the HSI rule.
@@ -135,7 +112,7 @@ struct Plan {
     methods: Vec<Method>,
     compute_time: ComputeTime,
     jobs: usize,
-    perception_noise: PerceptionNoise,
+    world: WorldSettings,
     fruit_detector: Arc<dyn FruitDetector>,
 }
 
@@ -176,7 +153,7 @@ fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
         methods,
         compute_time,
         jobs,
-        perception_noise: args.perception.noise()?,
+        world: args.perception.world()?,
         fruit_detector: args.perception.fruit_detector()?,
     })
 }
@@ -218,8 +195,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "motion": "arm",
         "width": args.width,
         "height": height,
-        "perception_noise": plan.perception_noise,
-        "fruit_colour": args.perception.fruit_colour,
+        "world": plan.world,
         "roi_evidence": args.roi_evidence,
         "roi_targets": args.roi_targets,
         "detector": plan.fruit_detector.name(),
@@ -269,8 +245,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 height,
                 budget_s: args.budget_s,
                 compute_time: plan.compute_time,
-                perception_noise: plan.perception_noise,
-                fruit_colour: args.perception.fruit_colour,
+                world: plan.world,
                 roi_evidence: args.roi_evidence,
                 roi_targets: args.roi_targets,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
@@ -558,15 +533,21 @@ mod tests {
             },
             EvalArgs {
                 perception: PerceptionArgs {
-                    label_noise: 1.5,
+                    world: glasshouse_edge::WorldArgs {
+                        label_noise: Some(1.5),
+                        ..Default::default()
+                    },
                     ..PerceptionArgs::default()
                 },
                 ..args(out.clone())
             },
             EvalArgs {
                 perception: PerceptionArgs {
-                    label_noise: 0.3,
-                    silhouette_px: 9,
+                    world: glasshouse_edge::WorldArgs {
+                        label_noise: Some(0.3),
+                        silhouette_px: Some(9),
+                        ..Default::default()
+                    },
                     ..PerceptionArgs::default()
                 },
                 ..args(out.clone())

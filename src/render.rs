@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use glasshouse_geom::look_along;
-use glasshouse_sim::{CameraModel, FruitColour, RgbdImage, ScenarioKind, Scene};
+use glasshouse_sim::{CameraModel, RgbdImage, ScenarioKind, Scene};
 use nalgebra::{Isometry3, Point3, Vector3};
 
 #[derive(clap::Args, Debug)]
@@ -18,9 +18,8 @@ pub struct RenderArgs {
     /// Scene seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Colour of the fruit: red (ripe) or green (unripe).
-    #[arg(long, value_name = "COLOUR", default_value_t = FruitColour::Red)]
-    pub fruit_colour: FruitColour,
+    #[command(flatten)]
+    pub world: glasshouse_edge::WorldArgs,
     /// Camera pose `x,y,z,yaw,pitch` (metres in the world frame, z up; degrees: yaw about +z
     /// from +x, pitch up from the horizontal). Default: the scenario's initial camera pose.
     #[arg(long, value_name = "X,Y,Z,YAW,PITCH", allow_hyphen_values = true)]
@@ -64,14 +63,17 @@ pub fn run(args: RenderArgs) -> anyhow::Result<()> {
     if args.width < 4 || args.width > 4096 {
         bail!("--width {} is out of range 4..=4096", args.width);
     }
-    let scene = Scene::generate_with_fruit(kind, args.seed, args.fruit_colour);
+    let world = args.world.settings()?;
+    let scene = Scene::generate_with(kind, args.seed, &world.scene);
     let world_from_camera = match &args.camera {
         Some(text) => parse_camera(text)?,
         None => scene.initial_camera_pose(),
     };
     let camera = CameraModel::with_resolution(args.width, args.width * 3 / 4);
     let started = Instant::now();
-    let image = scene.render(&camera, &world_from_camera, args.seed);
+    // The camera sits where the hand-eye error puts it, not where the pose says.
+    let truth = world_from_camera * world.pose.believed_camera_from_true(args.seed);
+    let image = scene.render_with(&camera, &truth, args.seed, &world.perception);
     let render_ms = started.elapsed().as_secs_f64() * 1e3;
 
     let depth_path = depth_path_beside(&args.out);

@@ -8,6 +8,8 @@
 //! capture time.
 
 pub mod source;
+mod world_args;
+pub use world_args::WorldArgs;
 
 use std::collections::{BTreeSet, VecDeque};
 use std::path::PathBuf;
@@ -28,7 +30,7 @@ use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{
     ArmState, FruitEstimates, Header, ImageEncoding, RgbdFrame, TrolleyInfo, TrolleyStatus,
 };
-use glasshouse_sim::{FruitColour, PerceptionNoise, ScenarioKind};
+use glasshouse_sim::{ScenarioKind, WorldSettings};
 use serde::Deserialize;
 use source::{FrameRecorder, ReplaySource};
 use tokio::time::Instant;
@@ -65,10 +67,9 @@ pub struct EdgeConfig {
     /// Wall-clock time at least between two captures (0: capture as soon as the last view is
     /// done). A real camera streams at a fixed rate; 200 ms paces a trolley at 5 frames/s.
     pub frame_interval_ms: u64,
-    /// Simulated detector label noise and silhouette depth artefacts (clean by default).
-    pub perception_noise: PerceptionNoise,
-    /// Colour of the simulated fruit: `red` (ripe, the default) or `green` (unripe).
-    pub fruit_colour: FruitColour,
+    /// The simulated world: camera noise and light, fruit shape and colour, red clutter, pose
+    /// errors (`{ perception: {..}, scene: {..}, pose: {..} }`; clean by default).
+    pub world: WorldSettings,
     /// Send frames compressed (lossless left delta + zstd per plane, ~10x smaller); false sends
     /// the raw planes, for readers that predate `ImageEncoding`.
     pub compress_frames: bool,
@@ -94,8 +95,7 @@ impl Default for EdgeConfig {
             replay_dir: None,
             record_frames_dir: None,
             frame_interval_ms: 0,
-            perception_noise: PerceptionNoise::default(),
-            fruit_colour: FruitColour::Red,
+            world: WorldSettings::default(),
             compress_frames: true,
             realtime: false,
         }
@@ -131,8 +131,7 @@ impl EdgeConfig {
     pub fn sim(&self) -> SimTrolleySettings {
         let size = (self.width, self.height);
         SimTrolleySettings {
-            perception_noise: self.perception_noise,
-            fruit_colour: self.fruit_colour,
+            world: self.world,
             ..SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
         }
     }

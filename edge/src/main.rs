@@ -11,9 +11,9 @@ use glasshouse_edge::EdgeConfig;
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
 /// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir,
-/// perception_noise: { label_noise, silhouette_px }, fruit_colour, compress_frames, realtime),
-/// then the flags
-/// below.
+/// world: { perception: {..}, scene: {..}, pose: {..} }, compress_frames, realtime), then the
+/// flags below (`--world` replaces the file's world with a preset, the other world flags
+/// override one part of it).
 #[derive(Parser, Debug)]
 #[command(name = "edge", version)]
 struct Cli {
@@ -45,18 +45,8 @@ struct Cli {
     /// Record every captured frame to this folder (for --replay).
     #[arg(long, value_name = "DIR")]
     record_frames: Option<PathBuf>,
-    /// Simulated detector label noise: probability in [0, 1] that each pixel's fruit/non-fruit
-    /// label flips (0 = the perfect colour detector).
-    #[arg(long, value_name = "P")]
-    label_noise: Option<f64>,
-    /// Simulated depth artefacts at plant silhouettes: band width in pixels where depth goes
-    /// missing or mixes foreground and background (0 = none, at most 8).
-    #[arg(long, value_name = "PX")]
-    silhouette_px: Option<u32>,
-    /// Colour of the simulated fruit: red (ripe, what the HSI rule finds) or green (unripe,
-    /// for a learned detector).
-    #[arg(long, value_name = "COLOUR")]
-    fruit_colour: Option<glasshouse_sim::FruitColour>,
+    #[command(flatten)]
+    world: glasshouse_edge::WorldArgs,
     /// Send (and record) frames uncompressed: 1.5 MB per 640x480 frame instead of ~0.13 MB, for
     /// readers that predate the frame encodings.
     #[arg(long)]
@@ -87,9 +77,7 @@ fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
     }
     set_flag(&mut c.replay_dir, cli.replay.map(Some));
     set_flag(&mut c.record_frames_dir, cli.record_frames.map(Some));
-    set_flag(&mut c.perception_noise.label_noise, cli.label_noise);
-    set_flag(&mut c.perception_noise.silhouette_px, cli.silhouette_px);
-    set_flag(&mut c.fruit_colour, cli.fruit_colour);
+    c.world = cli.world.apply_to(c.world)?;
     if cli.raw_frames {
         c.compress_frames = false;
     }

@@ -45,7 +45,7 @@ async fn first_green_cloud(did: &str, fruit_model: Option<PathBuf>) -> RoiCloud 
     let mut edge_config = test_edge_config(1);
     edge_config.scenario = ScenarioKind::Two;
     edge_config.seed = 11;
-    edge_config.fruit_colour = FruitColour::Green;
+    edge_config.world.scene.fruit_colour = FruitColour::Green;
     edge_config.width = 320;
     edge_config.height = 240;
     let edge = tokio::spawn(glasshouse_edge::run(

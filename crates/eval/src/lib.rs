@@ -21,8 +21,8 @@ pub mod trial;
 /// How detections enter the planner's map, an experiment's choice.
 pub use glasshouse_pipeline::{RoiEvidence, RoiTargets};
 pub use metrics::{
-    evaluate, greedy_match, time_to_detect_s, BoxEstimate, FruitCounts, Match, Metrics,
-    MATCH_DISTANCE_M,
+    evaluate, evaluate_against, greedy_match, time_to_detect_s, BoxEstimate, FruitCounts, Match,
+    Metrics, TruthMeasure, MATCH_DISTANCE_M,
 };
 pub use report::{Better, MethodRuns, DETECTED_SHARE, METRICS};
 pub use stats::{mann_whitney_u, mean_std, Alternative, MannWhitney, MeanStd};

@@ -25,10 +25,10 @@ use glasshouse_pipeline::{
     SimTrolley, SimTrolleySettings, TrolleyPlanner, TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame, RoiCloud, TrolleyInfo};
-use glasshouse_sim::{FruitColour, FruitTruth, PerceptionNoise, ScenarioKind, Scene};
+use glasshouse_sim::{FruitTruth, ScenarioKind, Scene, WorldSettings};
 use serde::Serialize;
 
-use crate::metrics::{evaluate, BoxEstimate, Metrics};
+use crate::metrics::{evaluate, evaluate_against, BoxEstimate, Metrics, TruthMeasure};
 
 /// Errors of a trial; configuration errors are found before anything runs.
 #[derive(thiserror::Error, Debug, Clone, PartialEq)]
@@ -71,10 +71,9 @@ pub struct TrialConfig {
     pub capture_time_s: f64,
     /// Row segments (the edge's default).
     pub segment_length_m: f64,
-    /// The simulated detector's label noise and silhouette depth artefacts (clean by default).
-    pub perception_noise: PerceptionNoise,
-    /// Ripe red fruit (the paper's scenes) or the unripe green variant.
-    pub fruit_colour: FruitColour,
+    /// The simulated world: camera noise and light, fruit shape and colour, red clutter, pose
+    /// errors (clean by default).
+    pub world: WorldSettings,
     /// How detections enter the map (the planner's default: labels).
     pub roi_evidence: RoiEvidence,
     /// Which ROI voxels ROI-targeted sampling aims at (the planner's default: patches).
@@ -94,8 +93,7 @@ impl TrialConfig {
             compute_time: ComputeTime::Measured,
             capture_time_s: glasshouse_arm::CAPTURE_TIME_S,
             segment_length_m: 1.0,
-            perception_noise: PerceptionNoise::default(),
-            fruit_colour: FruitColour::Red,
+            world: WorldSettings::default(),
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
         }
@@ -106,7 +104,7 @@ impl TrialConfig {
         if !((16..=1280).contains(&self.width) && (12..=960).contains(&self.height)) {
             return bad("image size outside 16x12..1280x960");
         }
-        if let Err(e) = self.perception_noise.validate() {
+        if let Err(e) = self.world.validate() {
             return bad(&e.to_string());
         }
         if !(self.budget_s.is_finite() && self.budget_s >= 0.0 && self.budget_s <= 86_400.0) {
@@ -154,8 +152,7 @@ impl TrialConfig {
     fn sim(&self) -> SimTrolleySettings {
         let size = (self.width, self.height);
         SimTrolleySettings {
-            perception_noise: self.perception_noise,
-            fruit_colour: self.fruit_colour,
+            world: self.world,
             ..SimTrolleySettings::new(self.scenario, self.seed, size, self.segment_length_m)
         }
     }
@@ -175,7 +172,8 @@ pub struct Sample {
     pub mean_confidence: f64,
     /// Metrics of the box estimates (the paper's).
     pub boxes: Metrics,
-    /// Metrics of the fitted estimates (their boxes and box volumes).
+    /// Metrics of the fitted estimates: their centres and solid volumes against the bodies'
+    /// own centres and volumes (their boxes for the covered volume).
     pub fitted: Metrics,
 }
 
@@ -186,7 +184,7 @@ fn box_estimate(record: &FruitRecord) -> BoxEstimate {
 
 fn fitted_estimate(record: &FruitRecord) -> BoxEstimate {
     let f = &record.fitted;
-    BoxEstimate::new(f.centre, f.box_min, f.box_max, f.box_volume_m3)
+    BoxEstimate::new(f.centre, f.box_min, f.box_max, f.volume_m3)
 }
 
 /// What a finished trial reports.
@@ -278,7 +276,7 @@ impl<S: TrolleySource> Trial<S> {
     pub fn with_source(config: TrialConfig, source: S) -> Result<Self, EvalError> {
         config.validate()?;
         let planning = config.planning();
-        let scene = Scene::generate_with_fruit(config.scenario, config.seed, config.fruit_colour);
+        let scene = Scene::generate_with(config.scenario, config.seed, &config.world.scene);
         let empty = Metrics::empty(scene.fruits(), planning.resolution_m);
         // One process on a simulated clock: boot epoch 0, and the one planner owns the trolley.
         let mut edge = EdgeNode::new(config.edge(), 0);
@@ -519,7 +517,7 @@ impl<S: TrolleySource> Trial<S> {
         self.published = Published {
             frames: frame_seq,
             boxes: evaluate(&boxes, truths, res),
-            fitted: evaluate(&fitted, truths, res),
+            fitted: evaluate_against(&fitted, truths, res, TruthMeasure::Body),
             fruits,
         };
     }

@@ -4,10 +4,10 @@
 use glasshouse_arm::{Interval, Mount, MountState};
 use glasshouse_proto::{ArmModel, ArmState, Fruit, MountKind, RgbdFrame, TrolleyInfo};
 use glasshouse_sim::{
-    CameraModel, FruitColour, PerceptionNoise, PerceptionNoiseError, ScenarioKind, Scene, Segment,
-    SimArm,
+    CameraModel, PerceptionNoise, ScenarioKind, Scene, Segment, SimArm, WorldError,
+    WorldSettings,
 };
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Translation3};
 
 pub use glasshouse_sim::Executed;
 
@@ -24,7 +24,7 @@ pub enum CaptureError {
     #[error("image size {0}x{1} outside 16x12..1280x960")]
     ImageSize(u32, u32),
     #[error(transparent)]
-    PerceptionNoise(#[from] PerceptionNoiseError),
+    World(#[from] WorldError),
 }
 
 /// Seed of the camera noise of frame `frame_seq` of a scene seeded with `scene_seed`.
@@ -85,10 +85,9 @@ pub struct SimTrolleySettings {
     pub height: u32,
     /// Length along the row of the part the trolley works on at a time (row scenario).
     pub segment_length_m: f64,
-    /// The detector's label noise and the depth artefacts at silhouettes (clean by default).
-    pub perception_noise: PerceptionNoise,
-    /// Ripe red fruit (the paper's scenes) or the unripe green variant.
-    pub fruit_colour: FruitColour,
+    /// What the simulated world does that a perfect one would not: camera noise and light,
+    /// fruit shape and colour, red clutter, pose errors (clean by default).
+    pub world: WorldSettings,
 }
 
 impl SimTrolleySettings {
@@ -98,7 +97,7 @@ impl SimTrolleySettings {
         if !((16..=1280).contains(&w) && (12..=960).contains(&h)) {
             return Err(CaptureError::ImageSize(w, h));
         }
-        self.perception_noise.validate()?;
+        self.world.validate()?;
         Ok(())
     }
 }
@@ -114,8 +113,7 @@ impl SimTrolleySettings {
             width,
             height,
             segment_length_m,
-            perception_noise: PerceptionNoise::default(),
-            fruit_colour: FruitColour::Red,
+            world: WorldSettings::default(),
         }
     }
 }
@@ -130,14 +128,17 @@ pub struct SimTrolley {
     segments: Vec<Segment>,
     segment: usize,
     settings: SimTrolleySettings,
+    /// The camera's true pose in the frame the trolley believes it in (hand-eye error).
+    believed_camera_from_true: Isometry3<f64>,
+    /// True minus believed rail position on each segment (odometry error), metres.
+    rail_errors_m: Vec<f64>,
 }
 
 impl SimTrolley {
     pub fn new(settings: SimTrolleySettings) -> Result<Self, CaptureError> {
         settings.validate()?;
         let (w, h) = (settings.width, settings.height);
-        let scene =
-            Scene::generate_with_fruit(settings.scenario, settings.seed, settings.fruit_colour);
+        let scene = Scene::generate_with(settings.scenario, settings.seed, &settings.world.scene);
         let arm = SimArm::new(&scene).map_err(|e| CaptureError::InitialView(e.to_string()))?;
         let segments = scene.segments(settings.segment_length_m);
         if segments.is_empty() {
@@ -149,10 +150,13 @@ impl SimTrolley {
             .iter()
             .position(|s| s.camera_workspace.contains(&eye.into()))
             .unwrap_or(0);
+        let pose_error = settings.world.pose;
         Ok(Self {
             camera: CameraModel::with_resolution(w, h),
             scene,
             arm,
+            believed_camera_from_true: pose_error.believed_camera_from_true(settings.seed),
+            rail_errors_m: pose_error.rail_errors_m(settings.seed, segments.len()),
             segments,
             segment,
             settings,
@@ -163,8 +167,36 @@ impl SimTrolley {
         &self.scene
     }
 
+    /// Where the trolley believes its camera is (what its frames report).
     pub fn world_from_camera(&self) -> Isometry3<f64> {
         self.arm.world_from_camera()
+    }
+
+    /// Where the camera really is for frame `frame_seq`: the believed pose with the rail's
+    /// odometry error, the joint encoders' errors of that frame and the hand-eye error.
+    pub fn true_world_from_camera(&self, frame_seq: u64) -> Isometry3<f64> {
+        let pose_error = &self.settings.world.pose;
+        if pose_error.is_exact() {
+            return self.arm.world_from_camera();
+        }
+        let arm_pose = self.arm.pose();
+        let errors = pose_error.joint_errors_rad(noise_seed(self.settings.seed, frame_seq), arm_pose.joints.len());
+        let mut joints = arm_pose.joints;
+        for (q, e) in joints.iter_mut().zip(errors) {
+            *q += e;
+        }
+        let robot = self.arm.robot();
+        let flange_truth = robot
+            .world_from_camera(&joints, &arm_pose.mount)
+            .unwrap_or_else(|_| self.arm.world_from_camera());
+        // Rails run along the world x axis; other mounts have no odometry.
+        let rail_m = match arm_pose.mount {
+            MountState::Rail { .. } => self.rail_errors_m.get(self.segment).copied(),
+            _ => None,
+        };
+        Translation3::new(rail_m.unwrap_or(0.0), 0.0, 0.0)
+            * flange_truth
+            * self.believed_camera_from_true
     }
 
     /// The segment the trolley works on now.
@@ -222,12 +254,13 @@ impl TrolleySource for SimTrolley {
     fn ground_truth(&self) -> Option<Vec<Fruit>> {
         let truth = self.scene.fruits().iter().map(|f| {
             let aabb = f.aabb();
+            // The body's own centroid and volume; the box bounds it.
             Fruit {
                 id: f.id,
-                centre_in_world: f.centre.cast(),
+                centre_in_world: f.body_centre.cast(),
                 box_min: aabb.min.cast(),
                 box_max: aabb.max.cast(),
-                volume_m3: f.volume_m3 as f32,
+                volume_m3: f.body_volume_m3 as f32,
                 voxel_count: f.voxel_keys(0.01).len().min(u32::MAX as usize) as u32,
                 confidence: 1.0,
                 fitted: None,
@@ -237,16 +270,13 @@ impl TrolleySource for SimTrolley {
     }
 
     fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String> {
-        let pose = self.arm.world_from_camera();
         let seed = noise_seed(self.settings.seed, frame_seq);
-        let noise = &self.settings.perception_noise;
-        Ok(Some(render_frame(
-            &self.scene,
-            &self.camera,
-            &pose,
-            seed,
-            noise,
-        )))
+        let noise = &self.settings.world.perception;
+        let truth = self.true_world_from_camera(frame_seq);
+        let mut frame = render_frame(&self.scene, &self.camera, &truth, seed, noise);
+        // The frame says where the trolley believes it was, as a real one's would.
+        frame.world_from_camera = self.arm.world_from_camera();
+        Ok(Some(frame))
     }
 
     fn arm_state(&self, moving: bool, views_done: u32) -> ArmState {

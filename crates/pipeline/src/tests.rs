@@ -311,9 +311,13 @@ fn sim(scenario: ScenarioKind) -> SimTrolley {
 
 fn noisy_sim(label_noise: f64, silhouette_px: u32) -> Result<SimTrolley, CaptureError> {
     SimTrolley::new(SimTrolleySettings {
-        perception_noise: glasshouse_sim::PerceptionNoise {
-            label_noise,
-            silhouette_px,
+        world: glasshouse_sim::WorldSettings {
+            perception: glasshouse_sim::PerceptionNoise {
+                label_noise,
+                silhouette_px,
+                ..Default::default()
+            },
+            ..Default::default()
         },
         ..SimTrolleySettings::new(ScenarioKind::Two, 3, (160, 120), 1.0)
     })
@@ -344,7 +348,7 @@ fn the_trolley_settings_noise_reaches_its_frames_and_the_detector() {
     );
     for bad in [-0.1, 1.5, f64::NAN] {
         let err = noisy_sim(bad, 0).unwrap_err();
-        assert!(matches!(err, CaptureError::PerceptionNoise(_)), "{err}");
+        assert!(matches!(err, CaptureError::World(_)), "{err}");
     }
     assert!(noisy_sim(0.0, 100).is_err());
 }
@@ -714,4 +718,89 @@ fn confidences_weight_the_roi_evidence_capped_at_the_labels_strength() {
     }
     // Fruit edges seen by few pixels.
     assert!(weaker > 0);
+}
+
+fn posed_sim(scenario: ScenarioKind, pose: glasshouse_sim::PoseError) -> SimTrolley {
+    SimTrolley::new(SimTrolleySettings {
+        world: glasshouse_sim::WorldSettings {
+            pose,
+            ..Default::default()
+        },
+        ..SimTrolleySettings::new(scenario, 3, (160, 120), 0.5)
+    })
+    .unwrap()
+}
+
+/// Each pose error moves the camera that renders but not the pose the frame reports.
+#[test]
+fn pose_errors_move_the_true_camera_and_the_frame_reports_the_believed_pose() {
+    use glasshouse_sim::PoseError;
+    let clean = sim(ScenarioKind::Two).capture(1).unwrap().unwrap();
+    let knobs = [
+        PoseError {
+            hand_eye_error_deg: 0.5,
+            ..PoseError::default()
+        },
+        PoseError {
+            hand_eye_error_mm: 5.0,
+            ..PoseError::default()
+        },
+        PoseError {
+            joint_noise_deg: 0.05,
+            ..PoseError::default()
+        },
+    ];
+    for pose in knobs {
+        let mut trolley = posed_sim(ScenarioKind::Two, pose);
+        let frame = trolley.capture(1).unwrap().unwrap();
+        assert_eq!(frame.world_from_camera, clean.world_from_camera, "{pose:?}");
+        assert_ne!(frame.depth, clean.depth, "{pose:?}");
+        let truth = trolley.true_world_from_camera(1);
+        let offset_m =
+            (truth.translation.vector - frame.world_from_camera.translation.vector).norm();
+        let angle_rad = (truth.rotation.inverse() * frame.world_from_camera.rotation).angle();
+        assert!(offset_m > 1e-5 || angle_rad > 1e-5, "{pose:?}");
+        assert!(offset_m < 0.02 && angle_rad < 1f64.to_radians(), "{pose:?}");
+    }
+    // Joint noise is new every frame; the hand-eye error is the same for the whole run.
+    let jittery = posed_sim(ScenarioKind::Two, knobs[2]);
+    assert_ne!(
+        jittery.true_world_from_camera(1),
+        jittery.true_world_from_camera(2)
+    );
+    let miscalibrated = posed_sim(ScenarioKind::Two, knobs[0]);
+    assert_eq!(
+        miscalibrated.true_world_from_camera(1),
+        miscalibrated.true_world_from_camera(2)
+    );
+}
+
+/// The rail's odometry error moves the camera along the rail, differently per segment.
+#[test]
+fn rail_error_moves_the_camera_along_the_rail_per_segment() {
+    let rail = glasshouse_sim::PoseError {
+        rail_error_mm: 10.0,
+        ..Default::default()
+    };
+    let mut trolley = posed_sim(ScenarioKind::Row, rail);
+    let mut offsets_m = Vec::new();
+    for seq in 1..=3 {
+        let believed = trolley.world_from_camera();
+        let offset =
+            trolley.true_world_from_camera(seq).translation.vector - believed.translation.vector;
+        assert!(
+            offset.y.abs() < 1e-12 && offset.z.abs() < 1e-12,
+            "{offset:?}"
+        );
+        offsets_m.push(offset.x);
+        assert!(trolley.next_segment().is_some());
+    }
+    assert!(
+        offsets_m.iter().all(|x| x.abs() > 1e-6 && x.abs() < 0.1),
+        "{offsets_m:?}"
+    );
+    assert_ne!(offsets_m[0], offsets_m[1]);
+    // A scenario without a rail has no odometry error.
+    let gantry = posed_sim(ScenarioKind::Two, rail);
+    assert_eq!(gantry.true_world_from_camera(1), gantry.world_from_camera());
 }

@@ -8,6 +8,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::generate::LEAF_RANGE;
+use crate::DepthNoiseModel;
 
 /// Widest silhouette band accepted, in pixels.
 pub const MAX_SILHOUETTE_PX: u32 = 8;
@@ -22,7 +23,7 @@ pub const SILHOUETTE_MISSING_SHARE: f64 = 0.4;
 /// ("flying pixels"); the rest keep their depth.
 pub const SILHOUETTE_MIXED_SHARE: f64 = 0.4;
 
-/// ChaCha streams of the two kinds of noise (stream 0 is the depth noise).
+/// ChaCha streams of the kinds of noise (stream 0 is the depth noise).
 const LABEL_STREAM: u64 = 1;
 const SILHOUETTE_STREAM: u64 = 2;
 
@@ -39,6 +40,15 @@ pub struct PerceptionNoise {
     /// anything more than [`SILHOUETTE_STEP_M`] away in depth) where depth goes missing or
     /// mixes foreground and background; 0 = none.
     pub silhouette_px: u32,
+    /// How depth noise behaves: the paper's i.i.d. noise (default) or a stereo camera's
+    /// ([`DepthNoiseModel::D435`]: range-squared RMS, correlated error and edge smear).
+    pub depth_noise: DepthNoiseModel,
+    /// Depth goes missing where the fruit skin shows a specular highlight (stereo matching
+    /// fails on saturated pixels).
+    pub specular_dropouts: bool,
+    /// A sun with shadow rays, a sky term that darkens what the canopy covers, specular
+    /// highlights on fruit skin and an exposure that varies per frame.
+    pub shadows: bool,
 }
 
 /// Perception noise settings out of range.

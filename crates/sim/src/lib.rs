@@ -11,6 +11,9 @@
 //! down, `z` forward; camera poses are `world_from_camera`.
 
 mod artefacts;
+mod depth;
+mod light;
+mod world;
 mod generate;
 mod shapes;
 mod trolley;
@@ -28,9 +31,18 @@ pub use artefacts::{
     PerceptionNoise, PerceptionNoiseError, MAX_SILHOUETTE_PX, SILHOUETTE_MISSING_SHARE,
     SILHOUETTE_MIXED_SHARE, SILHOUETTE_STEP_M,
 };
+pub use depth::{d435_rms_m, DepthNoiseModel, ParseDepthNoiseError};
+pub use generate::{
+    FruitShape, ParseFruitShapeError, SceneOptions, SceneOptionsError, MAX_RED_CLUTTER,
+};
+pub use light::{COVERED_SKY_SHARE, DROPOUT_HIGHLIGHT, EXPOSURE_RANGE};
 pub use trolley::{Executed, SimArm};
+pub use world::{
+    ParseWorldPresetError, PoseError, PoseErrorError, WorldError, WorldPreset, WorldSettings,
+};
 
 use artefacts::{LabelFlips, SurfaceImage, FLOOR_SURFACE};
+use light::{Lighting, SurfaceHit};
 
 use generate::{Plant, Solid, FLOOR_ALBEDO};
 use shapes::{Bvh, Packet, Ray, Shape, NO_HIT, PACKET, PACKET_HEIGHT, PACKET_WIDTH};
@@ -100,20 +112,23 @@ impl fmt::Display for ScenarioKind {
     }
 }
 
-/// The colour of a scene's fruit: ripe red (the paper's scenes, found by the HSI rule) or the
-/// unripe variant, a light yellow-green the HSI rule does not accept. Settings and the command
-/// line spell them `red` and `green`.
+/// The colour of a scene's fruit: ripe red (the paper's scenes, found by the HSI rule), the
+/// unripe variant (a light yellow-green the HSI rule does not accept) or leaf green (within the
+/// colours of the leaves, so colour alone cannot tell fruit from leaf). Settings and the command
+/// line spell them `red`, `green` and `leaf-green`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum FruitColour {
     #[default]
     Red,
     Green,
+    #[serde(rename = "leaf-green")]
+    LeafGreen,
 }
 
-/// A fruit colour that is not `red` or `green`.
+/// A fruit colour that is not one of the accepted spellings.
 #[derive(thiserror::Error, Debug, Clone, PartialEq, Eq)]
-#[error("unknown fruit colour {0:?}; valid: red, green")]
+#[error("unknown fruit colour {0:?}; valid: red (ripe), green (unripe), leaf-green")]
 pub struct ParseFruitColourError(pub String);
 
 impl FromStr for FruitColour {
@@ -123,6 +138,7 @@ impl FromStr for FruitColour {
         match s.trim().to_ascii_lowercase().as_str() {
             "red" | "ripe" => Ok(FruitColour::Red),
             "green" | "unripe" => Ok(FruitColour::Green),
+            "leaf-green" | "leaf_green" | "leafgreen" => Ok(FruitColour::LeafGreen),
             _ => Err(ParseFruitColourError(s.to_string())),
         }
     }
@@ -133,6 +149,7 @@ impl fmt::Display for FruitColour {
         f.write_str(match self {
             FruitColour::Red => "red",
             FruitColour::Green => "green",
+            FruitColour::LeafGreen => "leaf-green",
         })
     }
 }
@@ -144,17 +161,42 @@ pub struct Segment {
     pub sampling_region: Aabb,
 }
 
-/// Ground truth of one fruit: its axis-aligned box in the world frame.
+/// Ground truth of one fruit in the world frame: its axis-aligned box and its body (the
+/// ellipsoid, or the union of a capsicum's lobes; calyx and stalk are not fruit).
 #[derive(Clone, Debug, Serialize)]
 pub struct FruitTruth {
     pub id: u32,
+    /// Centre and half size of the body's axis-aligned box.
     pub centre: Point3<f64>,
     pub half_extents_m: Vector3<f64>,
-    /// Box volume, `8 * hx * hy * hz`.
+    /// Box volume, `8 * hx * hy * hz`, kept for compatibility: the fruit's volume is
+    /// `body_volume_m3`.
     pub volume_m3: f64,
+    /// Centroid of the body.
+    pub body_centre: Point3<f64>,
+    /// Volume of the body: `4/3 π hx hy hz` for an ellipsoid; for a capsicum the union of its
+    /// lobes, computed numerically at generation (1 mm columns, exact along each; well within
+    /// 1 %).
+    pub body_volume_m3: f64,
+    /// Unit axis of the fruit, from the tip towards the stalk (`z` for ellipsoids).
+    pub axis: Vector3<f64>,
 }
 
 impl FruitTruth {
+    /// An axis-aligned ellipsoid fruit filling the box `centre ± half_extents_m`.
+    pub fn ellipsoid(id: u32, centre: Point3<f64>, half_extents_m: Vector3<f64>) -> Self {
+        let h = half_extents_m;
+        Self {
+            id,
+            centre,
+            half_extents_m,
+            volume_m3: 8.0 * h.x * h.y * h.z,
+            body_centre: centre,
+            body_volume_m3: 4.0 / 3.0 * std::f64::consts::PI * h.x * h.y * h.z,
+            axis: Vector3::z(),
+        }
+    }
+
     pub fn aabb(&self) -> Aabb {
         Aabb::new(
             self.centre - self.half_extents_m,
@@ -247,11 +289,13 @@ impl RgbdImage {
 pub struct Scene {
     kind: ScenarioKind,
     seed: u64,
+    /// `options.fruit_colour`, kept at hand for the renderer.
     fruit_colour: FruitColour,
+    options: SceneOptions,
     fruits: Vec<FruitTruth>,
     plants: Vec<Plant>,
-    /// Shapes in BVH order, with per-shape albedo, fruit index, whether the detector's colour
-    /// rule labels it fruit (ripe fruit) and whether it is part of a plant alongside.
+    /// Shapes in BVH order, with per-shape albedo, fruit index, whether it is fruit of the
+    /// scene's colour (red clutter is not) and whether it is part of a plant alongside.
     shapes: Vec<Shape>,
     albedo: Vec<[f32; 3]>,
     fruit_index: Vec<Option<u32>>,
@@ -273,13 +317,24 @@ struct RayHit {
 impl Scene {
     /// Generates the scenario; the same `(kind, seed)` always gives the same scene.
     pub fn generate(kind: ScenarioKind, seed: u64) -> Scene {
-        Self::generate_with_fruit(kind, seed, FruitColour::Red)
+        Self::generate_with(kind, seed, &SceneOptions::default())
     }
 
     /// [`Scene::generate`] with the fruit in `fruit_colour`: the green scene has exactly the
     /// geometry of its red twin; only the fruit colours differ.
     pub fn generate_with_fruit(kind: ScenarioKind, seed: u64, fruit_colour: FruitColour) -> Scene {
-        let built = generate::build(kind, seed, fruit_colour);
+        let options = SceneOptions {
+            fruit_colour,
+            ..SceneOptions::default()
+        };
+        Self::generate_with(kind, seed, &options)
+    }
+
+    /// The scenario with `options`; the same `(kind, seed, options)` always gives the same
+    /// scene, and the default options give [`Scene::generate`]'s. Options out of range (see
+    /// [`SceneOptions::validate`]) are clamped.
+    pub fn generate_with(kind: ScenarioKind, seed: u64, options: &SceneOptions) -> Scene {
+        let built = generate::build(kind, seed, options);
         let plant_bounds = built
             .solids
             .iter()
@@ -295,10 +350,12 @@ impl Scene {
         let ordered: Vec<&Solid> = order.iter().filter_map(|&i| built.solids.get(i)).collect();
         let ordered_shapes: Vec<Shape> = ordered.iter().map(|s| s.shape.clone()).collect();
         bvh.set_shapes(&ordered_shapes);
+        let colour = options.fruit_colour;
         let mut scene = Scene {
             kind,
             seed,
-            fruit_colour,
+            fruit_colour: colour,
+            options: *options,
             fruits: built.fruits,
             plants: built.plants,
             shapes: ordered_shapes,
@@ -306,9 +363,7 @@ impl Scene {
             fruit_index: ordered.iter().map(|s| s.fruit_index).collect(),
             looks_like_fruit: ordered
                 .iter()
-                .map(|s| {
-                    s.fruit_index.is_some() && generate::is_fruit_colour(fruit_colour, s.albedo)
-                })
+                .map(|s| s.fruit_index.is_some() && generate::is_fruit_colour(colour, s.albedo))
                 .collect(),
             is_plant: ordered.iter().map(|s| s.is_plant).collect(),
             bvh,
@@ -326,6 +381,11 @@ impl Scene {
 
     pub fn fruit_colour(&self) -> FruitColour {
         self.fruit_colour
+    }
+
+    /// The options the scene was generated with.
+    pub fn options(&self) -> SceneOptions {
+        self.options
     }
 
     pub fn seed(&self) -> u64 {
@@ -418,24 +478,30 @@ impl Scene {
                 .any_within(&self.shapes, &p.coords, CAMERA_CLEARANCE_M)
     }
 
-    /// Ground truth as JSON: scenario, seed and per fruit its box centre, full size and volume.
+    /// Ground truth as JSON: scenario, seed, options and per fruit its box (centre, full size,
+    /// volume) and its body (centroid, volume, axis).
     pub fn ground_truth_json(&self) -> String {
         let fruits: Vec<serde_json::Value> = self
             .fruits
             .iter()
             .map(|f| {
                 let size = f.half_extents_m * 2.0;
+                let body = f.body_centre;
                 serde_json::json!({
                     "id": f.id,
                     "centre_m": [f.centre.x, f.centre.y, f.centre.z],
                     "size_m": [size.x, size.y, size.z],
                     "volume_m3": f.volume_m3,
+                    "body_centre_m": [body.x, body.y, body.z],
+                    "body_volume_m3": f.body_volume_m3,
+                    "axis": [f.axis.x, f.axis.y, f.axis.z],
                 })
             })
             .collect();
         serde_json::json!({
             "scenario": self.kind.to_string(),
             "seed": self.seed,
+            "options": self.options,
             "fruits": fruits,
         })
         .to_string()
@@ -496,7 +562,15 @@ impl Scene {
         let mut rgb = vec![0u8; 3 * pixel_count];
         let mut rng = ChaCha8Rng::seed_from_u64(noise_seed);
         let mut spare_normal: Option<f64> = None;
-        let light = light_direction();
+        let mut lighting = Lighting::new(perception, noise_seed);
+        // Colours before exposure, when the light model sets it from the whole frame.
+        let mut radiance = if lighting.needs_exposure() {
+            vec![-1.0f32; 3 * pixel_count]
+        } else {
+            Vec::new()
+        };
+        let stereo = perception.depth_noise == DepthNoiseModel::D435;
+        let mut shadow_stack = Vec::with_capacity(64);
         let rotation = world_from_camera.rotation.to_rotation_matrix();
         let origin = world_from_camera.translation.vector;
         let (width, height) = (k.width as usize, k.height as usize);
@@ -565,9 +639,21 @@ impl Scene {
                     let cos_incidence = dir_in_world.dot(&normal);
                     let facing = if cos_incidence > 0.0 { -normal } else { normal };
                     let fruit = self.looks_like_fruit.get(surface as usize) == Some(&true);
-                    let albedo = labels.albedo_seen(fruit, albedo);
-                    rgb[3 * pixel..3 * pixel + 3]
-                        .copy_from_slice(&shade(albedo, facing.dot(&light)));
+                    let hit = SurfaceHit {
+                        point: origin + dir_in_world * t,
+                        facing,
+                        view_dir: dir_in_world,
+                        albedo: labels.albedo_seen(fruit, albedo),
+                        is_fruit: matches!(self.fruit_index.get(surface as usize), Some(Some(_))),
+                    };
+                    let shade = self.shade_lit(&mut lighting, &hit, &mut shadow_stack);
+                    let highlight_dropout = shade.dropout;
+                    match radiance.get_mut(3 * pixel..3 * pixel + 3) {
+                        Some(slot) => slot.copy_from_slice(&shade.colour),
+                        // Clean shading is already rounded to RGB8.
+                        None => rgb[3 * pixel..3 * pixel + 3]
+                            .copy_from_slice(&shade.colour.map(|c| c as u8)),
+                    }
                     let depth = t * dir_in_camera.z;
                     if let Some(seen) = seen.as_mut() {
                         seen.surface[pixel] = surface;
@@ -575,11 +661,15 @@ impl Scene {
                     }
                     if cos_incidence.abs() < camera.grazing_cos_min
                         || !(camera.min_range_m..=camera.max_range_m).contains(&depth)
+                        || highlight_dropout
                     {
                         continue;
                     }
                     let std_m = camera.depth_noise_std_at_1m_m * depth * depth;
-                    let noisy = if std_m > 0.0 {
+                    let noisy = if stereo {
+                        // The stereo model adds its noise once the whole image is known.
+                        depth
+                    } else if std_m > 0.0 {
                         depth + std_m * standard_normal(&mut rng, &mut spare_normal)
                     } else {
                         depth
@@ -589,6 +679,13 @@ impl Scene {
                     }
                 }
             }
+        }
+        if lighting.needs_exposure() {
+            lighting.expose(&radiance, &mut rgb);
+        }
+        if stereo {
+            let range_m = (camera.min_range_m, camera.max_range_m);
+            depth::apply_stereo_noise(&mut depth_m, width, height, noise_seed, range_m);
         }
         if let Some(seen) = &seen {
             let range_m = (camera.min_range_m, camera.max_range_m);
@@ -775,7 +872,7 @@ pub fn shade(albedo: [f32; 3], n_dot_l: f64) -> [u8; 3] {
 
 /// Standard normal by Marsaglia's polar method (no trigonometry), caching the second value of
 /// each pair.
-fn standard_normal(rng: &mut ChaCha8Rng, spare: &mut Option<f64>) -> f64 {
+pub(crate) fn standard_normal(rng: &mut ChaCha8Rng, spare: &mut Option<f64>) -> f64 {
     if let Some(z) = spare.take() {
         return z;
     }
@@ -793,3 +890,6 @@ fn standard_normal(rng: &mut ChaCha8Rng, spare: &mut Option<f64>) -> f64 {
 
 #[cfg(test)]
 mod tests;
+
+#[cfg(test)]
+mod camera_tests;

@@ -4,7 +4,7 @@
 //! first ray parameter at which a ray meets them, and whether a point lies within a clearance of
 //! them (for the camera's free-space test).
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
 /// Hits closer than this along a ray are ignored so a ray never re-hits its own start surface.
 const T_EPSILON: f64 = 1e-7;
@@ -86,6 +86,19 @@ impl Bounds {
         ]
     }
 
+    pub fn centre(&self) -> Vector3<f64> {
+        Vector3::from(self.centroid())
+    }
+
+    pub fn half(&self) -> Vector3<f64> {
+        Vector3::from_fn(|i, _| 0.5 * (self.max[i] - self.min[i]))
+    }
+
+    /// True when `p` lies in the box grown by `margin_m`.
+    pub fn contains_within(&self, p: &Vector3<f64>, margin_m: f64) -> bool {
+        (0..3).all(|i| self.min[i] - margin_m <= p[i] && p[i] <= self.max[i] + margin_m)
+    }
+
     pub fn overlaps(&self, other: &Bounds, margin_m: f64) -> bool {
         (0..3).all(|i| {
             self.min[i] - margin_m <= other.max[i] && other.min[i] - margin_m <= self.max[i]
@@ -101,6 +114,8 @@ pub(crate) enum Shape {
         centre: Vector3<f64>,
         radii: Vector3<f64>,
     },
+    /// Ellipsoid with its own axes (capsicum lobes, calyces).
+    OrientedEllipsoid(OrientedEllipsoid),
     /// Flat two-sided elliptical disc (leaf); `u`, `v` are unit in-plane axes, `normal = u × v`.
     Disc {
         centre: Vector3<f64>,
@@ -153,6 +168,19 @@ impl Cylinder {
         }
     }
 
+    /// Points along the axis, ends included, at most 5 mm apart: enough to place thin
+    /// cylinders against other shapes.
+    pub fn axis_points(&self) -> impl Iterator<Item = Vector3<f64>> + '_ {
+        let n = (self.length_m / 0.005).ceil().max(1.0) as usize;
+        (0..=n).map(move |i| self.base + self.axis * (self.length_m * i as f64 / n as f64))
+    }
+
+    /// True when the cylinder comes within `margin_m` of the box (tested at its axis points).
+    pub fn passes_through(&self, b: &Bounds, margin_m: f64) -> bool {
+        self.axis_points()
+            .any(|p| b.contains_within(&p, margin_m + self.radius_m))
+    }
+
     fn is_within(&self, p: &Vector3<f64>, clearance_m: f64) -> bool {
         let (h, radial) = self.axial(p);
         let dh = (-h).max(h - self.length_m).max(0.0);
@@ -173,10 +201,89 @@ impl Cylinder {
     }
 }
 
+/// Ellipsoid whose semi-axes lie along the columns of `axes` (orthonormal, right-handed), with
+/// half-lengths `radii`: the points `centre + axes * q` with `|q / radii| <= 1`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct OrientedEllipsoid {
+    pub centre: Vector3<f64>,
+    pub axes: Matrix3<f64>,
+    pub radii: Vector3<f64>,
+}
+
+impl OrientedEllipsoid {
+    /// Maps a world offset from the centre to the frame where the ellipsoid is the unit sphere.
+    pub fn unit_from_world(&self) -> Matrix3<f64> {
+        Matrix3::from_diagonal(&self.radii.map(|r| 1.0 / r)) * self.axes.transpose()
+    }
+
+    /// The offset from the centre in the ellipsoid's own axes.
+    fn local(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        self.axes.tr_mul(&(p - self.centre))
+    }
+
+    /// Exact box: along world axis `i` the half extent is `|row i of axes * diag(radii)|`.
+    fn bounds(&self) -> Bounds {
+        let half = Vector3::from_fn(|i, _| {
+            (0..3)
+                .map(|j| (self.axes[(i, j)] * self.radii[j]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        });
+        Bounds::from_centre_half(&self.centre, &half)
+    }
+
+    /// The point of the ellipsoid farthest along `dir` (a unit vector), and how far along `dir`
+    /// it lies (the support function).
+    pub fn support(&self, dir: &Vector3<f64>) -> (Vector3<f64>, f64) {
+        let along = self.axes.tr_mul(dir).component_mul(&self.radii);
+        let reach_m = along.norm();
+        let local = (along / reach_m.max(1e-300)).component_mul(&self.radii);
+        (
+            self.centre + self.axes * local,
+            self.centre.dot(dir) + reach_m,
+        )
+    }
+
+    /// True for points inside or on the surface.
+    #[cfg(test)]
+    pub fn contains(&self, p: &Vector3<f64>) -> bool {
+        self.local(p).component_div(&self.radii).norm_squared() <= 1.0
+    }
+
+    fn normal_at(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        let q = self
+            .local(p)
+            .component_div(&self.radii.component_mul(&self.radii));
+        (self.axes * q)
+            .try_normalize(1e-15)
+            .unwrap_or_else(|| self.axes.column(2).into_owned())
+    }
+
+    fn is_within(&self, p: &Vector3<f64>, clearance_m: f64) -> bool {
+        let grown = self.radii.add_scalar(clearance_m);
+        self.local(p).component_div(&grown).norm_squared() <= 1.0
+    }
+
+    /// The parameters `(s0, s1)` between which the line `origin + s * dir` is inside, if it
+    /// crosses the ellipsoid.
+    pub fn chord(&self, origin: &Vector3<f64>, dir: &Vector3<f64>) -> Option<(f64, f64)> {
+        let m = self.unit_from_world();
+        let oc = m * (origin - self.centre);
+        let d = m * dir;
+        let (a, b, c) = (d.dot(&d), oc.dot(&d), oc.dot(&oc) - 1.0);
+        let disc = b * b - a * c;
+        (disc > 0.0 && a > 0.0).then(|| {
+            let sq = disc.sqrt();
+            ((-b - sq) / a, (-b + sq) / a)
+        })
+    }
+}
+
 impl Shape {
     pub fn bounds(&self) -> Bounds {
         match self {
             Shape::Ellipsoid { centre, radii } => Bounds::from_centre_half(centre, radii),
+            Shape::OrientedEllipsoid(e) => e.bounds(),
             Shape::Disc {
                 centre,
                 u,
@@ -201,6 +308,7 @@ impl Shape {
                 .component_div(&radii.component_mul(radii))
                 .try_normalize(1e-15)
                 .unwrap_or_else(Vector3::z),
+            Shape::OrientedEllipsoid(e) => e.normal_at(p),
             Shape::Disc { normal, .. } => *normal,
             Shape::Cylinder(c) => c.normal_at(p),
         }
@@ -214,6 +322,7 @@ impl Shape {
                 let grown = radii.add_scalar(clearance_m);
                 (p - centre).component_div(&grown).norm_squared() <= 1.0
             }
+            Shape::OrientedEllipsoid(e) => e.is_within(p, clearance_m),
             Shape::Disc {
                 centre,
                 normal,
@@ -343,6 +452,33 @@ fn intersect_ellipsoid(
     (t1 > T_EPSILON && t1 < t_max).then_some(t1)
 }
 
+/// Oriented ellipsoid test: the ray is mapped into the frame where the ellipsoid is the unit
+/// sphere (see [`Prim::OrientedEllipsoid`]); ray parameters are the same in both frames.
+#[inline(always)]
+fn intersect_oriented_ellipsoid(
+    ray: &Ray,
+    t_max: f64,
+    centre: &Vector3<f64>,
+    unit_from_world: &Matrix3<f64>,
+) -> Option<f64> {
+    let oc = unit_from_world * (ray.origin - centre);
+    let d = unit_from_world * ray.dir;
+    let a = d.dot(&d);
+    let b = oc.dot(&d);
+    let c = oc.dot(&oc) - 1.0;
+    let disc = b * b - a * c;
+    if disc < 0.0 || a <= 0.0 {
+        return None;
+    }
+    let sq = disc.sqrt();
+    let t0 = (-b - sq) / a;
+    if t0 > T_EPSILON {
+        return (t0 < t_max).then_some(t0);
+    }
+    let t1 = (-b + sq) / a;
+    (t1 > T_EPSILON && t1 < t_max).then_some(t1)
+}
+
 /// A shape in the form the closest-hit loop tests fastest: divisions and per-test products that
 /// depend only on the shape are done once, when the scene is built.
 #[derive(Clone, Copy, Debug)]
@@ -350,6 +486,11 @@ enum Prim {
     Ellipsoid {
         centre: Vector3<f64>,
         inv_radii: Vector3<f64>,
+    },
+    OrientedEllipsoid {
+        centre: Vector3<f64>,
+        /// [`OrientedEllipsoid::unit_from_world`], inverted once at build time.
+        unit_from_world: Matrix3<f64>,
     },
     Disc {
         centre: Vector3<f64>,
@@ -367,6 +508,10 @@ impl Prim {
             Shape::Ellipsoid { centre, radii } => Prim::Ellipsoid {
                 centre: *centre,
                 inv_radii: radii.map(|r| 1.0 / r),
+            },
+            Shape::OrientedEllipsoid(e) => Prim::OrientedEllipsoid {
+                centre: e.centre,
+                unit_from_world: e.unit_from_world(),
             },
             Shape::Disc {
                 centre,
@@ -398,6 +543,10 @@ impl Prim {
             Prim::Ellipsoid { centre, inv_radii } => {
                 intersect_ellipsoid(ray, t_max, centre, inv_radii)
             }
+            Prim::OrientedEllipsoid {
+                centre,
+                unit_from_world,
+            } => intersect_oriented_ellipsoid(ray, t_max, centre, unit_from_world),
             Prim::Cylinder(c) => c.intersect(ray, t_max),
         }
     }
@@ -809,6 +958,12 @@ impl Bvh {
                                 intersect_ellipsoid(ray, t_max, centre, inv_radii)
                             })
                         }
+                        Prim::OrientedEllipsoid {
+                            centre,
+                            unit_from_world,
+                        } => packet.each_lane(&hits, &mut best_f32, index, |ray, t_max| {
+                            intersect_oriented_ellipsoid(ray, t_max, centre, unit_from_world)
+                        }),
                         Prim::Cylinder(_) => {
                             packet.each_lane(&hits, &mut best_f32, index, |ray, t_max| {
                                 prim.intersect(ray, t_max)
@@ -862,5 +1017,113 @@ impl Bvh {
             }
         }
         false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use nalgebra::Rotation3;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+
+    fn random_unit(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+        loop {
+            let v = Vector3::from_fn(|_, _| rng.gen_range(-1.0..1.0));
+            if (0.01..1.0).contains(&v.norm_squared()) {
+                return v.normalize();
+            }
+        }
+    }
+
+    /// Rays from points around `centre` towards points near it.
+    fn rays_at(centre: &Vector3<f64>, rng: &mut ChaCha8Rng) -> Vec<Ray> {
+        (0..500)
+            .map(|_| {
+                let origin = centre + random_unit(rng) * 0.3;
+                let target = centre + random_unit(rng) * rng.gen_range(0.0..0.06);
+                Ray::new(origin, (target - origin).normalize())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn an_oriented_ellipsoid_with_world_axes_is_the_axis_aligned_one() {
+        let centre = Vector3::new(0.2, -0.1, 0.9);
+        let radii = Vector3::new(0.03, 0.025, 0.04);
+        let aligned = Shape::Ellipsoid { centre, radii };
+        let oriented = Shape::OrientedEllipsoid(OrientedEllipsoid {
+            centre,
+            axes: Matrix3::identity(),
+            radii,
+        });
+        let (a, o) = (Prim::of(&aligned), Prim::of(&oriented));
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut hits = 0;
+        for ray in rays_at(&centre, &mut rng) {
+            let (ta, to) = (a.intersect(&ray, 10.0), o.intersect(&ray, 10.0));
+            assert_eq!(ta.is_some(), to.is_some());
+            if let (Some(ta), Some(to)) = (ta, to) {
+                hits += 1;
+                assert!((ta - to).abs() < 1e-12);
+                let p = ray.at(ta);
+                assert!((aligned.normal_at(&p) - oriented.normal_at(&p)).norm() < 1e-9);
+            }
+            let p = ray.at(0.3);
+            assert_eq!(aligned.is_within(&p, 0.05), oriented.is_within(&p, 0.05));
+        }
+        assert!(hits > 100, "{hits}");
+        let (ba, bo) = (aligned.bounds(), oriented.bounds());
+        assert_eq!((ba.min, ba.max), (bo.min, bo.max));
+    }
+
+    #[test]
+    fn a_rotated_ellipsoid_is_hit_on_its_surface_with_its_normal_inside_its_bounds() {
+        let e = OrientedEllipsoid {
+            centre: Vector3::new(0.2, -0.1, 0.9),
+            axes: Rotation3::from_euler_angles(0.5, -0.3, 1.2).into_inner(),
+            radii: Vector3::new(0.05, 0.02, 0.03),
+        };
+        let shape = Shape::OrientedEllipsoid(e);
+        let prim = Prim::of(&shape);
+        let level = |p: &Vector3<f64>| e.local(p).component_div(&e.radii).norm_squared();
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let mut hits = 0;
+        for ray in rays_at(&e.centre, &mut rng) {
+            let Some(t) = prim.intersect(&ray, 10.0) else {
+                continue;
+            };
+            hits += 1;
+            let p = ray.at(t);
+            assert!((level(&p) - 1.0).abs() < 1e-9, "{}", level(&p));
+            // The normal is the level set's gradient, facing out.
+            let n = shape.normal_at(&p);
+            let h = 1e-7;
+            let grad = Vector3::from_fn(|i, _| {
+                let step = Vector3::from_fn(|j, _| if i == j { h } else { 0.0 });
+                (level(&(p + step)) - level(&(p - step))) / (2.0 * h)
+            });
+            assert!((n - grad.normalize()).norm() < 1e-5);
+            assert!(ray.dir.dot(&n) < 0.0, "the first hit faces the ray");
+            assert!(shape.is_within(&p, 1e-9) && !shape.is_within(&(p + n * 0.002), 0.001));
+        }
+        assert!(hits > 100, "{hits}");
+        // The box is tight: the outermost points along each world axis lie on its faces.
+        let b = shape.bounds();
+        for i in 0..3 {
+            let axis = Vector3::from_fn(|j, _| if i == j { 1.0 } else { 0.0 });
+            let (top, reach) = e.support(&axis);
+            let (bottom, low) = e.support(&-axis);
+            assert!((reach - b.max[i]).abs() < 1e-12 && (-low - b.min[i]).abs() < 1e-12);
+            assert!((level(&top) - 1.0).abs() < 1e-9 && (level(&bottom) - 1.0).abs() < 1e-9);
+        }
+        // A chord's ends lie on the surface.
+        let (s0, s1) = e.chord(&e.centre, &Vector3::z()).unwrap();
+        for s in [s0, s1] {
+            assert!((level(&(e.centre + Vector3::z() * s)) - 1.0).abs() < 1e-9);
+        }
     }
 }

@@ -206,12 +206,11 @@ fn ground_truth_json_lists_every_fruit() {
 
 #[test]
 fn voxel_keys_are_the_voxels_centred_in_the_box() {
-    let f = FruitTruth {
-        id: 0,
-        centre: Point3::new(0.1, -0.2, 0.8),
-        half_extents_m: Vector3::new(0.03, 0.025, 0.04),
-        volume_m3: 8.0 * 0.03 * 0.025 * 0.04,
-    };
+    let f = FruitTruth::ellipsoid(
+        0,
+        Point3::new(0.1, -0.2, 0.8),
+        Vector3::new(0.03, 0.025, 0.04),
+    );
     let keys = f.voxel_keys(0.01);
     // 6 x 5 x 8 voxel centres fit (give or take a boundary voxel per axis).
     assert!(
@@ -716,6 +715,7 @@ fn perception_noise_is_seeded_by_the_frame() {
     let noise = PerceptionNoise {
         label_noise: 0.3,
         silhouette_px: 1,
+        ..PerceptionNoise::default()
     };
     let a = scene_two_frame(&noise, 7, false);
     let b = scene_two_frame(&noise, 7, false);
@@ -818,6 +818,7 @@ fn perception_noise_out_of_range_is_an_error() {
         let noise = PerceptionNoise {
             label_noise: ok,
             silhouette_px: MAX_SILHOUETTE_PX,
+            ..PerceptionNoise::default()
         };
         assert_eq!(noise.validate(), Ok(()));
     }

@@ -4,7 +4,7 @@ use glasshouse_pipeline::Executed;
 use glasshouse_proto::{ArmState, Fruit, TrolleyInfo};
 use nalgebra::Isometry3;
 
-use glasshouse_sim::PerceptionNoise;
+use glasshouse_sim::{PerceptionNoise, WorldSettings};
 
 use super::*;
 
@@ -135,9 +135,13 @@ fn bad_configurations_are_rejected() {
             ..small(Method::OursUu, 5.0)
         },
         TrialConfig {
-            perception_noise: PerceptionNoise {
-                label_noise: 1.5,
-                silhouette_px: 0,
+            world: WorldSettings {
+                perception: PerceptionNoise {
+                    label_noise: 1.5,
+                    silhouette_px: 0,
+                    ..Default::default()
+                },
+                ..Default::default()
             },
             ..small(Method::OursUu, 5.0)
         },
@@ -156,9 +160,13 @@ fn bad_configurations_are_rejected() {
 fn perception_noise_reaches_the_trial_and_the_counts_add_up() {
     let clean = run_trial(small(Method::OursUu, 20.0), |_| {}).unwrap();
     let noisy_config = TrialConfig {
-        perception_noise: PerceptionNoise {
-            label_noise: 0.3,
-            silhouette_px: 1,
+        world: WorldSettings {
+            perception: PerceptionNoise {
+                label_noise: 0.3,
+                silhouette_px: 1,
+                ..Default::default()
+            },
+            ..Default::default()
         },
         ..small(Method::OursUu, 20.0)
     };

@@ -143,7 +143,7 @@ mod tests {
 
     #[test]
     fn out_of_range_flags_are_errors_that_name_the_setting() {
-        let err = parse(&["--joint-noise-deg", "-1"]).expect_err("negative noise");
+        let err = parse(&["--joint-noise-deg=-1"]).expect_err("negative noise");
         assert!(format!("{err:#}").contains("joint noise"), "{err:#}");
         let err = parse(&["--silhouette-px", "9"]).expect_err("too wide");
         assert!(format!("{err:#}").contains("silhouette"), "{err:#}");

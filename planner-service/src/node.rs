@@ -999,6 +999,14 @@ fn note_insert(
             tracing::warn!(planner = %pid, trolley = %tid, %frame, %mark, "the trolley's stream overrides the map's last frame");
         }
         Ok(FrameVerdict::Stale) => stats.clouds_stale += 1,
+        // Left out of the map (the trolley's planner counts why), still planned on: the edge
+        // waits for views on this frame.
+        Ok(FrameVerdict::Misaligned) => {
+            if logged_refusals.insert(format!("misaligned {tid}")) {
+                tracing::warn!(planner = %pid, trolley = %tid, %frame,
+                    "cloud not inserted: its registration to the map failed (logged once per trolley)");
+            }
+        }
         Ok(FrameVerdict::Fresh | FrameVerdict::Repeat) => {}
     }
     true

@@ -660,6 +660,7 @@ mod tests {
             compute_time_s: 0.002,
             fruits: Vec::new(),
             truths: Vec::new(),
+            registration: Default::default(),
             plans: Vec::new(),
         }
     }

@@ -78,6 +78,8 @@ pub struct TrialConfig {
     pub roi_evidence: RoiEvidence,
     /// Which ROI voxels ROI-targeted sampling aims at (the planner's default: patches).
     pub roi_targets: RoiTargets,
+    /// Align each scan to the map before inserting it (the planner's default: off).
+    pub registration: bool,
 }
 
 impl TrialConfig {
@@ -96,6 +98,7 @@ impl TrialConfig {
             world: WorldSettings::default(),
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
+            registration: false,
         }
     }
 
@@ -129,7 +132,7 @@ impl TrialConfig {
 
     /// The planner service's settings with this trial's method and seed.
     pub fn planning(&self) -> PlanningSettings {
-        PlanningSettings {
+        let mut settings = PlanningSettings {
             method: self.method,
             seed: self.seed,
             // Trials run in parallel, one per core, so each plans on its own thread.
@@ -137,7 +140,9 @@ impl TrialConfig {
             roi_evidence: self.roi_evidence,
             roi_targets: self.roi_targets,
             ..PlanningSettings::default()
-        }
+        };
+        settings.registration.enabled = self.registration;
+        settings
     }
 
     fn edge(&self) -> EdgeSettings {
@@ -206,6 +211,8 @@ pub struct TrialResult {
     pub fruits: Vec<FruitRecord>,
     /// The scene's true fruits.
     pub truths: Vec<FruitTruth>,
+    /// How the registration of every cloud ended (aligned, kept, skipped, rejected by reason).
+    pub registration: glasshouse_pipeline::AlignmentCounts,
     /// The views planned on every frame, in order (what the planner service would publish).
     #[serde(skip)]
     pub plans: Vec<RankedViews>,
@@ -539,6 +546,7 @@ impl<S: TrolleySource> Trial<S> {
             compute_time_s: self.compute_time_s,
             fruits: self.published.fruits,
             truths: self.scene.fruits().to_vec(),
+            registration: *self.planner.alignment_counts(),
             plans: self.plans,
         })
     }

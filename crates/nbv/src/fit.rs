@@ -1,12 +1,14 @@
-//! Fitted fruit shape: an axis-aligned ellipsoid fitted to an ROI cluster, kept out of the free
-//! space the camera has observed, so that the volume of a half-seen fruit is not halved.
+//! Fitted fruit shape: a rotated superellipsoid (or, on request, an axis-aligned ellipsoid)
+//! fitted to an ROI cluster, kept out of the free space the camera has observed, so that the
+//! volume of a half-seen fruit is not halved.
 //!
-//! [`fit_ellipsoid`] works in four steps:
+//! [`fit_ellipsoid`] works in these steps:
 //!
 //! 1. **Start**: an algebraic least-squares sphere through the cluster's voxel centres (the ROI
 //!    voxels are where rays ended, so they lie on the seen part of the fruit's surface); the
 //!    cluster's box when that sphere is degenerate.
-//! 2. **Fit**: Levenberg-Marquardt over centre and log semi-axes minimising, in voxels,
+//! 2. **Axis-aligned fit**: Levenberg-Marquardt over centre and log semi-axes minimising, in
+//!    voxels,
 //!    - the radial distance of every cluster voxel centre from the ellipsoid surface,
 //!    - a hinge penalty for every voxel the map knows to be free whose centre lies deeper than
 //!      [`FitConfig::free_margin_voxels`] inside the ellipsoid (free space the camera saw through),
@@ -14,46 +16,87 @@
 //!      fruit seen from one side only, where the surface alone leaves it open; it is weakened as
 //!      the cluster covers more directions around the centre, so a fruit seen all round keeps its
 //!      own proportions.
-//! 3. **Free-space check**: while free voxels remain inside the ellipsoid, the semi-axis along
-//!    which they lie is shrunk.
-//! 4. **Confidence**: the share of points spread over the fitted surface whose voxel the map
+//! 3. **Superellipsoid** ([`ShapeModel::Superellipsoid`], the default; `solid`, `refine`): the
+//!    same residuals on a rotated, tapered superellipsoid ([`Superellipsoid`]: orientation, the
+//!    two shape exponents within [`FitConfig::exponent_range`] and the taper within
+//!    [`FitConfig::max_taper`] free), with priors of the roundness prior's weight (a round
+//!    cross-section, exponents near 1, no taper, body z near vertical). It starts from a few
+//!    steps of the axis-aligned fit and from the cluster's principal axes (tilted fruit); the
+//!    start ahead after a few steps goes on, with the free-space penalty made strict, so that
+//!    the solver rather than step 4 clears free space (shortening a tapered fruit at its tip, not
+//!    at both ends). Capsicums are blocky (exponents below 1), tapered, tilted up to 30° and
+//!    lobed; an axis-aligned ellipsoid fits none of that. The result must also fit within
+//!    [`FitConfig::max_superellipsoid_rms_voxels`] and stay no more than twice the cluster's
+//!    size.
+//! 4. **Free-space check**: while free voxels remain inside the shape, the semi-axis along which
+//!    they lie is shrunk (by 5 % for the ellipsoid, 1 % for the superellipsoid, whose solver
+//!    left them within a voxel of the surface).
+//! 5. **Confidence**: the share of points spread over the fitted surface whose voxel the map
 //!    knows (free or occupied, not unknown). Voxels are coarse next to a fruit (1 cm against
 //!    3-4.5 cm semi-axes): rays passing the silhouette make a band of the hidden side known, so a
 //!    fruit seen from one side scores about 0.7-0.8 rather than 0.5; all sides seen scores ~1.
 //!
 //! A fit that is degenerate (too few voxels, non-finite, semi-axes outside
 //! `[resolution / 2, max_semi_axis_m]`, centre far from the cluster, or a poor surface fit) falls
-//! back to the cluster's box: the ellipsoid inscribed in it, [`ShapeKind::Box`].
+//! back: a failed superellipsoid to the axis-aligned ellipsoid, a failed ellipsoid to the
+//! cluster's box (the ellipsoid inscribed in it, [`ShapeKind::Box`]).
 //!
-//! Fruits of the simulator are axis-aligned ellipsoids whose ground truth is their box, so the
-//! fitted estimate is compared to the truth through [`FittedShape::box_volume_m3`] (`8·a·b·c`).
+//! Ground truth comes as boxes, so the fitted estimate is compared to the truth through the
+//! world-axis box around the fitted solid ([`FittedShape::box_volume_m3`]).
+
+mod refine;
+#[cfg(test)]
+mod shape_tests;
+mod solid;
 
 use glasshouse_roimap::{Occupancy, RoiCluster, RoiMap, VoxelKey};
-use nalgebra::{Matrix6, Point3, Vector3, Vector6};
+use nalgebra::{Matrix6, Point3, UnitQuaternion, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
+
+use crate::evidence::EvidenceConfig;
+use crate::superellipsoid::Superellipsoid;
 
 /// How a [`FittedShape`] was obtained.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum ShapeKind {
-    /// A fitted ellipsoid.
+    /// A fitted (super)ellipsoid: [`FittedShape::exponents`] say which.
     Ellipsoid,
     /// The fit was degenerate: the ellipsoid inscribed in the cluster's box.
     Box,
 }
 
-/// An axis-aligned ellipsoid estimate of one fruit, world frame.
+/// Which solid [`fit_ellipsoid`] fits.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ShapeModel {
+    /// An ellipsoid with its axes along world x, y, z.
+    AxisAlignedEllipsoid,
+    /// A rotated superellipsoid ([`Superellipsoid`]).
+    #[default]
+    Superellipsoid,
+}
+
+/// A whole-fruit estimate of one fruit, world frame: a superellipsoid ([`Superellipsoid`]) with
+/// its centre, orientation, semi-axes and shape exponents.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FittedShape {
     pub kind: ShapeKind,
+    /// Centre of volume of the solid (its body origin too, unless tapered).
     pub centre: Point3<f64>,
-    /// Semi-axes along world x, y, z.
+    /// Semi-axes along the body axes (the columns of `world_from_body`).
     pub semi_axes_m: Vector3<f64>,
-    /// Ellipsoid volume, `4/3·π·a·b·c`.
+    /// Orientation of the body axes; the identity for axis-aligned fits and box fallbacks.
+    pub world_from_body: UnitQuaternion<f64>,
+    /// Shape exponents `[ε1, ε2]`; `[1, 1]` is an ellipsoid.
+    pub exponents: [f64; 2],
+    /// Taper along body z ([`Superellipsoid::taper`]); 0 for ellipsoids.
+    pub taper: f64,
+    /// Volume of the solid ([`Superellipsoid::volume_m3`]; `4/3·π·a·b·c` for an ellipsoid).
     pub volume_m3: f64,
-    /// Box around the ellipsoid: `centre ∓ semi_axes`.
+    /// World-axis box around the solid (`centre ∓ semi_axes` when axis-aligned).
     pub box_min: Point3<f64>,
     pub box_max: Point3<f64>,
-    /// Volume of that box, `8·a·b·c` (comparable with box ground truth).
+    /// Volume of that box (comparable with box ground truth; `8·a·b·c` when axis-aligned).
     pub box_volume_m3: f64,
     /// Share of the fitted surface the map has observed, in [0, 1].
     pub confidence: f64,
@@ -61,10 +104,41 @@ pub struct FittedShape {
     pub rms_residual_m: f64,
 }
 
+impl FittedShape {
+    /// The fitted solid.
+    pub fn solid(&self) -> Superellipsoid {
+        let mut solid = Superellipsoid {
+            centre: self.centre,
+            world_from_body: self.world_from_body.to_rotation_matrix(),
+            semi_axes_m: self.semi_axes_m,
+            exponents: self.exponents,
+            taper: self.taper,
+        };
+        if self.taper != 0.0 {
+            solid.centre -= solid.world_from_body * Vector3::z() * solid.centroid_offset_m();
+        }
+        solid
+    }
+}
+
 /// Parameters of [`fit_ellipsoid`]. [`Default`] suits the simulator's 5-9 cm fruits at 1 cm.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct FitConfig {
+    /// The solid fitted.
+    pub model: ShapeModel,
+    /// Range of both superellipsoid exponents. Below ~0.4 the corners of a fruit-sized shape
+    /// are sharper than a 1 cm voxel can show, so the data cannot tell them apart, and blocky
+    /// capsicums sit at 0.5-0.8; above 1.5 the shape grows points that fruit do not have (2 is
+    /// an octahedron).
+    pub exponent_range: [f64; 2],
+    /// Largest taper of the superellipsoid: a capsicum's tip is about half as wide as its
+    /// shoulders (0.35); 0 switches tapering off.
+    pub max_taper: f64,
+    /// Largest accepted RMS surface distance of the superellipsoid, in voxels: it bends to more
+    /// shapes than the ellipsoid, two touching fruits included (~1.3 voxels, where a lobed
+    /// capsicum fits within 0.7), so a poor fit is caught earlier.
+    pub max_superellipsoid_rms_voxels: f64,
     /// Clusters with fewer voxels are not fitted (box fallback).
     pub min_voxels: usize,
     /// Largest accepted semi-axis.
@@ -88,11 +162,17 @@ pub struct FitConfig {
     /// Points spread over the surface for the confidence.
     pub surface_samples: usize,
     pub max_iterations: usize,
+    /// Which clusters are reported as fruit ([`crate::evidence`]).
+    pub evidence: EvidenceConfig,
 }
 
 impl Default for FitConfig {
     fn default() -> Self {
         Self {
+            model: ShapeModel::default(),
+            exponent_range: [0.4, 1.5],
+            max_taper: 0.6,
+            max_superellipsoid_rms_voxels: 1.0,
             min_voxels: 10,
             max_semi_axis_m: 0.15,
             free_margin_voxels: 0.75,
@@ -103,6 +183,7 @@ impl Default for FitConfig {
             split_extent_m: 0.11,
             surface_samples: 256,
             max_iterations: 60,
+            evidence: EvidenceConfig::default(),
         }
     }
 }
@@ -162,8 +243,8 @@ impl Problem<'_> {
         scratch.iter().map(|r| r * r).sum()
     }
 
-    /// Levenberg-Marquardt with central-difference Jacobians.
-    fn solve(&self, start: Params) -> Params {
+    /// Levenberg-Marquardt with central-difference Jacobians, at most `iterations` steps.
+    fn solve(&self, start: Params, iterations: usize) -> Params {
         let mut p = start;
         let mut r0 = Vec::new();
         let mut plus = Vec::new();
@@ -171,7 +252,7 @@ impl Problem<'_> {
         let mut scratch = Vec::new();
         let mut cost = self.cost(&p, &mut scratch);
         let mut lambda = 1e-3;
-        for _ in 0..self.config.max_iterations {
+        for _ in 0..iterations {
             self.residuals(&p, &mut r0);
             let mut jtj = Matrix6::<f64>::zeros();
             let mut jtr = Vector6::<f64>::zeros();
@@ -336,6 +417,9 @@ fn shape(
         kind,
         centre,
         semi_axes_m: axes,
+        world_from_body: UnitQuaternion::identity(),
+        exponents: [1.0, 1.0],
+        taper: 0.0,
         volume_m3: 4.0 / 3.0 * std::f64::consts::PI * product,
         box_min: centre - axes,
         box_max: centre + axes,
@@ -370,59 +454,136 @@ pub fn fit_read_box(
     (min, max)
 }
 
-/// Fits an axis-aligned ellipsoid to `cluster` (see the module docs). Never panics; degenerate
-/// input gives the box fallback.
-pub fn fit_ellipsoid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> FittedShape {
-    let res = map.config().resolution_m;
-    if cluster.voxels.len() < config.min_voxels.max(4) {
-        return box_shape(map, cluster, config);
-    }
-    let surface: Vec<Point3<f64>> = cluster.voxels.iter().map(|k| map.centre_of(*k)).collect();
-    let margin = Vector3::repeat(config.free_search_margin_m.max(0.0));
-    let free = free_voxels_in(map, &(cluster.min - margin), &(cluster.max + margin));
-    let box_centre = Point3::from((cluster.min.coords + cluster.max.coords) / 2.0);
-    let box_half = ((cluster.max - cluster.min) / 2.0).map(|v| v.max(res));
-    let min_axis = 0.5 * res;
-    let axis_ok = |a: &Vector3<f64>| {
-        a.iter()
-            .all(|v| v.is_finite() && *v >= min_axis && *v <= config.max_semi_axis_m)
-    };
-    let (start_centre, start_axes) = match algebraic_sphere(&surface) {
-        Some((c, r)) if axis_ok(&Vector3::repeat(r)) && (c - box_centre).norm() < 2.0 * r => {
-            (c, Vector3::repeat(r))
+/// What every fit of one cluster reads: its voxel centres, the free voxels around it, and the
+/// start and prior weight of the axis-aligned fit.
+struct FitData {
+    resolution_m: f64,
+    surface: Vec<Point3<f64>>,
+    /// Free voxels within the search margin of the cluster's box.
+    free_around: Vec<Point3<f64>>,
+    /// Those of them near the start (the only ones that can constrain the fit).
+    free_near: Vec<Point3<f64>>,
+    box_centre: Point3<f64>,
+    box_half: Vector3<f64>,
+    start_centre: Point3<f64>,
+    start_axes: Vector3<f64>,
+    prior_weight: f64,
+}
+
+impl FitData {
+    /// `None` when the cluster is too small to fit.
+    fn gather(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> Option<Self> {
+        let res = map.config().resolution_m;
+        if cluster.voxels.len() < config.min_voxels.max(4) {
+            return None;
         }
-        _ => (box_centre, box_half),
+        let surface: Vec<Point3<f64>> = cluster.voxels.iter().map(|k| map.centre_of(*k)).collect();
+        let margin = Vector3::repeat(config.free_search_margin_m.max(0.0));
+        let free_around = free_voxels_in(map, &(cluster.min - margin), &(cluster.max + margin));
+        let box_centre = Point3::from((cluster.min.coords + cluster.max.coords) / 2.0);
+        let box_half = ((cluster.max - cluster.min) / 2.0).map(|v| v.max(res));
+        let sphere_ok = |r: f64| r.is_finite() && r >= 0.5 * res && r <= config.max_semi_axis_m;
+        let (start_centre, start_axes) = match algebraic_sphere(&surface) {
+            Some((c, r)) if sphere_ok(r) && (c - box_centre).norm() < 2.0 * r => {
+                (c, Vector3::repeat(r))
+            }
+            _ => (box_centre, box_half),
+        };
+        let reach = start_axes.map(|a| a * 1.5 + 2.0 * res);
+        let free_near = free_around
+            .iter()
+            .filter(|f| rho(f, &start_centre, &reach) < 1.0)
+            .copied()
+            .collect();
+        // The prior matters where the surface leaves the shape open (a fruit seen from one
+        // side) and should not bend a fruit seen all round: scale it by the directions not
+        // covered.
+        let coverage = angular_coverage(&surface, &start_centre);
+        let prior_weight = config.roundness_weight
+            * (surface.len() as f64).sqrt()
+            * (2.0 * (1.0 - coverage)).clamp(0.1, 1.0);
+        Some(Self {
+            resolution_m: res,
+            surface,
+            free_around,
+            free_near,
+            box_centre,
+            box_half,
+            start_centre,
+            start_axes,
+            prior_weight,
+        })
+    }
+
+    fn axis_ok(&self, axes: &Vector3<f64>, config: &FitConfig) -> bool {
+        axes.iter()
+            .all(|v| v.is_finite() && *v >= 0.5 * self.resolution_m && *v <= config.max_semi_axis_m)
+    }
+
+    /// No semi-axis of a superellipsoid fitted to this cluster may be more than twice the
+    /// cluster's largest half-extent: a flat patch is part of the surface of a huge solid, but
+    /// no fruit (a fruit seen end-on is at most about twice as long as it is wide).
+    fn size_near(&self, axes: &Vector3<f64>) -> bool {
+        axes.max() <= 2.0 * self.box_half.max() + self.resolution_m
+    }
+
+    /// The fitted solid must stay near the data it was fitted to.
+    fn centre_near(&self, centre: &Point3<f64>, config: &FitConfig) -> bool {
+        (centre - self.box_centre)
+            .iter()
+            .zip(self.box_half.iter())
+            .all(|(d, h)| d.abs() <= h + config.max_semi_axis_m)
+    }
+
+    /// The axis-aligned Levenberg-Marquardt solution after at most `iterations` steps: centre
+    /// and semi-axes.
+    fn solve_axis_aligned(
+        &self,
+        config: &FitConfig,
+        iterations: usize,
+    ) -> (Point3<f64>, Vector3<f64>) {
+        let problem = Problem {
+            prior_weight: self.prior_weight,
+            surface: &self.surface,
+            free: &self.free_near,
+            resolution_m: self.resolution_m,
+            config,
+        };
+        let (c, a) = (self.start_centre, self.start_axes);
+        let start = Params::new(c.x, c.y, c.z, a.x.ln(), a.y.ln(), a.z.ln());
+        unpack(&problem.solve(start, iterations))
+    }
+}
+
+/// Fits the whole-fruit solid of `config.model` to `cluster` (see the module docs). Never
+/// panics; degenerate input gives the box fallback.
+pub fn fit_ellipsoid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> FittedShape {
+    let Some(data) = FitData::gather(map, cluster, config) else {
+        return box_shape(map, cluster, config);
     };
-    // Only free voxels near the starting shape can constrain the fit (keeps the solve cheap).
-    let reach = start_axes.map(|a| a * 1.5 + 2.0 * res);
-    let free: Vec<Point3<f64>> = free
-        .into_iter()
-        .filter(|f| rho(f, &start_centre, &reach) < 1.0)
-        .collect();
-    // The prior matters where the surface leaves the shape open (a fruit seen from one side) and
-    // should not bend a fruit seen all round: scale it by the directions not covered.
-    let coverage = angular_coverage(&surface, &start_centre);
-    let prior_weight = config.roundness_weight
-        * (surface.len() as f64).sqrt()
-        * (2.0 * (1.0 - coverage)).clamp(0.1, 1.0);
-    let problem = Problem {
-        prior_weight,
-        surface: &surface,
-        free: &free,
-        resolution_m: res,
-        config,
-    };
-    let start = Params::new(
-        start_centre.x,
-        start_centre.y,
-        start_centre.z,
-        start_axes.x.ln(),
-        start_axes.y.ln(),
-        start_axes.z.ln(),
-    );
-    let solved = problem.solve(start);
-    let (centre, mut axes) = unpack(&solved);
-    if !(centre.iter().all(|c| c.is_finite()) && axis_ok(&axes)) {
+    if config.model == ShapeModel::Superellipsoid {
+        // The axis-aligned solve only starts the superellipsoid: a rough one will do.
+        let (centre, axes) =
+            data.solve_axis_aligned(config, solid::START_ITERATIONS.min(config.max_iterations));
+        if let Some(fit) = solid::fit_superellipsoid(map, &data, centre, axes, config) {
+            return fit;
+        }
+    }
+    let (centre, axes) = data.solve_axis_aligned(config, config.max_iterations);
+    finish_axis_aligned(map, cluster, &data, centre, axes, config)
+}
+
+/// Steps 4-5 of the module docs for the axis-aligned ellipsoid.
+fn finish_axis_aligned(
+    map: &RoiMap,
+    cluster: &RoiCluster,
+    data: &FitData,
+    centre: Point3<f64>,
+    mut axes: Vector3<f64>,
+    config: &FitConfig,
+) -> FittedShape {
+    let res = data.resolution_m;
+    if !(centre.iter().all(|c| c.is_finite()) && data.axis_ok(&axes, config)) {
         return box_shape(map, cluster, config);
     }
     // Free-space check: shrink the axis along which free voxels sit inside the ellipsoid.
@@ -444,23 +605,22 @@ pub fn fit_ellipsoid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> 
         }
         let axis = push.imax();
         axes[axis] *= 0.95;
-        if axes[axis] < min_axis {
+        if axes[axis] < 0.5 * res {
             return box_shape(map, cluster, config);
         }
     }
     let scale_m = mean_axis(&axes);
-    let rms_m = (surface
+    let rms_m = (data
+        .surface
         .iter()
         .map(|q| ((rho(q, &centre, &axes) - 1.0) * scale_m).powi(2))
         .sum::<f64>()
-        / surface.len() as f64)
+        / data.surface.len() as f64)
         .sqrt();
-    // The fitted ellipsoid must stay near the data it was fitted to.
-    let centre_near = (centre - box_centre)
-        .iter()
-        .zip(box_half.iter())
-        .all(|(d, h)| d.abs() <= h + config.max_semi_axis_m);
-    if !(rms_m.is_finite() && rms_m <= config.max_rms_voxels * res && centre_near) {
+    if !(rms_m.is_finite()
+        && rms_m <= config.max_rms_voxels * res
+        && data.centre_near(&centre, config))
+    {
         return box_shape(map, cluster, config);
     }
     let confidence = observed_share(map, &centre, &axes, config.surface_samples);
@@ -606,14 +766,10 @@ mod tests {
             "{constrained:?}"
         );
         // No free voxel lies deep inside the result.
-        let scale = mean_axis(&constrained.semi_axes_m) / 0.01;
+        let solid = constrained.solid();
         for (k, _) in &free {
-            let r = rho(
-                &m.centre_of(*k),
-                &constrained.centre,
-                &constrained.semi_axes_m,
-            );
-            assert!((1.0 - r) * scale <= 1.0 + 1e-9, "{k:?} at rho {r}");
+            let d = solid.radial_distance_m(&m.centre_of(*k));
+            assert!(d >= -0.01 - 1e-9, "{k:?} {d} m deep");
         }
     }
 
@@ -745,8 +901,25 @@ pub(crate) mod tests_support {
     /// [`scan_at`] of several ellipsoids at once, each ray ending on the nearest it hits; aims
     /// at the first.
     pub fn scan_all(map: &mut RoiMap, fruits: &[(Point3<f64>, Vector3<f64>)], eye: Point3<f64>) {
-        let c = fruits[0].0;
-        let forward = (c - eye).normalize();
+        scan_with(map, fruits[0].0, eye, |o, d| {
+            fruits
+                .iter()
+                .filter_map(|(c, axes)| hit_ellipsoid(o, d, c, axes))
+                .min_by(f64::total_cmp)
+        });
+    }
+
+    /// Scans whatever `hit` (first ray parameter of the ray `o + t·d`, unit `d`) describes as
+    /// ROI from `eye`, aiming at `aim`: a 120 × 120 fan over ±0.25 rad; rays that miss end on a
+    /// background 0.3 m behind `aim` (not ROI). Inserted twice (two ROI observations). Returns
+    /// the ROI points.
+    pub fn scan_with(
+        map: &mut RoiMap,
+        aim: Point3<f64>,
+        eye: Point3<f64>,
+        hit: impl Fn(&Point3<f64>, &Vector3<f64>) -> Option<f64>,
+    ) -> Vec<Point3<f64>> {
+        let forward = (aim - eye).normalize();
         let helper = if forward.z.abs() < 0.9 {
             Vector3::z()
         } else {
@@ -754,7 +927,7 @@ pub(crate) mod tests_support {
         };
         let right = forward.cross(&helper).normalize();
         let up = right.cross(&forward);
-        let distance = (c - eye).norm();
+        let distance = (aim - eye).norm();
         let mut points = Vec::new();
         let mut roi = Vec::new();
         let steps = 120;
@@ -764,11 +937,7 @@ pub(crate) mod tests_support {
                 let u = half_angle * (2.0 * (i as f64 + 0.5) / steps as f64 - 1.0);
                 let v = half_angle * (2.0 * (j as f64 + 0.5) / steps as f64 - 1.0);
                 let d = (forward + right * u.tan() + up * v.tan()).normalize();
-                let nearest = fruits
-                    .iter()
-                    .filter_map(|(c, axes)| hit_ellipsoid(&eye, &d, c, axes))
-                    .min_by(f64::total_cmp);
-                match nearest {
+                match hit(&eye, &d) {
                     Some(t) => {
                         points.push((eye + d * t).cast::<f32>());
                         roi.push(true);
@@ -783,6 +952,8 @@ pub(crate) mod tests_support {
         for _ in 0..2 {
             map.insert_scan(&eye, &points, &roi).unwrap();
         }
+        let hits = points.iter().zip(&roi).filter(|(_, r)| **r);
+        hits.map(|(p, _)| p.cast::<f64>()).collect()
     }
 
     pub fn map() -> RoiMap {

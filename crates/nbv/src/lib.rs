@@ -32,11 +32,16 @@
 //! occupancy log-odds > 0 is occupied, anything else free.
 //!
 //! [`FruitTracker`] turns ROI clusters into fruit estimates with ids that stay stable across
-//! updates. Everything is deterministic for a given seed: randomness comes from `ChaCha8Rng`
+//! updates, and counts the directions each fruit was seen from; [`evidence`] says which clusters
+//! are fruit at all. Everything is deterministic for a given seed: randomness comes from `ChaCha8Rng`
 //! streams derived from it.
 
+pub mod evidence;
 pub mod fit;
 pub mod split;
+pub mod superellipsoid;
+#[cfg(test)]
+mod test_bodies;
 
 use std::collections::HashMap;
 use std::fmt;
@@ -799,6 +804,9 @@ pub struct FruitEstimate {
     pub voxel_count: usize,
     /// Share of the box's surface voxels seen as ROI, in [0, 1].
     pub confidence: f64,
+    /// Distinct directions (at least [`VIEW_SEPARATION_DEG`] apart) from which noted scans hit
+    /// this fruit ([`FruitTracker::note_scan`]); 0 when no scan was noted.
+    pub view_directions: u32,
 }
 
 /// Largest centre movement between updates for a cluster to keep its fruit id.
@@ -833,16 +841,38 @@ pub fn fruit_confidence(cluster: &RoiCluster) -> f64 {
     }
 }
 
-/// Keeps fruit ids stable across cluster updates.
+/// Two view directions count as distinct when at least this far apart: about the angle over
+/// which a camera 0.3-0.5 m away sees a new side of a 5-10 cm fruit.
+pub const VIEW_SEPARATION_DEG: f64 = 45.0;
+/// A scan whose ROI points fall in fewer of a fruit's voxels did not see it.
+pub const MIN_VIEW_HITS: usize = 3;
+/// View directions kept per fruit (more add nothing to its confidence).
+const MAX_VIEW_DIRECTIONS: usize = 8;
+/// Scans noted between two updates that are kept (a replica may integrate many at once).
+const MAX_PENDING_SCANS: usize = 16;
+
+/// One noted scan: where the sensor was and the sorted keys of the voxels its ROI points hit.
+#[derive(Clone, Debug)]
+struct ScanHits {
+    sensor_origin_in_world: Point3<f64>,
+    roi_keys: Vec<VoxelKey>,
+}
+
+/// Keeps fruit ids stable across cluster updates, with the directions each fruit was seen from.
 #[derive(Clone, Debug)]
 pub struct FruitTracker {
     previous: Vec<(u32, Point3<f64>)>,
     next_id: u32,
+    /// Unit directions from each tracked fruit towards the sensors whose scans hit it.
+    views: HashMap<u32, Vec<Vector3<f64>>>,
+    /// Scans noted since the last update.
+    pending: Vec<ScanHits>,
 }
 
 impl FruitTracker {
     /// The tracked fruits (id, centre) and the next free id: what another planner needs to carry
-    /// on with the same ids ([`FruitTracker::from_state`]).
+    /// on with the same ids ([`FruitTracker::from_state`]). The view directions are not part of
+    /// it: a tracker continuing from it counts directions afresh.
     pub fn state(&self) -> (Vec<(u32, Point3<f64>)>, u32) {
         (self.previous.clone(), self.next_id)
     }
@@ -854,7 +884,51 @@ impl FruitTracker {
         Self {
             next_id: next_id.max(above_tracked.unwrap_or(1)).max(1),
             previous: tracked,
+            ..Self::default()
         }
+    }
+
+    /// Notes a scan taken from `sensor_origin_in_world` whose ROI points fell in `roi_keys`: at
+    /// the next [`FruitTracker::update`], every fruit with at least [`MIN_VIEW_HITS`] of its
+    /// voxels among them counts the scan's direction.
+    pub fn note_scan(&mut self, sensor_origin_in_world: Point3<f64>, mut roi_keys: Vec<VoxelKey>) {
+        roi_keys.sort_unstable();
+        roi_keys.dedup();
+        if self.pending.len() == MAX_PENDING_SCANS {
+            self.pending.remove(0);
+        }
+        self.pending.push(ScanHits {
+            sensor_origin_in_world,
+            roi_keys,
+        });
+    }
+
+    /// The view directions of fruit `id` at `centre` (a cluster of `voxels`) after the noted
+    /// scans: its former directions plus each new one that is distinct from all of them.
+    fn seen_from(
+        &mut self,
+        id: u32,
+        centre: &Point3<f64>,
+        voxels: &[VoxelKey],
+    ) -> Vec<Vector3<f64>> {
+        let mut directions = self.views.remove(&id).unwrap_or_default();
+        let distinct = VIEW_SEPARATION_DEG.to_radians().cos();
+        for scan in &self.pending {
+            let hits = voxels
+                .iter()
+                .filter(|k| scan.roi_keys.binary_search(k).is_ok())
+                .count();
+            let Some(towards) = (scan.sensor_origin_in_world - centre).try_normalize(1e-9) else {
+                continue;
+            };
+            if hits >= MIN_VIEW_HITS
+                && directions.len() < MAX_VIEW_DIRECTIONS
+                && directions.iter().all(|d| d.dot(&towards) < distinct)
+            {
+                directions.push(towards);
+            }
+        }
+        directions
     }
 }
 
@@ -864,6 +938,8 @@ impl Default for FruitTracker {
         Self {
             previous: Vec::new(),
             next_id: 1,
+            views: HashMap::new(),
+            pending: Vec::new(),
         }
     }
 }
@@ -871,8 +947,45 @@ impl Default for FruitTracker {
 impl FruitTracker {
     /// Estimates for `clusters` (same order). Each cluster takes the id of the previous estimate
     /// with the nearest centre within [`TRACK_MATCH_DISTANCE_M`] (greedy one-to-one, smallest
-    /// distance first); the others get fresh ids. Ids are never reused.
+    /// distance first); the others get fresh ids. Ids are never reused. Scans noted since the
+    /// last update add their directions to the fruits they hit.
     pub fn update(&mut self, clusters: &[RoiCluster]) -> Vec<FruitEstimate> {
+        let id_of = self.match_ids(clusters);
+        let mut views = HashMap::with_capacity(clusters.len());
+        let estimates: Vec<FruitEstimate> = clusters
+            .iter()
+            .zip(id_of)
+            .map(|(cluster, id)| {
+                let id = id.unwrap_or_else(|| {
+                    let fresh = self.next_id;
+                    // 4 billion fruits will not happen; saturate rather than wrap to a used id.
+                    self.next_id = self.next_id.saturating_add(1);
+                    fresh
+                });
+                let directions = self.seen_from(id, &cluster.centre, &cluster.voxels);
+                let view_directions = directions.len() as u32;
+                views.insert(id, directions);
+                let size = cluster.max - cluster.min;
+                FruitEstimate {
+                    id,
+                    centre: cluster.centre,
+                    min: cluster.min,
+                    max: cluster.max,
+                    volume_m3: size.x.max(0.0) * size.y.max(0.0) * size.z.max(0.0),
+                    voxel_count: cluster.voxels.len(),
+                    confidence: fruit_confidence(cluster),
+                    view_directions,
+                }
+            })
+            .collect();
+        self.previous = estimates.iter().map(|e| (e.id, e.centre)).collect();
+        self.views = views;
+        self.pending.clear();
+        estimates
+    }
+
+    /// The previous id each cluster keeps, if any (see [`FruitTracker::update`]).
+    fn match_ids(&self, clusters: &[RoiCluster]) -> Vec<Option<u32>> {
         let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
         for (ci, cluster) in clusters.iter().enumerate() {
             for (pi, (_, centre)) in self.previous.iter().enumerate() {
@@ -891,30 +1004,7 @@ impl FruitTracker {
                 taken[pi] = true;
             }
         }
-        let estimates: Vec<FruitEstimate> = clusters
-            .iter()
-            .zip(id_of)
-            .map(|(cluster, id)| {
-                let id = id.unwrap_or_else(|| {
-                    let fresh = self.next_id;
-                    // 4 billion fruits will not happen; saturate rather than wrap to a used id.
-                    self.next_id = self.next_id.saturating_add(1);
-                    fresh
-                });
-                let size = cluster.max - cluster.min;
-                FruitEstimate {
-                    id,
-                    centre: cluster.centre,
-                    min: cluster.min,
-                    max: cluster.max,
-                    volume_m3: size.x.max(0.0) * size.y.max(0.0) * size.z.max(0.0),
-                    voxel_count: cluster.voxels.len(),
-                    confidence: fruit_confidence(cluster),
-                }
-            })
-            .collect();
-        self.previous = estimates.iter().map(|e| (e.id, e.centre)).collect();
-        estimates
+        id_of
     }
 }
 

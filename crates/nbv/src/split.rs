@@ -1,26 +1,34 @@
 //! Touching fruits: one ROI cluster that is two fruits.
 //!
 //! Fruits that touch (or whose surfaces are one voxel apart) grow into one 26-connected cluster.
-//! Reported as one fruit, such a pair costs a fruit in the count and gives a box and an ellipsoid
+//! Reported as one fruit, such a pair costs a fruit in the count and gives a box and a solid
 //! twice the size of either. [`split_touching`] tries a cluster as two when it is longer than
-//! [`FitConfig::split_extent_m`] along some axis *and* no single ellipsoid fits it
-//! ([`fit_ellipsoid`] falls back to the box). The voxels are divided by 2-means, started at the
-//! two ends of the longest axis; the split is kept only when each half has enough voxels and
-//! fits an ellipsoid of its own. A big single fruit fits one ellipsoid and is never split; a
-//! split half is tried again (three fruits in a row), up to [`MAX_PARTS`].
+//! [`FitConfig::split_extent_m`] along some axis *and* either no single solid fits it
+//! ([`fit_ellipsoid`] falls back to the box) or it has a waist ([`waist_ratio`]): touching
+//! fruits narrow where they meet, and a superellipsoid bends enough to wrap two of them, while a
+//! single fruit, lobed, tapered or tilted, has no waist. The voxels are divided by 2-means,
+//! started at the two ends of the longest axis; the split is kept only when each half has
+//! enough voxels and fits a solid of its own. A big single fruit fits one solid and is never
+//! split; a split half is tried again (three fruits in a row), up to [`MAX_PARTS`].
 //!
 //! The converse, one fruit as two clusters (a leaf across it leaves two patches that do not
 //! touch), is caught after fitting: [`fragments`] marks a cluster whose fitted centre lies inside
-//! the fitted ellipsoid of a larger cluster. Solid fruits cannot hold each other's centres, so
+//! the fitted solid of a larger cluster. Solid fruits cannot hold each other's centres, so
 //! only a second view of the same fruit can.
 
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
+use crate::evidence::principal_axes;
 use crate::fit::{fit_ellipsoid, fit_read_box, FitConfig, FittedShape, ShapeKind};
 
 /// Most fruits one cluster is split into.
 pub const MAX_PARTS: usize = 4;
+/// Width of the slabs of [`waist_ratio`], in voxels.
+const WAIST_SLAB_VOXELS: f64 = 2.0;
+/// A cluster narrower than this in the middle ([`waist_ratio`]) has a waist: touching fruits
+/// measure 0.65-0.8 where they meet, single fruits (lobed, tapered, tilted) 0.94-1.
+const WAIST_RATIO: f64 = 0.88;
 /// 2-means iterations (the assignment settles in a few).
 const ITERATIONS: usize = 12;
 
@@ -61,7 +69,7 @@ pub type ReadBox = (Point3<f64>, Point3<f64>);
 struct Fits(Vec<(Vec<VoxelKey>, FittedShape, ReadBox)>);
 
 impl Fits {
-    /// Whether `c` fits one ellipsoid, fitting it unless it was fitted before.
+    /// Whether `c` fits one solid, fitting it unless it was fitted before.
     fn ellipsoid(&mut self, map: &RoiMap, c: &RoiCluster, config: &FitConfig) -> bool {
         if let Some((_, shape, _)) = self.0.iter().find(|(v, _, _)| *v == c.voxels) {
             return shape.kind == ShapeKind::Ellipsoid;
@@ -114,7 +122,7 @@ pub fn split_cluster(
 }
 
 /// For each fit (with its cluster's voxel count), whether it is a fragment of a fruit that a
-/// larger cluster's fitted ellipsoid already holds (see the module docs). Larger clusters are
+/// larger cluster's fitted solid already holds (see the module docs). Larger clusters are
 /// judged first; a fragment never holds another. Box fallbacks hold nothing.
 pub fn fragments(fits: &[FittedShape], voxel_counts: &[usize]) -> Vec<bool> {
     let mut order: Vec<usize> = (0..fits.len().min(voxel_counts.len())).collect();
@@ -123,10 +131,7 @@ pub fn fragments(fits: &[FittedShape], voxel_counts: &[usize]) -> Vec<bool> {
     let mut holders: Vec<usize> = Vec::new();
     for i in order {
         let centre = fits[i].centre;
-        let held = holders.iter().any(|&h| {
-            let f = &fits[h];
-            (centre - f.centre).component_div(&f.semi_axes_m).norm() < 1.0
-        });
+        let held = holders.iter().any(|&h| fits[h].solid().holds(&centre, 0.0));
         if held {
             fragment[i] = true;
         } else if fits[i].kind == ShapeKind::Ellipsoid {
@@ -153,7 +158,8 @@ fn split_once(
     if longest_extent_m(cluster) <= config.split_extent_m || cluster.voxels.len() < 2 * min_voxels {
         return None;
     }
-    if fits.ellipsoid(map, cluster, config) {
+    let one_solid = fits.ellipsoid(map, cluster, config);
+    if one_solid && !has_waist(map, cluster) {
         return None;
     }
     let (a, b) = two_means(map, &cluster.voxels);
@@ -162,6 +168,46 @@ fn split_once(
     }
     let (a, b) = (map.cluster_of(a), map.cluster_of(b));
     (fits.ellipsoid(map, &a, config) && fits.ellipsoid(map, &b, config)).then_some((a, b))
+}
+
+/// The narrowest middle cross-section of `points` along their longest principal axis, relative
+/// to the wider sections on both sides of it: the RMS distance from the axis in slabs of 2
+/// voxels, each interior slab's over the smaller of the largest on its left and on its right
+/// (1 or more: no waist).
+pub fn waist_ratio(points: &[Point3<f64>], resolution_m: f64) -> f64 {
+    let Some(pca) = principal_axes(points) else {
+        return 1.0;
+    };
+    let axis: Vector3<f64> = pca.axes.column(0).into_owned();
+    let along: Vec<f64> = points.iter().map(|p| (p - pca.mean).dot(&axis)).collect();
+    let lo = along.iter().copied().fold(f64::INFINITY, f64::min);
+    let slab_m = WAIST_SLAB_VOXELS * resolution_m;
+    let slabs = ((along.iter().copied().fold(lo, f64::max) - lo) / slab_m).floor() as usize + 1;
+    let mut sums = vec![(0.0, 0usize); slabs];
+    for (p, t) in points.iter().zip(&along) {
+        let i = (((t - lo) / slab_m) as usize).min(slabs - 1);
+        let off_axis = (p - pca.mean) - axis * *t;
+        sums[i].0 += off_axis.norm_squared();
+        sums[i].1 += 1;
+    }
+    // Slabs with few voxels (the ends of the cluster) say little.
+    let spread: Vec<Option<f64>> = sums
+        .iter()
+        .map(|&(s, n)| (n >= 4).then(|| (s / n as f64).sqrt()))
+        .collect();
+    let widest = |range: &[Option<f64>]| range.iter().flatten().copied().fold(0.0, f64::max);
+    (1..slabs.saturating_sub(1))
+        .filter_map(|i| {
+            let here = spread[i]?;
+            let sides = widest(&spread[..i]).min(widest(&spread[i + 1..]));
+            (sides > 0.0).then(|| here / sides)
+        })
+        .fold(1.0, f64::min)
+}
+
+fn has_waist(map: &RoiMap, cluster: &RoiCluster) -> bool {
+    let points: Vec<Point3<f64>> = cluster.voxels.iter().map(|k| map.centre_of(*k)).collect();
+    waist_ratio(&points, map.config().resolution_m) < WAIST_RATIO
 }
 
 /// Divides voxels into two groups by 2-means on their centres, started at the voxels at either
@@ -306,6 +352,35 @@ mod tests {
         };
         assert_eq!(fragments(&[boxed, fl.clone()], &[50, 40]), [false, false]);
         assert_eq!(fragments(&[fl.clone(), fl], &[40, 50]), [true, false]);
+    }
+
+    #[test]
+    fn touching_fruits_have_a_waist_and_one_long_fruit_has_none() {
+        let points = |m: &RoiMap| -> Vec<Point3<f64>> {
+            let clusters = m.clusters(10);
+            assert_eq!(clusters.len(), 1);
+            clusters[0].voxels.iter().map(|k| m.centre_of(*k)).collect()
+        };
+        let (m, _, _) = touching_pair();
+        let all_round = waist_ratio(&points(&m), 0.01);
+        // The pair seen from one side only.
+        let r = Vector3::new(0.035, 0.032, 0.04);
+        let (a, b) = (centre(), centre() + Vector3::new(0.071, 0.0, 0.004));
+        let mut m = map();
+        scan_all(
+            &mut m,
+            &[(a, r), (b, r)],
+            a + Vector3::new(0.05, -0.4, -0.1),
+        );
+        let one_side = waist_ratio(&points(&m), 0.01);
+        let mut m = map();
+        around(&mut m, &[(a, Vector3::new(0.065, 0.04, 0.045))]);
+        let long = waist_ratio(&points(&m), 0.01);
+        assert!(
+            all_round < WAIST_RATIO && one_side < WAIST_RATIO,
+            "{all_round} {one_side}"
+        );
+        assert!(long > 0.95, "{long}");
     }
 
     #[test]

@@ -4,8 +4,7 @@
 use glasshouse_arm::{Interval, Mount, MountState};
 use glasshouse_proto::{ArmModel, ArmState, Fruit, MountKind, RgbdFrame, TrolleyInfo};
 use glasshouse_sim::{
-    CameraModel, PerceptionNoise, ScenarioKind, Scene, Segment, SimArm, WorldError,
-    WorldSettings,
+    CameraModel, PerceptionNoise, ScenarioKind, Scene, Segment, SimArm, WorldError, WorldSettings,
 };
 use nalgebra::{Isometry3, Translation3};
 
@@ -180,7 +179,10 @@ impl SimTrolley {
             return self.arm.world_from_camera();
         }
         let arm_pose = self.arm.pose();
-        let errors = pose_error.joint_errors_rad(noise_seed(self.settings.seed, frame_seq), arm_pose.joints.len());
+        let errors = pose_error.joint_errors_rad(
+            noise_seed(self.settings.seed, frame_seq),
+            arm_pose.joints.len(),
+        );
         let mut joints = arm_pose.joints;
         for (q, e) in joints.iter_mut().zip(errors) {
             *q += e;

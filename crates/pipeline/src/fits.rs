@@ -1,11 +1,14 @@
 //! Fruit fits kept while nothing they read has changed. A fit reads its cluster's voxels and the
 //! map in a box around them (the free voxels beside the cluster, the observed share of the fitted
 //! surface), so a scan that changed neither leaves the fit exactly as it was. The per-frame fit
-//! cost then follows what the scan touched, not how many fruits the row holds. The same holds
-//! for the touching-fruit splits ([`SplitCache`]).
+//! cost then follows what the scan touched, not how many fruits the row holds. The evidence
+//! that a cluster is a fruit (its shape and colour, [`ClusterEvidence`]) reads only the cluster's
+//! voxels, so it is kept with the fit. The same holds for the touching-fruit splits
+//! ([`SplitCache`]).
 
 use std::collections::HashMap;
 
+use glasshouse_nbv::evidence::{ClusterEvidence, ClusterShape};
 use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FittedShape};
 use glasshouse_nbv::split::{split_cluster, ReadBox};
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
@@ -20,28 +23,31 @@ struct CachedFit {
     read_max: Point3<f64>,
     at_scans: u64,
     shape: FittedShape,
+    evidence: ClusterEvidence,
 }
 
-/// The fits of the latest clusters, keyed by each cluster's smallest voxel.
+/// The fits of the latest clusters, keyed by each cluster's smallest voxel, and the shapes of
+/// their voxels.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct FitCache {
     by_first_voxel: HashMap<VoxelKey, CachedFit>,
+    shapes: HashMap<VoxelKey, (Vec<VoxelKey>, ClusterShape)>,
 }
 
 impl FitCache {
     /// The fits of `clusters` on `map`, in cluster order, refitting only the clusters whose
     /// voxels or surroundings changed since their last fit; also returns how many were refitted.
     /// The result equals fitting every cluster afresh.
-    pub(crate) fn update(
+    pub(crate) fn update<'a>(
         &mut self,
         map: &RoiMap,
-        clusters: &[RoiCluster],
+        clusters: impl IntoIterator<Item = &'a RoiCluster>,
         config: &FitConfig,
     ) -> (Vec<FittedShape>, usize) {
         let mut previous = std::mem::take(&mut self.by_first_voxel);
         let mut refits = 0;
         let shapes = clusters
-            .iter()
+            .into_iter()
             .map(|cluster| {
                 let first = cluster.voxels[0];
                 let kept = previous.remove(&first).filter(|cached| {
@@ -62,23 +68,57 @@ impl FitCache {
 }
 
 impl FitCache {
-    /// A fit of `cluster` made elsewhere (by its split) on the map at scan count `at_scans`,
-    /// reading `read`: kept as if made here, so the cluster is not fitted twice.
+    /// A fit of `cluster` made elsewhere (by its split) on `map`, reading `read`: kept as if
+    /// made here, so the cluster is not fitted twice.
     pub(crate) fn offer(
         &mut self,
+        map: &RoiMap,
         cluster: &RoiCluster,
         shape: FittedShape,
         read: ReadBox,
-        at_scans: u64,
     ) {
         let cached = CachedFit {
             voxels: cluster.voxels.clone(),
             read_min: read.0,
             read_max: read.1,
-            at_scans,
+            at_scans: map.scans_inserted(),
             shape,
+            evidence: ClusterEvidence::of(map, cluster),
         };
         self.by_first_voxel.insert(cluster.voxels[0], cached);
+    }
+
+    /// What the voxels of `cluster` say (its shape and colour), kept since its last fit by
+    /// [`FitCache::update`]; `None` for a cluster that update did not see.
+    pub(crate) fn evidence_of(&self, cluster: &RoiCluster) -> Option<&ClusterEvidence> {
+        let cached = self.by_first_voxel.get(cluster.voxels.first()?)?;
+        (cached.voxels == cluster.voxels).then_some(&cached.evidence)
+    }
+
+    /// The shape of each cluster's voxels ([`ClusterShape`]), in cluster order, computed again
+    /// only for clusters whose voxels changed: it tells which clusters need a fit at all.
+    pub(crate) fn shapes(&mut self, map: &RoiMap, clusters: &[RoiCluster]) -> Vec<ClusterShape> {
+        let mut previous = std::mem::take(&mut self.shapes);
+        let resolution_m = map.config().resolution_m;
+        clusters
+            .iter()
+            .map(|cluster| {
+                let first = cluster.voxels[0];
+                let kept = previous
+                    .remove(&first)
+                    .filter(|(v, _)| *v == cluster.voxels);
+                let (voxels, shape) = kept.unwrap_or_else(|| {
+                    let centres: Vec<_> =
+                        cluster.voxels.iter().map(|k| map.centre_of(*k)).collect();
+                    (
+                        cluster.voxels.clone(),
+                        ClusterShape::of(&centres, resolution_m),
+                    )
+                });
+                self.shapes.insert(first, (voxels, shape));
+                shape
+            })
+            .collect()
     }
 }
 
@@ -91,6 +131,7 @@ fn fit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> CachedFit {
         read_max: max,
         at_scans: map.scans_inserted(),
         shape,
+        evidence: ClusterEvidence::of(map, cluster),
     }
 }
 
@@ -143,7 +184,7 @@ impl SplitCache {
             out.extend(split.parts.iter().cloned());
             for (part, fit) in split.parts.iter().zip(split.fits) {
                 if let Some((shape, read)) = fit {
-                    fits.offer(part, shape, read, map.scans_inserted());
+                    fits.offer(map, part, shape, read);
                 }
             }
             if let Some((read_min, read_max)) = split.read {

@@ -28,6 +28,7 @@ pub use capture::{
 };
 pub use detection::{detect_frame, detect_frame_with};
 pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer};
+pub use glasshouse_register::{Alignment, AlignmentCounts};
 pub use order::{
     FrameOrder, FrameVerdict, Refusal, MAX_EPOCH_LEAD_NS, MAX_SEQ_STEP, RESYNC_FRAMES,
 };

@@ -62,6 +62,9 @@ pub enum FrameVerdict {
     Stale,
     /// Implausible: neither integrated nor planned on.
     Refused(Refusal),
+    /// Taken, but its registration to the map failed the checks
+    /// (`TrolleyPlanner::last_alignment` says why): not integrated, still planned on.
+    Misaligned,
 }
 
 impl FrameVerdict {

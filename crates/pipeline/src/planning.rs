@@ -1,6 +1,8 @@
 //! Planning: one trolley's map, fruit tracker, fits and next best views ([`TrolleyPlanner`]),
 //! with the settings and seeds the planner service and the experiments share.
 
+use std::borrow::Cow;
+
 use glasshouse_arm::Robot;
 use glasshouse_nbv::fit::{FitConfig, FittedShape, ShapeKind};
 use glasshouse_nbv::split::fragments;
@@ -12,10 +14,13 @@ use glasshouse_proto::{
     FittedEllipsoid, FrameId, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
     TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
 };
+use glasshouse_register::{
+    align_scan, corrected_points, Alignment, AlignmentCounts, RegisterSettings, ScanInWorld,
+};
 use glasshouse_roimap::{
     Clusters, MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey,
 };
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
 use crate::fits::{FitCache, SplitCache};
@@ -56,6 +61,10 @@ pub struct PlanningSettings {
     pub roi_evidence: RoiEvidence,
     /// Which ROI voxels ROI-targeted sampling aims at.
     pub roi_targets: RoiTargets,
+    /// Each cloud is aligned to the map before it goes in ([`align_scan`]); a cloud whose
+    /// alignment fails the checks is not inserted. On by default: in a perfect world the
+    /// corrections found are below what the map can tell and are not applied.
+    pub registration: RegisterSettings,
 }
 
 /// Which ROI voxels ROI-targeted sampling aims at (their free neighbours next to unknown space).
@@ -141,6 +150,7 @@ impl Default for PlanningSettings {
             scoring_threads: 0,
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
+            registration: RegisterSettings::default(),
         }
     }
 }
@@ -155,6 +165,8 @@ impl PlanningSettings {
         }
         self.map_config().validate()?;
         self.planner_config().validate()?;
+        let registration = self.registration.validate();
+        registration.map_err(|e| PlanningError::Settings(e.to_string()))?;
         Ok(())
     }
 
@@ -223,15 +235,19 @@ pub fn plan_seed(seed: u64, frame_seq: u64) -> u64 {
         .wrapping_add(frame_seq)
 }
 
-/// One fruit with both estimates: the paper's box over the cluster and the fitted ellipsoid.
+/// One fruit with both estimates, the paper's box over the cluster and the fitted solid, and the
+/// evidence that it is a fruit.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct FruitRecord {
     pub estimate: FruitEstimate,
     pub fitted: FittedShape,
+    pub evidence: glasshouse_nbv::evidence::FruitEvidence,
 }
 
 impl FruitRecord {
-    /// The fruit as it travels on the bus.
+    /// The fruit as it travels on the bus: its confidence is the evidence's; the message's fitted
+    /// ellipsoid is axis-aligned, so it is the one inscribed in the world box around the fitted
+    /// solid, with the solid's own volume.
     pub fn to_message(&self) -> Fruit {
         let (f, s) = (&self.estimate, &self.fitted);
         Fruit {
@@ -241,10 +257,10 @@ impl FruitRecord {
             box_max: f.max.cast(),
             volume_m3: f.volume_m3 as f32,
             voxel_count: f.voxel_count.min(u32::MAX as usize) as u32,
-            confidence: f.confidence as f32,
+            confidence: self.evidence.confidence as f32,
             fitted: Some(FittedEllipsoid {
                 centre_in_world: s.centre.cast(),
-                semi_axes_m: s.semi_axes_m.cast(),
+                semi_axes_m: ((s.box_max - s.box_min) / 2.0).cast(),
                 volume_m3: s.volume_m3 as f32,
                 box_volume_m3: s.box_volume_m3 as f32,
                 confidence: s.confidence as f32,
@@ -310,6 +326,9 @@ pub struct TrolleyPlanner {
     /// Voxels last published as occupied or ROI: MapUpdate carries solid voxels and the ones
     /// that stopped being solid, not every newly freed voxel (those would dominate the traffic).
     published_solid: PublishedSolid,
+    /// The registration of the last cloud taken, and how every registration so far ended.
+    last_alignment: Option<Alignment>,
+    alignment_counts: AlignmentCounts,
 }
 
 impl TrolleyPlanner {
@@ -332,6 +351,8 @@ impl TrolleyPlanner {
             last_refits: 0,
             map_seq: 0,
             published_solid: PublishedSolid::default(),
+            last_alignment: None,
+            alignment_counts: AlignmentCounts::default(),
         })
     }
 
@@ -341,6 +362,17 @@ impl TrolleyPlanner {
 
     pub fn settings(&self) -> &PlanningSettings {
         &self.settings
+    }
+
+    /// How the last cloud taken was registered to the map (None before the first).
+    pub fn last_alignment(&self) -> Option<&Alignment> {
+        self.last_alignment.as_ref()
+    }
+
+    /// How the registrations of the clouds taken so far ended (aligned, skipped, rejected by
+    /// reason).
+    pub fn alignment_counts(&self) -> &AlignmentCounts {
+        &self.alignment_counts
     }
 
     /// The last frame integrated, if any.
@@ -396,31 +428,60 @@ impl TrolleyPlanner {
     }
 
     /// The map part of [`TrolleyPlanner::integrate`]: the cloud goes into the map when its frame
-    /// is taken. Unless the verdict is a refusal, [`TrolleyPlanner::cluster`] and
-    /// [`TrolleyPlanner::track`] must follow (they are separate steps so that a service can
-    /// time each).
+    /// is taken, aligned to the map first ([`TrolleyPlanner::last_alignment`]); a cloud whose
+    /// alignment is rejected stays out ([`FrameVerdict::Misaligned`]). Unless the verdict is a
+    /// refusal, [`TrolleyPlanner::cluster`] and [`TrolleyPlanner::track`] must follow (they are
+    /// separate steps so that a service can time each).
     pub fn insert(&mut self, cloud: &RoiCloud, now_ns: u64) -> Result<FrameVerdict, PlanningError> {
         let frame = cloud.source_frame();
         let verdict = self.order.judge(frame, now_ns);
         if !verdict.integrates() {
             return Ok(verdict);
         }
-        let origin = &cloud.sensor_origin_in_world;
+        let Some(RegisteredScan { origin, points }) = self.register(cloud) else {
+            // Judged once: a re-announce of the frame is a repeat, not a second registration.
+            self.order.integrated(frame);
+            return Ok(FrameVerdict::Misaligned);
+        };
         let evidence = match self.settings.roi_evidence {
             RoiEvidence::Labels => None,
             RoiEvidence::Confidence => roi_evidence_logodds(cloud),
         };
         match evidence {
-            Some(evidence) => {
-                self.map
-                    .insert_scan_evidence(origin, &cloud.points_in_world, &evidence, 1)?
-            }
-            None => self
+            Some(evidence) => self
                 .map
-                .insert_scan(origin, &cloud.points_in_world, &cloud.roi)?,
+                .insert_scan_evidence(&origin, &points, &evidence, 1)?,
+            None => self.map.insert_scan(&origin, &points, &cloud.roi)?,
         };
+        // Which fruit this view saw, from where: the fruit evidence's directions.
+        self.note_view(&origin, &points, &cloud.roi);
         self.order.integrated(frame);
         Ok(verdict)
+    }
+
+    /// The cloud's sensor origin and points aligned to the map (as sent when the alignment was
+    /// skipped or its correction not applied); None when the alignment was rejected.
+    fn register<'c>(&mut self, cloud: &'c RoiCloud) -> Option<RegisteredScan<'c>> {
+        let scan = ScanInWorld {
+            sensor_origin_in_world: &cloud.sensor_origin_in_world,
+            points_in_world: &cloud.points_in_world,
+        };
+        let alignment = align_scan(&self.map, scan, &self.settings.registration);
+        self.alignment_counts.record(&alignment);
+        let origin = cloud.sensor_origin_in_world;
+        let registered = match (alignment.inserts(), alignment.correction_to_apply()) {
+            (false, _) => None,
+            (true, None) => Some(RegisteredScan {
+                origin,
+                points: Cow::Borrowed(cloud.points_in_world.as_slice()),
+            }),
+            (true, Some(world_correction)) => Some(RegisteredScan {
+                origin: world_correction * origin,
+                points: Cow::Owned(corrected_points(world_correction, &cloud.points_in_world)),
+            }),
+        };
+        self.last_alignment = Some(alignment);
+        registered
     }
 
     /// The fruit clusters after an insert: the ROI clusters (regrown only where the scan changed
@@ -437,35 +498,77 @@ impl TrolleyPlanner {
         );
     }
 
-    /// The fruit ids of the clusters after [`TrolleyPlanner::cluster`].
+    /// The fruit ids of the clusters after [`TrolleyPlanner::cluster`], with the view
+    /// directions of the clouds noted since ([`TrolleyPlanner::note_view`]).
     pub fn track(&mut self) {
         self.estimates = self.tracker.update(&self.clusters);
         self.fits_stale = true;
     }
 
-    /// Every fruit of the latest clusters with its fitted ellipsoid, leaving out clusters that
-    /// are a second patch of a fruit another cluster reports ([`fragments`]). Fits are made
-    /// here, not on integration (a replica integrates without them), and only for the fruits
-    /// whose voxels or surroundings changed since their last fit.
+    /// Notes where a cloud the map took was taken from and which voxels its ROI points fell in
+    /// (the origin and points as inserted, after registration): at the next
+    /// [`TrolleyPlanner::track`], each fruit it hit counts its direction
+    /// ([`FruitTracker::note_scan`]), and fruits seen from more sides are reported with more
+    /// confidence. Call it for every cloud inserted (from [`TrolleyPlanner::insert`]).
+    pub fn note_view(
+        &mut self,
+        sensor_origin_in_world: &nalgebra::Point3<f64>,
+        points_in_world: &[nalgebra::Point3<f32>],
+        roi: &[bool],
+    ) {
+        let roi_points = points_in_world.iter().zip(roi).filter(|(_, r)| **r);
+        let keys = roi_points.filter_map(|(p, _)| self.map.try_key_of(&p.cast()));
+        self.tracker
+            .note_scan(*sensor_origin_in_world, keys.collect());
+    }
+
+    /// Every fruit of the latest clusters with its fitted solid and the evidence that it is a
+    /// fruit, leaving out clusters whose shape says they are not ([`glasshouse_nbv::evidence`]:
+    /// flat, thin, too small or too large; these are not fitted at all) and clusters that are a
+    /// second patch of a fruit another cluster reports ([`fragments`]). Fits are made here, not
+    /// on integration (a replica integrates without them), and only for the fruits whose voxels
+    /// or surroundings changed since their last fit.
     pub fn fruits(&mut self) -> Vec<FruitRecord> {
+        let evidence_config = self.settings.fit.evidence;
+        let shapes = self.fit_cache.shapes(&self.map, &self.clusters);
+        let shaped: Vec<usize> = (0..self.clusters.len())
+            .filter(|&i| shapes[i].verdict(&evidence_config).is_fruit())
+            .collect();
         if self.fits_stale {
+            let clusters = shaped.iter().map(|&i| &self.clusters[i]);
             (self.fits, self.last_refits) =
                 self.fit_cache
-                    .update(&self.map, &self.clusters, &self.settings.fit);
+                    .update(&self.map, clusters, &self.settings.fit);
             self.fits_stale = false;
         }
-        let counts: Vec<usize> = self.clusters.iter().map(|c| c.voxels.len()).collect();
-        let fragment = fragments(&self.fits, &counts);
-        self.estimates
+        let counts: Vec<usize> = shaped
             .iter()
+            .map(|&i| self.clusters[i].voxels.len())
+            .collect();
+        let fragment = fragments(&self.fits, &counts);
+        shaped
+            .into_iter()
             .zip(&self.fits)
             .zip(fragment)
             .filter(|(_, fragment)| !fragment)
-            .map(|((estimate, fitted), _)| FruitRecord {
-                fitted: fitted.clone(),
-                estimate: estimate.clone(),
-            })
+            .map(|((i, fitted), _)| self.record(i, fitted))
             .collect()
+    }
+
+    /// The fruit of cluster `i`, fitted `fitted`, with its evidence.
+    fn record(&self, i: usize, fitted: &FittedShape) -> FruitRecord {
+        use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence};
+        let (cluster, estimate) = (&self.clusters[i], &self.estimates[i]);
+        let seen = match self.fit_cache.evidence_of(cluster) {
+            Some(seen) => *seen,
+            None => ClusterEvidence::of(&self.map, cluster),
+        };
+        let views = estimate.view_directions;
+        FruitRecord {
+            estimate: estimate.clone(),
+            fitted: fitted.clone(),
+            evidence: FruitEvidence::judge(&seen, fitted, views, &self.settings.fit.evidence),
+        }
     }
 
     /// How many fruits the last [`TrolleyPlanner::fruits`] refitted; the others' surroundings had
@@ -612,13 +715,14 @@ impl TrolleyPlanner {
 }
 
 impl TrolleyPlanner {
-    /// Replaces the map, fruit ids and frame mark with a snapshot's, keeping the trolley's info
-    /// and reach filter (a standby replica catching up with its owner). On an error nothing
-    /// changes.
+    /// Replaces the map, fruit ids and frame mark with a snapshot's, keeping the trolley's info,
+    /// reach filter and registration counts (a standby replica catching up with its owner). On
+    /// an error nothing changes.
     pub fn restore(&mut self, snapshot: &MapSnapshot) -> Result<(), PlanningError> {
         let mut restored = Self::from_snapshot(self.settings.clone(), snapshot)?;
         restored.info = self.info.take();
         restored.reach = self.reach.take();
+        restored.alignment_counts = self.alignment_counts;
         *self = restored;
         Ok(())
     }
@@ -628,15 +732,22 @@ impl TrolleyPlanner {
         RoiMap::check_snapshot(&snapshot.map).map_err(|e| PlanningError::Snapshot(e.to_string()))
     }
 
-    /// Forgets the map and everything derived from it, keeping the trolley's info and reach
-    /// filter (a standby replica holds the owner's snapshot instead).
+    /// Forgets the map and everything derived from it, keeping the trolley's info, reach filter
+    /// and registration counts (a standby replica holds the owner's snapshot instead).
     pub fn clear(&mut self) -> Result<(), PlanningError> {
         let mut fresh = Self::new(self.settings.clone())?;
         fresh.info = self.info.take();
         fresh.reach = self.reach.take();
+        fresh.alignment_counts = self.alignment_counts;
         *self = fresh;
         Ok(())
     }
+}
+
+/// A cloud's sensor origin and points as they go into the map, world frame.
+struct RegisteredScan<'c> {
+    origin: Point3<f64>,
+    points: Cow<'c, [Point3<f32>]>,
 }
 
 fn voxel_change(key: VoxelKey, voxel: Voxel, is_roi: bool) -> VoxelChange {
@@ -652,5 +763,175 @@ fn voxel_change(key: VoxelKey, voxel: Voxel, is_roi: bool) -> VoxelChange {
         occupancy_logodds: voxel.occupancy_logodds,
         roi_logodds: voxel.roi_logodds,
         state,
+    }
+}
+
+#[cfg(test)]
+mod registration_tests {
+    #![allow(clippy::unwrap_used)]
+
+    use glasshouse_detect::DetectorConfig;
+    use glasshouse_sim::ScenarioKind;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    use super::*;
+    use crate::{detect_frame, SimTrolley, SimTrolleySettings, TrolleySource};
+
+    fn settings(registration: bool) -> PlanningSettings {
+        let mut settings = PlanningSettings::default();
+        settings.registration.enabled = registration;
+        settings
+    }
+
+    /// The clouds of a perfect simulated trolley's first `frames` views (each view planned on
+    /// the clouds before it, without registration: the same clouds for every test).
+    fn clouds(frames: u64) -> Vec<RoiCloud> {
+        let sim = SimTrolleySettings::new(ScenarioKind::Two, 3, (320, 240), 1.0);
+        let mut trolley = SimTrolley::new(sim).unwrap();
+        let mut planner = TrolleyPlanner::new(settings(false)).unwrap();
+        planner.set_info(trolley.info()).unwrap();
+        let mut out = Vec::new();
+        for seq in 1..=frames {
+            let frame = trolley.capture(seq).unwrap().unwrap();
+            let id = FrameId::new(0, seq);
+            let cloud = detect_frame(&frame, id, "d1", &DetectorConfig::default()).unwrap();
+            planner.integrate(&cloud, 0).unwrap();
+            let plan = planner
+                .plan(&frame.world_from_camera, seq)
+                .unwrap()
+                .unwrap();
+            let goals: Vec<_> = plan.views.iter().map(|v| v.world_from_camera).collect();
+            trolley.execute(&goals);
+            out.push(cloud);
+        }
+        out
+    }
+
+    fn planner_with(registration: bool, clouds: &[RoiCloud]) -> TrolleyPlanner {
+        let mut planner = TrolleyPlanner::new(settings(registration)).unwrap();
+        for cloud in clouds {
+            planner.integrate(cloud, 0).unwrap();
+        }
+        planner
+    }
+
+    /// The cloud as sent by a trolley whose camera is really at `error * believed`.
+    fn sent_with_error(cloud: &RoiCloud, error: &Isometry3<f64>) -> RoiCloud {
+        let to_believed = error.inverse();
+        RoiCloud {
+            points_in_world: corrected_points(&to_believed, &cloud.points_in_world),
+            sensor_origin_in_world: to_believed * cloud.sensor_origin_in_world,
+            ..cloud.clone()
+        }
+    }
+
+    /// A camera error of `deg` about `axis` through the sensor origin, then `mm` along `dir`.
+    fn camera_error(cloud: &RoiCloud, (deg, axis): (f64, Vector3<f64>), mm: f64) -> Isometry3<f64> {
+        let origin = cloud.sensor_origin_in_world.coords;
+        let rotation = UnitQuaternion::from_scaled_axis(axis.normalize() * deg.to_radians());
+        let about_origin = Translation3::from(origin - rotation * origin);
+        let dir = Vector3::new(0.6, -0.3, 0.74).normalize();
+        Translation3::from(dir * mm * 1e-3) * Isometry3::from_parts(about_origin, rotation)
+    }
+
+    /// How far `residual` moves the cloud's points within the map's range, at most.
+    fn max_shift_m(residual: &Isometry3<f64>, cloud: &RoiCloud) -> f64 {
+        let origin = cloud.sensor_origin_in_world;
+        let in_range = cloud.points_in_world.iter().map(|p| p.cast::<f64>());
+        in_range
+            .filter(|p| (p - origin).norm() <= PlanningSettings::default().max_range_m)
+            .map(|p| (residual * p - p).norm())
+            .fold(0.0, f64::max)
+    }
+
+    #[test]
+    fn registration_is_off_by_default_and_harmless_in_a_perfect_world() {
+        assert!(!PlanningSettings::default().registration.enabled);
+        let clouds = clouds(8);
+        let (on, off) = (planner_with(true, &clouds), planner_with(false, &clouds));
+        // Every cloud went in as sent: the same map, voxel for voxel.
+        let counts = on.alignment_counts();
+        assert_eq!((counts.aligned, counts.rejected()), (0, 0), "{counts:?}");
+        assert_eq!(
+            counts.skipped + counts.kept_below_resolution + counts.kept_estimate_failed,
+            8
+        );
+        let voxels = |p: &TrolleyPlanner| p.map().iter().collect::<Vec<_>>();
+        assert_eq!(voxels(&on), voxels(&off));
+        assert_eq!(off.alignment_counts().skipped, 8);
+    }
+
+    #[test]
+    fn a_misplaced_camera_is_corrected_before_insertion() {
+        let clouds = clouds(8);
+        let errors = [
+            ((0.5, Vector3::new(-0.7, 0.2, 0.1)), 5.0),
+            ((1.0, Vector3::new(0.1, 0.9, -0.3)), 10.0),
+        ];
+        let (mut before_m, mut after_m) = (0.0, 0.0);
+        for k in 2..clouds.len() {
+            let planner = planner_with(true, &clouds[..k]);
+            for &(rotation, mm) in &errors {
+                let error = camera_error(&clouds[k], rotation, mm);
+                let sent = sent_with_error(&clouds[k], &error);
+                let mut planner = planner.clone();
+                assert_eq!(planner.integrate(&sent, 0).unwrap(), FrameVerdict::Fresh);
+                let applied = planner.last_alignment().unwrap().correction_to_apply();
+                // What is left of the error as the cloud went in.
+                let residual = error.inverse() * applied.copied().unwrap_or_default();
+                let (before, after) = (max_shift_m(&error, &sent), max_shift_m(&residual, &sent));
+                assert!(after <= before * 1.05, "cloud {k}: {before} -> {after} m");
+                before_m += before;
+                after_m += after;
+            }
+        }
+        // Thin plants constrain some directions weakly (those are left as they were), so not
+        // every error is undone; on these clouds it more than halves.
+        let n = 2.0 * (clouds.len() - 2) as f64;
+        eprintln!(
+            "largest point error in range, mean over the clouds: {:.1} -> {:.1} mm",
+            before_m / n * 1e3,
+            after_m / n * 1e3
+        );
+        assert!(after_m < 0.5 * before_m, "{before_m} -> {after_m}");
+    }
+
+    #[test]
+    fn a_wildly_misplaced_cloud_is_not_inserted() {
+        let clouds = clouds(8);
+        let mut planner = planner_with(true, &clouds[..7]);
+        let map_before = planner.map().iter().collect::<Vec<_>>();
+        let wild = sent_with_error(&clouds[7], &Isometry3::translation(0.2, 0.0, 0.0));
+        assert_eq!(
+            planner.integrate(&wild, 0).unwrap(),
+            FrameVerdict::Misaligned
+        );
+        assert!(matches!(
+            planner.last_alignment(),
+            Some(Alignment::Rejected(_))
+        ));
+        assert_eq!(planner.alignment_counts().rejected(), 1);
+        assert_eq!(planner.map().iter().collect::<Vec<_>>(), map_before);
+        // The frame was judged: announced again, it is planned on, not registered again.
+        assert_eq!(planner.last_frame(), Some(wild.source_frame()));
+        assert_eq!(planner.integrate(&wild, 0).unwrap(), FrameVerdict::Repeat);
+        assert_eq!(planner.alignment_counts().rejected(), 1);
+    }
+
+    #[test]
+    fn bad_registration_settings_are_refused() {
+        let mut settings = PlanningSettings::default();
+        settings.registration.max_rotation_deg = -1.0;
+        assert!(matches!(
+            TrolleyPlanner::new(settings),
+            Err(PlanningError::Settings(_))
+        ));
+        let json = r#"{ "registration": { "enabled": true } }"#;
+        let read: PlanningSettings = serde_json::from_str(json).unwrap();
+        assert!(read.registration.enabled);
+        assert_eq!(
+            read.registration.max_scan_points,
+            RegisterSettings::default().max_scan_points
+        );
     }
 }

@@ -473,7 +473,8 @@ fn the_cloud_carries_the_frame_camera_pose() {
     assert!((cloud.sensor_origin_in_world.coords - origin).norm() < 1e-9);
 }
 
-/// Fits every cluster of the planner's map afresh.
+/// Fits every cluster of the planner's map afresh, keeping what `fruits` reports: the clusters
+/// shaped like fruit, and of those the ones that are not a fragment of another.
 fn fresh_fits(planner: &TrolleyPlanner) -> Vec<glasshouse_nbv::fit::FittedShape> {
     let map = planner.map();
     let (min_voxels, config) = (
@@ -482,6 +483,11 @@ fn fresh_fits(planner: &TrolleyPlanner) -> Vec<glasshouse_nbv::fit::FittedShape>
     );
     let clusters = map.clusters(min_voxels);
     let clusters = glasshouse_nbv::split::split_touching(map, clusters, min_voxels, config);
+    let shaped_like_fruit = |c: &glasshouse_roimap::RoiCluster| {
+        let seen = glasshouse_nbv::evidence::ClusterEvidence::of(map, c);
+        seen.shape.verdict(&config.evidence).is_fruit()
+    };
+    let clusters: Vec<_> = clusters.into_iter().filter(shaped_like_fruit).collect();
     let fit = |c| glasshouse_nbv::fit::fit_ellipsoid(map, c, config);
     let fits: Vec<_> = clusters.iter().map(fit).collect();
     let counts: Vec<usize> = clusters.iter().map(|c| c.voxels.len()).collect();

@@ -12,11 +12,11 @@
 
 mod artefacts;
 mod depth;
-mod light;
-mod world;
 mod generate;
+mod light;
 mod shapes;
 mod trolley;
+mod world;
 
 use std::fmt;
 use std::str::FromStr;

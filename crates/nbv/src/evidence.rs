@@ -1,0 +1,374 @@
+//! Is an ROI cluster a fruit? The colour detector also believes red clips, labels, reddish leaves
+//! and red stems; their shapes give them away.
+//!
+//! **Shape** ([`ClusterShape`]), from the principal axes of the cluster's voxel centres. Each
+//! extent is `√12·σ` along its axis (σ the standard deviation there): the true length of a bar,
+//! and the true diameter of a ball or of a hemispherical cap, so a fruit seen from one side has
+//! the same extents as one seen all round.
+//! - **Bulge**: how far the voxels leave their best plane, relative to the width, in the frame of
+//!   the principal axes (heights `h` along the third), beyond `q² = (res·(|nx| + |ny| + |nz|))²
+//!   / 12`, the variance of the heights of the voxels a plane with normal `n` cuts. Two
+//!   measures, the larger counts: *curvature*, the spread of the quadratic part of a
+//!   least-squares height field `h(u, v) = c0 + c1·u + c2·v + c3·u² + c4·u·v + c5·v²`, and
+//!   *thickness*, the spread of the heights; each `√(σ² − q²)` over the spread across (σ of the
+//!   second axis). Both are taken after dropping the 15 % of voxels farthest from the height
+//!   field: a red petiole hanging off a red leaf would otherwise make it deep. A fruit seen from
+//!   one side is a curved cap: for a hemisphere the heights are uniform over the radius, so the
+//!   bulge is `(R/√12) / (R/√3) = 0.5`; seen all round it is no height field but thick, near
+//!   the ratio of its axes (~1). A flat leaf or label is ~0 however many times it is seen (pose
+//!   errors can make it two voxels thick: ~0.1). At 1 cm voxels a patch of fruit under 2 cm
+//!   deep looks the same; it becomes a fruit when more of it is seen.
+//! - **Width** (second extent) and **length** (first extent): a fruit is at least a few
+//!   centimetres wide from any side; a red stem or a clip is not. Length bounds the size.
+//!
+//! A cluster is a fruit when its width is at least [`EvidenceConfig::min_width_m`], its width at
+//! least [`EvidenceConfig::min_width_ratio`] of its length, its length at most
+//! [`EvidenceConfig::max_length_m`] and its bulge at least [`EvidenceConfig::min_bulge`].
+//! Clusters that fail are not reported.
+//!
+//! **Confidence** of a kept cluster ([`FruitEvidence::confidence`]), in [0, 1], the product of
+//! - colour: the mean ROI probability of its voxels (0.73 at the map's default ROI threshold,
+//!   0.97 at its clamp: a fruit seen red in many frames);
+//! - sides seen: `0.5 + 0.5·s`, s the larger of `(directions − 1) / 2` (distinct directions
+//!   from which scans hit it, [`crate::FruitTracker::note_scan`]) and `(observed − 0.5) / 0.5`
+//!   (the fitted surface's observed share), both clamped to [0, 1]: one side gives ~0.75, two
+//!   ~0.9, all round 1;
+//! - fit: 1 for a fitted solid, [`BOX_FIT_FACTOR`] when no solid fitted (box fallback).
+
+use glasshouse_roimap::{RoiCluster, RoiMap};
+use nalgebra::{Matrix3, Point3, SMatrix, SVector, SymmetricEigen, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::fit::{FittedShape, ShapeKind};
+
+/// Thresholds of the fruit rule (module docs). [`Default`] suits 1 cm voxels and capsicum-sized
+/// fruit (5-12 cm).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct EvidenceConfig {
+    /// Off: every cluster is a fruit (as before the rule).
+    pub enabled: bool,
+    /// Narrowest fruit, second extent: the smallest fruit is 5 cm across from every side; a
+    /// 1.5 cm clip covers at most 3 voxels across (2.8 cm), an 8 mm stem 2.
+    pub min_width_m: f64,
+    /// Width over length below this is a stem, not a fruit (the longest capsicum is ~2.5 times
+    /// its width).
+    pub min_width_ratio: f64,
+    /// Longest fruit, first extent (a 12 cm capsicum, and room; touching fruits are split
+    /// before).
+    pub max_length_m: f64,
+    /// Flatter than this is a leaf or label: a fruit's cap seen from one side is ~0.2-0.6 (0.5
+    /// for a hemisphere), red leaves in a world with pose errors and depth noise ~0-0.11.
+    pub min_bulge: f64,
+}
+
+impl Default for EvidenceConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            min_width_m: 0.035,
+            min_width_ratio: 0.3,
+            max_length_m: 0.16,
+            min_bulge: 0.15,
+        }
+    }
+}
+
+/// Confidence factor of a fruit no solid fitted.
+pub const BOX_FIT_FACTOR: f64 = 0.7;
+
+/// Why a cluster is or is not a fruit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Verdict {
+    Fruit,
+    /// Narrower than a fruit and short (a clip).
+    TooSmall,
+    /// Narrower than a fruit and long (a stem).
+    Thin,
+    /// Longer than a fruit.
+    TooLarge,
+    /// No bulge (a leaf or a label).
+    Flat,
+}
+
+impl Verdict {
+    pub fn is_fruit(self) -> bool {
+        self == Verdict::Fruit
+    }
+}
+
+/// Principal axes of a point set.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PrincipalAxes {
+    pub mean: Point3<f64>,
+    /// Variances along the axes, largest first, m².
+    pub variances_m2: Vector3<f64>,
+    /// Unit axes as columns, in the order of `variances_m2`.
+    pub axes: Matrix3<f64>,
+}
+
+/// The principal axes of `points`; `None` for fewer than 3 points or non-finite input.
+pub fn principal_axes(points: &[Point3<f64>]) -> Option<PrincipalAxes> {
+    if points.len() < 3 {
+        return None;
+    }
+    let n = points.len() as f64;
+    let mean = points.iter().fold(Vector3::zeros(), |s, p| s + p.coords) / n;
+    let covariance = points.iter().fold(Matrix3::zeros(), |s, p| {
+        let d = p.coords - mean;
+        s + d * d.transpose()
+    }) / n;
+    if !covariance.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let eigen = SymmetricEigen::new(covariance);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&i, &j| eigen.eigenvalues[j].total_cmp(&eigen.eigenvalues[i]));
+    Some(PrincipalAxes {
+        mean: Point3::from(mean),
+        variances_m2: Vector3::from_fn(|i, _| eigen.eigenvalues[order[i]].max(0.0)),
+        axes: Matrix3::from_columns(&order.map(|i| eigen.eigenvectors.column(i).into_owned())),
+    })
+}
+
+/// The shape of a cluster's voxels (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClusterShape {
+    /// `√12·σ` along the principal axes, largest first, metres.
+    pub extents_m: Vector3<f64>,
+    /// Depth out of the best plane (curved or thick), over the width.
+    pub bulge: f64,
+}
+
+/// Share of voxels kept for the bulge: the rest, farthest from the height field, are dropped.
+const BULGE_KEPT: f64 = 0.85;
+
+impl ClusterShape {
+    /// The shape of the voxel centres `points` of a map with voxels of `resolution_m`.
+    pub fn of(points: &[Point3<f64>], resolution_m: f64) -> Self {
+        let Some(pca) = principal_axes(points) else {
+            return Self {
+                extents_m: Vector3::zeros(),
+                bulge: 0.0,
+            };
+        };
+        Self {
+            extents_m: pca.variances_m2.map(|var| (12.0 * var).sqrt()),
+            bulge: bulge(points, &pca, resolution_m),
+        }
+    }
+
+    /// What the rule (module docs) says of this shape.
+    pub fn verdict(&self, config: &EvidenceConfig) -> Verdict {
+        let (length, width) = (self.extents_m[0], self.extents_m[1]);
+        if !config.enabled {
+            Verdict::Fruit
+        } else if length > config.max_length_m {
+            Verdict::TooLarge
+        } else if width < config.min_width_ratio * length {
+            Verdict::Thin
+        } else if width < config.min_width_m {
+            Verdict::TooSmall
+        } else if self.bulge < config.min_bulge {
+            Verdict::Flat
+        } else {
+            Verdict::Fruit
+        }
+    }
+}
+
+/// Least-squares height field `h = c0 + c1·u + c2·v + c3·u² + c4·u·v + c5·v²` through points
+/// `(u, v, h)`; `None` when the points do not determine it (a line of voxels).
+fn height_field(points: &[Vector3<f64>]) -> Option<SVector<f64, 6>> {
+    let row = |p: &Vector3<f64>| {
+        SVector::<f64, 6>::from([1.0, p.x, p.y, p.x * p.x, p.x * p.y, p.y * p.y])
+    };
+    let (mut ata, mut atb) = (SMatrix::<f64, 6, 6>::zeros(), SVector::<f64, 6>::zeros());
+    for p in points {
+        let r = row(p);
+        ata += r * r.transpose();
+        atb += r * p.z;
+    }
+    ata.cholesky().map(|c| c.solve(&atb))
+}
+
+/// Coordinates of `points` in the frame of their principal axes.
+fn local(points: &[Point3<f64>], pca: &PrincipalAxes) -> Vec<Vector3<f64>> {
+    let to_local = pca.axes.transpose();
+    points.iter().map(|p| to_local * (p - pca.mean)).collect()
+}
+
+/// The bulge (module docs) of `points` with principal axes `pca`.
+fn bulge(points: &[Point3<f64>], pca: &PrincipalAxes, resolution_m: f64) -> f64 {
+    let kept = nearest_to_height_field(points, &local(points, pca));
+    let Some(frame) = principal_axes(&kept) else {
+        return 0.0;
+    };
+    let normal = frame.axes.column(2);
+    // Variance of the heights of the voxels a plane with normal `n` cuts: uniform within
+    // ± res·Σ|n| / 2.
+    let layer_m2 = (resolution_m * normal.abs().sum()).powi(2) / 12.0;
+    let kept = local(&kept, &frame);
+    curvature(&kept, layer_m2).max(thickness(&kept, layer_m2))
+}
+
+/// The `points` nearest the height field through them (`local`: their coordinates in the frame
+/// of their principal axes): all but the farthest `1 − BULGE_KEPT`, found twice, the second time
+/// from the field through the first choice (so that what is dropped no longer bends it).
+fn nearest_to_height_field(points: &[Point3<f64>], local: &[Vector3<f64>]) -> Vec<Point3<f64>> {
+    let keep = ((points.len() as f64 * BULGE_KEPT).ceil() as usize).max(6);
+    let mut order: Vec<usize> = (0..points.len()).collect();
+    for _ in 0..2 {
+        let chosen: Vec<Vector3<f64>> = order.iter().take(keep).map(|&i| local[i]).collect();
+        let Some(c) = height_field(&chosen) else {
+            break;
+        };
+        let residual = |p: &Vector3<f64>| {
+            let field = c[0] + c[1] * p.x + c[2] * p.y;
+            (p.z - field - c[3] * p.x * p.x - c[4] * p.x * p.y - c[5] * p.y * p.y).abs()
+        };
+        order.sort_by(|&a, &b| residual(&local[a]).total_cmp(&residual(&local[b])));
+    }
+    order.iter().take(keep).map(|&i| points[i]).collect()
+}
+
+/// Standard deviations of the points along each local axis.
+fn spread(points: &[Vector3<f64>]) -> Vector3<f64> {
+    let n = points.len().max(1) as f64;
+    let mean = points.iter().fold(Vector3::zeros(), |s, p| s + p) / n;
+    let var = points
+        .iter()
+        .fold(Vector3::zeros(), |s, p| s + (p - mean).map(|v| v * v))
+        / n;
+    var.map(f64::sqrt)
+}
+
+/// The spread of the quadratic part of the height field beyond what voxelising a plane can
+/// give it (variance `layer_m2`: on a few voxels the staircase of a tilted plane bends a
+/// quadratic too), over the spread across.
+fn curvature(points: &[Vector3<f64>], layer_m2: f64) -> f64 {
+    let (Some(c), across) = (height_field(points), spread(points).y) else {
+        return 0.0;
+    };
+    let quadratic: Vec<Vector3<f64>> = points
+        .iter()
+        .map(|p| {
+            Vector3::new(
+                0.0,
+                0.0,
+                c[3] * p.x * p.x + c[4] * p.x * p.y + c[5] * p.y * p.y,
+            )
+        })
+        .collect();
+    let bend = spread(&quadratic).z;
+    if across > 0.0 {
+        (bend * bend - layer_m2).max(0.0).sqrt() / across
+    } else {
+        0.0
+    }
+}
+
+/// The spread of the heights beyond what voxelising a plane gives (variance `layer_m2`), over
+/// the spread across.
+fn thickness(points: &[Vector3<f64>], layer_m2: f64) -> f64 {
+    let s = spread(points);
+    if s.y > 0.0 {
+        ((s.z * s.z - layer_m2).max(0.0)).sqrt() / s.y
+    } else {
+        0.0
+    }
+}
+
+/// What a cluster's voxels say: its shape and colour. It changes only when the cluster's voxels
+/// do, so it can be kept with the cluster's fit.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClusterEvidence {
+    pub shape: ClusterShape,
+    /// Mean ROI probability of the voxels.
+    pub colour: f64,
+}
+
+impl ClusterEvidence {
+    pub fn of(map: &RoiMap, cluster: &RoiCluster) -> Self {
+        let centres: Vec<Point3<f64>> = cluster.voxels.iter().map(|k| map.centre_of(*k)).collect();
+        Self {
+            shape: ClusterShape::of(&centres, map.config().resolution_m),
+            colour: colour(map, cluster),
+        }
+    }
+}
+
+/// Mean ROI probability of the cluster's voxels (0 without known voxels).
+fn colour(map: &RoiMap, cluster: &RoiCluster) -> f64 {
+    let (sum, known) = cluster
+        .voxels
+        .iter()
+        .filter_map(|k| map.get(*k))
+        .map(|v| 1.0 / (1.0 + (-f64::from(v.roi_logodds)).exp()))
+        .fold((0.0, 0usize), |(s, n), p| (s + p, n + 1));
+    if known == 0 {
+        0.0
+    } else {
+        sum / known as f64
+    }
+}
+
+/// The evidence that one cluster is a fruit, and the confidence it gives (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FruitEvidence {
+    pub verdict: Verdict,
+    pub shape: ClusterShape,
+    pub colour: f64,
+    /// Distinct directions from which scans hit the fruit.
+    pub view_directions: u32,
+    /// The fitted surface's observed share.
+    pub observed_share: f64,
+    /// In [0, 1]; 0 when the verdict is not [`Verdict::Fruit`].
+    pub confidence: f64,
+}
+
+impl FruitEvidence {
+    /// Combines what the cluster's voxels say, its fit and the directions it was seen from.
+    pub fn judge(
+        seen: &ClusterEvidence,
+        fitted: &FittedShape,
+        view_directions: u32,
+        config: &EvidenceConfig,
+    ) -> Self {
+        let verdict = seen.shape.verdict(config);
+        let by_views = ((f64::from(view_directions) - 1.0) / 2.0).clamp(0.0, 1.0);
+        let observed = if fitted.confidence.is_finite() {
+            fitted.confidence
+        } else {
+            0.0
+        };
+        let by_share = ((observed - 0.5) / 0.5).clamp(0.0, 1.0);
+        let sides = by_views.max(by_share);
+        let fit = if fitted.kind == ShapeKind::Box {
+            BOX_FIT_FACTOR
+        } else {
+            1.0
+        };
+        let confidence = seen.colour * (0.5 + 0.5 * sides) * fit;
+        Self {
+            verdict,
+            shape: seen.shape,
+            colour: seen.colour,
+            view_directions,
+            observed_share: observed,
+            confidence: if verdict == Verdict::Fruit {
+                confidence
+            } else {
+                0.0
+            },
+        }
+    }
+
+    pub fn is_fruit(&self) -> bool {
+        self.verdict.is_fruit()
+    }
+}
+
+#[cfg(test)]
+mod tests;

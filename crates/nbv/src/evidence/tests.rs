@@ -1,0 +1,281 @@
+//! The fruit rule on synthetic scans of fruit and of the red things the colour detector
+//! believes.
+
+#![allow(clippy::unwrap_used)]
+
+use glasshouse_roimap::{RoiCluster, RoiMap};
+use nalgebra::{Point3, Rotation3, Vector3};
+
+use super::*;
+use crate::fit::tests_support::{centre, map, scan_with};
+use crate::fit::{fit_ellipsoid, FitConfig};
+use crate::test_bodies::{capsicum, first_hit, turn, Cuboid, Cylinder, Lobe};
+use crate::FruitTracker;
+
+/// Eyes 0.4 m from `aim` in the directions `towards` (from the body to the eye).
+fn eyes(aim: Point3<f64>, towards: &[Vector3<f64>]) -> Vec<Point3<f64>> {
+    towards.iter().map(|t| aim + t.normalize() * 0.4).collect()
+}
+
+/// Scans `hit` from each eye, noting each scan in a tracker; the largest cluster (of any size),
+/// the map and the view directions the tracker counted for it.
+fn scanned(
+    eyes: &[Point3<f64>],
+    hit: impl Fn(&Point3<f64>, &Vector3<f64>) -> Option<f64>,
+) -> (RoiMap, RoiCluster, u32) {
+    let mut m = map();
+    let mut tracker = FruitTracker::default();
+    for eye in eyes {
+        let hits = scan_with(&mut m, centre(), *eye, &hit);
+        tracker.note_scan(*eye, hits.iter().map(|p| m.key_of(p)).collect());
+    }
+    let clusters = m.clusters(1);
+    let estimates = tracker.update(&clusters);
+    let largest = (0..clusters.len())
+        .max_by_key(|&i| clusters[i].voxels.len())
+        .unwrap();
+    let views = estimates[largest].view_directions;
+    (m, clusters[largest].clone(), views)
+}
+
+fn judged(m: &RoiMap, cluster: &RoiCluster, views: u32) -> FruitEvidence {
+    let fit = fit_ellipsoid(m, cluster, &FitConfig::default());
+    let seen = ClusterEvidence::of(m, cluster);
+    FruitEvidence::judge(&seen, &fit, views, &EvidenceConfig::default())
+}
+
+/// Front, the two sides and the back of a body facing −x, slightly from above and below.
+fn all_round() -> Vec<Vector3<f64>> {
+    vec![
+        Vector3::new(-1.0, 0.1, 0.2),
+        Vector3::new(-1.0, -0.6, -0.1),
+        Vector3::new(-0.7, 0.7, 0.3),
+        Vector3::new(1.0, 0.2, 0.1),
+        Vector3::new(0.8, -0.5, -0.2),
+        Vector3::new(-0.2, 0.1, 1.0),
+    ]
+}
+
+#[test]
+fn a_flat_red_leaf_seen_many_times_is_rejected() {
+    // A 6 x 4 cm disc, 1 mm thick, tilted 35° back and turned 20°.
+    let leaf = Lobe {
+        centre: centre(),
+        world_from_lobe: turn(Vector3::z(), 20.0) * turn(Vector3::y(), 55.0),
+        semi_axes_m: Vector3::new(0.03, 0.02, 0.0005),
+    };
+    let (m, cluster, views) = scanned(&eyes(centre(), &all_round()), |o, d| leaf.hit(o, d));
+    let evidence = judged(&m, &cluster, views);
+    assert!(views >= 3, "{views}");
+    assert_eq!(evidence.verdict, Verdict::Flat, "{evidence:?}");
+    assert!(evidence.shape.bulge < 0.08, "{evidence:?}");
+    assert_eq!(evidence.confidence, 0.0);
+}
+
+/// A red leaf lying nearly flat with its red petiole hanging below, seen from above and below by
+/// a camera whose views disagree by 4 mm along the leaf's normal (a 0.5° hand-eye error at 0.4
+/// m), so that the leaf comes out two voxels thick in places: still flat. (Views 7 mm or more
+/// apart make a leaf a 2 cm deep patch, which the rule takes for fruit.)
+#[test]
+fn a_red_leaf_two_voxels_thick_with_its_petiole_is_rejected() {
+    let c = centre();
+    let tilt = turn(Vector3::new(1.0, 0.3, 0.0), 8.0);
+    let leaf = |offset_m: f64| Lobe {
+        centre: c + tilt * Vector3::z() * offset_m,
+        world_from_lobe: tilt,
+        semi_axes_m: Vector3::new(0.032, 0.024, 0.0005),
+    };
+    let petiole = Cylinder {
+        centre: c - Vector3::z() * 0.02,
+        world_from_cylinder: Rotation3::identity(),
+        radius_m: 0.0025,
+        length_m: 0.04,
+    };
+    let (above, below) = (leaf(0.0), leaf(0.004));
+    let eyes_above = eyes(
+        c,
+        &[Vector3::new(-0.5, 0.2, 1.0), Vector3::new(0.4, -0.6, 1.0)],
+    );
+    let eyes_below = eyes(
+        c,
+        &[Vector3::new(-0.6, 0.1, -1.0), Vector3::new(0.5, 0.5, -1.0)],
+    );
+    let mut m = map();
+    let mut tracker = FruitTracker::default();
+    for (eye, sheet) in eyes_above
+        .iter()
+        .map(|e| (e, above))
+        .chain(eyes_below.iter().map(|e| (e, below)))
+    {
+        let hit = |o: &Point3<f64>, d: &Vector3<f64>| {
+            [sheet.hit(o, d), petiole.hit(o, d)]
+                .into_iter()
+                .flatten()
+                .min_by(f64::total_cmp)
+        };
+        let hits = scan_with(&mut m, c, *eye, hit);
+        tracker.note_scan(*eye, hits.iter().map(|p| m.key_of(p)).collect());
+    }
+    let clusters = m.clusters(1);
+    let views = tracker.update(&clusters);
+    let largest = (0..clusters.len())
+        .max_by_key(|&i| clusters[i].voxels.len())
+        .unwrap();
+    let evidence = judged(&m, &clusters[largest], views[largest].view_directions);
+    assert_eq!(evidence.verdict, Verdict::Flat, "{evidence:?}");
+}
+
+#[test]
+fn a_red_label_is_rejected() {
+    // A 5 x 3 cm label, 2 mm thick, hanging tilted.
+    let label = Cuboid {
+        centre: centre(),
+        world_from_box: turn(Vector3::new(1.0, 1.0, 0.0), 25.0),
+        half_m: Vector3::new(0.001, 0.025, 0.015),
+    };
+    let (m, cluster, views) = scanned(&eyes(centre(), &all_round()[..3]), |o, d| label.hit(o, d));
+    assert_eq!(judged(&m, &cluster, views).verdict, Verdict::Flat);
+}
+
+#[test]
+fn a_red_clip_is_too_small() {
+    // 1.5 x 1 x 3 cm, at two tilts, seen all round.
+    for tilt in [0.0, 40.0] {
+        let clip = Cuboid {
+            centre: centre(),
+            world_from_box: turn(Vector3::new(1.0, 0.3, 0.2), tilt),
+            half_m: Vector3::new(0.0075, 0.005, 0.015),
+        };
+        let (m, cluster, views) = scanned(&eyes(centre(), &all_round()), |o, d| clip.hit(o, d));
+        let evidence = judged(&m, &cluster, views);
+        assert_eq!(evidence.verdict, Verdict::TooSmall, "{tilt}: {evidence:?}");
+    }
+}
+
+#[test]
+fn a_red_stem_is_thin() {
+    // 8 mm thick, 10 cm long, upright and leaning 35°.
+    for lean in [0.0, 35.0] {
+        let stem = Cylinder {
+            centre: centre(),
+            world_from_cylinder: turn(Vector3::new(0.3, 1.0, 0.0), lean),
+            radius_m: 0.004,
+            length_m: 0.1,
+        };
+        let (m, cluster, views) = scanned(&eyes(centre(), &all_round()), |o, d| stem.hit(o, d));
+        let evidence = judged(&m, &cluster, views);
+        assert_eq!(evidence.verdict, Verdict::Thin, "{lean}: {evidence:?}");
+    }
+}
+
+#[test]
+fn fruit_seen_from_one_side_is_kept_and_from_two_sides_is_surer() {
+    let c = centre();
+    let round = Vector3::new(0.024, 0.022, 0.04);
+    let small = [Lobe {
+        centre: c,
+        world_from_lobe: Rotation3::identity(),
+        semi_axes_m: Vector3::new(0.025, 0.025, 0.03),
+    }];
+    let bodies = [
+        ("capsicum", capsicum(c, 4, 25.0, round)),
+        ("3 lobes", capsicum(c, 3, 10.0, round)),
+        ("small fruit", small.to_vec()),
+    ];
+    let front = Vector3::new(-1.0, -0.2, 0.15);
+    let side = Vector3::new(0.1, 1.0, 0.1);
+    for (name, body) in bodies {
+        for one in [front, side, Vector3::new(-0.5, -0.5, 0.7)] {
+            let (m, cluster, views) = scanned(&eyes(c, &[one]), |o, d| first_hit(&body, o, d));
+            let evidence = judged(&m, &cluster, views);
+            assert_eq!(views, 1);
+            assert!(evidence.is_fruit(), "{name} from {one:?}: {evidence:?}");
+            assert!(evidence.shape.bulge > 0.2, "{name}: {evidence:?}");
+            assert!(
+                (0.55..0.85).contains(&evidence.confidence),
+                "{name}: {evidence:?}"
+            );
+        }
+        let (m, one_cluster, _) = scanned(&eyes(c, &[front]), |o, d| first_hit(&body, o, d));
+        let one = judged(&m, &one_cluster, 1);
+        let (m, cluster, views) = scanned(&eyes(c, &[front, side]), |o, d| first_hit(&body, o, d));
+        let two = judged(&m, &cluster, views);
+        assert_eq!(views, 2);
+        assert!(two.is_fruit(), "{name}: {two:?}");
+        assert!(
+            two.confidence > one.confidence + 0.05,
+            "{name}: {one:?} {two:?}"
+        );
+    }
+}
+
+#[test]
+fn the_tracker_counts_distinct_directions_and_keeps_them_with_the_id() {
+    let fruit = Lobe {
+        centre: centre(),
+        world_from_lobe: Rotation3::identity(),
+        semi_axes_m: Vector3::repeat(0.035),
+    };
+    let mut m = map();
+    let mut tracker = FruitTracker::default();
+    let note = |m: &mut RoiMap, tracker: &mut FruitTracker, towards: Vector3<f64>| {
+        let eye = eyes(centre(), &[towards])[0];
+        let hits = scan_with(m, centre(), eye, |o, d| fruit.hit(o, d));
+        tracker.note_scan(eye, hits.iter().map(|p| m.key_of(p)).collect());
+        tracker.update(&m.clusters(10))
+    };
+    let first = note(&mut m, &mut tracker, Vector3::new(-1.0, 0.0, 0.0));
+    assert_eq!(first[0].view_directions, 1);
+    // 20° away: the same side.
+    let near = note(&mut m, &mut tracker, Vector3::new(-1.0, 0.36, 0.0));
+    assert_eq!((near[0].id, near[0].view_directions), (first[0].id, 1));
+    // 90° away: a second side; kept by the next update without scans.
+    let side = note(&mut m, &mut tracker, Vector3::new(0.0, 1.0, 0.0));
+    assert_eq!(side[0].view_directions, 2);
+    assert_eq!(tracker.update(&m.clusters(10))[0].view_directions, 2);
+    // A scan that missed the fruit adds nothing.
+    tracker.note_scan(Point3::new(5.0, 5.0, 5.0), Vec::new());
+    assert_eq!(tracker.update(&m.clusters(10))[0].view_directions, 2);
+    // A tracker continuing from the state counts afresh.
+    let (tracked, next) = tracker.state();
+    let mut copy = FruitTracker::from_state(tracked, next);
+    assert_eq!(copy.update(&m.clusters(10))[0].view_directions, 0);
+}
+
+#[test]
+fn thresholds_and_switch() {
+    let shape = |extents: [f64; 3], bulge: f64| ClusterShape {
+        extents_m: Vector3::from(extents),
+        bulge,
+    };
+    let config = EvidenceConfig::default();
+    assert_eq!(
+        shape([0.08, 0.07, 0.04], 0.4).verdict(&config),
+        Verdict::Fruit
+    );
+    assert_eq!(
+        shape([0.2, 0.1, 0.1], 0.4).verdict(&config),
+        Verdict::TooLarge
+    );
+    assert_eq!(
+        shape([0.1, 0.02, 0.02], 0.4).verdict(&config),
+        Verdict::Thin
+    );
+    assert_eq!(
+        shape([0.04, 0.03, 0.02], 0.4).verdict(&config),
+        Verdict::TooSmall
+    );
+    assert_eq!(
+        shape([0.08, 0.06, 0.01], 0.05).verdict(&config),
+        Verdict::Flat
+    );
+    let off = EvidenceConfig {
+        enabled: false,
+        ..config
+    };
+    assert_eq!(
+        shape([0.08, 0.06, 0.01], 0.05).verdict(&off),
+        Verdict::Fruit
+    );
+    assert!(ClusterShape::of(&[], 0.01).verdict(&config) != Verdict::Fruit);
+}

@@ -234,18 +234,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 fn print_registration(run: &MethodRuns) {
     let mut total = glasshouse_pipeline::AlignmentCounts::default();
     for trial in &run.trials {
-        let r = &trial.registration;
-        total.aligned += r.aligned;
-        total.kept_below_resolution += r.kept_below_resolution;
-        total.kept_estimate_failed += r.kept_estimate_failed;
-        total.skipped += r.skipped;
-        total.rejected_contradicts_map += r.rejected_contradicts_map;
-        total.rejected_too_few_inliers += r.rejected_too_few_inliers;
-        total.rejected_low_inlier_share += r.rejected_low_inlier_share;
-        total.rejected_rms_not_improved += r.rejected_rms_not_improved;
-        total.rejected_correction_too_large += r.rejected_correction_too_large;
-        total.rejected_not_converged += r.rejected_not_converged;
-        total.rejected_degenerate += r.rejected_degenerate;
+        total += trial.registration;
     }
     let counts = serde_json::to_string(&total).unwrap_or_default();
     println!("{}: registration of every cloud: {counts}", run.method);

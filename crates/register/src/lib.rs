@@ -436,6 +436,23 @@ pub struct AlignmentCounts {
     pub rejected_degenerate: u64,
 }
 
+impl std::ops::AddAssign for AlignmentCounts {
+    /// Adds another planner's (or trial's) counts, outcome by outcome.
+    fn add_assign(&mut self, other: Self) {
+        self.aligned += other.aligned;
+        self.kept_below_resolution += other.kept_below_resolution;
+        self.kept_estimate_failed += other.kept_estimate_failed;
+        self.skipped += other.skipped;
+        self.rejected_contradicts_map += other.rejected_contradicts_map;
+        self.rejected_too_few_inliers += other.rejected_too_few_inliers;
+        self.rejected_low_inlier_share += other.rejected_low_inlier_share;
+        self.rejected_rms_not_improved += other.rejected_rms_not_improved;
+        self.rejected_correction_too_large += other.rejected_correction_too_large;
+        self.rejected_not_converged += other.rejected_not_converged;
+        self.rejected_degenerate += other.rejected_degenerate;
+    }
+}
+
 impl AlignmentCounts {
     pub fn record(&mut self, alignment: &Alignment) {
         let counter = match alignment {

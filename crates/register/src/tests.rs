@@ -474,6 +474,12 @@ fn counts_follow_the_outcomes() {
     assert_eq!(counts.rejected(), 2);
     assert_eq!(counts.rejected_too_few_inliers, 1);
     assert_eq!(counts.aligned, 0);
+    // Summed over trials, outcome by outcome.
+    let mut total = counts;
+    total += counts;
+    assert_eq!(total.skipped, 2);
+    assert_eq!(total.rejected_degenerate, 2);
+    assert_eq!(total.rejected(), 4);
 }
 
 #[test]

@@ -436,9 +436,16 @@ fn intersect_ellipsoid(
 ) -> Option<f64> {
     let oc = (ray.origin - centre).component_mul(inv_radii);
     let d = ray.dir.component_mul(inv_radii);
-    let a = d.dot(&d);
-    let b = oc.dot(&d);
-    let c = oc.dot(&oc) - 1.0;
+    unit_sphere_hit(&oc, &d, t_max)
+}
+
+/// Smallest ray parameter in (epsilon, t_max) where the ray `oc + t d` (both already mapped
+/// into the frame where the ellipsoid is the unit sphere at the origin) meets that sphere.
+#[inline(always)]
+fn unit_sphere_hit(oc: &Vector3<f64>, d: &Vector3<f64>, t_max: f64) -> Option<f64> {
+    let a = d.dot(d);
+    let b = oc.dot(d);
+    let c = oc.dot(oc) - 1.0;
     let disc = b * b - a * c;
     if disc < 0.0 || a <= 0.0 {
         return None;
@@ -463,20 +470,7 @@ fn intersect_oriented_ellipsoid(
 ) -> Option<f64> {
     let oc = unit_from_world * (ray.origin - centre);
     let d = unit_from_world * ray.dir;
-    let a = d.dot(&d);
-    let b = oc.dot(&d);
-    let c = oc.dot(&oc) - 1.0;
-    let disc = b * b - a * c;
-    if disc < 0.0 || a <= 0.0 {
-        return None;
-    }
-    let sq = disc.sqrt();
-    let t0 = (-b - sq) / a;
-    if t0 > T_EPSILON {
-        return (t0 < t_max).then_some(t0);
-    }
-    let t1 = (-b + sq) / a;
-    (t1 > T_EPSILON && t1 < t_max).then_some(t1)
+    unit_sphere_hit(&oc, &d, t_max)
 }
 
 /// A shape in the form the closest-hit loop tests fastest: divisions and per-test products that

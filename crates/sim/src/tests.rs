@@ -11,7 +11,7 @@ fn is_roi(r: u8, g: u8, b: u8) -> bool {
     glasshouse_detect::HsiRule::default().is_roi(r, g, b)
 }
 
-fn corners(range: [(f32, f32); 3]) -> Vec<[f32; 3]> {
+pub(crate) fn corners(range: [(f32, f32); 3]) -> Vec<[f32; 3]> {
     let mut out = Vec::new();
     for r in [range[0].0, range[0].1] {
         for g in [range[1].0, range[1].1] {

@@ -4,6 +4,7 @@ use nalgebra::{Isometry3, Rotation3};
 
 use super::*;
 use crate::shapes::OrientedEllipsoid;
+use crate::tests::corners;
 use crate::{look_at, shade, CameraModel, RgbdImage, Scene};
 
 /// FNV-1a over a stream of 64-bit words.
@@ -425,18 +426,6 @@ fn about_a_third_of_capsicums_are_pressed_against_a_leaf() {
 /// The detector's default HSI rule.
 fn is_roi(rgb: &[u8]) -> bool {
     glasshouse_detect::HsiRule::default().is_roi(rgb[0], rgb[1], rgb[2])
-}
-
-fn corners(range: [(f32, f32); 3]) -> Vec<[f32; 3]> {
-    let mut out = Vec::new();
-    for r in [range[0].0, range[0].1] {
-        for g in [range[1].0, range[1].1] {
-            for b in [range[2].0, range[2].1] {
-                out.push([r, g, b]);
-            }
-        }
-    }
-    out
 }
 
 /// True when the HSI rule takes `albedo` for fruit under every shading factor.

@@ -19,8 +19,8 @@ use std::time::Instant;
 use glasshouse_bus::{AnySubscriber, Delivery, DropCounters, Received, Shutdown};
 use glasshouse_proto::keys::{self, ParsedKey, Qos, TrolleyTopic};
 use glasshouse_proto::{
-    DetectorStatus, FleetFruits, FrameId, Fruit, Header, Message, PlannerStatus, RankedViews,
-    TrolleyInfo, TrolleyStatus,
+    DetectorStatus, FleetFruits, FrameId, FrameRegistration, Fruit, Header, Message, PlannerStatus,
+    RankedViews, TrolleyInfo, TrolleyStatus,
 };
 use serde::Deserialize;
 use zenoh::Session;
@@ -104,6 +104,8 @@ pub struct TrolleyView {
     pub views_messages: u64,
     pub map_updates: u64,
     pub map_voxels_changed: u64,
+    /// How the planner registered the trolley's last registered cloud (its MapUpdate's).
+    pub last_registration: Option<FrameRegistration>,
     pub planner_id: String,
     /// Ground truth, when the source is the simulator.
     pub truth: Vec<Fruit>,
@@ -195,6 +197,10 @@ impl FleetState {
                     (TrolleyTopic::Map, Message::MapUpdate(m)) => {
                         t.map_updates += 1;
                         t.map_voxels_changed += m.voxels.len() as u64;
+                        // A re-announced frame's update carries none: the last one stays.
+                        if let Some(r) = &m.registration {
+                            t.last_registration = Some(r.clone());
+                        }
                     }
                     _ => {}
                 }

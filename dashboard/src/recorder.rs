@@ -5,8 +5,8 @@ use std::path::Path;
 
 use glasshouse_proto::keys::{ParsedKey, TrolleyTopic};
 use glasshouse_proto::{
-    ArmState, Fruit, FruitEstimates, Header, Message, PlannerStatus, RankedViews, RgbdFrame,
-    RoiCloud, ViewKind, VoxelState,
+    ArmState, FrameRegistration, Fruit, FruitEstimates, Header, Message, PlannerStatus,
+    RankedViews, RegistrationVerdict, RgbdFrame, RoiCloud, ViewKind, VoxelState,
 };
 use nalgebra::{Isometry3, Vector3};
 use rerun::RecordingStream;
@@ -149,9 +149,12 @@ impl Recorder {
                 log_truth(rec, &base, f)?
             }
             (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => log_fruits(rec, &base, tid, f)?,
-            (TrolleyTopic::Map, Message::MapUpdate(_)) => {
+            (TrolleyTopic::Map, Message::MapUpdate(m)) => {
                 if let Some(snapshot) = &self.voxel_snapshot {
                     log_voxels(rec, &base, snapshot)?;
+                }
+                if let Some(r) = &m.registration {
+                    log_registration(rec, tid, r)?;
                 }
             }
             (TrolleyTopic::Arm, Message::ArmState(a)) if a.moving => {
@@ -253,6 +256,40 @@ fn log_planner_status(rec: &RecordingStream, pid: &str, s: &PlannerStatus) -> Lo
     rec.log(
         format!("planners/{pid}/dropped"),
         &rerun::Scalars::single(s.dropped_messages as f64),
+    )?;
+    let r = &s.registrations;
+    for (verdict, clouds) in [
+        ("applied", r.applied),
+        ("kept_as_sent", r.kept_as_sent),
+        ("rejected", r.rejected),
+        ("skipped", r.skipped),
+    ] {
+        rec.log(
+            format!("planners/{pid}/registration/{verdict}"),
+            &rerun::Scalars::single(clouds as f64),
+        )?;
+    }
+    Ok(())
+}
+
+/// The correction the planner applied to a registered cloud (zero when it applied none: the
+/// cloud went in as sent, or not at all), mm at the camera and degrees.
+fn log_registration(rec: &RecordingStream, tid: &str, r: &FrameRegistration) -> LogResult {
+    let applied = r.verdict == RegistrationVerdict::Applied;
+    let (mm, deg) = match applied {
+        true => (
+            r.sensor_shift_m.map_or(0.0, |m| f64::from(m) * 1e3),
+            r.rotation_deg.map_or(0.0, f64::from),
+        ),
+        false => (0.0, 0.0),
+    };
+    rec.log(
+        format!("trolleys/{tid}/registration/applied_correction_mm"),
+        &rerun::Scalars::single(mm),
+    )?;
+    rec.log(
+        format!("trolleys/{tid}/registration/applied_correction_deg"),
+        &rerun::Scalars::single(deg),
     )
 }
 

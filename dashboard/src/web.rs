@@ -14,6 +14,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
+use glasshouse_proto::{FrameRegistration, RigidCorrection};
 use serde::Serialize;
 
 use crate::{DashboardCounters, FleetState};
@@ -44,6 +45,45 @@ pub struct TrolleyRow {
     pub refused_views: u64,
     /// Share of ground-truth fruit volume inside detected boxes (simulated trolleys only).
     pub covered_volume: Option<f64>,
+    /// How the planner registered the trolley's last registered cloud.
+    pub registration: Option<RegistrationDoc>,
+}
+
+/// One cloud's registration to its trolley's map, as the owning planner reported it.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct RegistrationDoc {
+    /// The cloud's frame seq.
+    pub frame_seq: u64,
+    /// `applied`, `kept_as_sent`, `rejected` or `skipped`.
+    pub verdict: &'static str,
+    /// Why (`none` for an applied correction), e.g. `below_resolution`, `contradicts_map`.
+    pub reason: &'static str,
+    /// ICP's correction: how far it moves the camera (mm) and turns the scan (degrees). Applied
+    /// only when the verdict is `applied`; absent when there was no estimate.
+    pub correction_mm: Option<f64>,
+    pub correction_deg: Option<f64>,
+    /// Share of the scan's points near the map's surface, and their residual RMS (mm), as the
+    /// scan went in.
+    pub inlier_share: Option<f32>,
+    pub rms_mm: Option<f64>,
+}
+
+impl RegistrationDoc {
+    pub fn new(r: &FrameRegistration) -> Self {
+        let estimate = r.world_correction.as_ref();
+        Self {
+            frame_seq: r.frame.seq,
+            verdict: r.verdict.name(),
+            reason: r.reason.name(),
+            correction_mm: r.sensor_shift_m.map(|m| f64::from(m) * 1e3),
+            correction_deg: r
+                .rotation_deg
+                .map(f64::from)
+                .or_else(|| estimate.map(RigidCorrection::angle_deg)),
+            inlier_share: r.inlier_share,
+            rms_mm: r.rms_after_m.map(|m| f64::from(m) * 1e3),
+        }
+    }
 }
 
 #[derive(Serialize, Debug, Clone, PartialEq)]
@@ -61,6 +101,12 @@ pub struct PlannerRow {
     pub refused_clouds: u64,
     /// Seconds since its last status (a lost planner's grows).
     pub last_status_age_s: Option<f64>,
+    /// Clouds of the trolleys it owns registered to their maps, by verdict: corrected, let in
+    /// as sent, kept out, not checked.
+    pub registration_applied: u64,
+    pub registration_kept_as_sent: u64,
+    pub registration_rejected: u64,
+    pub registration_skipped: u64,
 }
 
 #[derive(Serialize, Debug, Clone, PartialEq)]
@@ -129,6 +175,7 @@ pub fn fleet_doc(
                 drops: t.drops(),
                 refused_views: t.status.as_ref().map_or(0, |s| s.refused_views),
                 covered_volume: t.covered_volume,
+                registration: t.last_registration.as_ref().map(RegistrationDoc::new),
             })
             .collect(),
         planners: fleet
@@ -149,6 +196,10 @@ pub fn fleet_doc(
                     .planner_seen_at
                     .get(id)
                     .map(|t| now.saturating_duration_since(*t).as_secs_f64()),
+                registration_applied: p.registrations.applied,
+                registration_kept_as_sent: p.registrations.kept_as_sent,
+                registration_rejected: p.registrations.rejected,
+                registration_skipped: p.registrations.skipped,
             })
             .collect(),
         detectors: fleet
@@ -278,5 +329,76 @@ async fn fruits(
             format!("unknown format {other:?}: use json or csv"),
         )
             .into_response(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glasshouse_proto::keys::{ParsedKey, TrolleyTopic};
+    use glasshouse_proto::{samples, Message, RegistrationReason, RegistrationVerdict};
+
+    use super::*;
+
+    fn map_key() -> ParsedKey {
+        ParsedKey::Trolley {
+            tid: "t1".into(),
+            topic: TrolleyTopic::Map,
+        }
+    }
+
+    #[test]
+    fn the_fleet_document_shows_the_last_registration_and_the_planner_totals() {
+        let mut fleet = FleetState::default();
+        let now = Instant::now();
+        let header = samples::header(42);
+        let update = samples::map_update();
+        fleet.apply(
+            &map_key(),
+            &header,
+            &Message::MapUpdate(update.clone()),
+            now,
+        );
+        // A re-announced frame's update carries no registration: the last one stays.
+        let repeat = glasshouse_proto::MapUpdate {
+            registration: None,
+            ..update
+        };
+        fleet.apply(&map_key(), &header, &Message::MapUpdate(repeat), now);
+        let status_key = ParsedKey::PlannerStatus { pid: "p1".into() };
+        let status = Message::PlannerStatus(samples::planner_status());
+        fleet.apply(&status_key, &samples::header(1), &status, now);
+
+        let doc = fleet_doc(&fleet, now, 0, None);
+        let r = doc.trolleys[0].registration.as_ref().expect("registration");
+        assert_eq!((r.frame_seq, r.verdict, r.reason), (42, "applied", "none"));
+        let near =
+            |value: Option<f64>, expected: f64| value.is_some_and(|v| (v - expected).abs() < 1e-3);
+        assert!(near(r.correction_mm, 6.5), "{r:?}");
+        assert!(near(r.correction_deg, 0.5), "{r:?}");
+        assert!(near(r.rms_mm, 1.8), "{r:?}");
+        let p = &doc.planners[0];
+        let totals = (
+            p.registration_applied,
+            p.registration_kept_as_sent,
+            p.registration_rejected,
+            p.registration_skipped,
+        );
+        assert_eq!(totals, (6, 2, 1, 1));
+        let json = serde_json::to_string(&doc).expect("json");
+        assert!(json.contains("\"verdict\":\"applied\""), "{json}");
+    }
+
+    #[test]
+    fn a_rejected_cloud_shows_why_without_a_correction() {
+        let rejected = FrameRegistration {
+            verdict: RegistrationVerdict::Rejected,
+            reason: RegistrationReason::ContradictsMap,
+            near_surface_points: Some(12),
+            contradicting_points: Some(300),
+            ..FrameRegistration::default()
+        };
+        let doc = RegistrationDoc::new(&rejected);
+        assert_eq!((doc.verdict, doc.reason), ("rejected", "contradicts_map"));
+        assert_eq!((doc.correction_mm, doc.correction_deg), (None, None));
     }
 }

@@ -20,6 +20,7 @@
 //! the key `fleet`) also merges every trolley's fruits into the fleet map on `gh/fleet/fruits`.
 
 pub mod node;
+mod registration;
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -10,6 +10,11 @@
 //! detector's token and its first cloud may arrive in either order), then is refused and
 //! counted. Which frames a map takes is [`glasshouse_pipeline::FrameOrder`]'s rule; the frames
 //! it refuses are counted too (`PlannerStatus::refused_clouds`).
+//!
+//! Each cloud the owner registers to its map (`planning.registration`) reports how on the wire:
+//! the MapUpdate the cloud produces carries its [`glasshouse_proto::FrameRegistration`] (a
+//! rejected cloud's update changes no voxel and carries only that), and PlannerStatus the
+//! totals by verdict over the trolleys this planner owns.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Instant;
@@ -23,10 +28,11 @@ use glasshouse_proto::keys;
 use glasshouse_proto::FrameId;
 use glasshouse_proto::{
     FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus, RankedViews,
-    RoiCloud, StageTimes, TrolleyInfo,
+    RegistrationTotals, RoiCloud, StageTimes, TrolleyInfo,
 };
 
 use crate::fleet_fruits;
+use crate::registration::{frame_registration, registration_totals};
 
 /// Key whose rendezvous winner among the live planners publishes the fleet fruit map.
 pub const FLEET_MAP_KEY: &str = "fleet";
@@ -828,7 +834,14 @@ impl PlannerNode {
         let mut laps = Laps::start();
         let (header, cloud) = (&received.header, &received.cloud);
         let frame = cloud.source_frame();
+        let registered_before = *slot.planner.alignment_counts();
         let inserted = slot.planner.insert(cloud, received.received_ns);
+        // The last alignment is this cloud's only when the insert registered it (a repeated or
+        // stale frame is not registered again).
+        let registration = (*slot.planner.alignment_counts() != registered_before)
+            .then(|| slot.planner.last_alignment())
+            .flatten()
+            .map(|alignment| frame_registration(frame, alignment));
         self.stats.stages.integrate_ms += laps.lap_ms();
         let (stats, refusals) = (&mut self.stats, &mut self.logged_refusals);
         if !note_insert(stats, refusals, (&pid, tid), header, frame, inserted) {
@@ -839,7 +852,10 @@ impl PlannerNode {
         slot.planner.track();
         self.stats.stages.track_ms += laps.lap_ms();
         self.stats.clouds_integrated += 1;
-        let map = slot.planner.map_update(frame.seq, &pid);
+        let map = MapUpdate {
+            registration,
+            ..slot.planner.map_update(frame.seq, &pid)
+        };
         self.stats.stages.publish_ms += laps.lap_ms();
         let camera = cloud.world_from_camera;
         let header = received.header.clone();
@@ -948,6 +964,13 @@ impl PlannerNode {
                 .values()
                 .map(|s| s.planner.map().len() as u64)
                 .sum(),
+            registrations: self.slots.values().filter(|s| s.role == Role::Owner).fold(
+                RegistrationTotals::default(),
+                |mut sum, s| {
+                    sum += registration_totals(s.planner.alignment_counts());
+                    sum
+                },
+            ),
         };
         let header = Header {
             seq: self.status_seq,

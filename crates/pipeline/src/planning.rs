@@ -659,6 +659,7 @@ impl TrolleyPlanner {
             full: false,
             voxels,
             planner_id: pid.to_owned(),
+            registration: None,
         }
     }
 

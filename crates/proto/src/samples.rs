@@ -176,6 +176,30 @@ pub fn map_update() -> MapUpdate {
             },
         ],
         planner_id: "p1".into(),
+        registration: Some(frame_registration()),
+    }
+}
+
+/// A registration that applied its correction (half a degree about z, 6 mm along x).
+pub fn frame_registration() -> FrameRegistration {
+    FrameRegistration {
+        frame: FrameId::new(SAMPLE_EPOCH_NS, 42),
+        verdict: RegistrationVerdict::Applied,
+        reason: RegistrationReason::None,
+        world_correction: Some(RigidCorrection {
+            translation_m: nalgebra::Vector3::new(0.006, -0.001, 0.0),
+            rotation_vector_rad: nalgebra::Vector3::new(0.0, 0.0, 0.5f64.to_radians()),
+        }),
+        rotation_deg: Some(0.5),
+        sensor_shift_m: Some(0.0065),
+        max_point_shift_m: Some(0.009),
+        rms_before_m: Some(0.0042),
+        rms_after_m: Some(0.0018),
+        inliers: Some(1800),
+        inlier_share: Some(0.86),
+        unconstrained_directions: Some(0),
+        iterations: Some(5),
+        ..FrameRegistration::default()
     }
 }
 
@@ -201,6 +225,12 @@ pub fn planner_status() -> PlannerStatus {
             publish_ms: 40.0,
         },
         catch_up_ms: 210.0,
+        registrations: RegistrationTotals {
+            applied: 6,
+            kept_as_sent: 2,
+            rejected: 1,
+            skipped: 1,
+        },
     }
 }
 

@@ -1,8 +1,9 @@
 #![allow(clippy::unwrap_used)]
 
 use glasshouse_detect::DetectorConfig;
+use glasshouse_pipeline::Alignment;
 use glasshouse_pipeline::{detect_frame, SimTrolley, SimTrolleySettings, TrolleySource};
-use glasshouse_proto::FrameId;
+use glasshouse_proto::{FrameId, FrameRegistration, RegistrationReason, RegistrationVerdict};
 use glasshouse_sim::ScenarioKind;
 
 use super::*;
@@ -941,4 +942,175 @@ fn a_new_standby_replica_keeps_the_snapshot_encoded() {
     let actions = p1.handle(PlannerEvent::PlannerLeft("p2".into()));
     assert_eq!(views_of(&actions)[0].based_on_seq, 3);
     assert!(same_map(&p1, &p2, "t1"));
+}
+
+/// The registrations on the map updates published for t1, in order.
+fn registrations_of(actions: &[PlannerAction]) -> Vec<Option<FrameRegistration>> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::Publish {
+                output: TrolleyOutput::Map(m),
+                ..
+            } => Some(m.registration.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
+fn status_of(actions: &[PlannerAction]) -> PlannerStatus {
+    match actions.first() {
+        Some(PlannerAction::PublishStatus { status, .. }) => status.clone(),
+        other => panic!("a status first, got {other:?}"),
+    }
+}
+
+/// [`pair`] of planners that register every cloud to the map before inserting it (the replica
+/// hot: it integrates, and registers, every cloud).
+fn registering_pair() -> (PlannerNode, PlannerNode) {
+    let mut planning = PlanningSettings {
+        scoring_threads: 1,
+        ..PlanningSettings::default()
+    };
+    planning.registration.enabled = true;
+    // The test's small clouds make a small map.
+    planning.registration.min_map_occupied_voxels = 200;
+    planning.registration.min_scan_points = 100;
+    planning.registration.min_inliers = 80;
+    let mut nodes = ["p1", "p2"].map(|pid| {
+        let mut n = PlannerNode::new(pid, planning.clone(), NOW_NS).with_replica_refresh(0);
+        n.handle(PlannerEvent::DetectorJoined("d1".into()));
+        n
+    });
+    for (n, other) in nodes.iter_mut().zip(["p2", "p1"]) {
+        n.handle(PlannerEvent::PlannerJoined(other.into()));
+        n.handle(PlannerEvent::TrolleyJoined("t1".into()));
+        n.handle(PlannerEvent::SnapshotLoaded {
+            tid: "t1".into(),
+            snapshot: None,
+        });
+    }
+    let [a, b] = nodes;
+    roles((a, b))
+}
+
+#[test]
+fn each_inserted_cloud_reports_its_registration_on_its_map_update() {
+    let (info, clouds) = trolley_clouds(4);
+    let (mut owner, mut replica) = registering_pair();
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+    }
+    let mut records = Vec::new();
+    for cloud in &clouds {
+        let actions = owner.handle(cloud_event(cloud));
+        let registrations = registrations_of(&actions);
+        assert_eq!(registrations.len(), 1, "one map update per cloud");
+        let r = registrations[0].clone().expect("the cloud's registration");
+        assert_eq!(r.frame, cloud.source_frame());
+        assert_eq!(
+            r.verdict,
+            match owner.planner("t1").unwrap().last_alignment() {
+                Some(Alignment::Aligned(a)) if a.applied() => RegistrationVerdict::Applied,
+                Some(Alignment::Aligned(_)) => RegistrationVerdict::KeptAsSent,
+                Some(Alignment::Rejected(_)) => RegistrationVerdict::Rejected,
+                _ => RegistrationVerdict::Skipped,
+            }
+        );
+        replica.handle(cloud_event(cloud));
+        records.push(r);
+    }
+    // The first cloud meets an empty map; the later ones are checked against it (in this
+    // perfect world, their estimates are too small to apply).
+    assert_eq!(
+        (records[0].verdict, records[0].reason),
+        (
+            RegistrationVerdict::Skipped,
+            RegistrationReason::MapTooSmall
+        )
+    );
+    let estimated = records.iter().filter(|r| r.world_correction.is_some());
+    assert!(
+        estimated.clone().count() >= 1 && estimated.clone().all(|r| r.iterations.is_some()),
+        "{records:?}"
+    );
+    let counts = *owner.planner("t1").unwrap().alignment_counts();
+    // A re-announced frame is not registered again: its update carries no registration.
+    let again = owner.handle(cloud_event(&clouds[3]));
+    assert_eq!(registrations_of(&again), vec![None]);
+    let status = status_of(&owner.handle(status_tick(NOW_NS)));
+    assert_eq!(
+        status.registrations.total(),
+        4,
+        "{:?}",
+        status.registrations
+    );
+    // The replica registers the same clouds, but reports only the trolleys it owns.
+    assert_eq!(*replica.planner("t1").unwrap().alignment_counts(), counts);
+    let replica_status = status_of(&replica.handle(status_tick(NOW_NS)));
+    assert_eq!(replica_status.registrations, RegistrationTotals::default());
+}
+
+#[test]
+fn a_rejected_cloud_is_reported_on_a_map_update_without_voxels() {
+    let (info, clouds) = trolley_clouds(4);
+    let (mut owner, _) = registering_pair();
+    owner.handle(info_event(&info));
+    for cloud in &clouds[..3] {
+        owner.handle(cloud_event(cloud));
+    }
+    let voxels = owner.planner("t1").unwrap().map().len();
+    // The last frame as a trolley 20 cm off along x would send it.
+    let shift = nalgebra::Isometry3::translation(0.2, 0.0, 0.0);
+    let wild = RoiCloud {
+        points_in_world: glasshouse_register::corrected_points(&shift, &clouds[3].points_in_world),
+        sensor_origin_in_world: shift * clouds[3].sensor_origin_in_world,
+        ..clouds[3].clone()
+    };
+    let actions = owner.handle(cloud_event(&wild));
+    let maps: Vec<&MapUpdate> = actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::Publish {
+                output: TrolleyOutput::Map(m),
+                ..
+            } => Some(m),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(maps.len(), 1);
+    assert!(
+        maps[0].voxels.is_empty(),
+        "a rejected cloud changes no voxel"
+    );
+    let r = maps[0].registration.as_ref().expect("the refusal");
+    assert_eq!(r.verdict, RegistrationVerdict::Rejected, "{r:?}");
+    assert_eq!(r.frame, wild.source_frame());
+    assert!(!r.inserted());
+    assert_eq!(owner.planner("t1").unwrap().map().len(), voxels);
+    // Still planned on: the edge waits for views on this frame.
+    assert_eq!(views_of(&actions).len(), 1);
+    let status = status_of(&owner.handle(status_tick(NOW_NS)));
+    assert_eq!(status.registrations.rejected, 1);
+    assert_eq!(status.registrations.total(), 4);
+}
+
+#[test]
+fn without_registration_every_cloud_reports_it_skipped() {
+    let (info, clouds) = trolley_clouds(2);
+    let mut p1 = alone_with(&info, &[]);
+    for cloud in &clouds {
+        let registrations = registrations_of(&p1.handle(cloud_event(cloud)));
+        let r = registrations[0].clone().expect("registration");
+        assert_eq!(
+            (r.verdict, r.reason, r.world_correction),
+            (
+                RegistrationVerdict::Skipped,
+                RegistrationReason::Disabled,
+                None
+            )
+        );
+    }
+    let status = status_of(&p1.handle(status_tick(NOW_NS)));
+    assert_eq!(status.registrations.skipped, 2);
 }

@@ -545,6 +545,241 @@ impl<'a> ::flatbuffers::Verifiable for VoxelState {
 
 impl ::flatbuffers::SimpleToVerifyInSlice for VoxelState {}
 #[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MIN_REGISTRATION_VERDICT: u8 = 0;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MAX_REGISTRATION_VERDICT: u8 = 3;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+#[allow(non_camel_case_types)]
+pub const ENUM_VALUES_REGISTRATION_VERDICT: [RegistrationVerdict; 4] = [
+  RegistrationVerdict::Skipped,
+  RegistrationVerdict::Applied,
+  RegistrationVerdict::KeptAsSent,
+  RegistrationVerdict::Rejected,
+];
+
+/// What registration made of one cloud (crates/register, `Alignment`).
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[repr(transparent)]
+pub struct RegistrationVerdict(pub u8);
+#[allow(non_upper_case_globals)]
+impl RegistrationVerdict {
+  /// Not checked (registration off, the map still too small, too few points, or space the map
+  /// does not know yet): inserted as sent.
+  pub const Skipped: Self = Self(0);
+  /// Aligned: inserted with world_correction applied.
+  pub const Applied: Self = Self(1);
+  /// Inserted as sent: the estimate is below what the map can tell, or it failed a check while
+  /// the scan as sent agrees with the map (reason says which).
+  pub const KeptAsSent: Self = Self(2);
+  /// Not inserted: the estimate failed a check (reason) and the scan as sent contradicts the map.
+  pub const Rejected: Self = Self(3);
+
+  pub const ENUM_MIN: u8 = 0;
+  pub const ENUM_MAX: u8 = 3;
+  pub const ENUM_VALUES: &'static [Self] = &[
+    Self::Skipped,
+    Self::Applied,
+    Self::KeptAsSent,
+    Self::Rejected,
+  ];
+  /// Returns the variant's name or "" if unknown.
+  pub fn variant_name(self) -> Option<&'static str> {
+    match self {
+      Self::Skipped => Some("Skipped"),
+      Self::Applied => Some("Applied"),
+      Self::KeptAsSent => Some("KeptAsSent"),
+      Self::Rejected => Some("Rejected"),
+      _ => None,
+    }
+  }
+}
+impl ::core::fmt::Debug for RegistrationVerdict {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    if let Some(name) = self.variant_name() {
+      f.write_str(name)
+    } else {
+      f.write_fmt(format_args!("<UNKNOWN {:?}>", self.0))
+    }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for RegistrationVerdict {
+  type Inner = Self;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    let b = unsafe { ::flatbuffers::read_scalar_at::<u8>(buf, loc) };
+    Self(b)
+  }
+}
+
+impl ::flatbuffers::Push for RegistrationVerdict {
+    type Output = RegistrationVerdict;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        unsafe { ::flatbuffers::emplace_scalar::<u8>(dst, self.0) };
+    }
+}
+
+impl ::flatbuffers::EndianScalar for RegistrationVerdict {
+  type Scalar = u8;
+  #[inline]
+  fn to_little_endian(self) -> u8 {
+    self.0.to_le()
+  }
+  #[inline]
+  #[allow(clippy::wrong_self_convention)]
+  fn from_little_endian(v: u8) -> Self {
+    let b = u8::from_le(v);
+    Self(b)
+  }
+}
+
+impl<'a> ::flatbuffers::Verifiable for RegistrationVerdict {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    u8::run_verifier(v, pos)
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for RegistrationVerdict {}
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MIN_REGISTRATION_REASON: u8 = 0;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MAX_REGISTRATION_REASON: u8 = 12;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+#[allow(non_camel_case_types)]
+pub const ENUM_VALUES_REGISTRATION_REASON: [RegistrationReason; 13] = [
+  RegistrationReason::None,
+  RegistrationReason::Disabled,
+  RegistrationReason::MapTooSmall,
+  RegistrationReason::TooFewPoints,
+  RegistrationReason::NewGround,
+  RegistrationReason::BelowResolution,
+  RegistrationReason::ContradictsMap,
+  RegistrationReason::TooFewInliers,
+  RegistrationReason::LowInlierShare,
+  RegistrationReason::RmsNotImproved,
+  RegistrationReason::CorrectionTooLarge,
+  RegistrationReason::NotConverged,
+  RegistrationReason::Degenerate,
+];
+
+/// Why a registration ended as it did.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[repr(transparent)]
+pub struct RegistrationReason(pub u8);
+#[allow(non_upper_case_globals)]
+impl RegistrationReason {
+  /// Applied: nothing to explain.
+  pub const None: Self = Self(0);
+  /// Skipped: registration is off (`planning.registration.enabled`).
+  pub const Disabled: Self = Self(1);
+  /// Skipped: the map holds too few occupied voxels to register against.
+  pub const MapTooSmall: Self = Self(2);
+  /// Skipped: too few usable points in the scan.
+  pub const TooFewPoints: Self = Self(3);
+  /// Skipped: too few points near the map's surface, too few where it saw through.
+  pub const NewGround: Self = Self(4);
+  /// Kept as sent: the correction moves no point, or lowers the residual, by what the map can tell.
+  pub const BelowResolution: Self = Self(5);
+  /// The check the estimate failed (kept as sent or rejected, see the verdict).
+  pub const ContradictsMap: Self = Self(6);
+  pub const TooFewInliers: Self = Self(7);
+  pub const LowInlierShare: Self = Self(8);
+  pub const RmsNotImproved: Self = Self(9);
+  pub const CorrectionTooLarge: Self = Self(10);
+  pub const NotConverged: Self = Self(11);
+  pub const Degenerate: Self = Self(12);
+
+  pub const ENUM_MIN: u8 = 0;
+  pub const ENUM_MAX: u8 = 12;
+  pub const ENUM_VALUES: &'static [Self] = &[
+    Self::None,
+    Self::Disabled,
+    Self::MapTooSmall,
+    Self::TooFewPoints,
+    Self::NewGround,
+    Self::BelowResolution,
+    Self::ContradictsMap,
+    Self::TooFewInliers,
+    Self::LowInlierShare,
+    Self::RmsNotImproved,
+    Self::CorrectionTooLarge,
+    Self::NotConverged,
+    Self::Degenerate,
+  ];
+  /// Returns the variant's name or "" if unknown.
+  pub fn variant_name(self) -> Option<&'static str> {
+    match self {
+      Self::None => Some("None"),
+      Self::Disabled => Some("Disabled"),
+      Self::MapTooSmall => Some("MapTooSmall"),
+      Self::TooFewPoints => Some("TooFewPoints"),
+      Self::NewGround => Some("NewGround"),
+      Self::BelowResolution => Some("BelowResolution"),
+      Self::ContradictsMap => Some("ContradictsMap"),
+      Self::TooFewInliers => Some("TooFewInliers"),
+      Self::LowInlierShare => Some("LowInlierShare"),
+      Self::RmsNotImproved => Some("RmsNotImproved"),
+      Self::CorrectionTooLarge => Some("CorrectionTooLarge"),
+      Self::NotConverged => Some("NotConverged"),
+      Self::Degenerate => Some("Degenerate"),
+      _ => None,
+    }
+  }
+}
+impl ::core::fmt::Debug for RegistrationReason {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    if let Some(name) = self.variant_name() {
+      f.write_str(name)
+    } else {
+      f.write_fmt(format_args!("<UNKNOWN {:?}>", self.0))
+    }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for RegistrationReason {
+  type Inner = Self;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    let b = unsafe { ::flatbuffers::read_scalar_at::<u8>(buf, loc) };
+    Self(b)
+  }
+}
+
+impl ::flatbuffers::Push for RegistrationReason {
+    type Output = RegistrationReason;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        unsafe { ::flatbuffers::emplace_scalar::<u8>(dst, self.0) };
+    }
+}
+
+impl ::flatbuffers::EndianScalar for RegistrationReason {
+  type Scalar = u8;
+  #[inline]
+  fn to_little_endian(self) -> u8 {
+    self.0.to_le()
+  }
+  #[inline]
+  #[allow(clippy::wrong_self_convention)]
+  fn from_little_endian(v: u8) -> Self {
+    let b = u8::from_le(v);
+    Self(b)
+  }
+}
+
+impl<'a> ::flatbuffers::Verifiable for RegistrationReason {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    u8::run_verifier(v, pos)
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for RegistrationReason {}
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
 pub const ENUM_MIN_PAYLOAD: u8 = 0;
 #[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
 pub const ENUM_MAX_PAYLOAD: u8 = 12;
@@ -2085,6 +2320,101 @@ impl<'a> VoxelChange {
         ::core::mem::size_of::<<VoxelState as ::flatbuffers::EndianScalar>::Scalar>(),
       );
     }
+  }
+
+}
+
+/// A rigid correction of world-frame points: p_corrected = R * p + translation_m, R the rotation
+/// about the world origin given as a rotation vector (unit axis times angle, radians).
+// struct RigidCorrection, aligned to 8
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct RigidCorrection(pub [u8; 48]);
+impl Default for RigidCorrection { 
+  fn default() -> Self { 
+    Self([0; 48])
+  }
+}
+impl ::core::fmt::Debug for RigidCorrection {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("RigidCorrection")
+      .field("translation_m", &self.translation_m())
+      .field("rotation_vector_rad", &self.rotation_vector_rad())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for RigidCorrection {}
+impl<'a> ::flatbuffers::Follow<'a> for RigidCorrection {
+  type Inner = &'a RigidCorrection;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a RigidCorrection>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a RigidCorrection {
+  type Inner = &'a RigidCorrection;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<RigidCorrection>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for RigidCorrection {
+    type Output = RigidCorrection;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const RigidCorrection as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(8)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for RigidCorrection {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> RigidCorrection {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    translation_m: &Vec3d,
+    rotation_vector_rad: &Vec3d,
+  ) -> Self {
+    let mut s = Self([0; 48]);
+    s.set_translation_m(translation_m);
+    s.set_rotation_vector_rad(rotation_vector_rad);
+    s
+  }
+
+  pub fn translation_m(&self) -> &Vec3d {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[0..].as_ptr() as *const Vec3d) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_translation_m(&mut self, x: &Vec3d) {
+    self.0[0..0 + 24].copy_from_slice(&x.0)
+  }
+
+  pub fn rotation_vector_rad(&self) -> &Vec3d {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[24..].as_ptr() as *const Vec3d) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_rotation_vector_rad(&mut self, x: &Vec3d) {
+    self.0[24..24 + 24].copy_from_slice(&x.0)
   }
 
 }
@@ -4160,6 +4490,390 @@ impl ::core::fmt::Debug for FruitEstimates<'_> {
       ds.finish()
   }
 }
+pub enum FrameRegistrationOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// How the owning planner registered one cloud to the trolley's map. The figures are present
+/// only when the registration computed them (an estimate's, or the failed check's).
+pub struct FrameRegistration<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for FrameRegistration<'a> {
+  type Inner = FrameRegistration<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> FrameRegistration<'a> {
+  pub const VT_FRAME_EPOCH_NS: ::flatbuffers::VOffsetT = 4;
+  pub const VT_FRAME_SEQ: ::flatbuffers::VOffsetT = 6;
+  pub const VT_VERDICT: ::flatbuffers::VOffsetT = 8;
+  pub const VT_REASON: ::flatbuffers::VOffsetT = 10;
+  pub const VT_WORLD_CORRECTION: ::flatbuffers::VOffsetT = 12;
+  pub const VT_ROTATION_DEG: ::flatbuffers::VOffsetT = 14;
+  pub const VT_SENSOR_SHIFT_M: ::flatbuffers::VOffsetT = 16;
+  pub const VT_MAX_POINT_SHIFT_M: ::flatbuffers::VOffsetT = 18;
+  pub const VT_RMS_BEFORE_M: ::flatbuffers::VOffsetT = 20;
+  pub const VT_RMS_AFTER_M: ::flatbuffers::VOffsetT = 22;
+  pub const VT_INLIERS: ::flatbuffers::VOffsetT = 24;
+  pub const VT_INLIER_SHARE: ::flatbuffers::VOffsetT = 26;
+  pub const VT_UNCONSTRAINED_DIRECTIONS: ::flatbuffers::VOffsetT = 28;
+  pub const VT_ITERATIONS: ::flatbuffers::VOffsetT = 30;
+  pub const VT_NEAR_SURFACE_POINTS: ::flatbuffers::VOffsetT = 32;
+  pub const VT_CONTRADICTING_POINTS: ::flatbuffers::VOffsetT = 34;
+  pub const VT_LAST_STEP_M: ::flatbuffers::VOffsetT = 36;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    FrameRegistration { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args FrameRegistrationArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<FrameRegistration<'bldr>> {
+    let mut builder = FrameRegistrationBuilder::new(_fbb);
+    builder.add_frame_seq(args.frame_seq);
+    builder.add_frame_epoch_ns(args.frame_epoch_ns);
+    if let Some(x) = args.last_step_m { builder.add_last_step_m(x); }
+    if let Some(x) = args.contradicting_points { builder.add_contradicting_points(x); }
+    if let Some(x) = args.near_surface_points { builder.add_near_surface_points(x); }
+    if let Some(x) = args.iterations { builder.add_iterations(x); }
+    if let Some(x) = args.unconstrained_directions { builder.add_unconstrained_directions(x); }
+    if let Some(x) = args.inlier_share { builder.add_inlier_share(x); }
+    if let Some(x) = args.inliers { builder.add_inliers(x); }
+    if let Some(x) = args.rms_after_m { builder.add_rms_after_m(x); }
+    if let Some(x) = args.rms_before_m { builder.add_rms_before_m(x); }
+    if let Some(x) = args.max_point_shift_m { builder.add_max_point_shift_m(x); }
+    if let Some(x) = args.sensor_shift_m { builder.add_sensor_shift_m(x); }
+    if let Some(x) = args.rotation_deg { builder.add_rotation_deg(x); }
+    if let Some(x) = args.world_correction { builder.add_world_correction(x); }
+    builder.add_reason(args.reason);
+    builder.add_verdict(args.verdict);
+    builder.finish()
+  }
+
+
+  /// The cloud's frame: its edge's boot epoch and frame seq.
+  #[inline]
+  pub fn frame_epoch_ns(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(FrameRegistration::VT_FRAME_EPOCH_NS, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn frame_seq(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(FrameRegistration::VT_FRAME_SEQ, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn verdict(&self) -> RegistrationVerdict {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<RegistrationVerdict>(FrameRegistration::VT_VERDICT, Some(RegistrationVerdict::Skipped)).unwrap()}
+  }
+  #[inline]
+  pub fn reason(&self) -> RegistrationReason {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<RegistrationReason>(FrameRegistration::VT_REASON, Some(RegistrationReason::None)).unwrap()}
+  }
+  /// ICP's estimate, taking the scan as sent onto the map (world frame): applied when the
+  /// verdict is Applied, not applied when KeptAsSent; absent when there was no estimate
+  /// (Skipped, Rejected).
+  #[inline]
+  pub fn world_correction(&self) -> Option<&'a RigidCorrection> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<RigidCorrection>(FrameRegistration::VT_WORLD_CORRECTION, None)}
+  }
+  /// Angle of the estimate's rotation, degrees.
+  #[inline]
+  pub fn rotation_deg(&self) -> Option<f32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FrameRegistration::VT_ROTATION_DEG, None)}
+  }
+  /// How far the estimate moves the sensor origin, metres.
+  #[inline]
+  pub fn sensor_shift_m(&self) -> Option<f32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FrameRegistration::VT_SENSOR_SHIFT_M, None)}
+  }
+  /// How far it moves the farthest-moved subsampled scan point, metres.
+  #[inline]
+  pub fn max_point_shift_m(&self) -> Option<f32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FrameRegistration::VT_MAX_POINT_SHIFT_M, None)}
+  }
+  /// Truncated RMS of the point-to-plane residuals, metres, as sent and after the estimate.
+  #[inline]
+  pub fn rms_before_m(&self) -> Option<f32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FrameRegistration::VT_RMS_BEFORE_M, None)}
+  }
+  #[inline]
+  pub fn rms_after_m(&self) -> Option<f32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FrameRegistration::VT_RMS_AFTER_M, None)}
+  }
+  /// Subsampled points within the inlier distance of the map's surface, and their share of the
+  /// points the map has an opinion on (0..1).
+  #[inline]
+  pub fn inliers(&self) -> Option<u32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FrameRegistration::VT_INLIERS, None)}
+  }
+  #[inline]
+  pub fn inlier_share(&self) -> Option<f32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FrameRegistration::VT_INLIER_SHARE, None)}
+  }
+  /// Directions the scan's geometry left unconstrained (not corrected).
+  #[inline]
+  pub fn unconstrained_directions(&self) -> Option<u32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FrameRegistration::VT_UNCONSTRAINED_DIRECTIONS, None)}
+  }
+  #[inline]
+  pub fn iterations(&self) -> Option<u32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FrameRegistration::VT_ITERATIONS, None)}
+  }
+  /// ContradictsMap and NewGround: scan points near the map's surface, and points where the map
+  /// saw empty space or behind surface it knows.
+  #[inline]
+  pub fn near_surface_points(&self) -> Option<u32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FrameRegistration::VT_NEAR_SURFACE_POINTS, None)}
+  }
+  #[inline]
+  pub fn contradicting_points(&self) -> Option<u32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FrameRegistration::VT_CONTRADICTING_POINTS, None)}
+  }
+  /// NotConverged: how far the last iteration still moved the scan, metres.
+  #[inline]
+  pub fn last_step_m(&self) -> Option<f32> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FrameRegistration::VT_LAST_STEP_M, None)}
+  }
+}
+
+impl ::flatbuffers::Verifiable for FrameRegistration<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<u64>("frame_epoch_ns", Self::VT_FRAME_EPOCH_NS, false)?
+     .visit_field::<u64>("frame_seq", Self::VT_FRAME_SEQ, false)?
+     .visit_field::<RegistrationVerdict>("verdict", Self::VT_VERDICT, false)?
+     .visit_field::<RegistrationReason>("reason", Self::VT_REASON, false)?
+     .visit_field::<RigidCorrection>("world_correction", Self::VT_WORLD_CORRECTION, false)?
+     .visit_field::<f32>("rotation_deg", Self::VT_ROTATION_DEG, false)?
+     .visit_field::<f32>("sensor_shift_m", Self::VT_SENSOR_SHIFT_M, false)?
+     .visit_field::<f32>("max_point_shift_m", Self::VT_MAX_POINT_SHIFT_M, false)?
+     .visit_field::<f32>("rms_before_m", Self::VT_RMS_BEFORE_M, false)?
+     .visit_field::<f32>("rms_after_m", Self::VT_RMS_AFTER_M, false)?
+     .visit_field::<u32>("inliers", Self::VT_INLIERS, false)?
+     .visit_field::<f32>("inlier_share", Self::VT_INLIER_SHARE, false)?
+     .visit_field::<u32>("unconstrained_directions", Self::VT_UNCONSTRAINED_DIRECTIONS, false)?
+     .visit_field::<u32>("iterations", Self::VT_ITERATIONS, false)?
+     .visit_field::<u32>("near_surface_points", Self::VT_NEAR_SURFACE_POINTS, false)?
+     .visit_field::<u32>("contradicting_points", Self::VT_CONTRADICTING_POINTS, false)?
+     .visit_field::<f32>("last_step_m", Self::VT_LAST_STEP_M, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct FrameRegistrationArgs<'a> {
+    pub frame_epoch_ns: u64,
+    pub frame_seq: u64,
+    pub verdict: RegistrationVerdict,
+    pub reason: RegistrationReason,
+    pub world_correction: Option<&'a RigidCorrection>,
+    pub rotation_deg: Option<f32>,
+    pub sensor_shift_m: Option<f32>,
+    pub max_point_shift_m: Option<f32>,
+    pub rms_before_m: Option<f32>,
+    pub rms_after_m: Option<f32>,
+    pub inliers: Option<u32>,
+    pub inlier_share: Option<f32>,
+    pub unconstrained_directions: Option<u32>,
+    pub iterations: Option<u32>,
+    pub near_surface_points: Option<u32>,
+    pub contradicting_points: Option<u32>,
+    pub last_step_m: Option<f32>,
+}
+impl<'a> Default for FrameRegistrationArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    FrameRegistrationArgs {
+      frame_epoch_ns: 0,
+      frame_seq: 0,
+      verdict: RegistrationVerdict::Skipped,
+      reason: RegistrationReason::None,
+      world_correction: None,
+      rotation_deg: None,
+      sensor_shift_m: None,
+      max_point_shift_m: None,
+      rms_before_m: None,
+      rms_after_m: None,
+      inliers: None,
+      inlier_share: None,
+      unconstrained_directions: None,
+      iterations: None,
+      near_surface_points: None,
+      contradicting_points: None,
+      last_step_m: None,
+    }
+  }
+}
+
+pub struct FrameRegistrationBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FrameRegistrationBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_frame_epoch_ns(&mut self, frame_epoch_ns: u64) {
+    self.fbb_.push_slot::<u64>(FrameRegistration::VT_FRAME_EPOCH_NS, frame_epoch_ns, 0);
+  }
+  #[inline]
+  pub fn add_frame_seq(&mut self, frame_seq: u64) {
+    self.fbb_.push_slot::<u64>(FrameRegistration::VT_FRAME_SEQ, frame_seq, 0);
+  }
+  #[inline]
+  pub fn add_verdict(&mut self, verdict: RegistrationVerdict) {
+    self.fbb_.push_slot::<RegistrationVerdict>(FrameRegistration::VT_VERDICT, verdict, RegistrationVerdict::Skipped);
+  }
+  #[inline]
+  pub fn add_reason(&mut self, reason: RegistrationReason) {
+    self.fbb_.push_slot::<RegistrationReason>(FrameRegistration::VT_REASON, reason, RegistrationReason::None);
+  }
+  #[inline]
+  pub fn add_world_correction(&mut self, world_correction: &RigidCorrection) {
+    self.fbb_.push_slot_always::<&RigidCorrection>(FrameRegistration::VT_WORLD_CORRECTION, world_correction);
+  }
+  #[inline]
+  pub fn add_rotation_deg(&mut self, rotation_deg: f32) {
+    self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_ROTATION_DEG, rotation_deg);
+  }
+  #[inline]
+  pub fn add_sensor_shift_m(&mut self, sensor_shift_m: f32) {
+    self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_SENSOR_SHIFT_M, sensor_shift_m);
+  }
+  #[inline]
+  pub fn add_max_point_shift_m(&mut self, max_point_shift_m: f32) {
+    self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_MAX_POINT_SHIFT_M, max_point_shift_m);
+  }
+  #[inline]
+  pub fn add_rms_before_m(&mut self, rms_before_m: f32) {
+    self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_RMS_BEFORE_M, rms_before_m);
+  }
+  #[inline]
+  pub fn add_rms_after_m(&mut self, rms_after_m: f32) {
+    self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_RMS_AFTER_M, rms_after_m);
+  }
+  #[inline]
+  pub fn add_inliers(&mut self, inliers: u32) {
+    self.fbb_.push_slot_always::<u32>(FrameRegistration::VT_INLIERS, inliers);
+  }
+  #[inline]
+  pub fn add_inlier_share(&mut self, inlier_share: f32) {
+    self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_INLIER_SHARE, inlier_share);
+  }
+  #[inline]
+  pub fn add_unconstrained_directions(&mut self, unconstrained_directions: u32) {
+    self.fbb_.push_slot_always::<u32>(FrameRegistration::VT_UNCONSTRAINED_DIRECTIONS, unconstrained_directions);
+  }
+  #[inline]
+  pub fn add_iterations(&mut self, iterations: u32) {
+    self.fbb_.push_slot_always::<u32>(FrameRegistration::VT_ITERATIONS, iterations);
+  }
+  #[inline]
+  pub fn add_near_surface_points(&mut self, near_surface_points: u32) {
+    self.fbb_.push_slot_always::<u32>(FrameRegistration::VT_NEAR_SURFACE_POINTS, near_surface_points);
+  }
+  #[inline]
+  pub fn add_contradicting_points(&mut self, contradicting_points: u32) {
+    self.fbb_.push_slot_always::<u32>(FrameRegistration::VT_CONTRADICTING_POINTS, contradicting_points);
+  }
+  #[inline]
+  pub fn add_last_step_m(&mut self, last_step_m: f32) {
+    self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_LAST_STEP_M, last_step_m);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FrameRegistrationBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    FrameRegistrationBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<FrameRegistration<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for FrameRegistration<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("FrameRegistration");
+      ds.field("frame_epoch_ns", &self.frame_epoch_ns());
+      ds.field("frame_seq", &self.frame_seq());
+      ds.field("verdict", &self.verdict());
+      ds.field("reason", &self.reason());
+      ds.field("world_correction", &self.world_correction());
+      ds.field("rotation_deg", &self.rotation_deg());
+      ds.field("sensor_shift_m", &self.sensor_shift_m());
+      ds.field("max_point_shift_m", &self.max_point_shift_m());
+      ds.field("rms_before_m", &self.rms_before_m());
+      ds.field("rms_after_m", &self.rms_after_m());
+      ds.field("inliers", &self.inliers());
+      ds.field("inlier_share", &self.inlier_share());
+      ds.field("unconstrained_directions", &self.unconstrained_directions());
+      ds.field("iterations", &self.iterations());
+      ds.field("near_surface_points", &self.near_surface_points());
+      ds.field("contradicting_points", &self.contradicting_points());
+      ds.field("last_step_m", &self.last_step_m());
+      ds.finish()
+  }
+}
 pub enum MapUpdateOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
@@ -4184,6 +4898,7 @@ impl<'a> MapUpdate<'a> {
   pub const VT_FULL: ::flatbuffers::VOffsetT = 10;
   pub const VT_VOXELS: ::flatbuffers::VOffsetT = 12;
   pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 14;
+  pub const VT_REGISTRATION: ::flatbuffers::VOffsetT = 16;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4197,6 +4912,7 @@ impl<'a> MapUpdate<'a> {
     let mut builder = MapUpdateBuilder::new(_fbb);
     builder.add_based_on_seq(args.based_on_seq);
     builder.add_map_seq(args.map_seq);
+    if let Some(x) = args.registration { builder.add_registration(x); }
     if let Some(x) = args.planner_id { builder.add_planner_id(x); }
     if let Some(x) = args.voxels { builder.add_voxels(x); }
     builder.add_resolution_m(args.resolution_m);
@@ -4247,6 +4963,16 @@ impl<'a> MapUpdate<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(MapUpdate::VT_PLANNER_ID, None)}
   }
+  /// How the cloud this update comes from was registered to the map before insertion; absent
+  /// when the planner did not register it (a frame it does not insert again: a re-announce, a
+  /// stale frame). A rejected cloud changes no voxel: its update carries only this.
+  #[inline]
+  pub fn registration(&self) -> Option<FrameRegistration<'a>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<FrameRegistration>>(MapUpdate::VT_REGISTRATION, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for MapUpdate<'_> {
@@ -4261,6 +4987,7 @@ impl ::flatbuffers::Verifiable for MapUpdate<'_> {
      .visit_field::<bool>("full", Self::VT_FULL, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, VoxelChange>>>("voxels", Self::VT_VOXELS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<FrameRegistration>>("registration", Self::VT_REGISTRATION, false)?
      .finish();
     Ok(())
   }
@@ -4272,6 +4999,7 @@ pub struct MapUpdateArgs<'a> {
     pub full: bool,
     pub voxels: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, VoxelChange>>>,
     pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub registration: Option<::flatbuffers::WIPOffset<FrameRegistration<'a>>>,
 }
 impl<'a> Default for MapUpdateArgs<'a> {
   #[inline]
@@ -4283,6 +5011,7 @@ impl<'a> Default for MapUpdateArgs<'a> {
       full: false,
       voxels: None,
       planner_id: None,
+      registration: None,
     }
   }
 }
@@ -4317,6 +5046,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapUpdateBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapUpdate::VT_PLANNER_ID, planner_id);
   }
   #[inline]
+  pub fn add_registration(&mut self, registration: ::flatbuffers::WIPOffset<FrameRegistration<'b >>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<FrameRegistration>>(MapUpdate::VT_REGISTRATION, registration);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapUpdateBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     MapUpdateBuilder {
@@ -4340,6 +5073,7 @@ impl ::core::fmt::Debug for MapUpdate<'_> {
       ds.field("full", &self.full());
       ds.field("voxels", &self.voxels());
       ds.field("planner_id", &self.planner_id());
+      ds.field("registration", &self.registration());
       ds.finish()
   }
 }
@@ -4371,6 +5105,10 @@ impl<'a> PlannerStatus<'a> {
   pub const VT_REFUSED_CLOUDS: ::flatbuffers::VOffsetT = 22;
   pub const VT_STAGE_TOTALS: ::flatbuffers::VOffsetT = 24;
   pub const VT_CATCH_UP_MS: ::flatbuffers::VOffsetT = 26;
+  pub const VT_REGISTRATION_APPLIED: ::flatbuffers::VOffsetT = 28;
+  pub const VT_REGISTRATION_KEPT_AS_SENT: ::flatbuffers::VOffsetT = 30;
+  pub const VT_REGISTRATION_REJECTED: ::flatbuffers::VOffsetT = 32;
+  pub const VT_REGISTRATION_SKIPPED: ::flatbuffers::VOffsetT = 34;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4382,6 +5120,10 @@ impl<'a> PlannerStatus<'a> {
     args: &'args PlannerStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<PlannerStatus<'bldr>> {
     let mut builder = PlannerStatusBuilder::new(_fbb);
+    builder.add_registration_skipped(args.registration_skipped);
+    builder.add_registration_rejected(args.registration_rejected);
+    builder.add_registration_kept_as_sent(args.registration_kept_as_sent);
+    builder.add_registration_applied(args.registration_applied);
     builder.add_catch_up_ms(args.catch_up_ms);
     builder.add_refused_clouds(args.refused_clouds);
     builder.add_map_voxels(args.map_voxels);
@@ -4485,6 +5227,36 @@ impl<'a> PlannerStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<f64>(PlannerStatus::VT_CATCH_UP_MS, Some(0.0)).unwrap()}
   }
+  /// Registrations of the clouds of the trolleys it owns now (as owner, or as their replica
+  /// before), by verdict (see FrameRegistration; registration off counts as skipped).
+  #[inline]
+  pub fn registration_applied(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_REGISTRATION_APPLIED, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn registration_kept_as_sent(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_REGISTRATION_KEPT_AS_SENT, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn registration_rejected(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_REGISTRATION_REJECTED, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn registration_skipped(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_REGISTRATION_SKIPPED, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
@@ -4505,6 +5277,10 @@ impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
      .visit_field::<u64>("refused_clouds", Self::VT_REFUSED_CLOUDS, false)?
      .visit_field::<StageTimes>("stage_totals", Self::VT_STAGE_TOTALS, false)?
      .visit_field::<f64>("catch_up_ms", Self::VT_CATCH_UP_MS, false)?
+     .visit_field::<u64>("registration_applied", Self::VT_REGISTRATION_APPLIED, false)?
+     .visit_field::<u64>("registration_kept_as_sent", Self::VT_REGISTRATION_KEPT_AS_SENT, false)?
+     .visit_field::<u64>("registration_rejected", Self::VT_REGISTRATION_REJECTED, false)?
+     .visit_field::<u64>("registration_skipped", Self::VT_REGISTRATION_SKIPPED, false)?
      .finish();
     Ok(())
   }
@@ -4522,6 +5298,10 @@ pub struct PlannerStatusArgs<'a> {
     pub refused_clouds: u64,
     pub stage_totals: Option<&'a StageTimes>,
     pub catch_up_ms: f64,
+    pub registration_applied: u64,
+    pub registration_kept_as_sent: u64,
+    pub registration_rejected: u64,
+    pub registration_skipped: u64,
 }
 impl<'a> Default for PlannerStatusArgs<'a> {
   #[inline]
@@ -4539,6 +5319,10 @@ impl<'a> Default for PlannerStatusArgs<'a> {
       refused_clouds: 0,
       stage_totals: None,
       catch_up_ms: 0.0,
+      registration_applied: 0,
+      registration_kept_as_sent: 0,
+      registration_rejected: 0,
+      registration_skipped: 0,
     }
   }
 }
@@ -4597,6 +5381,22 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> PlannerStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<f64>(PlannerStatus::VT_CATCH_UP_MS, catch_up_ms, 0.0);
   }
   #[inline]
+  pub fn add_registration_applied(&mut self, registration_applied: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_REGISTRATION_APPLIED, registration_applied, 0);
+  }
+  #[inline]
+  pub fn add_registration_kept_as_sent(&mut self, registration_kept_as_sent: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_REGISTRATION_KEPT_AS_SENT, registration_kept_as_sent, 0);
+  }
+  #[inline]
+  pub fn add_registration_rejected(&mut self, registration_rejected: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_REGISTRATION_REJECTED, registration_rejected, 0);
+  }
+  #[inline]
+  pub fn add_registration_skipped(&mut self, registration_skipped: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_REGISTRATION_SKIPPED, registration_skipped, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> PlannerStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     PlannerStatusBuilder {
@@ -4626,6 +5426,10 @@ impl ::core::fmt::Debug for PlannerStatus<'_> {
       ds.field("refused_clouds", &self.refused_clouds());
       ds.field("stage_totals", &self.stage_totals());
       ds.field("catch_up_ms", &self.catch_up_ms());
+      ds.field("registration_applied", &self.registration_applied());
+      ds.field("registration_kept_as_sent", &self.registration_kept_as_sent());
+      ds.field("registration_rejected", &self.registration_rejected());
+      ds.field("registration_skipped", &self.registration_skipped());
       ds.finish()
   }
 }

@@ -5,6 +5,9 @@
 //! and one line in [`message_kinds!`] (plus an example in `samples.rs`, which the compiler asks for).
 
 mod convert;
+mod frame_registration;
+
+pub use frame_registration::*;
 
 use crate::{fb, Header, Result, Wire};
 

@@ -23,6 +23,38 @@ pub struct PlannerStatus {
     /// Time spent catching up trolleys taken over from a lost owner (snapshot decode and the
     /// clouds kept since; the replayed clouds also count in `stage_totals`).
     pub catch_up_ms: f64,
+    /// Registrations of the clouds of the trolleys it owns now (made as their owner, or as
+    /// their replica before), by verdict.
+    pub registrations: RegistrationTotals,
+}
+
+/// Clouds registered to their maps, by verdict (see [`crate::RegistrationVerdict`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RegistrationTotals {
+    /// Inserted with the correction applied.
+    pub applied: u64,
+    /// Inserted as sent: the estimate was too small to tell, or failed a check the scan as
+    /// sent passes.
+    pub kept_as_sent: u64,
+    /// Not inserted.
+    pub rejected: u64,
+    /// Not checked (registration off included), inserted as sent.
+    pub skipped: u64,
+}
+
+impl RegistrationTotals {
+    pub fn total(&self) -> u64 {
+        self.applied + self.kept_as_sent + self.rejected + self.skipped
+    }
+}
+
+impl std::ops::AddAssign for RegistrationTotals {
+    fn add_assign(&mut self, other: Self) {
+        self.applied += other.applied;
+        self.kept_as_sent += other.kept_as_sent;
+        self.rejected += other.rejected;
+        self.skipped += other.skipped;
+    }
 }
 
 /// A planner's time per stage of its cloud handling, ms (see the schema's `StageTimes`).
@@ -99,6 +131,10 @@ impl Wire for PlannerStatus {
                 refused_clouds: self.refused_clouds,
                 stage_totals: Some(&stages),
                 catch_up_ms: self.catch_up_ms,
+                registration_applied: self.registrations.applied,
+                registration_kept_as_sent: self.registrations.kept_as_sent,
+                registration_rejected: self.registrations.rejected,
+                registration_skipped: self.registrations.skipped,
             },
         )
         .as_union_value()
@@ -122,6 +158,103 @@ impl Wire for PlannerStatus {
                 .map(StageTimes::from_fb)
                 .unwrap_or_default(),
             catch_up_ms: m.catch_up_ms(),
+            registrations: RegistrationTotals {
+                applied: m.registration_applied(),
+                kept_as_sent: m.registration_kept_as_sent(),
+                rejected: m.registration_rejected(),
+                skipped: m.registration_skipped(),
+            },
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{decode_typed, encode, samples, Message};
+
+    /// A PlannerStatus as a planner from before the registration totals writes it.
+    #[derive(Clone, Debug)]
+    struct OldSender(PlannerStatus);
+
+    impl From<OldSender> for Message {
+        fn from(old: OldSender) -> Self {
+            Message::PlannerStatus(old.0)
+        }
+    }
+
+    impl Wire for OldSender {
+        const KIND: MessageKind = MessageKind::PlannerStatus;
+
+        fn write_payload(&self, fbb: &mut FlatBufferBuilder<'_>) -> WIPOffset<UnionWIPOffset> {
+            let s = &self.0;
+            let pid = fbb.create_string(&s.planner_id);
+            let owned = strings(fbb, &s.owned_trolleys);
+            let standby = strings(fbb, &s.standby_trolleys);
+            let stages = s.stage_totals.to_fb();
+            // In the order flatc's `create` of the table without the totals added them.
+            let mut table = fb::PlannerStatusBuilder::new(fbb);
+            table.add_catch_up_ms(s.catch_up_ms);
+            table.add_refused_clouds(s.refused_clouds);
+            table.add_map_voxels(s.map_voxels);
+            table.add_dropped_messages(s.dropped_messages);
+            table.add_views_published(s.views_published);
+            table.add_clouds_integrated(s.clouds_integrated);
+            table.add_stage_totals(&stages);
+            table.add_mean_planning_time_ms(s.mean_planning_time_ms);
+            table.add_last_planning_time_ms(s.last_planning_time_ms);
+            table.add_standby_trolleys(standby);
+            table.add_owned_trolleys(owned);
+            table.add_planner_id(pid);
+            table.finish().as_union_value()
+        }
+
+        fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self> {
+            PlannerStatus::read_payload(envelope).map(OldSender)
+        }
+    }
+
+    #[test]
+    fn the_registration_totals_round_trip() {
+        let sample = samples::planner_status();
+        assert_eq!(sample.registrations.total(), 10);
+        let bytes = encode(&samples::header(2), &sample);
+        assert_eq!(
+            decode_typed::<PlannerStatus>(&bytes).expect("decodes").1,
+            sample
+        );
+    }
+
+    #[test]
+    fn a_status_from_a_sender_without_registration_totals_reads_zero() {
+        let sample = samples::planner_status();
+        let old = encode(&samples::header(2), &OldSender(sample.clone()));
+        let (_, read) =
+            decode_typed::<PlannerStatus>(&old).expect("an old sender's status decodes");
+        let without = PlannerStatus {
+            registrations: RegistrationTotals::default(),
+            ..sample
+        };
+        assert_eq!(read, without);
+        // A status with no registrations is byte for byte what the older planner sent.
+        assert_eq!(encode(&samples::header(2), &without), old);
+    }
+
+    #[test]
+    fn totals_add_verdict_by_verdict() {
+        let mut sum = samples::planner_status().registrations;
+        sum += RegistrationTotals {
+            applied: 1,
+            kept_as_sent: 2,
+            rejected: 3,
+            skipped: 4,
+        };
+        let expected = RegistrationTotals {
+            applied: 7,
+            kept_as_sent: 4,
+            rejected: 4,
+            skipped: 5,
+        };
+        assert_eq!((sum, sum.total()), (expected, 20));
     }
 }

@@ -5,6 +5,7 @@
 import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
+from glasshouse.wire.FrameRegistration import FrameRegistration
 from glasshouse.wire.VoxelChange import VoxelChange
 from typing import Optional
 np = import_numpy()
@@ -91,8 +92,21 @@ class MapUpdate(object):
             return self._tab.String(o + self._tab.Pos)
         return None
 
+    # How the cloud this update comes from was registered to the map before insertion; absent
+    # when the planner did not register it (a frame it does not insert again: a re-announce, a
+    # stale frame). A rejected cloud changes no voxel: its update carries only this.
+    # MapUpdate
+    def Registration(self) -> Optional[FrameRegistration]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            x = self._tab.Indirect(o + self._tab.Pos)
+            obj = FrameRegistration()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
 def MapUpdateStart(builder: flatbuffers.Builder):
-    builder.StartObject(6)
+    builder.StartObject(7)
 
 def Start(builder: flatbuffers.Builder):
     MapUpdateStart(builder)
@@ -138,6 +152,12 @@ def MapUpdateAddPlannerId(builder: flatbuffers.Builder, plannerId: int):
 
 def AddPlannerId(builder: flatbuffers.Builder, plannerId: int):
     MapUpdateAddPlannerId(builder, plannerId)
+
+def MapUpdateAddRegistration(builder: flatbuffers.Builder, registration: int):
+    builder.PrependUOffsetTRelativeSlot(6, flatbuffers.number_types.UOffsetTFlags.py_type(registration), 0)
+
+def AddRegistration(builder: flatbuffers.Builder, registration: int):
+    MapUpdateAddRegistration(builder, registration)
 
 def MapUpdateEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -147,8 +147,38 @@ class PlannerStatus(object):
             return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
         return 0.0
 
+    # Registrations of the clouds of the trolleys it owns now (as owner, or as their replica
+    # before), by verdict (see FrameRegistration; registration off counts as skipped).
+    # PlannerStatus
+    def RegistrationApplied(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(28))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # PlannerStatus
+    def RegistrationKeptAsSent(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(30))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # PlannerStatus
+    def RegistrationRejected(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(32))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # PlannerStatus
+    def RegistrationSkipped(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(34))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def PlannerStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(12)
+    builder.StartObject(16)
 
 def Start(builder: flatbuffers.Builder):
     PlannerStatusStart(builder)
@@ -236,6 +266,30 @@ def PlannerStatusAddCatchUpMs(builder: flatbuffers.Builder, catchUpMs: float):
 
 def AddCatchUpMs(builder: flatbuffers.Builder, catchUpMs: float):
     PlannerStatusAddCatchUpMs(builder, catchUpMs)
+
+def PlannerStatusAddRegistrationApplied(builder: flatbuffers.Builder, registrationApplied: int):
+    builder.PrependUint64Slot(12, registrationApplied, 0)
+
+def AddRegistrationApplied(builder: flatbuffers.Builder, registrationApplied: int):
+    PlannerStatusAddRegistrationApplied(builder, registrationApplied)
+
+def PlannerStatusAddRegistrationKeptAsSent(builder: flatbuffers.Builder, registrationKeptAsSent: int):
+    builder.PrependUint64Slot(13, registrationKeptAsSent, 0)
+
+def AddRegistrationKeptAsSent(builder: flatbuffers.Builder, registrationKeptAsSent: int):
+    PlannerStatusAddRegistrationKeptAsSent(builder, registrationKeptAsSent)
+
+def PlannerStatusAddRegistrationRejected(builder: flatbuffers.Builder, registrationRejected: int):
+    builder.PrependUint64Slot(14, registrationRejected, 0)
+
+def AddRegistrationRejected(builder: flatbuffers.Builder, registrationRejected: int):
+    PlannerStatusAddRegistrationRejected(builder, registrationRejected)
+
+def PlannerStatusAddRegistrationSkipped(builder: flatbuffers.Builder, registrationSkipped: int):
+    builder.PrependUint64Slot(15, registrationSkipped, 0)
+
+def AddRegistrationSkipped(builder: flatbuffers.Builder, registrationSkipped: int):
+    PlannerStatusAddRegistrationSkipped(builder, registrationSkipped)
 
 def PlannerStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

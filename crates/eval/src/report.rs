@@ -255,11 +255,14 @@ pub fn trial_csv(result: &TrialResult) -> String {
 pub const FRUITS_CSV_HEADER: &str = "truth_id,truth_x_m,truth_y_m,truth_z_m,\
 truth_half_x_m,truth_half_y_m,truth_half_z_m,estimate_id,voxels,fit_kind,fit_confidence,\
 fitted_x_m,fitted_y_m,fitted_z_m,semi_x_m,semi_y_m,semi_z_m,\
-fitted_distance_cm,fitted_volume_accuracy,box_distance_cm,box_volume_accuracy";
+fitted_distance_cm,fitted_volume_accuracy,box_distance_cm,box_volume_accuracy,\
+truth_body_volume_m3,fitted_volume_m3";
 
 /// The final estimates of one trial against the true fruits, one row per true fruit (estimate
 /// columns empty when missed) and one per false fruit (truth columns empty). The pairs are the
-/// fitted estimates' matching, so a row says why a trial's fitted figures are what they are.
+/// fitted estimates' matching, so a row says why a trial's fitted figures are what they are:
+/// the fitted solid is judged against the body (its centroid and volume), the box against the
+/// box, as in the table ([`crate::metrics::TruthMeasure`]).
 pub fn fruits_csv(result: &TrialResult) -> String {
     let fitted: Vec<_> = result.fruits.iter().map(|f| f.fitted.centre).collect();
     let truths: Vec<_> = result.truths.iter().map(|t| t.centre).collect();
@@ -280,7 +283,7 @@ pub fn fruits_csv(result: &TrialResult) -> String {
     let mut out = String::from(FRUITS_CSV_HEADER);
     out.push('\n');
     for (truth, estimate) in rows {
-        let mut cells: Vec<String> = Vec::with_capacity(21);
+        let mut cells: Vec<String> = Vec::with_capacity(23);
         let t = truth.map(|t| &result.truths[t]);
         match t {
             Some(t) => {
@@ -307,17 +310,29 @@ pub fn fruits_csv(result: &TrialResult) -> String {
                         .chain(s.semi_axes_m.iter())
                         .map(|v| csv_num(*v)),
                 );
-                let versus = |centre: &nalgebra::Point3<f64>, volume_m3: f64| match t {
-                    Some(t) => [
-                        csv_num((centre - t.centre).norm() * 100.0),
-                        csv_num(volume_accuracy(volume_m3, t.volume_m3)),
-                    ],
+                let versus = |centre: &nalgebra::Point3<f64>, volume_m3: f64, body: bool| match t {
+                    Some(t) => {
+                        let (true_centre, true_m3) = match body {
+                            true => (t.body_centre, t.body_volume_m3),
+                            false => (t.centre, t.volume_m3),
+                        };
+                        [
+                            csv_num((centre - true_centre).norm() * 100.0),
+                            csv_num(volume_accuracy(volume_m3, true_m3)),
+                        ]
+                    }
                     None => [String::new(), String::new()],
                 };
-                cells.extend(versus(&s.centre, s.box_volume_m3));
-                cells.extend(versus(&f.estimate.centre, f.estimate.volume_m3));
+                cells.extend(versus(&s.centre, s.volume_m3, true));
+                cells.extend(versus(&f.estimate.centre, f.estimate.volume_m3, false));
+                cells.push(t.map_or(String::new(), |t| csv_num(t.body_volume_m3)));
+                cells.push(csv_num(s.volume_m3));
             }
-            None => cells.extend(std::iter::repeat_n(String::new(), 14)),
+            None => {
+                cells.extend(std::iter::repeat_n(String::new(), 14));
+                cells.push(t.map_or(String::new(), |t| csv_num(t.body_volume_m3)));
+                cells.push(String::new());
+            }
         }
         out.push_str(&cells.join(","));
         out.push('\n');

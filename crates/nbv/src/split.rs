@@ -295,7 +295,7 @@ mod tests {
     fn two_touching_fruits_are_split_and_a_big_one_is_not() {
         let (m, [a, b], clusters) = touching_pair();
         assert_eq!(clusters.len(), 1, "the pair touches");
-        let config = FitConfig::default();
+        let config = clean_scan_config();
         let split = split_touching(&m, clusters, 10, &config);
         assert_eq!(split.len(), 2);
         let mut found: Vec<Point3<f64>> = split
@@ -332,7 +332,7 @@ mod tests {
             .into_iter()
             .filter(|k| (m.centre_of(*k).x - c.x).abs() > 0.006)
             .partition(|k| m.centre_of(*k).x < c.x);
-        let config = FitConfig::default();
+        let config = clean_scan_config();
         let fit = |v: &Vec<VoxelKey>| fit_ellipsoid(&m, &m.cluster_of(v.clone()), &config);
         let (fl, fr) = (fit(&left), fit(&right));
         assert_eq!(fl.kind, ShapeKind::Ellipsoid);
@@ -388,12 +388,12 @@ mod tests {
         let (m, _, clusters) = touching_pair();
         let off = FitConfig {
             split_extent_m: f64::INFINITY,
-            ..FitConfig::default()
+            ..clean_scan_config()
         };
         assert_eq!(split_touching(&m, clusters.clone(), 10, &off), clusters);
         // Halves must keep the minimum size.
         let n = clusters[0].voxels.len();
-        let config = FitConfig::default();
+        let config = clean_scan_config();
         assert_eq!(split_touching(&m, clusters.clone(), n, &config), clusters);
         assert!(split_touching(&m, Vec::new(), 10, &config).is_empty());
     }

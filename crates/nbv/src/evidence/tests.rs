@@ -7,8 +7,8 @@ use glasshouse_roimap::{RoiCluster, RoiMap};
 use nalgebra::{Point3, Rotation3, Vector3};
 
 use super::*;
-use crate::fit::tests_support::{centre, map, scan_with};
-use crate::fit::{fit_ellipsoid, FitConfig};
+use crate::fit::fit_ellipsoid;
+use crate::fit::tests_support::{centre, clean_scan_config, map, scan_with};
 use crate::test_bodies::{capsicum, first_hit, turn, Cuboid, Cylinder, Lobe};
 use crate::FruitTracker;
 
@@ -39,7 +39,7 @@ fn scanned(
 }
 
 fn judged(m: &RoiMap, cluster: &RoiCluster, views: u32) -> FruitEvidence {
-    let fit = fit_ellipsoid(m, cluster, &FitConfig::default());
+    let fit = fit_ellipsoid(m, cluster, &clean_scan_config());
     let seen = ClusterEvidence::of(m, cluster);
     FruitEvidence::judge(&seen, &fit, views, &EvidenceConfig::default())
 }

@@ -15,6 +15,7 @@
 
 use nalgebra::{Rotation3, SMatrix, SVector, Vector3};
 
+use crate::fit::SizePrior;
 use crate::superellipsoid::Superellipsoid;
 
 /// Weight of the elongation prior relative to the cross-section's roundness prior.
@@ -41,6 +42,9 @@ pub(super) struct Refine<'a> {
     pub resolution_m: f64,
     /// Weight of each roundness and exponent prior residual.
     pub prior_weight: f64,
+    /// The size prior: the crop's typical semi-axis and the prior's weight relative to
+    /// `prior_weight` ([`crate::fit::SizePrior`]).
+    pub size_prior: SizePrior,
     pub free_weight: f64,
     pub free_margin_voxels: f64,
     /// Both exponents stay inside this open interval.
@@ -104,6 +108,11 @@ impl Refine<'_> {
             row(w * (e - 1.0), &[(9 + k, w * self.exponent_slope(e))]);
         }
         row(w * s.taper, &[(11, w * self.taper_slope(s.taper))]);
+        if let Some((ws, typical_ln)) = self.size_prior.weighted(w) {
+            let mean = (l.x + l.y + l.z) / 3.0;
+            let d = ws / 3.0;
+            row(ws * (mean - typical_ln), &[(6, d), (7, d), (8, d)]);
+        }
         // Fruit hang with body z within ~30° of vertical (either way up): 1 − cos² of the tilt,
         // weak, so that it only decides what a one-sided view leaves open. Turning by δω about
         // the body axes moves cos by δω·(ẑ × R⁻¹·ẑ).

@@ -43,7 +43,7 @@ fn scanned(body: &[Lobe], aim: Point3<f64>, eyes: &[Vector3<f64>]) -> (RoiMap, R
 fn aligned() -> FitConfig {
     FitConfig {
         model: ShapeModel::AxisAlignedEllipsoid,
-        ..FitConfig::default()
+        ..clean_scan_config()
     }
 }
 
@@ -104,7 +104,7 @@ fn tilted_lobed_capsicum_seen_from_one_two_or_three_sides() {
             vec![front, side, above],
         ] {
             let (m, cluster) = scanned(&body, c, &eyes);
-            let fit = fit_ellipsoid(&m, &cluster, &FitConfig::default());
+            let fit = fit_ellipsoid(&m, &cluster, &clean_scan_config());
             let old = fit_ellipsoid(&m, &cluster, &aligned());
             let case = format!("{lobes} lobes, {tilt_deg}°, {} sides", eyes.len());
             println!(
@@ -168,7 +168,7 @@ fn on_axis_aligned_ellipsoids_the_superellipsoid_is_no_worse() {
     let (mut new_off, mut old_off) = (Vec::new(), Vec::new());
     let mut judge = |m: &RoiMap, c: &Point3<f64>, truth_m3: f64| {
         let cluster = m.clusters(10).remove(0);
-        let fit = fit_ellipsoid(m, &cluster, &FitConfig::default());
+        let fit = fit_ellipsoid(m, &cluster, &clean_scan_config());
         let old = fit_ellipsoid(m, &cluster, &aligned());
         assert_eq!(fit.kind, ShapeKind::Ellipsoid);
         new_error.push((fit.volume_m3 / truth_m3 - 1.0).abs());

@@ -44,27 +44,33 @@ pub(super) const START_ITERATIONS: usize = 4;
 /// Free-space weight of the superellipsoid's second solve, relative to the first.
 const STRICT_FREE_WEIGHT: f64 = 100.0;
 
-/// Step 3 of the module docs and its checks; `None` when the fit is degenerate.
+/// A fitted solid, or why not: `Err(Some(solid))` for a sound solid that fits its data poorly,
+/// `Err(None)` for a degenerate one.
+pub(super) type SolidFit = Result<FittedShape, Option<Box<Superellipsoid>>>;
+
+/// Step 3 of the module docs and its checks. `Err(Some(solid))` when the solid is sound but
+/// fits the data poorly (the RMS check), `Err(None)` when the fit is degenerate.
 pub(super) fn fit_superellipsoid(
     map: &RoiMap,
     data: &FitData,
     centre: Point3<f64>,
     axes: Vector3<f64>,
     config: &FitConfig,
-) -> Option<FittedShape> {
+) -> SolidFit {
     if !(centre.iter().all(|c| c.is_finite()) && axes.iter().all(|a| a.is_finite() && *a > 0.0)) {
-        return None;
+        return Err(None);
     }
     let [lo, hi] = config.exponent_range;
     // 1 (the start) inside, and below 2, where the derivatives at the axis planes stay finite.
     if !(lo > 0.0 && lo <= 1.0 && (1.0..2.0).contains(&hi)) {
-        return None;
+        return Err(None);
     }
     let problem = refine::Refine {
         surface: &data.surface,
         free: &data.free_near,
         resolution_m: data.resolution_m,
         prior_weight: data.prior_weight,
+        size_prior: config.size_prior,
         free_weight: config.free_weight,
         free_margin_voxels: config.free_margin_voxels,
         exponent_range: config.exponent_range,
@@ -85,7 +91,8 @@ pub(super) fn fit_superellipsoid(
         .flatten()
         .map(|start| problem.solve(start, START_ITERATIONS))
         .filter(|(_, cost)| cost.is_finite())
-        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .ok_or(None)?;
     // Free space the solid still holds is cleared by the solver itself, where it can move,
     // turn, taper or shorten the solid at the right end, rather than by the symmetric shrink
     // of step 4 alone.
@@ -134,20 +141,20 @@ pub(super) fn canonical(s: Superellipsoid) -> Superellipsoid {
     best
 }
 
-/// Steps 4-5 of the module docs for the superellipsoid; `None` when it is degenerate.
+/// Steps 4-5 of the module docs for the superellipsoid; errors as [`fit_superellipsoid`].
 pub(super) fn finish_superellipsoid(
     map: &RoiMap,
     data: &FitData,
     s: Superellipsoid,
     config: &FitConfig,
-) -> Option<FittedShape> {
+) -> SolidFit {
     let res = data.resolution_m;
     let finite =
         s.centre.iter().all(|c| c.is_finite()) && s.exponents.iter().all(|e| e.is_finite());
     if !(finite && data.axis_ok(&s.semi_axes_m, config) && data.size_near(&s.semi_axes_m)) {
-        return None;
+        return Err(None);
     }
-    let s = cleared_of_free_space(data, s, config.free_margin_voxels * res)?;
+    let s = cleared_of_free_space(data, s, config.free_margin_voxels * res).ok_or(None)?;
     let rms_m = (data
         .surface
         .iter()
@@ -159,12 +166,15 @@ pub(super) fn finish_superellipsoid(
         .max_superellipsoid_rms_voxels
         .min(config.max_rms_voxels)
         * res;
-    if !(rms_m.is_finite() && rms_m <= max_rms_m && data.centre_near(&s.centre, config)) {
-        return None;
+    if !(rms_m.is_finite() && data.centre_near(&s.centre, config)) {
+        return Err(None);
+    }
+    if rms_m > max_rms_m {
+        return Err(Some(Box::new(s)));
     }
     let (box_min, box_max) = s.world_box();
     let size = box_max - box_min;
-    Some(FittedShape {
+    Ok(FittedShape {
         kind: ShapeKind::Ellipsoid,
         centre: s.centroid(),
         semi_axes_m: s.semi_axes_m,

@@ -10,9 +10,10 @@ use glasshouse_bus::{BusArgs, FleetSessions, Shutdown, ShutdownTrigger};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState, ServeSettings};
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
+use glasshouse_geom::{FruitEstimate as Fruit, SolidKind};
 use glasshouse_nbv::Method;
 use glasshouse_planner::{PlannerCounters, PlannerSettings};
-use glasshouse_proto::{Fruit, ViewKind};
+use glasshouse_proto::ViewKind;
 use glasshouse_sim::ScenarioKind;
 use glasshouse_trust::{Identity, Kind};
 use serde::Serialize;
@@ -483,21 +484,21 @@ impl Progress {
 
 impl FruitSummary {
     fn of(f: &Fruit) -> Self {
-        let size = f.box_max - f.box_min;
+        let size = f.max - f.min;
         FruitSummary {
             id: f.id,
-            centre_m: f.centre_in_world.into(),
-            size_m: size.into(),
-            volume_m3: f.volume_m3,
-            voxel_count: f.voxel_count,
-            confidence: f.confidence,
-            fitted: f.fitted.as_ref().map(|e| FittedSummary {
-                centre_m: e.centre_in_world.into(),
-                semi_axes_m: e.semi_axes_m.into(),
-                volume_m3: e.volume_m3,
-                box_volume_m3: e.box_volume_m3,
-                confidence: e.confidence,
-                is_fit: e.is_fit,
+            centre_m: f.centre.cast::<f32>().into(),
+            size_m: size.cast::<f32>().into(),
+            volume_m3: f.volume_m3 as f32,
+            voxel_count: f.voxel_count.min(u32::MAX as usize) as u32,
+            confidence: f.confidence as f32,
+            fitted: f.solid.as_ref().map(|e| FittedSummary {
+                centre_m: e.centre.cast::<f32>().into(),
+                semi_axes_m: ((e.box_max - e.box_min) / 2.0).cast::<f32>().into(),
+                volume_m3: e.volume_m3 as f32,
+                box_volume_m3: e.box_volume_m3 as f32,
+                confidence: e.confidence as f32,
+                is_fit: e.kind == SolidKind::Ellipsoid,
             }),
         }
     }
@@ -522,12 +523,12 @@ fn print_fruit_table(fruits: &[Fruit]) {
         "conf"
     );
     for f in fruits {
-        let c = f.centre_in_world;
-        let s = (f.box_max - f.box_min) * 100.0;
-        let fitted = match &f.fitted {
+        let c = f.centre;
+        let s = (f.max - f.min) * 100.0;
+        let fitted = match &f.solid {
             Some(e) => {
-                let fc = e.centre_in_world;
-                let d = e.semi_axes_m * 200.0;
+                let fc = e.centre;
+                let d = (e.box_max - e.box_min) * 100.0;
                 format!(
                     "{:>7.3} {:>7.3} {:>7.3}  {:>4.1} x{:>4.1} x{:>4.1}  {:>6.1}  {:>4.2}{}",
                     fc.x,
@@ -538,7 +539,11 @@ fn print_fruit_table(fruits: &[Fruit]) {
                     d.z,
                     e.volume_m3 * 1e6,
                     e.confidence,
-                    if e.is_fit { "" } else { " (box)" }
+                    if e.kind == SolidKind::Ellipsoid {
+                        ""
+                    } else {
+                        " (box)"
+                    }
                 )
             }
             None => "(no fit)".to_owned(),

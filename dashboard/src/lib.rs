@@ -17,9 +17,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use glasshouse_bus::{AnySubscriber, Delivery, DropCounters, Received, Shutdown};
+use glasshouse_geom::FruitEstimate;
 use glasshouse_proto::keys::{self, ParsedKey, Qos, TrolleyTopic};
 use glasshouse_proto::{
-    DetectorStatus, FleetFruits, FrameId, FrameRegistration, Fruit, Header, Message, PlannerStatus,
+    DetectorStatus, FleetFruits, FrameId, FrameRegistration, Header, Message, PlannerStatus,
     RankedViews, TrolleyInfo, TrolleyStatus,
 };
 use serde::Deserialize;
@@ -97,7 +98,7 @@ pub struct TrolleyView {
     pub latencies_ms: VecDeque<f64>,
     pub info: Option<TrolleyInfo>,
     pub status: Option<TrolleyStatus>,
-    pub fruits: Vec<Fruit>,
+    pub fruits: Vec<FruitEstimate>,
     pub last_views: Option<RankedViews>,
     pub frames: u64,
     pub clouds: u64,
@@ -108,7 +109,7 @@ pub struct TrolleyView {
     pub last_registration: Option<FrameRegistration>,
     pub planner_id: String,
     /// Ground truth, when the source is the simulator.
-    pub truth: Vec<Fruit>,
+    pub truth: Vec<FruitEstimate>,
     /// Share of the ground-truth fruit voxels inside detected boxes (paper-method §5), when
     /// the truth is known.
     pub covered_volume: Option<f64>,
@@ -220,37 +221,18 @@ impl FleetState {
     }
 }
 
-/// Voxels (1 cm) whose centres lie inside a box.
-fn box_voxels(f: &Fruit, out: &mut std::collections::HashSet<[i32; 3]>) {
-    const RES: f32 = 0.01;
-    let lo = f.box_min.map(|v| (v / RES - 0.5).ceil() as i32);
-    let hi = f.box_max.map(|v| (v / RES - 0.5).floor() as i32);
-    // Boxes beyond a few metres are not fruit; skip rather than allocate without bound.
-    if (0..3).any(|i| hi[i] < lo[i] || hi[i] - lo[i] > 300) {
-        return;
-    }
-    for x in lo.x..=hi.x {
-        for y in lo.y..=hi.y {
-            for z in lo.z..=hi.z {
-                out.insert([x, y, z]);
-            }
-        }
-    }
-}
+/// Voxel edge of the covered volume the dashboard shows: the planners' default resolution.
+pub const COVERED_VOLUME_RESOLUTION_M: f64 = 0.01;
 
-/// |voxels of detected boxes ∩ voxels of ground-truth boxes| / |voxels of ground-truth boxes|.
-pub fn covered_volume(detected: &[Fruit], truth: &[Fruit]) -> Option<f64> {
-    let mut truth_voxels = std::collections::HashSet::new();
-    truth.iter().for_each(|f| box_voxels(f, &mut truth_voxels));
-    if truth_voxels.is_empty() {
-        return None;
-    }
-    let mut detected_voxels = std::collections::HashSet::new();
-    detected
-        .iter()
-        .for_each(|f| box_voxels(f, &mut detected_voxels));
-    let covered = detected_voxels.intersection(&truth_voxels).count();
-    Some(covered as f64 / truth_voxels.len() as f64)
+/// Covered ROI volume of the detected boxes over the ground-truth boxes, the experiments' figure
+/// ([`glasshouse_geom::covered_volume`], 1 cm voxels); `None` when the truth holds no voxel.
+pub fn covered_volume(detected: &[FruitEstimate], truth: &[FruitEstimate]) -> Option<f64> {
+    let covered = glasshouse_geom::covered_volume(
+        detected.iter().map(FruitEstimate::aabb),
+        truth.iter().map(FruitEstimate::aabb),
+        COVERED_VOLUME_RESOLUTION_M,
+    );
+    (!covered.is_nan()).then_some(covered)
 }
 
 /// Counters the dashboard exposes, and where it serves.

@@ -3,10 +3,11 @@
 use std::collections::HashMap;
 use std::path::Path;
 
+use glasshouse_geom::FruitEstimate;
 use glasshouse_proto::keys::{ParsedKey, TrolleyTopic};
 use glasshouse_proto::{
-    ArmState, FrameRegistration, Fruit, FruitEstimates, Header, Message, PlannerStatus,
-    RankedViews, RegistrationVerdict, RgbdFrame, RoiCloud, ViewKind, VoxelState,
+    ArmState, FrameRegistration, FruitEstimates, Header, Message, PlannerStatus, RankedViews,
+    RegistrationVerdict, RgbdFrame, RoiCloud, ViewKind, VoxelState,
 };
 use nalgebra::{Isometry3, Vector3};
 use rerun::RecordingStream;
@@ -384,14 +385,14 @@ fn log_views(rec: &RecordingStream, base: &str, tid: &str, v: &RankedViews) -> L
 }
 
 /// The fruits' boxes as Rerun boxes (centres and half sizes), unlabelled and uncoloured.
-fn fruit_boxes(fruits: &[Fruit]) -> rerun::Boxes3D {
+fn fruit_boxes(fruits: &[FruitEstimate]) -> rerun::Boxes3D {
     let centres: Vec<[f32; 3]> = fruits
         .iter()
-        .map(|f| nalgebra::center(&f.box_min, &f.box_max).into())
+        .map(|f| nalgebra::center(&f.min, &f.max).cast::<f32>().into())
         .collect();
     let half_sizes: Vec<[f32; 3]> = fruits
         .iter()
-        .map(|f| ((f.box_max - f.box_min) * 0.5).into())
+        .map(|f| ((f.max - f.min) * 0.5).cast::<f32>().into())
         .collect();
     rerun::Boxes3D::from_centers_and_half_sizes(centres, half_sizes)
 }
@@ -411,7 +412,7 @@ fn log_fruits(rec: &RecordingStream, base: &str, tid: &str, f: &FruitEstimates) 
         .fruits
         .iter()
         .map(|f| {
-            let s = (f.box_max - f.box_min) * 100.0;
+            let s = (f.max - f.min) * 100.0;
             format!(
                 "#{} {:.1}x{:.1}x{:.1} cm {:.0} cm³ conf {:.2}",
                 f.id,

@@ -228,13 +228,13 @@ pub fn fruit_docs(fleet: &FleetState, tid: &str) -> Option<Vec<FruitDoc>> {
             .iter()
             .map(|f| FruitDoc {
                 id: f.id,
-                centre_m: f.centre_in_world.into(),
-                size_m: (f.box_max - f.box_min).into(),
-                volume_m3: f.volume_m3,
-                voxel_count: f.voxel_count,
-                confidence: f.confidence,
-                fitted_volume_m3: f.fitted.as_ref().map(|e| e.volume_m3),
-                fitted_confidence: f.fitted.as_ref().map(|e| e.confidence),
+                centre_m: f.centre.cast::<f32>().into(),
+                size_m: (f.max - f.min).cast::<f32>().into(),
+                volume_m3: f.volume_m3 as f32,
+                voxel_count: f.voxel_count.min(u32::MAX as usize) as u32,
+                confidence: f.confidence as f32,
+                fitted_volume_m3: f.solid.as_ref().map(|e| e.volume_m3 as f32),
+                fitted_confidence: f.solid.as_ref().map(|e| e.confidence as f32),
             })
             .collect(),
     )

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use glasshouse_pipeline::{Executed, TrolleySource};
 use glasshouse_proto::{
-    decode_typed, encode, ArmState, Fruit, Header, MessageKind, RgbdFrame, TrolleyInfo, Wire,
+    decode_typed, encode, ArmState, Header, MessageKind, RgbdFrame, TrolleyInfo, Wire,
 };
 use nalgebra::Isometry3;
 
@@ -90,7 +90,7 @@ impl TrolleySource for ReplaySource {
         self.info.clone()
     }
 
-    fn ground_truth(&self) -> Option<Vec<Fruit>> {
+    fn ground_truth(&self) -> Option<Vec<glasshouse_nbv::FruitEstimate>> {
         None
     }
 

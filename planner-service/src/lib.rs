@@ -32,7 +32,7 @@ use glasshouse_bus::{
     ask, declare_alive, wall_clock_ns, Delivery, DropCounters, MemberEvent, MemberWatch, Publisher,
     Received, Responder, Shutdown, Subscriber,
 };
-use glasshouse_fleet::{merge_fruits, FleetFruitInput};
+use glasshouse_fleet::{merge_fruits, TrolleyFruit};
 use glasshouse_pipeline::PlanningSettings;
 use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{
@@ -432,17 +432,12 @@ pub fn cap_simd_from_env() -> anyhow::Result<()> {
 
 /// Every trolley's latest fruits merged into the fleet map (de-duplicated where rows overlap).
 pub fn fleet_fruits(latest: &BTreeMap<String, FruitEstimates>, pid: &str) -> FleetFruits {
-    let inputs: Vec<FleetFruitInput> = latest
+    let inputs: Vec<TrolleyFruit> = latest
         .iter()
         .flat_map(|(tid, estimates)| {
-            estimates.fruits.iter().map(move |f| FleetFruitInput {
+            estimates.fruits.iter().map(move |f| TrolleyFruit {
                 trolley_id: tid.clone(),
-                fruit_id: f.id,
-                centre: f.centre_in_world.cast::<f64>().coords.into(),
-                min: f.box_min.cast::<f64>().coords.into(),
-                max: f.box_max.cast::<f64>().coords.into(),
-                volume_m3: f64::from(f.volume_m3),
-                confidence: f64::from(f.confidence),
+                fruit: *f,
             })
         })
         .collect();
@@ -450,19 +445,10 @@ pub fn fleet_fruits(latest: &BTreeMap<String, FruitEstimates>, pid: &str) -> Fle
     let fruits = merged
         .fruits
         .into_iter()
-        .filter_map(|m| {
-            let (tid, fid) = &m.estimate_from;
-            let fruit = latest
-                .get(tid)?
-                .fruits
-                .iter()
-                .find(|f| f.id == *fid)?
-                .clone();
-            Some(FleetFruit {
-                fleet_id: m.fleet_id,
-                fruit,
-                sources: m.sources.iter().map(|(t, f)| format!("{t}/{f}")).collect(),
-            })
+        .map(|m| FleetFruit {
+            fleet_id: m.fleet_id,
+            fruit: m.fruit,
+            sources: m.sources.iter().map(|(t, f)| format!("{t}/{f}")).collect(),
         })
         .collect();
     FleetFruits {

@@ -870,12 +870,7 @@ impl PlannerNode {
             return actions;
         }
         let fruits = FruitEstimates {
-            fruits: slot
-                .planner
-                .fruits()
-                .iter()
-                .map(|f| f.to_message())
-                .collect(),
+            fruits: slot.planner.fruits(),
             based_on_seq: seq,
             planner_id: pid.clone(),
         };

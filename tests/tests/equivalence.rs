@@ -11,7 +11,7 @@ use glasshouse_edge::{EdgeConfig, EdgeEvent};
 use glasshouse_eval::{ComputeTime, Trial, TrialConfig};
 use glasshouse_nbv::Method;
 use glasshouse_planner::PlannerSettings;
-use glasshouse_proto::{keys, FruitEstimates, RankedViews};
+use glasshouse_proto::{decode_typed, encode, keys, samples, FruitEstimates, RankedViews};
 use glasshouse_sim::ScenarioKind;
 use glasshouse_tests::{client, within, Pipeline};
 
@@ -118,7 +118,60 @@ async fn eval_and_the_services_plan_the_same_views_and_find_the_same_fruits() {
         assert!(!plan.views.is_empty());
         assert_same_views(published, plan, "eval against the services");
     }
-    let eval_fruits: Vec<_> = trial.fruits().iter().map(|f| f.to_message()).collect();
-    assert!(!eval_fruits.is_empty(), "no fruit found");
-    assert_eq!(eval_fruits, fruits.fruits);
+    // The trial's fruits as they travel (the wire carries `f32`).
+    let sent = FruitEstimates {
+        fruits: trial.fruits().to_vec(),
+        ..fruits.clone()
+    };
+    let bytes = encode(&samples::header(0), &sent);
+    let (_, eval_fruits) = decode_typed::<FruitEstimates>(&bytes).expect("the trial's fruits");
+    assert!(!eval_fruits.fruits.is_empty(), "no fruit found");
+    // Debug text: equal bit for bit, NaN residuals of box fallbacks included.
+    assert_eq!(
+        format!("{:?}", eval_fruits.fruits),
+        format!("{:?}", fruits.fruits)
+    );
+}
+
+#[test]
+fn the_dashboard_and_the_experiments_give_the_same_covered_volume() {
+    use glasshouse_sim::FruitTruth;
+    use nalgebra::{Point3, Vector3};
+
+    // Truths of a scene and estimates around them: one exact, one shifted by half a voxel and
+    // shrunk, one on a voxel boundary, one false.
+    let truths = [
+        FruitTruth::ellipsoid(
+            1,
+            Point3::new(0.105, 0.0, 1.0),
+            Vector3::new(0.03, 0.025, 0.04),
+        ),
+        FruitTruth::ellipsoid(2, Point3::new(0.5, 0.2, 0.8), Vector3::repeat(0.035)),
+        FruitTruth::ellipsoid(
+            3,
+            Point3::new(-0.3, 0.1, 1.2),
+            Vector3::new(0.02, 0.03, 0.025),
+        ),
+    ];
+    let around = |t: &FruitTruth, shift: f64, shrink: f64| {
+        let c = t.centre + Vector3::repeat(shift);
+        let h = t.half_extents_m * shrink;
+        glasshouse_nbv::FruitEstimate::from_box(t.id, c, c - h, c + h)
+    };
+    let estimates = [
+        around(&truths[0], 0.0, 1.0),
+        around(&truths[1], 0.005, 0.8),
+        around(&truths[2], 0.01, 1.1),
+        around(&truths[2], 1.0, 1.0),
+    ];
+    let resolution_m = 0.01;
+    let experiments = glasshouse_eval::evaluate(&estimates, &truths, resolution_m).covered_volume;
+    let truth_estimates: Vec<_> = truths.iter().map(|t| t.estimate(resolution_m)).collect();
+    let dashboard = glasshouse_dashboard::covered_volume(&estimates, &truth_estimates);
+    assert!(experiments > 0.3 && experiments < 1.0, "{experiments}");
+    assert_eq!(dashboard, Some(experiments));
+    assert_eq!(
+        resolution_m,
+        glasshouse_dashboard::COVERED_VOLUME_RESOLUTION_M
+    );
 }

@@ -21,7 +21,7 @@ pub mod trial;
 /// How detections enter the planner's map, an experiment's choice.
 pub use glasshouse_pipeline::{RoiEvidence, RoiTargets};
 pub use metrics::{
-    evaluate, evaluate_against, greedy_match, time_to_detect_s, BoxEstimate, FruitCounts, Match,
+    covered_volume, evaluate, evaluate_against, greedy_match, time_to_detect_s, FruitCounts, Match,
     Metrics, TruthMeasure, MATCH_DISTANCE_M,
 };
 pub use report::{Better, MethodRuns, DETECTED_SHARE, METRICS};

@@ -6,12 +6,13 @@
 //! - **Detected ROIs**: matched pairs.
 //! - **Centre distance**: mean distance of matched pairs, in centimetres.
 //! - **Volume accuracy**: mean over matched pairs of `1 − |V_det − V_gt| / V_gt` (box volumes
-//!   against box volumes; for fitted solids, [`TruthMeasure::Body`]: their volume against the
-//!   body's real volume, their centre against the body's centroid); also the mean over the pairs
+//!   against box volumes; for fitted solids, [`TruthMeasure::Body`]: the solid's volume against
+//!   the body's real volume, its centroid against the body's centroid); also the mean over the pairs
 //!   whose accuracy is `> 0.5` only (the rule of the published plots).
 //! - **Covered ROI volume**: `|voxels of the estimated boxes ∩ voxels of the truth boxes| /
 //!   |voxels of the truth boxes|`, where a box's voxels are those whose centres lie inside it
-//!   (the rule of [`FruitTruth::voxel_keys`]) and both sides are unions over all boxes.
+//!   and both sides are unions over all boxes: [`glasshouse_geom::covered_volume`], the figure
+//!   the dashboard shows too.
 //!
 //! - **Fruit counts** (what inflates when the detector errs): count ratio = reported fruits ÷
 //!   true fruits; precision = matched ÷ reported; recall = matched ÷ true; F1 = their harmonic
@@ -23,35 +24,13 @@
 //! Means and ratios over an empty set are NaN ("no value"), never 0, so they cannot pass for a
 //! result.
 
-use std::collections::HashSet;
-
+use glasshouse_geom::{Aabb, FruitEstimate};
 use glasshouse_sim::FruitTruth;
 use nalgebra::Point3;
 use serde::Serialize;
 
 /// Largest centre distance of a matched pair (paper: 0.20 m).
 pub const MATCH_DISTANCE_M: f64 = 0.20;
-
-/// One fruit estimate as the metrics see it: a centre and an axis-aligned box.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct BoxEstimate {
-    pub centre: Point3<f64>,
-    pub min: Point3<f64>,
-    pub max: Point3<f64>,
-    /// The volume compared with the truth's box volume.
-    pub volume_m3: f64,
-}
-
-impl BoxEstimate {
-    pub fn new(centre: Point3<f64>, min: Point3<f64>, max: Point3<f64>, volume_m3: f64) -> Self {
-        Self {
-            centre,
-            min,
-            max,
-            volume_m3,
-        }
-    }
-}
 
 /// A matched estimate-truth pair (indices into the inputs).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -109,49 +88,14 @@ pub fn volume_accuracy(detected_m3: f64, truth_m3: f64) -> f64 {
     }
 }
 
-/// Voxel keys whose centres `(k + 0.5)·res` lie inside `[min, max]` (as [`FruitTruth::voxel_keys`]).
-pub fn box_voxel_keys(min: &Point3<f64>, max: &Point3<f64>, resolution_m: f64) -> Vec<[i32; 3]> {
-    if !(resolution_m.is_finite() && resolution_m > 0.0) {
-        return Vec::new();
-    }
-    let range = |i: usize| {
-        let lo = (min[i] / resolution_m - 0.5).ceil();
-        let hi = (max[i] / resolution_m - 0.5).floor();
-        // Non-finite or absurd boxes give no voxels rather than a huge loop.
-        if !(lo.is_finite() && hi.is_finite()) || hi - lo > 10_000.0 {
-            return None;
-        }
-        Some(lo as i32..=hi as i32)
-    };
-    let (Some(xs), Some(ys), Some(zs)) = (range(0), range(1), range(2)) else {
-        return Vec::new();
-    };
-    let mut keys = Vec::new();
-    for x in xs {
-        for y in ys.clone() {
-            for z in zs.clone() {
-                keys.push([x, y, z]);
-            }
-        }
-    }
-    keys
-}
-
-/// Covered ROI volume (see the module docs); NaN when the truth has no voxels.
-pub fn covered_volume(estimates: &[BoxEstimate], truths: &[FruitTruth], resolution_m: f64) -> f64 {
-    let truth: HashSet<[i32; 3]> = truths
-        .iter()
-        .flat_map(|t| t.voxel_keys(resolution_m))
-        .collect();
-    if truth.is_empty() {
-        return f64::NAN;
-    }
-    let detected: HashSet<[i32; 3]> = estimates
-        .iter()
-        .flat_map(|e| box_voxel_keys(&e.min, &e.max, resolution_m))
-        .collect();
-    let covered = detected.iter().filter(|k| truth.contains(*k)).count();
-    covered as f64 / truth.len() as f64
+/// Covered ROI volume of the estimates' boxes ([`glasshouse_geom::covered_volume`]); NaN when
+/// the truth has no voxels.
+pub fn covered_volume(estimates: &[Aabb], truths: &[FruitTruth], resolution_m: f64) -> f64 {
+    glasshouse_geom::covered_volume(
+        estimates.iter().copied(),
+        truths.iter().map(FruitTruth::aabb),
+        resolution_m,
+    )
 }
 
 /// Mean of the values; NaN for none.
@@ -243,12 +187,14 @@ impl Metrics {
     }
 }
 
-/// Which centre and volume of a true fruit an estimate is judged against.
+/// Which figures of an estimate are judged against which of a true fruit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TruthMeasure {
-    /// The fruit's axis-aligned box: its centre and box volume (the paper's box metrics).
+    /// The estimate's box, centre and box volume against the fruit's axis-aligned box: its centre
+    /// and box volume (the paper's box metrics).
     Box,
-    /// The fruit's body: its centroid and real volume (what a fitted solid estimates).
+    /// The estimate's fitted solid (its centroid, volume and world box;
+    /// [`FruitEstimate::solid_or_box`]) against the fruit's body: its centroid and real volume.
     Body,
 }
 
@@ -266,23 +212,36 @@ impl TruthMeasure {
             TruthMeasure::Body => truth.body_volume_m3,
         }
     }
+
+    /// The centre, box and volume of `estimate` this measure judges.
+    fn judged(self, estimate: &FruitEstimate) -> (Point3<f64>, Aabb, f64) {
+        match self {
+            TruthMeasure::Box => (estimate.centre, estimate.aabb(), estimate.volume_m3),
+            TruthMeasure::Body => {
+                let s = estimate.solid_or_box();
+                (s.centre, Aabb::new(s.box_min, s.box_max), s.volume_m3)
+            }
+        }
+    }
 }
 
-/// All metrics of `estimates` against the truths' boxes (voxels of `resolution_m` for the
-/// covered volume).
-pub fn evaluate(estimates: &[BoxEstimate], truths: &[FruitTruth], resolution_m: f64) -> Metrics {
+/// All metrics of the estimates' boxes against the truths' boxes (voxels of `resolution_m` for
+/// the covered volume).
+pub fn evaluate(estimates: &[FruitEstimate], truths: &[FruitTruth], resolution_m: f64) -> Metrics {
     evaluate_against(estimates, truths, resolution_m, TruthMeasure::Box)
 }
 
-/// All metrics of `estimates` against the truths' centres and volumes of `measure`; the covered
-/// volume counts the truths' box voxels either way.
+/// All metrics of the estimates' figures of `measure` against the truths' centres and volumes
+/// of `measure`; the covered volume counts the truths' box voxels either way.
 pub fn evaluate_against(
-    estimates: &[BoxEstimate],
+    estimates: &[FruitEstimate],
     truths: &[FruitTruth],
     resolution_m: f64,
     measure: TruthMeasure,
 ) -> Metrics {
-    let centres: Vec<Point3<f64>> = estimates.iter().map(|e| e.centre).collect();
+    let judged: Vec<(Point3<f64>, Aabb, f64)> =
+        estimates.iter().map(|e| measure.judged(e)).collect();
+    let centres: Vec<Point3<f64>> = judged.iter().map(|j| j.0).collect();
     let truth_centres: Vec<Point3<f64>> = truths.iter().map(|t| measure.centre(t)).collect();
     let matches = greedy_match(&centres, &truth_centres, MATCH_DISTANCE_M);
     let distances: Vec<f64> = matches.iter().map(|m| m.distance_m * 100.0).collect();
@@ -290,7 +249,7 @@ pub fn evaluate_against(
         .iter()
         .map(|m| {
             let truth_m3 = measure.volume_m3(&truths[m.truth]);
-            volume_accuracy(estimates[m.estimate].volume_m3, truth_m3)
+            volume_accuracy(judged[m.estimate].2, truth_m3)
         })
         .collect();
     let above: Vec<f64> = accuracies.iter().copied().filter(|a| *a > 0.5).collect();
@@ -300,7 +259,11 @@ pub fn evaluate_against(
         center_distance_cm: mean(&distances),
         volume_accuracy: mean(&accuracies),
         volume_accuracy_gt05: mean(&above),
-        covered_volume: covered_volume(estimates, truths, resolution_m),
+        covered_volume: covered_volume(
+            &judged.iter().map(|j| j.1).collect::<Vec<_>>(),
+            truths,
+            resolution_m,
+        ),
     }
 }
 
@@ -325,10 +288,15 @@ mod tests {
         let mut t = truth(0, p(0.0, 0.0, 0.0), 0.03);
         t.body_centre = p(0.0, 0.0, -0.01);
         t.body_volume_m3 = 0.6 * t.volume_m3;
-        let on_body = BoxEstimate {
+        let mut on_body = FruitEstimate {
             volume_m3: t.body_volume_m3,
             ..estimate(t.body_centre, 0.03)
         };
+        // Its solid sits on the body's centroid with the body's volume.
+        on_body.solid = Some(glasshouse_geom::FruitSolid {
+            volume_m3: t.body_volume_m3,
+            ..on_body.solid_or_box()
+        });
         let body = evaluate_against(
             &[on_body],
             std::slice::from_ref(&t),
@@ -342,12 +310,15 @@ mod tests {
         assert!((boxed.volume_accuracy - 0.6).abs() < 1e-12);
     }
 
-    fn estimate(centre: Point3<f64>, half: f64) -> BoxEstimate {
-        BoxEstimate {
-            centre,
-            min: centre - Vector3::repeat(half),
-            max: centre + Vector3::repeat(half),
+    fn estimate(centre: Point3<f64>, half: f64) -> FruitEstimate {
+        FruitEstimate {
             volume_m3: 8.0 * half.powi(3),
+            ..FruitEstimate::from_box(
+                0,
+                centre,
+                centre - Vector3::repeat(half),
+                centre + Vector3::repeat(half),
+            )
         }
     }
 
@@ -395,45 +366,27 @@ mod tests {
     }
 
     #[test]
-    fn box_voxels_follow_the_truth_rule() {
+    fn truth_voxels_follow_the_box_rule() {
         let t = truth(0, p(0.1, 0.2, 0.3), 0.02);
-        let mut a = t.voxel_keys(0.01);
-        let mut b = box_voxel_keys(&t.aabb().min, &t.aabb().max, 0.01);
-        a.sort_unstable();
-        b.sort_unstable();
-        assert_eq!(a, b);
-        assert_eq!(a.len(), 4 * 4 * 4);
-        assert!(box_voxel_keys(&p(0.0, 0.0, 0.0), &p(f64::NAN, 1.0, 1.0), 0.01).is_empty());
-        assert!(box_voxel_keys(&p(0.0, 0.0, 0.0), &p(1.0, 1.0, 1.0), 0.0).is_empty());
-        // An inverted box has no voxels.
-        assert!(box_voxel_keys(&p(0.1, 0.0, 0.0), &p(0.0, 1.0, 1.0), 0.01).is_empty());
+        assert_eq!(
+            t.voxel_keys(0.01),
+            glasshouse_geom::box_voxel_keys(&t.aabb(), 0.01)
+        );
+        assert_eq!(t.voxel_keys(0.01).len(), 4 * 4 * 4);
     }
 
     #[test]
     fn covered_volume_counts_the_union_intersection() {
-        // Truth: a 4x4x4-voxel box (64 voxels) at the origin corner.
+        // Truth: a 4x4x4-voxel box (64 voxels) at the origin corner; estimates covering the lower
+        // half in x, one inside it (counted once) and one far away.
         let truths = [truth(0, p(0.02, 0.02, 0.02), 0.02)];
-        // An estimate covering the lower half in x (32 voxels) and one overlapping it entirely
-        // (counted once) plus an estimate far away (no overlap).
-        let half = BoxEstimate {
-            centre: p(0.01, 0.02, 0.02),
-            min: p(0.0, 0.0, 0.0),
-            max: p(0.02, 0.04, 0.04),
-            volume_m3: 0.0,
-        };
-        let inner = BoxEstimate {
-            min: p(0.0, 0.0, 0.0),
-            max: p(0.02, 0.02, 0.04),
-            ..half
-        };
-        let far = estimate(p(1.0, 1.0, 1.0), 0.02);
+        let half = Aabb::new(p(0.0, 0.0, 0.0), p(0.02, 0.04, 0.04));
+        let inner = Aabb::new(p(0.0, 0.0, 0.0), p(0.02, 0.02, 0.04));
+        let far = estimate(p(1.0, 1.0, 1.0), 0.02).aabb();
         let c = covered_volume(&[half, inner, far], &truths, 0.01);
         assert!((c - 0.5).abs() < 1e-12, "{c}");
         assert_eq!(covered_volume(&[], &truths, 0.01), 0.0);
         assert!(covered_volume(&[half], &[], 0.01).is_nan());
-        // A box larger than the truth covers it all, never more than 1.
-        let big = estimate(p(0.02, 0.02, 0.02), 0.1);
-        assert_eq!(covered_volume(&[big], &truths, 0.01), 1.0);
     }
 
     #[test]
@@ -446,12 +399,12 @@ mod tests {
         let v = 8.0 * 0.02f64.powi(3);
         let estimates = [
             // 1 cm off, exact volume: accuracy 1.
-            BoxEstimate {
+            FruitEstimate {
                 volume_m3: v,
                 ..estimate(p(0.01, 0.0, 1.0), 0.02)
             },
             // 3 cm off, 40 % of the volume: accuracy 0.4 (dropped by the > 0.5 rule).
-            BoxEstimate {
+            FruitEstimate {
                 volume_m3: 0.4 * v,
                 ..estimate(p(0.5, 0.03, 1.0), 0.02)
             },
@@ -551,7 +504,7 @@ mod tests {
             truth(0, p(0.105, 0.0, 1.0), 0.03),
             truth(1, p(0.5, 0.0, 1.0), 0.025),
         ];
-        let estimates: Vec<BoxEstimate> = truths
+        let estimates: Vec<FruitEstimate> = truths
             .iter()
             .map(|t| estimate(t.centre, t.half_extents_m.x))
             .collect();

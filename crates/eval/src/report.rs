@@ -264,7 +264,8 @@ truth_body_volume_m3,fitted_volume_m3";
 /// the fitted solid is judged against the body (its centroid and volume), the box against the
 /// box, as in the table ([`crate::metrics::TruthMeasure`]).
 pub fn fruits_csv(result: &TrialResult) -> String {
-    let fitted: Vec<_> = result.fruits.iter().map(|f| f.fitted.centre).collect();
+    let solids: Vec<_> = result.fruits.iter().map(|f| f.solid_or_box()).collect();
+    let fitted: Vec<_> = solids.iter().map(|s| s.centre).collect();
     let truths: Vec<_> = result.truths.iter().map(|t| t.centre).collect();
     let matches = greedy_match(&fitted, &truths, MATCH_DISTANCE_M);
     let mut rows: Vec<(Option<usize>, Option<usize>)> = (0..truths.len())
@@ -297,11 +298,10 @@ pub fn fruits_csv(result: &TrialResult) -> String {
             }
             None => cells.extend(std::iter::repeat_n(String::new(), 7)),
         }
-        match estimate.map(|e| &result.fruits[e]) {
-            Some(f) => {
-                let s = &f.fitted;
-                cells.push(f.estimate.id.to_string());
-                cells.push(f.estimate.voxel_count.to_string());
+        match estimate.map(|e| (&result.fruits[e], &solids[e])) {
+            Some((f, s)) => {
+                cells.push(f.id.to_string());
+                cells.push(f.voxel_count.to_string());
                 cells.push(format!("{:?}", s.kind).to_lowercase());
                 cells.push(csv_num(s.confidence));
                 cells.extend(
@@ -324,7 +324,7 @@ pub fn fruits_csv(result: &TrialResult) -> String {
                     None => [String::new(), String::new()],
                 };
                 cells.extend(versus(&s.centre, s.volume_m3, true));
-                cells.extend(versus(&f.estimate.centre, f.estimate.volume_m3, false));
+                cells.extend(versus(&f.centre, f.volume_m3, false));
                 cells.push(t.map_or(String::new(), |t| csv_num(t.body_volume_m3)));
                 cells.push(csv_num(s.volume_m3));
             }

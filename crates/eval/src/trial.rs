@@ -18,17 +18,18 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
+use glasshouse_geom::FruitEstimate;
 use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
     detect_frame_with, ranked_views, CaptureError, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
-    EdgeSettings, FruitRecord, PlanningError, PlanningSettings, RoiEvidence, RoiTargets,
-    SimTrolley, SimTrolleySettings, TrolleyPlanner, TrolleySource,
+    EdgeSettings, PlanningError, PlanningSettings, RoiEvidence, RoiTargets, SimTrolley,
+    SimTrolleySettings, TrolleyPlanner, TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame, RoiCloud, TrolleyInfo};
 use glasshouse_sim::{FruitTruth, ScenarioKind, Scene, WorldSettings};
 use serde::Serialize;
 
-use crate::metrics::{evaluate, evaluate_against, BoxEstimate, Metrics, TruthMeasure};
+use crate::metrics::{evaluate, evaluate_against, Metrics, TruthMeasure};
 
 /// Errors of a trial; configuration errors are found before anything runs.
 #[derive(thiserror::Error, Debug, Clone, PartialEq)]
@@ -182,16 +183,6 @@ pub struct Sample {
     pub fitted: Metrics,
 }
 
-fn box_estimate(record: &FruitRecord) -> BoxEstimate {
-    let e = &record.estimate;
-    BoxEstimate::new(e.centre, e.min, e.max, e.volume_m3)
-}
-
-fn fitted_estimate(record: &FruitRecord) -> BoxEstimate {
-    let f = &record.fitted;
-    BoxEstimate::new(f.centre, f.box_min, f.box_max, f.volume_m3)
-}
-
 /// What a finished trial reports.
 #[derive(Clone, Debug, Serialize)]
 pub struct TrialResult {
@@ -208,7 +199,7 @@ pub struct TrialResult {
     /// Sum of the compute times that entered the clock.
     pub compute_time_s: f64,
     /// The estimates at the end of the budget.
-    pub fruits: Vec<FruitRecord>,
+    pub fruits: Vec<FruitEstimate>,
     /// The scene's true fruits.
     pub truths: Vec<FruitTruth>,
     /// How the registration of every cloud ended (aligned, kept, skipped, rejected by reason).
@@ -236,7 +227,7 @@ impl TrialResult {
 #[derive(Clone, Debug)]
 struct Published {
     frames: u64,
-    fruits: Vec<FruitRecord>,
+    fruits: Vec<FruitEstimate>,
     boxes: Metrics,
     fitted: Metrics,
 }
@@ -354,7 +345,7 @@ impl<S: TrolleySource> Trial<S> {
     }
 
     /// The fruits of the latest frame whose estimates are available.
-    pub fn fruits(&self) -> &[FruitRecord] {
+    pub fn fruits(&self) -> &[FruitEstimate] {
         &self.published.fruits
     }
 
@@ -384,7 +375,8 @@ impl<S: TrolleySource> Trial<S> {
                 break;
             }
             let fruits = &self.published.fruits;
-            let confidences: Vec<f64> = fruits.iter().map(|f| f.fitted.confidence).collect();
+            let confidences: Vec<f64> =
+                fruits.iter().map(|f| f.solid_or_box().confidence).collect();
             self.samples.push(Sample {
                 time_s: next,
                 views: self.views,
@@ -519,12 +511,10 @@ impl<S: TrolleySource> Trial<S> {
         let fruits = self.planner.fruits();
         let truths = self.scene.fruits();
         let res = self.planner.settings().resolution_m;
-        let boxes: Vec<BoxEstimate> = fruits.iter().map(box_estimate).collect();
-        let fitted: Vec<BoxEstimate> = fruits.iter().map(fitted_estimate).collect();
         self.published = Published {
             frames: frame_seq,
-            boxes: evaluate(&boxes, truths, res),
-            fitted: evaluate_against(&fitted, truths, res, TruthMeasure::Body),
+            boxes: evaluate(&fruits, truths, res),
+            fitted: evaluate_against(&fruits, truths, res, TruthMeasure::Body),
             fruits,
         };
     }

@@ -30,7 +30,7 @@ pub mod merge;
 pub mod rendezvous;
 
 pub use membership::{Assignment, Membership, MembershipEvent, OwnershipChange, Role};
-pub use merge::{merge_fruits, FleetFruit, FleetFruitInput, MergeResult, MERGE_DISTANCE_M};
+pub use merge::{merge_fruits, FleetFruit, MergeResult, TrolleyFruit, MERGE_DISTANCE_M};
 pub use rendezvous::{rank_planners, top_two, weight};
 
 #[cfg(test)]

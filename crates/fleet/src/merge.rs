@@ -14,6 +14,8 @@
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BTreeSet};
 
+use glasshouse_geom::FruitEstimate;
+use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
 /// Default merge distance between fruit centres, metres.
@@ -21,30 +23,24 @@ pub const MERGE_DISTANCE_M: f64 = 0.05;
 
 /// One fruit estimate of one trolley's planner, in the world frame (metres).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct FleetFruitInput {
+pub struct TrolleyFruit {
     pub trolley_id: String,
-    /// The planner's stable fruit id within the trolley.
-    pub fruit_id: u32,
-    pub centre: [f64; 3],
-    /// Axis-aligned box, lower corner.
-    pub min: [f64; 3],
-    /// Axis-aligned box, upper corner.
-    pub max: [f64; 3],
-    pub volume_m3: f64,
-    pub confidence: f64,
+    /// Its id is the planner's stable fruit id within the trolley.
+    pub fruit: FruitEstimate,
 }
 
-impl FleetFruitInput {
+impl TrolleyFruit {
     fn key(&self) -> (&str, u32) {
-        (self.trolley_id.as_str(), self.fruit_id)
+        (self.trolley_id.as_str(), self.fruit.id)
     }
 
     fn is_finite(&self) -> bool {
-        self.centre
+        let f = &self.fruit;
+        f.centre
             .iter()
-            .chain(&self.min)
-            .chain(&self.max)
-            .chain([&self.volume_m3, &self.confidence])
+            .chain(f.min.iter())
+            .chain(f.max.iter())
+            .chain([&f.volume_m3, &f.confidence])
             .all(|v| v.is_finite())
     }
 }
@@ -55,11 +51,8 @@ pub struct FleetFruit {
     /// `"{trolley}/{fruit}"` of the smallest `(trolley_id, fruit_id)` among the sources: stable as
     /// long as that source keeps being reported.
     pub fleet_id: String,
-    pub centre: [f64; 3],
-    pub min: [f64; 3],
-    pub max: [f64; 3],
-    pub volume_m3: f64,
-    pub confidence: f64,
+    /// The estimate kept, as its source reported it.
+    pub fruit: FruitEstimate,
     /// The source whose estimate is kept: highest confidence, ties to the smallest
     /// `(trolley_id, fruit_id)`.
     pub estimate_from: (String, u32),
@@ -83,10 +76,10 @@ pub struct MergeResult {
 /// Merges per-trolley fruit lists into the fleet map (see the module documentation).
 ///
 /// `merge_distance_m` is inclusive; a negative or NaN distance merges by box overlap only.
-pub fn merge_fruits(inputs: &[FleetFruitInput], merge_distance_m: f64) -> MergeResult {
+pub fn merge_fruits(inputs: &[TrolleyFruit], merge_distance_m: f64) -> MergeResult {
     let mut skipped_non_finite = 0;
     let mut skipped_duplicate = 0;
-    let mut by_key: BTreeMap<(&str, u32), &FleetFruitInput> = BTreeMap::new();
+    let mut by_key: BTreeMap<(&str, u32), &TrolleyFruit> = BTreeMap::new();
     for input in inputs {
         if !input.is_finite() {
             skipped_non_finite += 1;
@@ -105,7 +98,7 @@ pub fn merge_fruits(inputs: &[FleetFruitInput], merge_distance_m: f64) -> MergeR
         }
     }
     // Indices follow key order, whatever the input order.
-    let fruits: Vec<&FleetFruitInput> = by_key.into_values().collect();
+    let fruits: Vec<&TrolleyFruit> = by_key.into_values().collect();
 
     let mut edges = candidate_matches(&fruits, merge_distance_m);
     edges.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
@@ -133,17 +126,13 @@ pub fn merge_fruits(inputs: &[FleetFruitInput], merge_distance_m: f64) -> MergeR
                 .min_by(|a, b| estimate_cmp(a, b))?;
             let sources: Vec<(String, u32)> = members
                 .iter()
-                .map(|&i| (fruits[i].trolley_id.clone(), fruits[i].fruit_id))
+                .map(|&i| (fruits[i].trolley_id.clone(), fruits[i].fruit.id))
                 .collect();
             let (first_trolley, first_fruit) = sources.first()?;
             Some(FleetFruit {
                 fleet_id: format!("{first_trolley}/{first_fruit}"),
-                centre: best.centre,
-                min: best.min,
-                max: best.max,
-                volume_m3: best.volume_m3,
-                confidence: best.confidence,
-                estimate_from: (best.trolley_id.clone(), best.fruit_id),
+                fruit: best.fruit,
+                estimate_from: (best.trolley_id.clone(), best.fruit.id),
                 sources,
             })
         })
@@ -158,17 +147,19 @@ pub fn merge_fruits(inputs: &[FleetFruitInput], merge_distance_m: f64) -> MergeR
 
 /// Which estimate to keep: `Less` means `a` is better. Highest confidence, then smallest key, then
 /// (only between duplicates of one key) the values themselves, so the order is total.
-fn estimate_cmp(a: &FleetFruitInput, b: &FleetFruitInput) -> Ordering {
-    let values = |f: &FleetFruitInput| {
+fn estimate_cmp(a: &TrolleyFruit, b: &TrolleyFruit) -> Ordering {
+    let values = |f: &TrolleyFruit| {
+        let f = &f.fruit;
         let mut v = [0.0; 10];
-        v[..3].copy_from_slice(&f.centre);
-        v[3..6].copy_from_slice(&f.min);
-        v[6..9].copy_from_slice(&f.max);
+        v[..3].copy_from_slice(f.centre.coords.as_slice());
+        v[3..6].copy_from_slice(f.min.coords.as_slice());
+        v[6..9].copy_from_slice(f.max.coords.as_slice());
         v[9] = f.volume_m3;
         v
     };
-    b.confidence
-        .total_cmp(&a.confidence)
+    b.fruit
+        .confidence
+        .total_cmp(&a.fruit.confidence)
         .then_with(|| a.key().cmp(&b.key()))
         .then_with(|| {
             values(a)
@@ -180,26 +171,27 @@ fn estimate_cmp(a: &FleetFruitInput, b: &FleetFruitInput) -> Ordering {
         })
 }
 
-fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+fn distance(a: &Point3<f64>, b: &Point3<f64>) -> f64 {
     let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
     (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
 }
 
-fn box_volume(min: &[f64; 3], max: &[f64; 3]) -> f64 {
+fn box_volume(min: &Point3<f64>, max: &Point3<f64>) -> f64 {
     (0..3).map(|k| (max[k] - min[k]).max(0.0)).product()
 }
 
-fn intersection_volume(a: &FleetFruitInput, b: &FleetFruitInput) -> f64 {
+fn intersection_volume(a: &FruitEstimate, b: &FruitEstimate) -> f64 {
     (0..3)
         .map(|k| (a.max[k].min(b.max[k]) - a.min[k].max(b.min[k])).max(0.0))
         .product()
 }
 
 /// The centre distance of `a` and `b` if they are the same fruit by the merge rule.
-fn match_distance(a: &FleetFruitInput, b: &FleetFruitInput, merge_distance_m: f64) -> Option<f64> {
+fn match_distance(a: &TrolleyFruit, b: &TrolleyFruit, merge_distance_m: f64) -> Option<f64> {
     if a.trolley_id == b.trolley_id {
         return None;
     }
+    let (a, b) = (&a.fruit, &b.fruit);
     let d = distance(&a.centre, &b.centre);
     if d <= merge_distance_m {
         return Some(d);
@@ -214,10 +206,7 @@ fn match_distance(a: &FleetFruitInput, b: &FleetFruitInput, merge_distance_m: f6
 /// Each fruit spans `[min(box, centre - h), max(box, centre + h)]` on x with `h` a hair over half
 /// the merge distance: two fruits can match only if their spans intersect (box overlap needs the
 /// boxes' x ranges to intersect; close centres need `|dx| <= merge distance`).
-fn candidate_matches(
-    fruits: &[&FleetFruitInput],
-    merge_distance_m: f64,
-) -> Vec<(f64, usize, usize)> {
+fn candidate_matches(fruits: &[&TrolleyFruit], merge_distance_m: f64) -> Vec<(f64, usize, usize)> {
     let half = if merge_distance_m > 0.0 {
         merge_distance_m * (0.5 + 1e-9)
     } else {
@@ -226,6 +215,7 @@ fn candidate_matches(
     let spans: Vec<(f64, f64)> = fruits
         .iter()
         .map(|f| {
+            let f = &f.fruit;
             (
                 f.min[0].min(f.centre[0] - half),
                 f.max[0].max(f.centre[0] + half),
@@ -257,7 +247,7 @@ struct DisjointSets<'a> {
 }
 
 impl<'a> DisjointSets<'a> {
-    fn new(fruits: &[&'a FleetFruitInput]) -> Self {
+    fn new(fruits: &[&'a TrolleyFruit]) -> Self {
         Self {
             parent: (0..fruits.len()).collect(),
             trolleys: fruits

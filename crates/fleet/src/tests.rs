@@ -1,7 +1,10 @@
 use std::collections::BTreeMap;
 
 use crate::membership::{Assignment, Membership, MembershipEvent, OwnershipChange, Role};
-use crate::merge::{merge_fruits, FleetFruitInput, MERGE_DISTANCE_M};
+use glasshouse_geom::FruitEstimate;
+use nalgebra::{Point3, Vector3};
+
+use crate::merge::{merge_fruits, TrolleyFruit, MERGE_DISTANCE_M};
 use crate::rendezvous::{fnv1a64, mix64, rank_planners, top_two, weight};
 
 fn ids(prefix: &str, n: usize) -> Vec<String> {
@@ -396,16 +399,17 @@ fn membership_does_not_depend_on_event_order() {
 // ---------------------------------------------------------------------------------------------
 // merge
 
-fn fruit(trolley: &str, id: u32, centre: [f64; 3], confidence: f64) -> FleetFruitInput {
+fn fruit(trolley: &str, id: u32, centre: [f64; 3], confidence: f64) -> TrolleyFruit {
     let r = 0.03;
-    FleetFruitInput {
+    let centre = Point3::from(centre);
+    let half = Vector3::repeat(r);
+    TrolleyFruit {
         trolley_id: trolley.to_owned(),
-        fruit_id: id,
-        centre,
-        min: [centre[0] - r, centre[1] - r, centre[2] - r],
-        max: [centre[0] + r, centre[1] + r, centre[2] + r],
-        volume_m3: 4.0 / 3.0 * std::f64::consts::PI * r * r * r,
-        confidence,
+        fruit: FruitEstimate {
+            volume_m3: 4.0 / 3.0 * std::f64::consts::PI * r * r * r,
+            confidence,
+            ..FruitEstimate::from_box(id, centre, centre - half, centre + half)
+        },
     }
 }
 
@@ -426,8 +430,8 @@ fn same_fruit_from_two_trolleys_merges() {
     assert_eq!(f.fleet_id, "t1/3");
     // Highest confidence wins.
     assert_eq!(f.estimate_from, source("t2", 7));
-    assert_eq!(f.centre, [1.02, 0.0, 1.0]);
-    assert_eq!(f.confidence, 0.9);
+    assert_eq!(f.fruit.centre, Point3::from([1.02, 0.0, 1.0]));
+    assert_eq!(f.fruit.confidence, 0.9);
     assert_eq!(r.skipped_non_finite, 0);
 }
 
@@ -440,7 +444,7 @@ fn equal_confidence_keeps_the_smallest_source() {
     let r = merge_fruits(&inputs, MERGE_DISTANCE_M);
     assert_eq!(r.fruits.len(), 1);
     assert_eq!(r.fruits[0].estimate_from, source("t1", 9));
-    assert_eq!(r.fruits[0].centre, [1.0, 0.0, 1.0]);
+    assert_eq!(r.fruits[0].fruit.centre, Point3::from([1.0, 0.0, 1.0]));
 }
 
 #[test]
@@ -502,17 +506,17 @@ fn a_chain_never_joins_two_fruits_of_one_trolley() {
 fn overlapping_boxes_merge_even_with_distant_centres() {
     // Centres 8 cm apart (long fruit seen from two ends), boxes overlap by 75% of the smaller.
     let mut a = fruit("t1", 1, [1.0, 0.0, 1.0], 0.5);
-    a.min = [0.90, -0.03, 0.97];
-    a.max = [1.10, 0.03, 1.03];
+    a.fruit.min = Point3::from([0.90, -0.03, 0.97]);
+    a.fruit.max = Point3::from([1.10, 0.03, 1.03]);
     let mut b = fruit("t2", 1, [1.08, 0.0, 1.0], 0.5);
-    b.min = [1.04, -0.03, 0.97];
-    b.max = [1.12, 0.03, 1.03];
+    b.fruit.min = Point3::from([1.04, -0.03, 0.97]);
+    b.fruit.max = Point3::from([1.12, 0.03, 1.03]);
     let r = merge_fruits(&[a.clone(), b.clone()], MERGE_DISTANCE_M);
     assert_eq!(r.fruits.len(), 1);
     assert_eq!(r.fruits[0].sources, [source("t1", 1), source("t2", 1)]);
     // Overlap of less than half the smaller box (0.03 of 0.08 along x) is not enough.
-    b.min[0] = 1.07;
-    b.max[0] = 1.15;
+    b.fruit.min[0] = 1.07;
+    b.fruit.max[0] = 1.15;
     let r = merge_fruits(&[a, b], MERGE_DISTANCE_M);
     assert_eq!(r.fruits.len(), 2);
 }
@@ -520,11 +524,11 @@ fn overlapping_boxes_merge_even_with_distant_centres() {
 #[test]
 fn non_finite_inputs_are_skipped_and_counted() {
     let mut nan_centre = fruit("t2", 1, [1.0, 0.0, 1.0], 0.9);
-    nan_centre.centre[1] = f64::NAN;
+    nan_centre.fruit.centre[1] = f64::NAN;
     let mut inf_conf = fruit("t3", 1, [1.0, 0.0, 1.0], 0.9);
-    inf_conf.confidence = f64::INFINITY;
+    inf_conf.fruit.confidence = f64::INFINITY;
     let mut nan_box = fruit("t4", 1, [1.0, 0.0, 1.0], 0.9);
-    nan_box.max[2] = f64::NAN;
+    nan_box.fruit.max[2] = f64::NAN;
     let inputs = [
         fruit("t1", 1, [1.0, 0.0, 1.0], 0.5),
         nan_centre,
@@ -546,12 +550,12 @@ fn duplicate_keys_count_once() {
     let r = merge_fruits(&inputs, MERGE_DISTANCE_M);
     assert_eq!(r.skipped_duplicate, 1);
     assert_eq!(r.fruits.len(), 1);
-    assert_eq!(r.fruits[0].centre, [1.5, 0.0, 1.0]);
+    assert_eq!(r.fruits[0].fruit.centre, Point3::from([1.5, 0.0, 1.0]));
 }
 
 /// A fleet of 4 trolleys in a row whose working ranges overlap: each sees some fruits of its
 /// neighbours, with a little estimation noise.
-fn overlapping_rows() -> Vec<FleetFruitInput> {
+fn overlapping_rows() -> Vec<TrolleyFruit> {
     let mut inputs = Vec::new();
     let mut state = 42u64;
     let mut noise = || {
@@ -627,14 +631,16 @@ fn sweep_finds_the_same_matches_as_all_pairs() {
     for (i, a) in inputs.iter().enumerate() {
         for b in &inputs[i + 1..] {
             let close = a.trolley_id != b.trolley_id && {
-                let d: f64 = (0..3).map(|k| (a.centre[k] - b.centre[k]).powi(2)).sum();
+                let d: f64 = (0..3)
+                    .map(|k| (a.fruit.centre[k] - b.fruit.centre[k]).powi(2))
+                    .sum();
                 d.sqrt() <= MERGE_DISTANCE_M
             };
             if close {
                 brute_pairs += 1;
                 let together = r.fruits.iter().any(|f| {
-                    f.sources.contains(&source(&a.trolley_id, a.fruit_id))
-                        && f.sources.contains(&source(&b.trolley_id, b.fruit_id))
+                    f.sources.contains(&source(&a.trolley_id, a.fruit.id))
+                        && f.sources.contains(&source(&b.trolley_id, b.fruit.id))
                 });
                 assert!(together, "{a:?} and {b:?} not merged");
             }

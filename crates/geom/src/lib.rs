@@ -1,4 +1,5 @@
-//! Shared geometry for Glasshouse: camera intrinsics, boxes, poses in named frames.
+//! Shared geometry for Glasshouse: camera intrinsics, boxes, poses in named frames, and the one
+//! fruit estimate with its covered-volume rule ([`fruit`]).
 //!
 //! Conventions used by every crate:
 //! - The world frame is right-handed with `z` up; lengths are metres.
@@ -6,8 +7,12 @@
 //! - A pose named `world_from_camera` maps a point in the camera frame to the world frame, so
 //!   `world_from_camera * point_in_camera` reads right to left.
 
+pub mod fruit;
+
 use nalgebra::{Isometry3, Point3, Rotation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
+
+pub use fruit::{box_voxel_keys, covered_volume, FruitEstimate, FruitSolid, SolidKind};
 
 /// Pinhole intrinsics of a depth/colour camera, in pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -790,24 +790,10 @@ pub fn plan_views(
     })
 }
 
-/// One fruit: an ROI cluster with a stable id.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FruitEstimate {
-    pub id: u32,
-    /// Mean of the voxel centres, world frame.
-    pub centre: Point3<f64>,
-    /// Box over the cluster's voxels, world frame.
-    pub min: Point3<f64>,
-    pub max: Point3<f64>,
-    /// Volume of the box.
-    pub volume_m3: f64,
-    pub voxel_count: usize,
-    /// Share of the box's surface voxels seen as ROI, in [0, 1].
-    pub confidence: f64,
-    /// Distinct directions (at least [`VIEW_SEPARATION_DEG`] apart) from which noted scans hit
-    /// this fruit ([`FruitTracker::note_scan`]); 0 when no scan was noted.
-    pub view_directions: u32,
-}
+/// One fruit: an ROI cluster with a stable id (the one fruit type of the project, see
+/// [`glasshouse_geom::fruit`]). The tracker gives its box, voxel count, the share of its box's
+/// surface voxels seen as ROI as its confidence, and its view directions; no solid.
+pub use glasshouse_geom::FruitEstimate;
 
 /// Largest centre movement between updates for a cluster to keep its fruit id.
 pub const TRACK_MATCH_DISTANCE_M: f64 = 0.05;
@@ -975,6 +961,7 @@ impl FruitTracker {
                     voxel_count: cluster.voxels.len(),
                     confidence: fruit_confidence(cluster),
                     view_directions,
+                    solid: None,
                 }
             })
             .collect();

@@ -2,7 +2,8 @@
 //! ([`SimTrolley`]) that the edge and the experiments share.
 
 use glasshouse_arm::{Interval, Mount, MountState};
-use glasshouse_proto::{ArmModel, ArmState, Fruit, MountKind, RgbdFrame, TrolleyInfo};
+use glasshouse_geom::FruitEstimate;
+use glasshouse_proto::{ArmModel, ArmState, MountKind, RgbdFrame, TrolleyInfo};
 use glasshouse_sim::{
     CameraModel, PerceptionNoise, ScenarioKind, Scene, Segment, SimArm, WorldError, WorldSettings,
 };
@@ -61,7 +62,7 @@ pub trait TrolleySource: Send + Sync {
     /// What planners need to know about this trolley now (regions follow the segment).
     fn info(&self) -> TrolleyInfo;
     /// Ground truth, when the source knows it (the simulator does).
-    fn ground_truth(&self) -> Option<Vec<Fruit>>;
+    fn ground_truth(&self) -> Option<Vec<FruitEstimate>>;
     /// Captures frame `frame_seq` at the current pose. `Ok(None)` when the source has no more
     /// frames; `Err` with a reason when the capture failed.
     fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String>;
@@ -253,21 +254,8 @@ impl TrolleySource for SimTrolley {
         }
     }
 
-    fn ground_truth(&self) -> Option<Vec<Fruit>> {
-        let truth = self.scene.fruits().iter().map(|f| {
-            let aabb = f.aabb();
-            // The body's own centroid and volume; the box bounds it.
-            Fruit {
-                id: f.id,
-                centre_in_world: f.body_centre.cast(),
-                box_min: aabb.min.cast(),
-                box_max: aabb.max.cast(),
-                volume_m3: f.body_volume_m3 as f32,
-                voxel_count: f.voxel_keys(0.01).len().min(u32::MAX as usize) as u32,
-                confidence: 1.0,
-                fitted: None,
-            }
-        });
+    fn ground_truth(&self) -> Option<Vec<FruitEstimate>> {
+        let truth = self.scene.fruits().iter().map(|f| f.estimate(0.01));
         Some(truth.collect())
     }
 

@@ -4,6 +4,7 @@
 use std::borrow::Cow;
 
 use glasshouse_arm::Robot;
+use glasshouse_geom::{FruitSolid, SolidKind};
 use glasshouse_nbv::fit::{FitConfig, FittedShape, ShapeKind};
 use glasshouse_nbv::split::fragments;
 use glasshouse_nbv::{
@@ -11,8 +12,8 @@ use glasshouse_nbv::{
     PlanningContext, ReachPredicate,
 };
 use glasshouse_proto::{
-    FittedEllipsoid, FrameId, Fruit, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
-    TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
+    FrameId, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud, TrackedFruit, TrolleyInfo,
+    ViewKind, VoxelChange, VoxelState,
 };
 use glasshouse_register::{
     align_scan, corrected_points, Alignment, AlignmentCounts, RegisterSettings, ScanInWorld,
@@ -235,38 +236,24 @@ pub fn plan_seed(seed: u64, frame_seq: u64) -> u64 {
         .wrapping_add(frame_seq)
 }
 
-/// One fruit with both estimates, the paper's box over the cluster and the fitted solid, and the
-/// evidence that it is a fruit.
-#[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct FruitRecord {
-    pub estimate: FruitEstimate,
-    pub fitted: FittedShape,
-    pub evidence: glasshouse_nbv::evidence::FruitEvidence,
-}
-
-impl FruitRecord {
-    /// The fruit as it travels on the bus: its confidence is the evidence's; the message's fitted
-    /// ellipsoid is axis-aligned, so it is the one inscribed in the world box around the fitted
-    /// solid, with the solid's own volume.
-    pub fn to_message(&self) -> Fruit {
-        let (f, s) = (&self.estimate, &self.fitted);
-        Fruit {
-            id: f.id,
-            centre_in_world: f.centre.cast(),
-            box_min: f.min.cast(),
-            box_max: f.max.cast(),
-            volume_m3: f.volume_m3 as f32,
-            voxel_count: f.voxel_count.min(u32::MAX as usize) as u32,
-            confidence: self.evidence.confidence as f32,
-            fitted: Some(FittedEllipsoid {
-                centre_in_world: s.centre.cast(),
-                semi_axes_m: ((s.box_max - s.box_min) / 2.0).cast(),
-                volume_m3: s.volume_m3 as f32,
-                box_volume_m3: s.box_volume_m3 as f32,
-                confidence: s.confidence as f32,
-                is_fit: s.kind == ShapeKind::Ellipsoid,
-            }),
-        }
+/// The fitted solid as the one fruit type carries it.
+pub(crate) fn solid_of(s: &FittedShape) -> FruitSolid {
+    FruitSolid {
+        kind: match s.kind {
+            ShapeKind::Ellipsoid => SolidKind::Ellipsoid,
+            ShapeKind::Box => SolidKind::Box,
+        },
+        centre: s.centre,
+        semi_axes_m: s.semi_axes_m,
+        world_from_body: s.world_from_body,
+        exponents: s.exponents,
+        taper: s.taper,
+        volume_m3: s.volume_m3,
+        box_min: s.box_min,
+        box_max: s.box_max,
+        box_volume_m3: s.box_volume_m3,
+        confidence: s.confidence,
+        rms_residual_m: s.rms_residual_m,
     }
 }
 
@@ -522,13 +509,13 @@ impl TrolleyPlanner {
             .note_scan(*sensor_origin_in_world, keys.collect());
     }
 
-    /// Every fruit of the latest clusters with its fitted solid and the evidence that it is a
-    /// fruit, leaving out clusters whose shape says they are not ([`glasshouse_nbv::evidence`]:
+    /// Every fruit of the latest clusters with its fitted solid and, as its confidence, the
+    /// evidence's that it is a fruit, leaving out clusters whose shape says they are not ([`glasshouse_nbv::evidence`]:
     /// flat, thin, too small or too large; these are not fitted at all) and clusters that are a
     /// second patch of a fruit another cluster reports ([`fragments`]). Fits are made here, not
     /// on integration (a replica integrates without them), and only for the fruits whose voxels
     /// or surroundings changed since their last fit.
-    pub fn fruits(&mut self) -> Vec<FruitRecord> {
+    pub fn fruits(&mut self) -> Vec<FruitEstimate> {
         let evidence_config = self.settings.fit.evidence;
         let shapes = self.fit_cache.shapes(&self.map, &self.clusters);
         let shaped: Vec<usize> = (0..self.clusters.len())
@@ -555,8 +542,8 @@ impl TrolleyPlanner {
             .collect()
     }
 
-    /// The fruit of cluster `i`, fitted `fitted`, with its evidence.
-    fn record(&self, i: usize, fitted: &FittedShape) -> FruitRecord {
+    /// The fruit of cluster `i`, fitted `fitted`, with its evidence's confidence.
+    fn record(&self, i: usize, fitted: &FittedShape) -> FruitEstimate {
         use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence};
         let (cluster, estimate) = (&self.clusters[i], &self.estimates[i]);
         let seen = match self.fit_cache.evidence_of(cluster) {
@@ -564,10 +551,11 @@ impl TrolleyPlanner {
             None => ClusterEvidence::of(&self.map, cluster),
         };
         let views = estimate.view_directions;
-        FruitRecord {
-            estimate: estimate.clone(),
-            fitted: fitted.clone(),
-            evidence: FruitEvidence::judge(&seen, fitted, views, &self.settings.fit.evidence),
+        let evidence = FruitEvidence::judge(&seen, fitted, views, &self.settings.fit.evidence);
+        FruitEstimate {
+            confidence: evidence.confidence,
+            solid: Some(solid_of(fitted)),
+            ..*estimate
         }
     }
 

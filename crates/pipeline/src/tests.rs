@@ -518,10 +518,14 @@ fn kept_fits_equal_fresh_fits_and_only_touched_fruits_are_refitted() {
         )
         .unwrap();
         planner.integrate(&cloud, EPOCH_NS).unwrap();
-        let fitted: Vec<_> = planner.fruits().into_iter().map(|f| f.fitted).collect();
+        let fitted: Vec<_> = planner.fruits().into_iter().map(|f| f.solid).collect();
+        let fresh: Vec<_> = fresh_fits(&planner)
+            .iter()
+            .map(|s| Some(crate::planning::solid_of(s)))
+            .collect();
         // Debug text: equal bit for bit, NaN residuals of box fallbacks included.
-        let text = |shapes: &[glasshouse_nbv::fit::FittedShape]| format!("{shapes:?}");
-        assert_eq!(text(&fitted), text(&fresh_fits(&planner)), "frame {seq}");
+        let text = |solids: &[Option<glasshouse_geom::FruitSolid>]| format!("{solids:?}");
+        assert_eq!(text(&fitted), text(&fresh), "frame {seq}");
         refits += planner.last_refits();
         fruits_seen += fitted.len();
         if let Some(plan) = planner.plan(&frame.world_from_camera, seq).unwrap() {

@@ -1,6 +1,6 @@
 //! Small, valid example messages of every kind, for tests and for fault injection.
 
-use glasshouse_geom::{look_at, Aabb, CameraIntrinsics};
+use glasshouse_geom::{look_at, Aabb, CameraIntrinsics, FruitEstimate, FruitSolid, SolidKind};
 use nalgebra::{Isometry3, Point3};
 
 use crate::*;
@@ -288,22 +288,33 @@ pub fn fleet_fruits() -> FleetFruits {
     }
 }
 
-fn sample_fruit() -> Fruit {
-    Fruit {
+/// A fitted fruit whose values are exact in `f32`, as the wire carries them.
+fn sample_fruit() -> FruitEstimate {
+    let p = |x: f32, y: f32, z: f32| Point3::new(x, y, z).cast::<f64>();
+    let semi = nalgebra::Vector3::new(0.03f32, 0.03, 0.04);
+    let (a, b, c) = (semi.x, semi.y, semi.z);
+    FruitEstimate {
         id: 3,
-        centre_in_world: Point3::new(0.1, 0.2, 0.9),
-        box_min: Point3::new(0.07, 0.17, 0.86),
-        box_max: Point3::new(0.13, 0.23, 0.94),
-        volume_m3: 0.06 * 0.06 * 0.08,
+        centre: p(0.1, 0.2, 0.9),
+        min: p(0.07, 0.17, 0.86),
+        max: p(0.13, 0.23, 0.94),
+        volume_m3: f64::from(0.06f32 * 0.06 * 0.08),
         voxel_count: 120,
-        confidence: 0.6,
-        fitted: Some(FittedEllipsoid {
-            centre_in_world: Point3::new(0.1, 0.2, 0.91),
-            semi_axes_m: nalgebra::Vector3::new(0.03, 0.03, 0.04),
-            volume_m3: 4.0 / 3.0 * std::f32::consts::PI * 0.03 * 0.03 * 0.04,
-            box_volume_m3: 8.0 * 0.03 * 0.03 * 0.04,
+        confidence: f64::from(0.6f32),
+        view_directions: 3,
+        solid: Some(FruitSolid {
+            kind: SolidKind::Ellipsoid,
+            centre: p(0.1, 0.2, 0.91),
+            semi_axes_m: semi.cast(),
+            world_from_body: nalgebra::UnitQuaternion::from_euler_angles(0.3, 0.0, 0.1),
+            exponents: [0.5, 1.0],
+            taper: f64::from(0.2f32),
+            volume_m3: f64::from(4.0 / 3.0 * std::f32::consts::PI * a * b * c),
+            box_min: p(0.065, 0.165, 0.87),
+            box_max: p(0.135, 0.235, 0.95),
+            box_volume_m3: f64::from(0.07f32 * 0.07 * 0.08),
             confidence: 0.75,
-            is_fit: true,
+            rms_residual_m: f64::from(0.002f32),
         }),
     }
 }

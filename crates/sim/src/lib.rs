@@ -21,7 +21,7 @@ mod world;
 use std::fmt;
 use std::str::FromStr;
 
-use glasshouse_geom::{look_at, Aabb, CameraIntrinsics};
+use glasshouse_geom::{look_at, Aabb, CameraIntrinsics, FruitEstimate};
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -205,26 +205,21 @@ impl FruitTruth {
     }
 
     /// Keys `k = floor(p / resolution_m)` of the voxels whose centres `(k + 0.5) * resolution_m`
-    /// lie inside the box. Empty for a non-positive or non-finite resolution.
+    /// lie inside the box: the one box rule, [`glasshouse_geom::box_voxel_keys`].
     pub fn voxel_keys(&self, resolution_m: f64) -> Vec<[i32; 3]> {
-        if !(resolution_m.is_finite() && resolution_m > 0.0) {
-            return Vec::new();
+        glasshouse_geom::box_voxel_keys(&self.aabb(), resolution_m)
+    }
+
+    /// The fruit as an estimate would be if it were perfect: the body's own centroid and volume,
+    /// the box around it, its voxels of `resolution_m`, confidence 1 and no solid.
+    pub fn estimate(&self, resolution_m: f64) -> FruitEstimate {
+        let aabb = self.aabb();
+        FruitEstimate {
+            volume_m3: self.body_volume_m3,
+            voxel_count: self.voxel_keys(resolution_m).len(),
+            confidence: 1.0,
+            ..FruitEstimate::from_box(self.id, self.body_centre, aabb.min, aabb.max)
         }
-        let b = self.aabb();
-        let range = |i: usize| {
-            let lo = (b.min[i] / resolution_m - 0.5).ceil() as i32;
-            let hi = (b.max[i] / resolution_m - 0.5).floor() as i32;
-            lo..=hi
-        };
-        let mut keys = Vec::new();
-        for x in range(0) {
-            for y in range(1) {
-                for z in range(2) {
-                    keys.push([x, y, z]);
-                }
-            }
-        }
-        keys
     }
 }
 

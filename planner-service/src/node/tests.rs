@@ -751,7 +751,7 @@ fn a_standby_replica_takes_over_with_the_owners_map_and_plans_at_once() {
     assert!(same_map(&replica, &owner, "t1"));
     let ids = |p: &PlannerNode| {
         let mut p = p.planner("t1").unwrap().clone();
-        p.fruits().iter().map(|f| f.estimate.id).collect::<Vec<_>>()
+        p.fruits().iter().map(|f| f.id).collect::<Vec<_>>()
     };
     assert_eq!(ids(&replica), ids(&owner), "fruit ids carry over");
 }

@@ -1,7 +1,7 @@
 #![allow(clippy::unwrap_used)]
 
 use glasshouse_pipeline::Executed;
-use glasshouse_proto::{ArmState, Fruit, TrolleyInfo};
+use glasshouse_proto::{ArmState, TrolleyInfo};
 use nalgebra::Isometry3;
 
 use glasshouse_sim::{PerceptionNoise, WorldSettings};
@@ -69,7 +69,7 @@ impl TrolleySource for Stuck {
     fn info(&self) -> TrolleyInfo {
         self.0.info()
     }
-    fn ground_truth(&self) -> Option<Vec<Fruit>> {
+    fn ground_truth(&self) -> Option<Vec<glasshouse_geom::FruitEstimate>> {
         self.0.ground_truth()
     }
     fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String> {

@@ -3977,7 +3977,9 @@ impl ::core::fmt::Debug for RankedViews<'_> {
 pub enum FittedEllipsoidOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
-/// Axis-aligned ellipsoid estimate of one fruit, world frame, metres.
+/// The whole-fruit solid fitted to one fruit, world frame, metres: a superellipsoid with body
+/// axes world_from_body, semi-axes body_semi_axes, exponents and taper. A reader that knows only
+/// the first six fields sees the axis-aligned ellipsoid inscribed in the world box around it.
 pub struct FittedEllipsoid<'a> {
   pub _tab: ::flatbuffers::Table<'a>,
 }
@@ -3997,6 +3999,13 @@ impl<'a> FittedEllipsoid<'a> {
   pub const VT_BOX_VOLUME_M3: ::flatbuffers::VOffsetT = 10;
   pub const VT_CONFIDENCE: ::flatbuffers::VOffsetT = 12;
   pub const VT_IS_FIT: ::flatbuffers::VOffsetT = 14;
+  pub const VT_BOX_: ::flatbuffers::VOffsetT = 16;
+  pub const VT_BODY_SEMI_AXES: ::flatbuffers::VOffsetT = 18;
+  pub const VT_WORLD_FROM_BODY: ::flatbuffers::VOffsetT = 20;
+  pub const VT_EXPONENT_PROFILE: ::flatbuffers::VOffsetT = 22;
+  pub const VT_EXPONENT_SECTION: ::flatbuffers::VOffsetT = 24;
+  pub const VT_TAPER: ::flatbuffers::VOffsetT = 26;
+  pub const VT_RMS_RESIDUAL_M: ::flatbuffers::VOffsetT = 28;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4008,6 +4017,13 @@ impl<'a> FittedEllipsoid<'a> {
     args: &'args FittedEllipsoidArgs<'args>
   ) -> ::flatbuffers::WIPOffset<FittedEllipsoid<'bldr>> {
     let mut builder = FittedEllipsoidBuilder::new(_fbb);
+    builder.add_rms_residual_m(args.rms_residual_m);
+    builder.add_taper(args.taper);
+    builder.add_exponent_section(args.exponent_section);
+    builder.add_exponent_profile(args.exponent_profile);
+    if let Some(x) = args.world_from_body { builder.add_world_from_body(x); }
+    if let Some(x) = args.body_semi_axes { builder.add_body_semi_axes(x); }
+    if let Some(x) = args.box_ { builder.add_box_(x); }
     builder.add_confidence(args.confidence);
     builder.add_box_volume_m3(args.box_volume_m3);
     builder.add_volume_m3(args.volume_m3);
@@ -4018,6 +4034,7 @@ impl<'a> FittedEllipsoid<'a> {
   }
 
 
+  /// Centroid of the solid.
   #[inline]
   pub fn centre(&self) -> Option<&'a Vec3> {
     // Safety:
@@ -4025,6 +4042,7 @@ impl<'a> FittedEllipsoid<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<Vec3>(FittedEllipsoid::VT_CENTRE, None)}
   }
+  /// Half the size of the world box around the solid (the body semi-axes when axis-aligned).
   #[inline]
   pub fn semi_axes(&self) -> Option<&'a Vec3> {
     // Safety:
@@ -4032,7 +4050,7 @@ impl<'a> FittedEllipsoid<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<Vec3>(FittedEllipsoid::VT_SEMI_AXES, None)}
   }
-  /// 4/3·π·a·b·c.
+  /// Volume of the solid (4/3·π·a·b·c for an ellipsoid).
   #[inline]
   pub fn volume_m3(&self) -> f32 {
     // Safety:
@@ -4040,7 +4058,7 @@ impl<'a> FittedEllipsoid<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_VOLUME_M3, Some(0.0)).unwrap()}
   }
-  /// 8·a·b·c: the volume of the box around it, comparable with the box estimate.
+  /// The volume of the world box around it, comparable with the box estimate.
   #[inline]
   pub fn box_volume_m3(&self) -> f32 {
     // Safety:
@@ -4064,6 +4082,62 @@ impl<'a> FittedEllipsoid<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<bool>(FittedEllipsoid::VT_IS_FIT, Some(false)).unwrap()}
   }
+  /// The world box around the solid; absent in older messages (then centre ± semi_axes).
+  #[inline]
+  pub fn box_(&self) -> Option<&'a Box3> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Box3>(FittedEllipsoid::VT_BOX_, None)}
+  }
+  /// Semi-axes along the body axes; absent in older messages (then semi_axes).
+  #[inline]
+  pub fn body_semi_axes(&self) -> Option<&'a Vec3> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Vec3>(FittedEllipsoid::VT_BODY_SEMI_AXES, None)}
+  }
+  /// Orientation of the body axes; absent in older messages (then the identity).
+  #[inline]
+  pub fn world_from_body(&self) -> Option<&'a Quat> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Quat>(FittedEllipsoid::VT_WORLD_FROM_BODY, None)}
+  }
+  /// Shape exponents ε1 (profile along body z) and ε2 (cross-section); 1 and 1: an ellipsoid.
+  #[inline]
+  pub fn exponent_profile(&self) -> f32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_EXPONENT_PROFILE, Some(1.0)).unwrap()}
+  }
+  #[inline]
+  pub fn exponent_section(&self) -> f32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_EXPONENT_SECTION, Some(1.0)).unwrap()}
+  }
+  /// Taper along body z: the cross-section at z = ±c is 1 ± taper times as wide as at the middle.
+  #[inline]
+  pub fn taper(&self) -> f32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_TAPER, Some(0.0)).unwrap()}
+  }
+  /// Root mean square distance of the cluster's voxel centres from the surface; NaN for a box
+  /// fallback and in older messages.
+  #[inline]
+  pub fn rms_residual_m(&self) -> f32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f32>(FittedEllipsoid::VT_RMS_RESIDUAL_M, Some(f32::NAN)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for FittedEllipsoid<'_> {
@@ -4078,6 +4152,13 @@ impl ::flatbuffers::Verifiable for FittedEllipsoid<'_> {
      .visit_field::<f32>("box_volume_m3", Self::VT_BOX_VOLUME_M3, false)?
      .visit_field::<f32>("confidence", Self::VT_CONFIDENCE, false)?
      .visit_field::<bool>("is_fit", Self::VT_IS_FIT, false)?
+     .visit_field::<Box3>("box_", Self::VT_BOX_, false)?
+     .visit_field::<Vec3>("body_semi_axes", Self::VT_BODY_SEMI_AXES, false)?
+     .visit_field::<Quat>("world_from_body", Self::VT_WORLD_FROM_BODY, false)?
+     .visit_field::<f32>("exponent_profile", Self::VT_EXPONENT_PROFILE, false)?
+     .visit_field::<f32>("exponent_section", Self::VT_EXPONENT_SECTION, false)?
+     .visit_field::<f32>("taper", Self::VT_TAPER, false)?
+     .visit_field::<f32>("rms_residual_m", Self::VT_RMS_RESIDUAL_M, false)?
      .finish();
     Ok(())
   }
@@ -4089,6 +4170,13 @@ pub struct FittedEllipsoidArgs<'a> {
     pub box_volume_m3: f32,
     pub confidence: f32,
     pub is_fit: bool,
+    pub box_: Option<&'a Box3>,
+    pub body_semi_axes: Option<&'a Vec3>,
+    pub world_from_body: Option<&'a Quat>,
+    pub exponent_profile: f32,
+    pub exponent_section: f32,
+    pub taper: f32,
+    pub rms_residual_m: f32,
 }
 impl<'a> Default for FittedEllipsoidArgs<'a> {
   #[inline]
@@ -4100,6 +4188,13 @@ impl<'a> Default for FittedEllipsoidArgs<'a> {
       box_volume_m3: 0.0,
       confidence: 0.0,
       is_fit: false,
+      box_: None,
+      body_semi_axes: None,
+      world_from_body: None,
+      exponent_profile: 1.0,
+      exponent_section: 1.0,
+      taper: 0.0,
+      rms_residual_m: f32::NAN,
     }
   }
 }
@@ -4134,6 +4229,34 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FittedEllipsoidBuilder<'a, 'b
     self.fbb_.push_slot::<bool>(FittedEllipsoid::VT_IS_FIT, is_fit, false);
   }
   #[inline]
+  pub fn add_box_(&mut self, box_: &Box3) {
+    self.fbb_.push_slot_always::<&Box3>(FittedEllipsoid::VT_BOX_, box_);
+  }
+  #[inline]
+  pub fn add_body_semi_axes(&mut self, body_semi_axes: &Vec3) {
+    self.fbb_.push_slot_always::<&Vec3>(FittedEllipsoid::VT_BODY_SEMI_AXES, body_semi_axes);
+  }
+  #[inline]
+  pub fn add_world_from_body(&mut self, world_from_body: &Quat) {
+    self.fbb_.push_slot_always::<&Quat>(FittedEllipsoid::VT_WORLD_FROM_BODY, world_from_body);
+  }
+  #[inline]
+  pub fn add_exponent_profile(&mut self, exponent_profile: f32) {
+    self.fbb_.push_slot::<f32>(FittedEllipsoid::VT_EXPONENT_PROFILE, exponent_profile, 1.0);
+  }
+  #[inline]
+  pub fn add_exponent_section(&mut self, exponent_section: f32) {
+    self.fbb_.push_slot::<f32>(FittedEllipsoid::VT_EXPONENT_SECTION, exponent_section, 1.0);
+  }
+  #[inline]
+  pub fn add_taper(&mut self, taper: f32) {
+    self.fbb_.push_slot::<f32>(FittedEllipsoid::VT_TAPER, taper, 0.0);
+  }
+  #[inline]
+  pub fn add_rms_residual_m(&mut self, rms_residual_m: f32) {
+    self.fbb_.push_slot::<f32>(FittedEllipsoid::VT_RMS_RESIDUAL_M, rms_residual_m, f32::NAN);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FittedEllipsoidBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FittedEllipsoidBuilder {
@@ -4157,6 +4280,13 @@ impl ::core::fmt::Debug for FittedEllipsoid<'_> {
       ds.field("box_volume_m3", &self.box_volume_m3());
       ds.field("confidence", &self.confidence());
       ds.field("is_fit", &self.is_fit());
+      ds.field("box_", &self.box_());
+      ds.field("body_semi_axes", &self.body_semi_axes());
+      ds.field("world_from_body", &self.world_from_body());
+      ds.field("exponent_profile", &self.exponent_profile());
+      ds.field("exponent_section", &self.exponent_section());
+      ds.field("taper", &self.taper());
+      ds.field("rms_residual_m", &self.rms_residual_m());
       ds.finish()
   }
 }
@@ -4183,6 +4313,7 @@ impl<'a> Fruit<'a> {
   pub const VT_VOXEL_COUNT: ::flatbuffers::VOffsetT = 12;
   pub const VT_CONFIDENCE: ::flatbuffers::VOffsetT = 14;
   pub const VT_FITTED: ::flatbuffers::VOffsetT = 16;
+  pub const VT_VIEW_DIRECTIONS: ::flatbuffers::VOffsetT = 18;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4194,6 +4325,7 @@ impl<'a> Fruit<'a> {
     args: &'args FruitArgs<'args>
   ) -> ::flatbuffers::WIPOffset<Fruit<'bldr>> {
     let mut builder = FruitBuilder::new(_fbb);
+    builder.add_view_directions(args.view_directions);
     if let Some(x) = args.fitted { builder.add_fitted(x); }
     builder.add_confidence(args.confidence);
     builder.add_voxel_count(args.voxel_count);
@@ -4247,7 +4379,7 @@ impl<'a> Fruit<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<f32>(Fruit::VT_CONFIDENCE, Some(0.0)).unwrap()}
   }
-  /// Ellipsoid fitted to the cluster's surface voxels, kept out of observed free space (the
+  /// Solid fitted to the cluster's surface voxels, kept out of observed free space (the
   /// estimate of the whole fruit, not only its seen part); absent when no fit was made.
   #[inline]
   pub fn fitted(&self) -> Option<FittedEllipsoid<'a>> {
@@ -4255,6 +4387,14 @@ impl<'a> Fruit<'a> {
     // Created from valid Table for this object
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<FittedEllipsoid>>(Fruit::VT_FITTED, None)}
+  }
+  /// Distinct directions from which scans hit the fruit; 0 in older messages.
+  #[inline]
+  pub fn view_directions(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(Fruit::VT_VIEW_DIRECTIONS, Some(0)).unwrap()}
   }
 }
 
@@ -4271,6 +4411,7 @@ impl ::flatbuffers::Verifiable for Fruit<'_> {
      .visit_field::<u32>("voxel_count", Self::VT_VOXEL_COUNT, false)?
      .visit_field::<f32>("confidence", Self::VT_CONFIDENCE, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<FittedEllipsoid>>("fitted", Self::VT_FITTED, false)?
+     .visit_field::<u32>("view_directions", Self::VT_VIEW_DIRECTIONS, false)?
      .finish();
     Ok(())
   }
@@ -4283,6 +4424,7 @@ pub struct FruitArgs<'a> {
     pub voxel_count: u32,
     pub confidence: f32,
     pub fitted: Option<::flatbuffers::WIPOffset<FittedEllipsoid<'a>>>,
+    pub view_directions: u32,
 }
 impl<'a> Default for FruitArgs<'a> {
   #[inline]
@@ -4295,6 +4437,7 @@ impl<'a> Default for FruitArgs<'a> {
       voxel_count: 0,
       confidence: 0.0,
       fitted: None,
+      view_directions: 0,
     }
   }
 }
@@ -4333,6 +4476,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<FittedEllipsoid>>(Fruit::VT_FITTED, fitted);
   }
   #[inline]
+  pub fn add_view_directions(&mut self, view_directions: u32) {
+    self.fbb_.push_slot::<u32>(Fruit::VT_VIEW_DIRECTIONS, view_directions, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FruitBuilder {
@@ -4357,6 +4504,7 @@ impl ::core::fmt::Debug for Fruit<'_> {
       ds.field("voxel_count", &self.voxel_count());
       ds.field("confidence", &self.confidence());
       ds.field("fitted", &self.fitted());
+      ds.field("view_directions", &self.view_directions());
       ds.finish()
   }
 }

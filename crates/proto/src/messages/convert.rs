@@ -129,7 +129,7 @@ pub(crate) fn unknown_enum(kind: MessageKind, field: &str, value: u8) -> ProtoEr
 
 /// The rotation of a decoded quaternion. One that is unit to within rounding is taken as it is,
 /// so a pose read back is bit for bit the pose written; any other is normalised.
-fn unit_rotation(q: Quaternion<f64>) -> UnitQuaternion<f64> {
+pub(crate) fn unit_rotation(q: Quaternion<f64>) -> UnitQuaternion<f64> {
     if (q.norm_squared() - 1.0).abs() <= 4.0 * f64::EPSILON {
         UnitQuaternion::new_unchecked(q)
     } else {

@@ -4,13 +4,16 @@ use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 
 use super::convert::{content, payload, string_or_empty, strings, strings_from_fb};
 use super::fruit_estimates::{read_fruit, write_fruit};
-use crate::{fb, Fruit, MessageKind, Result, Wire};
+use glasshouse_geom::FruitEstimate;
 
-/// One fruit of the fleet map.
+use crate::{fb, MessageKind, Result, Wire};
+
+/// One fruit of the fleet map: the one fruit estimate kept (the most confident source's) with
+/// its fleet id and the `"{trolley}/{fruit id}"` of every estimate merged into it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FleetFruit {
     pub fleet_id: String,
-    pub fruit: Fruit,
+    pub fruit: FruitEstimate,
     pub sources: Vec<String>,
 }
 

@@ -1,42 +1,17 @@
 //! FruitEstimates: one trolley's fruits, owning planner → dashboard (also the simulator's truth).
 
 use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
-use nalgebra::{Point3, Vector3};
+use glasshouse_geom::{FruitEstimate, FruitSolid, SolidKind};
+use nalgebra::{Point3, Quaternion, UnitQuaternion, Vector3};
 
-use super::convert::{content, payload, point3f, string_or_empty, vec3f};
+use super::convert::{content, payload, string_or_empty, unit_rotation};
 use crate::{fb, MessageKind, Result, Wire};
 
-#[derive(Clone, Debug, PartialEq)]
-pub struct Fruit {
-    pub id: u32,
-    pub centre_in_world: Point3<f32>,
-    pub box_min: Point3<f32>,
-    pub box_max: Point3<f32>,
-    pub volume_m3: f32,
-    pub voxel_count: u32,
-    pub confidence: f32,
-    /// The fitted whole-fruit estimate; `None` when the planner made no fit.
-    pub fitted: Option<FittedEllipsoid>,
-}
-
-/// Axis-aligned ellipsoid estimate of one fruit, world frame, metres.
-#[derive(Clone, Debug, PartialEq)]
-pub struct FittedEllipsoid {
-    pub centre_in_world: Point3<f32>,
-    pub semi_axes_m: Vector3<f32>,
-    /// `4/3·π·a·b·c`.
-    pub volume_m3: f32,
-    /// `8·a·b·c`, comparable with the box estimate's volume.
-    pub box_volume_m3: f32,
-    /// Share of the fitted surface the map has observed, 0..1.
-    pub confidence: f32,
-    /// False when the fit was degenerate and this is the ellipsoid inscribed in the cluster's box.
-    pub is_fit: bool,
-}
-
+/// One trolley's fruits: each the one fruit type, [`FruitEstimate`], as the planner found it
+/// (or the simulator's truth). On the wire its values are `f32`, except the solid's rotation.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FruitEstimates {
-    pub fruits: Vec<Fruit>,
+    pub fruits: Vec<FruitEstimate>,
     pub based_on_seq: u64,
     pub planner_id: String,
 }
@@ -78,21 +53,48 @@ impl Wire for FruitEstimates {
     }
 }
 
-pub(super) fn write_fruit<'a>(fbb: &mut FlatBufferBuilder<'a>, f: &Fruit) -> WIPOffset<fb::Fruit<'a>> {
-    let centre = vec3f(&f.centre_in_world);
-    let bbox = fb::Box3::new(&vec3f(&f.box_min), &vec3f(&f.box_max));
-    let fitted = f.fitted.as_ref().map(|e| {
-        let centre = vec3f(&e.centre_in_world);
-        let semi_axes = fb::Vec3::new(e.semi_axes_m.x, e.semi_axes_m.y, e.semi_axes_m.z);
+fn vec3(v: &Vector3<f64>) -> fb::Vec3 {
+    fb::Vec3::new(v.x as f32, v.y as f32, v.z as f32)
+}
+
+fn point(v: &fb::Vec3) -> Point3<f64> {
+    Point3::new(v.x().into(), v.y().into(), v.z().into())
+}
+
+fn vector(v: &fb::Vec3) -> Vector3<f64> {
+    point(v).coords
+}
+
+/// Writes one fruit: the one conversion of [`FruitEstimate`] to the wire.
+pub(super) fn write_fruit<'a>(
+    fbb: &mut FlatBufferBuilder<'a>,
+    f: &FruitEstimate,
+) -> WIPOffset<fb::Fruit<'a>> {
+    let centre = vec3(&f.centre.coords);
+    let bbox = fb::Box3::new(&vec3(&f.min.coords), &vec3(&f.max.coords));
+    let fitted = f.solid.as_ref().map(|s| {
+        let centre = vec3(&s.centre.coords);
+        let semi_axes = vec3(&((s.box_max - s.box_min) / 2.0));
+        let solid_box = fb::Box3::new(&vec3(&s.box_min.coords), &vec3(&s.box_max.coords));
+        let body_semi_axes = vec3(&s.semi_axes_m);
+        let q = s.world_from_body.quaternion();
+        let rotation = fb::Quat::new(q.i, q.j, q.k, q.w);
         fb::FittedEllipsoid::create(
             fbb,
             &fb::FittedEllipsoidArgs {
                 centre: Some(&centre),
                 semi_axes: Some(&semi_axes),
-                volume_m3: e.volume_m3,
-                box_volume_m3: e.box_volume_m3,
-                confidence: e.confidence,
-                is_fit: e.is_fit,
+                volume_m3: s.volume_m3 as f32,
+                box_volume_m3: s.box_volume_m3 as f32,
+                confidence: s.confidence as f32,
+                is_fit: s.kind == SolidKind::Ellipsoid,
+                box_: Some(&solid_box),
+                body_semi_axes: Some(&body_semi_axes),
+                world_from_body: Some(&rotation),
+                exponent_profile: s.exponents[0] as f32,
+                exponent_section: s.exponents[1] as f32,
+                taper: s.taper as f32,
+                rms_residual_m: s.rms_residual_m as f32,
             },
         )
     });
@@ -102,48 +104,195 @@ pub(super) fn write_fruit<'a>(fbb: &mut FlatBufferBuilder<'a>, f: &Fruit) -> WIP
             id: f.id,
             centre: Some(&centre),
             box_: Some(&bbox),
-            volume_m3: f.volume_m3,
-            voxel_count: f.voxel_count,
-            confidence: f.confidence,
+            volume_m3: f.volume_m3 as f32,
+            voxel_count: f.voxel_count.min(u32::MAX as usize) as u32,
+            confidence: f.confidence as f32,
             fitted,
+            view_directions: f.view_directions,
         },
     )
 }
 
-fn read_fitted(kind: MessageKind, e: fb::FittedEllipsoid<'_>) -> Result<FittedEllipsoid> {
-    let centre = e
-        .centre()
-        .ok_or_else(|| content(kind, "fitted ellipsoid centre is missing"))?;
-    let axes = e
-        .semi_axes()
-        .ok_or_else(|| content(kind, "fitted ellipsoid semi-axes are missing"))?;
-    Ok(FittedEllipsoid {
-        centre_in_world: point3f(centre),
-        semi_axes_m: Vector3::new(axes.x(), axes.y(), axes.z()),
-        volume_m3: e.volume_m3(),
-        box_volume_m3: e.box_volume_m3(),
-        confidence: e.confidence(),
-        is_fit: e.is_fit(),
+/// Reads a fitted solid. A message from before the solid's own fields carries an axis-aligned
+/// ellipsoid: centred at `centre`, with `semi_axes` for body semi-axes and box.
+fn read_solid(kind: MessageKind, e: fb::FittedEllipsoid<'_>) -> Result<FruitSolid> {
+    let centre = point(
+        e.centre()
+            .ok_or_else(|| content(kind, "fitted solid centre is missing"))?,
+    );
+    let half = vector(
+        e.semi_axes()
+            .ok_or_else(|| content(kind, "fitted solid semi-axes are missing"))?,
+    );
+    let (box_min, box_max) = match e.box_() {
+        Some(b) => (point(b.min()), point(b.max())),
+        None => (centre - half, centre + half),
+    };
+    let world_from_body = match e.world_from_body() {
+        None => UnitQuaternion::identity(),
+        Some(r) => {
+            let q = Quaternion::new(r.w(), r.x(), r.y(), r.z());
+            if !q.coords.iter().all(|v| v.is_finite()) || q.norm() < 1e-6 {
+                return Err(content(kind, "fitted solid rotation is not a rotation"));
+            }
+            unit_rotation(q)
+        }
+    };
+    Ok(FruitSolid {
+        kind: if e.is_fit() {
+            SolidKind::Ellipsoid
+        } else {
+            SolidKind::Box
+        },
+        centre,
+        semi_axes_m: e.body_semi_axes().map_or(half, vector),
+        world_from_body,
+        exponents: [e.exponent_profile().into(), e.exponent_section().into()],
+        taper: e.taper().into(),
+        volume_m3: e.volume_m3().into(),
+        box_min,
+        box_max,
+        box_volume_m3: e.box_volume_m3().into(),
+        confidence: e.confidence().into(),
+        rms_residual_m: e.rms_residual_m().into(),
     })
 }
 
-/// Reads one fruit; `kind` is the message it sits in, for error reports.
-pub(super) fn read_fruit(kind: MessageKind, f: fb::Fruit<'_>) -> Result<Fruit> {
+/// Reads one fruit, the one conversion of the wire to [`FruitEstimate`]; `kind` is the message
+/// it sits in, for error reports.
+pub(super) fn read_fruit(kind: MessageKind, f: fb::Fruit<'_>) -> Result<FruitEstimate> {
     let centre = f
         .centre()
         .ok_or_else(|| content(kind, "fruit centre is missing"))?;
     let bbox = f
         .box_()
         .ok_or_else(|| content(kind, "fruit box is missing"))?;
-    let fitted = f.fitted().map(|e| read_fitted(kind, e)).transpose()?;
-    Ok(Fruit {
+    let solid = f.fitted().map(|e| read_solid(kind, e)).transpose()?;
+    Ok(FruitEstimate {
         id: f.id(),
-        centre_in_world: point3f(centre),
-        box_min: point3f(bbox.min()),
-        box_max: point3f(bbox.max()),
-        volume_m3: f.volume_m3(),
-        voxel_count: f.voxel_count(),
-        confidence: f.confidence(),
-        fitted,
+        centre: point(centre),
+        min: point(bbox.min()),
+        max: point(bbox.max()),
+        volume_m3: f.volume_m3().into(),
+        voxel_count: f.voxel_count() as usize,
+        confidence: f.confidence().into(),
+        view_directions: f.view_directions(),
+        solid,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use crate::{decode_typed, encode, samples, Message};
+
+    /// A planner from before the solid's rotation, exponents, taper, box and residual and the
+    /// fruit's view directions: it wrote only the first fields of each table.
+    #[derive(Clone, Debug)]
+    struct OldSender(FruitEstimates);
+
+    impl From<OldSender> for Message {
+        fn from(old: OldSender) -> Self {
+            Message::FruitEstimates(old.0)
+        }
+    }
+
+    impl Wire for OldSender {
+        const KIND: MessageKind = MessageKind::FruitEstimates;
+
+        fn write_payload(&self, fbb: &mut FlatBufferBuilder<'_>) -> WIPOffset<UnionWIPOffset> {
+            let m = &self.0;
+            let fruits: Vec<_> = m
+                .fruits
+                .iter()
+                .map(|f| {
+                    let fitted = f.solid.as_ref().map(|s| {
+                        let centre = vec3(&s.centre.coords);
+                        let semi_axes = vec3(&((s.box_max - s.box_min) / 2.0));
+                        let mut t = fb::FittedEllipsoidBuilder::new(fbb);
+                        t.add_centre(&centre);
+                        t.add_semi_axes(&semi_axes);
+                        t.add_volume_m3(s.volume_m3 as f32);
+                        t.add_box_volume_m3(s.box_volume_m3 as f32);
+                        t.add_confidence(s.confidence as f32);
+                        t.add_is_fit(s.kind == SolidKind::Ellipsoid);
+                        t.finish()
+                    });
+                    let centre = vec3(&f.centre.coords);
+                    let bbox = fb::Box3::new(&vec3(&f.min.coords), &vec3(&f.max.coords));
+                    let mut t = fb::FruitBuilder::new(fbb);
+                    t.add_id(f.id);
+                    t.add_centre(&centre);
+                    t.add_box_(&bbox);
+                    t.add_volume_m3(f.volume_m3 as f32);
+                    t.add_voxel_count(f.voxel_count as u32);
+                    t.add_confidence(f.confidence as f32);
+                    if let Some(fitted) = fitted {
+                        t.add_fitted(fitted);
+                    }
+                    t.finish()
+                })
+                .collect();
+            let fruits = fbb.create_vector(&fruits);
+            let planner = fbb.create_string(&m.planner_id);
+            let mut t = fb::FruitEstimatesBuilder::new(fbb);
+            t.add_fruits(fruits);
+            t.add_based_on_seq(m.based_on_seq);
+            t.add_planner_id(planner);
+            t.finish().as_union_value()
+        }
+
+        fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self> {
+            FruitEstimates::read_payload(envelope).map(OldSender)
+        }
+    }
+
+    fn round_trip(m: &FruitEstimates) -> FruitEstimates {
+        decode_typed::<FruitEstimates>(&encode(&samples::header(3), m))
+            .unwrap()
+            .1
+    }
+
+    #[test]
+    fn the_solid_round_trips_with_its_rotation_exponents_and_taper() {
+        let sample = samples::fruit_estimates();
+        let read = round_trip(&sample);
+        assert_eq!(format!("{read:?}"), format!("{sample:?}"));
+        let solid = read.fruits[0].solid.unwrap();
+        assert!(solid.world_from_body.angle() > 0.1);
+        assert_eq!(solid.exponents, [0.5, 1.0]);
+        assert_eq!(read.fruits[0].view_directions, 3);
+    }
+
+    #[test]
+    fn fruits_from_a_sender_without_the_solid_fields_read_as_axis_aligned_ellipsoids() {
+        let sample = samples::fruit_estimates();
+        let old = encode(&samples::header(3), &OldSender(sample.clone()));
+        let (_, read) = decode_typed::<FruitEstimates>(&old).unwrap();
+        let (f, was) = (&read.fruits[0], &sample.fruits[0]);
+        assert_eq!(
+            (f.id, f.centre, f.min, f.max),
+            (was.id, was.centre, was.min, was.max)
+        );
+        assert_eq!(
+            (f.voxel_count, f.confidence),
+            (was.voxel_count, was.confidence)
+        );
+        assert_eq!(f.view_directions, 0);
+        let (s, s_was) = (f.solid.unwrap(), was.solid.unwrap());
+        let half = (s_was.box_max - s_was.box_min) / 2.0;
+        assert_eq!(s.kind, SolidKind::Ellipsoid);
+        assert_eq!(s.centre, s_was.centre);
+        assert_eq!(s.semi_axes_m, half);
+        assert_eq!((s.box_min, s.box_max), (s.centre - half, s.centre + half));
+        assert_eq!(s.world_from_body, UnitQuaternion::identity());
+        assert_eq!((s.exponents, s.taper), ([1.0, 1.0], 0.0));
+        assert_eq!(
+            (s.volume_m3, s.confidence),
+            (s_was.volume_m3, s_was.confidence)
+        );
+        assert!(s.rms_residual_m.is_nan());
+    }
 }

@@ -5,11 +5,15 @@
 import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
+from glasshouse.wire.Box3 import Box3
+from glasshouse.wire.Quat import Quat
 from glasshouse.wire.Vec3 import Vec3
 from typing import Optional
 np = import_numpy()
 
-# Axis-aligned ellipsoid estimate of one fruit, world frame, metres.
+# The whole-fruit solid fitted to one fruit, world frame, metres: a superellipsoid with body
+# axes world_from_body, semi-axes body_semi_axes, exponents and taper. A reader that knows only
+# the first six fields sees the axis-aligned ellipsoid inscribed in the world box around it.
 class FittedEllipsoid(object):
     __slots__ = ['_tab']
 
@@ -32,6 +36,7 @@ class FittedEllipsoid(object):
     def Init(self, buf: bytes, pos: int):
         self._tab = flatbuffers.table.Table(buf, pos)
 
+    # Centroid of the solid.
     # FittedEllipsoid
     def Centre(self) -> Optional[Vec3]:
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(4))
@@ -42,6 +47,7 @@ class FittedEllipsoid(object):
             return obj
         return None
 
+    # Half the size of the world box around the solid (the body semi-axes when axis-aligned).
     # FittedEllipsoid
     def SemiAxes(self) -> Optional[Vec3]:
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(6))
@@ -52,7 +58,7 @@ class FittedEllipsoid(object):
             return obj
         return None
 
-    # 4/3·π·a·b·c.
+    # Volume of the solid (4/3·π·a·b·c for an ellipsoid).
     # FittedEllipsoid
     def VolumeM3(self):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(8))
@@ -60,7 +66,7 @@ class FittedEllipsoid(object):
             return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
         return 0.0
 
-    # 8·a·b·c: the volume of the box around it, comparable with the box estimate.
+    # The volume of the world box around it, comparable with the box estimate.
     # FittedEllipsoid
     def BoxVolumeM3(self):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
@@ -84,8 +90,73 @@ class FittedEllipsoid(object):
             return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
         return False
 
+    # The world box around the solid; absent in older messages (then centre ± semi_axes).
+    # FittedEllipsoid
+    def Box(self) -> Optional[Box3]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            x = o + self._tab.Pos
+            obj = Box3()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Semi-axes along the body axes; absent in older messages (then semi_axes).
+    # FittedEllipsoid
+    def BodySemiAxes(self) -> Optional[Vec3]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            x = o + self._tab.Pos
+            obj = Vec3()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Orientation of the body axes; absent in older messages (then the identity).
+    # FittedEllipsoid
+    def WorldFromBody(self) -> Optional[Quat]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            x = o + self._tab.Pos
+            obj = Quat()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Shape exponents ε1 (profile along body z) and ε2 (cross-section); 1 and 1: an ellipsoid.
+    # FittedEllipsoid
+    def ExponentProfile(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
+        return 1.0
+
+    # FittedEllipsoid
+    def ExponentSection(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
+        return 1.0
+
+    # Taper along body z: the cross-section at z = ±c is 1 ± taper times as wide as at the middle.
+    # FittedEllipsoid
+    def Taper(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
+        return 0.0
+
+    # Root mean square distance of the cluster's voxel centres from the surface; NaN for a box
+    # fallback and in older messages.
+    # FittedEllipsoid
+    def RmsResidualM(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(28))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
+        return float('nan')
+
 def FittedEllipsoidStart(builder: flatbuffers.Builder):
-    builder.StartObject(6)
+    builder.StartObject(13)
 
 def Start(builder: flatbuffers.Builder):
     FittedEllipsoidStart(builder)
@@ -125,6 +196,48 @@ def FittedEllipsoidAddIsFit(builder: flatbuffers.Builder, isFit: bool):
 
 def AddIsFit(builder: flatbuffers.Builder, isFit: bool):
     FittedEllipsoidAddIsFit(builder, isFit)
+
+def FittedEllipsoidAddBox(builder: flatbuffers.Builder, box: Any):
+    builder.PrependStructSlot(6, flatbuffers.number_types.UOffsetTFlags.py_type(box), 0)
+
+def AddBox(builder: flatbuffers.Builder, box: Any):
+    FittedEllipsoidAddBox(builder, box)
+
+def FittedEllipsoidAddBodySemiAxes(builder: flatbuffers.Builder, bodySemiAxes: Any):
+    builder.PrependStructSlot(7, flatbuffers.number_types.UOffsetTFlags.py_type(bodySemiAxes), 0)
+
+def AddBodySemiAxes(builder: flatbuffers.Builder, bodySemiAxes: Any):
+    FittedEllipsoidAddBodySemiAxes(builder, bodySemiAxes)
+
+def FittedEllipsoidAddWorldFromBody(builder: flatbuffers.Builder, worldFromBody: Any):
+    builder.PrependStructSlot(8, flatbuffers.number_types.UOffsetTFlags.py_type(worldFromBody), 0)
+
+def AddWorldFromBody(builder: flatbuffers.Builder, worldFromBody: Any):
+    FittedEllipsoidAddWorldFromBody(builder, worldFromBody)
+
+def FittedEllipsoidAddExponentProfile(builder: flatbuffers.Builder, exponentProfile: float):
+    builder.PrependFloat32Slot(9, exponentProfile, 1.0)
+
+def AddExponentProfile(builder: flatbuffers.Builder, exponentProfile: float):
+    FittedEllipsoidAddExponentProfile(builder, exponentProfile)
+
+def FittedEllipsoidAddExponentSection(builder: flatbuffers.Builder, exponentSection: float):
+    builder.PrependFloat32Slot(10, exponentSection, 1.0)
+
+def AddExponentSection(builder: flatbuffers.Builder, exponentSection: float):
+    FittedEllipsoidAddExponentSection(builder, exponentSection)
+
+def FittedEllipsoidAddTaper(builder: flatbuffers.Builder, taper: float):
+    builder.PrependFloat32Slot(11, taper, 0.0)
+
+def AddTaper(builder: flatbuffers.Builder, taper: float):
+    FittedEllipsoidAddTaper(builder, taper)
+
+def FittedEllipsoidAddRmsResidualM(builder: flatbuffers.Builder, rmsResidualM: float):
+    builder.PrependFloat32Slot(12, rmsResidualM, float('nan'))
+
+def AddRmsResidualM(builder: flatbuffers.Builder, rmsResidualM: float):
+    FittedEllipsoidAddRmsResidualM(builder, rmsResidualM)
 
 def FittedEllipsoidEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -81,7 +81,7 @@ class Fruit(object):
             return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
         return 0.0
 
-    # Ellipsoid fitted to the cluster's surface voxels, kept out of observed free space (the
+    # Solid fitted to the cluster's surface voxels, kept out of observed free space (the
     # estimate of the whole fruit, not only its seen part); absent when no fit was made.
     # Fruit
     def Fitted(self) -> Optional[FittedEllipsoid]:
@@ -93,8 +93,16 @@ class Fruit(object):
             return obj
         return None
 
+    # Distinct directions from which scans hit the fruit; 0 in older messages.
+    # Fruit
+    def ViewDirections(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
+        return 0
+
 def FruitStart(builder: flatbuffers.Builder):
-    builder.StartObject(7)
+    builder.StartObject(8)
 
 def Start(builder: flatbuffers.Builder):
     FruitStart(builder)
@@ -140,6 +148,12 @@ def FruitAddFitted(builder: flatbuffers.Builder, fitted: int):
 
 def AddFitted(builder: flatbuffers.Builder, fitted: int):
     FruitAddFitted(builder, fitted)
+
+def FruitAddViewDirections(builder: flatbuffers.Builder, viewDirections: int):
+    builder.PrependUint32Slot(7, viewDirections, 0)
+
+def AddViewDirections(builder: flatbuffers.Builder, viewDirections: int):
+    FruitAddViewDirections(builder, viewDirections)
 
 def FruitEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -39,7 +39,7 @@ use glasshouse_roimap::{RoiCluster, RoiMap};
 use nalgebra::{Matrix3, Point3, SMatrix, SVector, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::fit::{FittedShape, ShapeKind};
+use crate::fit::{FruitSolid, SolidKind};
 
 /// Thresholds of the fruit rule (module docs). [`Default`] suits 1 cm voxels and capsicum-sized
 /// fruit (5-12 cm).
@@ -332,7 +332,7 @@ impl FruitEvidence {
     /// Combines what the cluster's voxels say, its fit and the directions it was seen from.
     pub fn judge(
         seen: &ClusterEvidence,
-        fitted: &FittedShape,
+        fitted: &FruitSolid,
         view_directions: u32,
         config: &EvidenceConfig,
     ) -> Self {
@@ -345,7 +345,7 @@ impl FruitEvidence {
         };
         let by_share = ((observed - 0.5) / 0.5).clamp(0.0, 1.0);
         let sides = by_views.max(by_share);
-        let fit = if fitted.kind == ShapeKind::Box {
+        let fit = if fitted.kind == SolidKind::Box {
             BOX_FIT_FACTOR
         } else {
             1.0

@@ -45,10 +45,10 @@
 //! A fit that is degenerate (too few voxels, non-finite, semi-axes outside
 //! `[resolution / 2, max_semi_axis_m]`, centre far from the cluster, or a poor surface fit) falls
 //! back: a failed superellipsoid to the axis-aligned ellipsoid, a failed ellipsoid to the
-//! cluster's box (the ellipsoid inscribed in it, [`ShapeKind::Box`]).
+//! cluster's box (the ellipsoid inscribed in it, [`SolidKind::Box`]).
 //!
 //! Ground truth comes as boxes, so the fitted estimate is compared to the truth through the
-//! world-axis box around the fitted solid ([`FittedShape::box_volume_m3`]).
+//! world-axis box around the fitted solid ([`FruitSolid::box_volume_m3`]).
 
 mod refine;
 #[cfg(test)]
@@ -60,16 +60,9 @@ use nalgebra::{Matrix6, Point3, UnitQuaternion, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use crate::evidence::EvidenceConfig;
-use crate::superellipsoid::Superellipsoid;
+pub use glasshouse_geom::{FruitSolid, SolidKind};
 
-/// How a [`FittedShape`] was obtained.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum ShapeKind {
-    /// A fitted (super)ellipsoid: [`FittedShape::exponents`] say which.
-    Ellipsoid,
-    /// The fit was degenerate: the ellipsoid inscribed in the cluster's box.
-    Box,
-}
+use crate::superellipsoid::Superellipsoid;
 
 /// Which solid [`fit_ellipsoid`] fits.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -80,51 +73,6 @@ pub enum ShapeModel {
     /// A rotated superellipsoid ([`Superellipsoid`]).
     #[default]
     Superellipsoid,
-}
-
-/// A whole-fruit estimate of one fruit, world frame: a superellipsoid ([`Superellipsoid`]) with
-/// its centre, orientation, semi-axes and shape exponents.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FittedShape {
-    pub kind: ShapeKind,
-    /// Centre of volume of the solid (its body origin too, unless tapered).
-    pub centre: Point3<f64>,
-    /// Semi-axes along the body axes (the columns of `world_from_body`).
-    pub semi_axes_m: Vector3<f64>,
-    /// Orientation of the body axes; the identity for axis-aligned fits and box fallbacks.
-    pub world_from_body: UnitQuaternion<f64>,
-    /// Shape exponents `[ε1, ε2]`; `[1, 1]` is an ellipsoid.
-    pub exponents: [f64; 2],
-    /// Taper along body z ([`Superellipsoid::taper`]); 0 for ellipsoids.
-    pub taper: f64,
-    /// Volume of the solid ([`Superellipsoid::volume_m3`]; `4/3·π·a·b·c` for an ellipsoid).
-    pub volume_m3: f64,
-    /// World-axis box around the solid (`centre ∓ semi_axes` when axis-aligned).
-    pub box_min: Point3<f64>,
-    pub box_max: Point3<f64>,
-    /// Volume of that box (comparable with box ground truth; `8·a·b·c` when axis-aligned).
-    pub box_volume_m3: f64,
-    /// Share of the fitted surface the map has observed, in [0, 1].
-    pub confidence: f64,
-    /// Root mean square distance of the cluster's voxel centres from the surface, in metres.
-    pub rms_residual_m: f64,
-}
-
-impl FittedShape {
-    /// The fitted solid.
-    pub fn solid(&self) -> Superellipsoid {
-        let mut solid = Superellipsoid {
-            centre: self.centre,
-            world_from_body: self.world_from_body.to_rotation_matrix(),
-            semi_axes_m: self.semi_axes_m,
-            exponents: self.exponents,
-            taper: self.taper,
-        };
-        if self.taper != 0.0 {
-            solid.centre -= solid.world_from_body * Vector3::z() * solid.centroid_offset_m();
-        }
-        solid
-    }
 }
 
 /// Parameters of [`fit_ellipsoid`]. [`Default`] suits the simulator's 5-9 cm fruits at 1 cm.
@@ -464,14 +412,14 @@ fn free_voxels_in(map: &RoiMap, lo: &Point3<f64>, hi: &Point3<f64>) -> Vec<Point
 }
 
 fn shape(
-    kind: ShapeKind,
+    kind: SolidKind,
     centre: Point3<f64>,
     axes: Vector3<f64>,
     confidence: f64,
     rms_residual_m: f64,
-) -> FittedShape {
+) -> FruitSolid {
     let product = axes.x * axes.y * axes.z;
-    FittedShape {
+    FruitSolid {
         kind,
         centre,
         semi_axes_m: axes,
@@ -488,11 +436,11 @@ fn shape(
 }
 
 /// The box fallback: the ellipsoid inscribed in the cluster's box.
-pub fn box_shape(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> FittedShape {
+pub fn box_shape(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> FruitSolid {
     let centre = Point3::from((cluster.min.coords + cluster.max.coords) / 2.0);
     let axes = ((cluster.max - cluster.min) / 2.0).map(|v| v.max(0.0));
     let confidence = observed_share(map, &centre, &axes, config.surface_samples);
-    shape(ShapeKind::Box, centre, axes, confidence, f64::NAN)
+    shape(SolidKind::Box, centre, axes, confidence, f64::NAN)
 }
 
 /// The box (min, max corners) holding every voxel [`fit_ellipsoid`] read to fit `shape` to
@@ -502,7 +450,7 @@ pub fn box_shape(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> Fitt
 pub fn fit_read_box(
     map: &RoiMap,
     cluster: &RoiCluster,
-    shape: &FittedShape,
+    shape: &FruitSolid,
     config: &FitConfig,
 ) -> (Point3<f64>, Point3<f64>) {
     let pad = Vector3::repeat(config.free_search_margin_m.max(0.0));
@@ -661,7 +609,7 @@ impl FitData {
 
 /// Fits the whole-fruit solid of `config.model` to `cluster` (see the module docs). Never
 /// panics; degenerate input gives the box fallback.
-pub fn fit_ellipsoid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> FittedShape {
+pub fn fit_ellipsoid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> FruitSolid {
     let Some(data) = FitData::gather(map, cluster, config) else {
         return box_shape(map, cluster, config);
     };
@@ -699,7 +647,7 @@ fn finish_axis_aligned(
     centre: Point3<f64>,
     mut axes: Vector3<f64>,
     config: &FitConfig,
-) -> FittedShape {
+) -> FruitSolid {
     let res = data.resolution_m;
     if !(centre.iter().all(|c| c.is_finite()) && data.axis_ok(&axes, config)) {
         return box_shape(map, cluster, config);
@@ -742,7 +690,7 @@ fn finish_axis_aligned(
         return box_shape(map, cluster, config);
     }
     let confidence = observed_share(map, &centre, &axes, config.surface_samples);
-    shape(ShapeKind::Ellipsoid, centre, axes, confidence, rms_m)
+    shape(SolidKind::Ellipsoid, centre, axes, confidence, rms_m)
 }
 
 #[cfg(test)]
@@ -804,10 +752,10 @@ mod tests {
         let fit = fit_ellipsoid(&m, &cluster, &clean_scan_config());
         let ratio = fit.volume_m3 / sphere_volume(r);
         assert!(
-            whole.kind == ShapeKind::Box && whole_error > 0.8,
+            whole.kind == SolidKind::Box && whole_error > 0.8,
             "without trimming: {whole:?} ({whole_error:.2} off)"
         );
-        assert_eq!(fit.kind, ShapeKind::Ellipsoid, "{fit:?}");
+        assert_eq!(fit.kind, SolidKind::Ellipsoid, "{fit:?}");
         assert!(
             (ratio - 1.0).abs() < 0.6 * whole_error,
             "fitted/true {ratio:.3} against the box's {whole_error:.2} off: {fit:?}"
@@ -827,7 +775,7 @@ mod tests {
             scan(&mut m, centre() + dir * 0.4, &axes);
             let cluster = only_cluster(&m);
             let fit = fit_ellipsoid(&m, &cluster, &clean_scan_config());
-            assert_eq!(fit.kind, ShapeKind::Ellipsoid, "{dir:?}");
+            assert_eq!(fit.kind, SolidKind::Ellipsoid, "{dir:?}");
             let ratio = fit.volume_m3 / sphere_volume(R);
             assert!(
                 (0.8..=1.2).contains(&ratio),
@@ -879,7 +827,7 @@ mod tests {
         }
         let cluster = only_cluster(&m);
         let fit = fit_ellipsoid(&m, &cluster, &clean_scan_config());
-        assert_eq!(fit.kind, ShapeKind::Ellipsoid);
+        assert_eq!(fit.kind, SolidKind::Ellipsoid);
         for i in 0..3 {
             let rel = fit.semi_axes_m[i] / axes[i];
             assert!((0.85..=1.15).contains(&rel), "axis {i}: {fit:?}");
@@ -936,7 +884,7 @@ mod tests {
             "{constrained:?}"
         );
         // No free voxel lies deep inside the result.
-        let solid = constrained.solid();
+        let solid = Superellipsoid::from(&constrained);
         for (k, _) in &free {
             let d = solid.radial_distance_m(&m.centre_of(*k));
             assert!(d >= -0.01 - 1e-9, "{k:?} {d} m deep");
@@ -962,7 +910,7 @@ mod tests {
         m.apply_voxels(&sheet);
         let cluster = only_cluster(&m);
         let fit = fit_ellipsoid(&m, &cluster, &clean_scan_config());
-        assert_eq!(fit.kind, ShapeKind::Box, "{fit:?}");
+        assert_eq!(fit.kind, SolidKind::Box, "{fit:?}");
         assert!((fit.box_min - cluster.min).norm() < 1e-12);
         assert!((fit.box_max - cluster.max).norm() < 1e-12);
         // Too few voxels: box too.
@@ -972,7 +920,7 @@ mod tests {
         };
         assert_eq!(
             fit_ellipsoid(&m, &small, &clean_scan_config()).kind,
-            ShapeKind::Box
+            SolidKind::Box
         );
     }
 
@@ -995,7 +943,7 @@ mod tests {
                     let mut m = map();
                     scan_at(&mut m, c, c + dir * 0.4, &Vector3::repeat(r));
                     let fit = fit_ellipsoid(&m, &only_cluster(&m), &config);
-                    assert_eq!(fit.kind, ShapeKind::Ellipsoid);
+                    assert_eq!(fit.kind, SolidKind::Ellipsoid);
                     ratios.push(fit.volume_m3 / sphere_volume(r));
                 }
             }

@@ -20,7 +20,8 @@ use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
 use crate::evidence::principal_axes;
-use crate::fit::{fit_ellipsoid, fit_read_box, FitConfig, FittedShape, ShapeKind};
+use crate::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid, SolidKind};
+use crate::superellipsoid::Superellipsoid;
 
 /// Most fruits one cluster is split into.
 pub const MAX_PARTS: usize = 4;
@@ -55,7 +56,7 @@ pub struct Split {
     pub parts: Vec<RoiCluster>,
     /// Each part's fit when the split made one (same order as `parts`), with the box it read:
     /// exactly what [`fit_ellipsoid`] and [`fit_read_box`] give for that part on this map.
-    pub fits: Vec<Option<(FittedShape, ReadBox)>>,
+    pub fits: Vec<Option<(FruitSolid, ReadBox)>>,
     /// The box holding every voxel the fits tried read; `None` when the cluster is too short or
     /// too small to be tried, so nothing but its voxels decided.
     pub read: Option<ReadBox>,
@@ -66,24 +67,24 @@ pub type ReadBox = (Point3<f64>, Point3<f64>);
 
 /// The fits made while splitting one cluster, each made once.
 #[derive(Default)]
-struct Fits(Vec<(Vec<VoxelKey>, FittedShape, ReadBox)>);
+struct Fits(Vec<(Vec<VoxelKey>, FruitSolid, ReadBox)>);
 
 impl Fits {
     /// Whether `c` fits one solid, fitting it unless it was fitted before.
     fn ellipsoid(&mut self, map: &RoiMap, c: &RoiCluster, config: &FitConfig) -> bool {
         if let Some((_, shape, _)) = self.0.iter().find(|(v, _, _)| *v == c.voxels) {
-            return shape.kind == ShapeKind::Ellipsoid;
+            return shape.kind == SolidKind::Ellipsoid;
         }
         let shape = fit_ellipsoid(map, c, config);
         let read = fit_read_box(map, c, &shape, config);
-        let ellipsoid = shape.kind == ShapeKind::Ellipsoid;
+        let ellipsoid = shape.kind == SolidKind::Ellipsoid;
         self.0.push((c.voxels.clone(), shape, read));
         ellipsoid
     }
 
-    fn of(&self, c: &RoiCluster) -> Option<(FittedShape, ReadBox)> {
+    fn of(&self, c: &RoiCluster) -> Option<(FruitSolid, ReadBox)> {
         let found = self.0.iter().find(|(v, _, _)| *v == c.voxels);
-        found.map(|(_, shape, read)| (shape.clone(), *read))
+        found.map(|(_, shape, read)| (*shape, *read))
     }
 
     fn read(&self) -> Option<ReadBox> {
@@ -124,17 +125,19 @@ pub fn split_cluster(
 /// For each fit (with its cluster's voxel count), whether it is a fragment of a fruit that a
 /// larger cluster's fitted solid already holds (see the module docs). Larger clusters are
 /// judged first; a fragment never holds another. Box fallbacks hold nothing.
-pub fn fragments(fits: &[FittedShape], voxel_counts: &[usize]) -> Vec<bool> {
+pub fn fragments(fits: &[FruitSolid], voxel_counts: &[usize]) -> Vec<bool> {
     let mut order: Vec<usize> = (0..fits.len().min(voxel_counts.len())).collect();
     order.sort_by_key(|&i| (std::cmp::Reverse(voxel_counts[i]), i));
     let mut fragment = vec![false; fits.len()];
     let mut holders: Vec<usize> = Vec::new();
     for i in order {
         let centre = fits[i].centre;
-        let held = holders.iter().any(|&h| fits[h].solid().holds(&centre, 0.0));
+        let held = holders
+            .iter()
+            .any(|&h| Superellipsoid::from(&fits[h]).holds(&centre, 0.0));
         if held {
             fragment[i] = true;
-        } else if fits[i].kind == ShapeKind::Ellipsoid {
+        } else if fits[i].kind == SolidKind::Ellipsoid {
             holders.push(i);
         }
     }
@@ -335,23 +338,23 @@ mod tests {
         let config = clean_scan_config();
         let fit = |v: &Vec<VoxelKey>| fit_ellipsoid(&m, &m.cluster_of(v.clone()), &config);
         let (fl, fr) = (fit(&left), fit(&right));
-        assert_eq!(fl.kind, ShapeKind::Ellipsoid);
+        assert_eq!(fl.kind, SolidKind::Ellipsoid);
         let counts = [left.len(), right.len()];
-        let marked = fragments(&[fl.clone(), fr.clone()], &counts);
+        let marked = fragments(&[fl, fr], &counts);
         assert_eq!(marked.iter().filter(|f| **f).count(), 1, "{fl:?} {fr:?}");
 
         // Two fruits side by side, and a box fallback, hold nothing.
-        let other = FittedShape {
+        let other = FruitSolid {
             centre: fl.centre + Vector3::new(2.0 * r.x + 0.002, 0.0, 0.0),
-            ..fl.clone()
+            ..fl
         };
-        assert_eq!(fragments(&[fl.clone(), other], &[50, 40]), [false, false]);
-        let boxed = FittedShape {
-            kind: ShapeKind::Box,
-            ..fl.clone()
+        assert_eq!(fragments(&[fl, other], &[50, 40]), [false, false]);
+        let boxed = FruitSolid {
+            kind: SolidKind::Box,
+            ..fl
         };
-        assert_eq!(fragments(&[boxed, fl.clone()], &[50, 40]), [false, false]);
-        assert_eq!(fragments(&[fl.clone(), fl], &[40, 50]), [true, false]);
+        assert_eq!(fragments(&[boxed, fl], &[50, 40]), [false, false]);
+        assert_eq!(fragments(&[fl, fl], &[40, 50]), [true, false]);
     }
 
     #[test]

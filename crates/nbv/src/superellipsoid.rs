@@ -297,6 +297,24 @@ pub fn beta(p: f64, q: f64) -> f64 {
     (ln_gamma(p) + ln_gamma(q) - ln_gamma(p + q)).exp()
 }
 
+impl From<&glasshouse_geom::FruitSolid> for Superellipsoid {
+    /// The solid a fit describes (its `centre` is the centre of volume, the body origin sits
+    /// off it along body z when tapered).
+    fn from(fitted: &glasshouse_geom::FruitSolid) -> Self {
+        let mut solid = Superellipsoid {
+            centre: fitted.centre,
+            world_from_body: fitted.world_from_body.to_rotation_matrix(),
+            semi_axes_m: fitted.semi_axes_m,
+            exponents: fitted.exponents,
+            taper: fitted.taper,
+        };
+        if fitted.taper != 0.0 {
+            solid.centre -= solid.world_from_body * Vector3::z() * solid.centroid_offset_m();
+        }
+        solid
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]

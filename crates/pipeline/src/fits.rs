@@ -9,7 +9,7 @@
 use std::collections::HashMap;
 
 use glasshouse_nbv::evidence::{ClusterEvidence, ClusterShape};
-use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FittedShape};
+use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid};
 use glasshouse_nbv::split::{split_cluster, ReadBox};
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 use nalgebra::Point3;
@@ -22,7 +22,7 @@ struct CachedFit {
     read_min: Point3<f64>,
     read_max: Point3<f64>,
     at_scans: u64,
-    shape: FittedShape,
+    shape: FruitSolid,
     evidence: ClusterEvidence,
 }
 
@@ -43,7 +43,7 @@ impl FitCache {
         map: &RoiMap,
         clusters: impl IntoIterator<Item = &'a RoiCluster>,
         config: &FitConfig,
-    ) -> (Vec<FittedShape>, usize) {
+    ) -> (Vec<FruitSolid>, usize) {
         let mut previous = std::mem::take(&mut self.by_first_voxel);
         let mut refits = 0;
         let shapes = clusters
@@ -58,7 +58,7 @@ impl FitCache {
                     refits += 1;
                     fit(map, cluster, config)
                 });
-                let shape = cached.shape.clone();
+                let shape = cached.shape;
                 self.by_first_voxel.insert(first, cached);
                 shape
             })
@@ -74,7 +74,7 @@ impl FitCache {
         &mut self,
         map: &RoiMap,
         cluster: &RoiCluster,
-        shape: FittedShape,
+        shape: FruitSolid,
         read: ReadBox,
     ) {
         let cached = CachedFit {

@@ -4,8 +4,7 @@
 use std::borrow::Cow;
 
 use glasshouse_arm::Robot;
-use glasshouse_geom::{FruitSolid, SolidKind};
-use glasshouse_nbv::fit::{FitConfig, FittedShape, ShapeKind};
+use glasshouse_nbv::fit::{FitConfig, FruitSolid};
 use glasshouse_nbv::split::fragments;
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, Plan, PlanError, PlannerConfig,
@@ -236,27 +235,6 @@ pub fn plan_seed(seed: u64, frame_seq: u64) -> u64 {
         .wrapping_add(frame_seq)
 }
 
-/// The fitted solid as the one fruit type carries it.
-pub(crate) fn solid_of(s: &FittedShape) -> FruitSolid {
-    FruitSolid {
-        kind: match s.kind {
-            ShapeKind::Ellipsoid => SolidKind::Ellipsoid,
-            ShapeKind::Box => SolidKind::Box,
-        },
-        centre: s.centre,
-        semi_axes_m: s.semi_axes_m,
-        world_from_body: s.world_from_body,
-        exponents: s.exponents,
-        taper: s.taper,
-        volume_m3: s.volume_m3,
-        box_min: s.box_min,
-        box_max: s.box_max,
-        box_volume_m3: s.box_volume_m3,
-        confidence: s.confidence,
-        rms_residual_m: s.rms_residual_m,
-    }
-}
-
 /// The ranked views of a plan on frame `based_on` as they travel on the bus.
 pub fn ranked_views(
     plan: &Plan,
@@ -303,7 +281,7 @@ pub struct TrolleyPlanner {
     clusters: Vec<RoiCluster>,
     estimates: Vec<FruitEstimate>,
     /// The fitted shape of each cluster, and the fits kept between frames.
-    fits: Vec<FittedShape>,
+    fits: Vec<FruitSolid>,
     fit_cache: FitCache,
     /// The clusters changed since the fits were last made.
     fits_stale: bool,
@@ -543,7 +521,7 @@ impl TrolleyPlanner {
     }
 
     /// The fruit of cluster `i`, fitted `fitted`, with its evidence's confidence.
-    fn record(&self, i: usize, fitted: &FittedShape) -> FruitEstimate {
+    fn record(&self, i: usize, fitted: &FruitSolid) -> FruitEstimate {
         use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence};
         let (cluster, estimate) = (&self.clusters[i], &self.estimates[i]);
         let seen = match self.fit_cache.evidence_of(cluster) {
@@ -554,7 +532,7 @@ impl TrolleyPlanner {
         let evidence = FruitEvidence::judge(&seen, fitted, views, &self.settings.fit.evidence);
         FruitEstimate {
             confidence: evidence.confidence,
-            solid: Some(solid_of(fitted)),
+            solid: Some(*fitted),
             ..*estimate
         }
     }

@@ -475,7 +475,7 @@ fn the_cloud_carries_the_frame_camera_pose() {
 
 /// Fits every cluster of the planner's map afresh, keeping what `fruits` reports: the clusters
 /// shaped like fruit, and of those the ones that are not a fragment of another.
-fn fresh_fits(planner: &TrolleyPlanner) -> Vec<glasshouse_nbv::fit::FittedShape> {
+fn fresh_fits(planner: &TrolleyPlanner) -> Vec<glasshouse_nbv::fit::FruitSolid> {
     let map = planner.map();
     let (min_voxels, config) = (
         planner.settings().min_cluster_voxels,
@@ -519,10 +519,7 @@ fn kept_fits_equal_fresh_fits_and_only_touched_fruits_are_refitted() {
         .unwrap();
         planner.integrate(&cloud, EPOCH_NS).unwrap();
         let fitted: Vec<_> = planner.fruits().into_iter().map(|f| f.solid).collect();
-        let fresh: Vec<_> = fresh_fits(&planner)
-            .iter()
-            .map(|s| Some(crate::planning::solid_of(s)))
-            .collect();
+        let fresh: Vec<_> = fresh_fits(&planner).iter().map(|s| Some(*s)).collect();
         // Debug text: equal bit for bit, NaN residuals of box fallbacks included.
         let text = |solids: &[Option<glasshouse_geom::FruitSolid>]| format!("{solids:?}");
         assert_eq!(text(&fitted), text(&fresh), "frame {seq}");

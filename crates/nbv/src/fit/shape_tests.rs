@@ -118,7 +118,7 @@ fn tilted_lobed_capsicum_seen_from_one_two_or_three_sides() {
                 fit.taper,
                 fit.rms_residual_m * 1e3
             );
-            assert_eq!(fit.kind, ShapeKind::Ellipsoid, "{case}");
+            assert_eq!(fit.kind, SolidKind::Ellipsoid, "{case}");
             let points: Vec<_> = cluster.voxels.iter().map(|k| m.centre_of(*k)).collect();
             let waist = crate::split::waist_ratio(&points, m.config().resolution_m);
             assert!(waist > 0.9, "{case}: waist {waist}");
@@ -170,7 +170,7 @@ fn on_axis_aligned_ellipsoids_the_superellipsoid_is_no_worse() {
         let cluster = m.clusters(10).remove(0);
         let fit = fit_ellipsoid(m, &cluster, &clean_scan_config());
         let old = fit_ellipsoid(m, &cluster, &aligned());
-        assert_eq!(fit.kind, ShapeKind::Ellipsoid);
+        assert_eq!(fit.kind, SolidKind::Ellipsoid);
         new_error.push((fit.volume_m3 / truth_m3 - 1.0).abs());
         old_error.push((old.volume_m3 / truth_m3 - 1.0).abs());
         new_off.push((fit.centre - c).norm());

@@ -4,7 +4,7 @@
 use glasshouse_roimap::{Occupancy, RoiMap};
 use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
 
-use super::{fibonacci_sphere, refine, FitConfig, FitData, FittedShape, ShapeKind};
+use super::{fibonacci_sphere, refine, FitConfig, FitData, FruitSolid, SolidKind};
 use crate::evidence::principal_axes;
 use crate::superellipsoid::Superellipsoid;
 
@@ -46,7 +46,7 @@ const STRICT_FREE_WEIGHT: f64 = 100.0;
 
 /// A fitted solid, or why not: `Err(Some(solid))` for a sound solid that fits its data poorly,
 /// `Err(None)` for a degenerate one.
-pub(super) type SolidFit = Result<FittedShape, Option<Box<Superellipsoid>>>;
+pub(super) type SolidFit = Result<FruitSolid, Option<Box<Superellipsoid>>>;
 
 /// Step 3 of the module docs and its checks. `Err(Some(solid))` when the solid is sound but
 /// fits the data poorly (the RMS check), `Err(None)` when the fit is degenerate.
@@ -174,8 +174,8 @@ pub(super) fn finish_superellipsoid(
     }
     let (box_min, box_max) = s.world_box();
     let size = box_max - box_min;
-    Ok(FittedShape {
-        kind: ShapeKind::Ellipsoid,
+    Ok(FruitSolid {
+        kind: SolidKind::Ellipsoid,
         centre: s.centroid(),
         semi_axes_m: s.semi_axes_m,
         world_from_body: UnitQuaternion::from_rotation_matrix(&s.world_from_body),

@@ -1,5 +1,6 @@
 //! `glasshouse dataset`: simulator frames with per-pixel fruit labels from the renderer's hit
-//! ids, as NumPy arrays, for training a learned detector (`scripts/train-detector`).
+//! ids, as NumPy arrays, for training a learned detector (`scripts/train-detector`). Depth is
+//! written as the detector receives it (millimetres, 0 = no depth), so a model may use it.
 
 use std::fs;
 use std::io::Write;
@@ -12,10 +13,14 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// Metres per unit of the written depth, as in the trolley's frames.
+const DEPTH_SCALE_M: f64 = 0.001;
+
 #[derive(clap::Args, Debug)]
 pub struct DatasetArgs {
-    /// Directory to write `rgb.npy` (N×H×W×3 u8), `label.npy` (N×H×W u8, 1 = fruit) and
-    /// `meta.json` into; created if missing.
+    /// Directory to write `rgb.npy` (N×H×W×3 u8), `depth.npy` (N×H×W u16, millimetres, 0 = no
+    /// depth, as the detector receives it), `label.npy` (N×H×W u8, 1 = fruit) and `meta.json`
+    /// into; created if missing.
     #[arg(long)]
     pub out: PathBuf,
     /// Number of frames.
@@ -76,6 +81,7 @@ pub fn run(args: DatasetArgs) -> anyhow::Result<()> {
     let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
     let pixels = camera.intrinsics.pixel_count();
     let mut rgb = Vec::with_capacity(args.frames as usize * pixels * 3);
+    let mut depth = Vec::with_capacity(args.frames as usize * pixels);
     let mut labels = Vec::with_capacity(args.frames as usize * pixels);
     let mut frame_colours = Vec::new();
     let mut fruit_pixels = 0usize;
@@ -99,6 +105,7 @@ pub fn run(args: DatasetArgs) -> anyhow::Result<()> {
         let label = scene.fruit_label_image(&camera, &world_from_camera);
         fruit_pixels += label.iter().filter(|&&l| l == 1).count();
         rgb.extend_from_slice(&image.rgb);
+        depth.extend(image.depth_as_u16(DEPTH_SCALE_M));
         labels.extend_from_slice(&label);
         frame_colours.push(spec.fruit_colour.to_string());
         progress.inc(1);
@@ -106,11 +113,12 @@ pub fn run(args: DatasetArgs) -> anyhow::Result<()> {
     progress.finish_and_clear();
     let n = args.frames as usize;
     let shape_hw = [n, height as usize, width as usize];
-    write_dataset(&args.out, &rgb, &labels, shape_hw)?;
+    write_dataset(&args.out, &rgb, &depth, &labels, shape_hw)?;
     let meta = serde_json::json!({
         "frames": n, "width": width, "height": height, "seed": args.seed,
         "scenarios": args.scenarios, "fruit_colour": frame_colours,
         "fruit_pixel_share": fruit_pixels as f64 / labels.len().max(1) as f64,
+        "depth_scale_m": DEPTH_SCALE_M, "world": world,
     });
     fs::write(
         args.out.join("meta.json"),
@@ -127,12 +135,15 @@ pub fn run(args: DatasetArgs) -> anyhow::Result<()> {
 fn write_dataset(
     out: &Path,
     rgb: &[u8],
+    depth: &[u16],
     labels: &[u8],
     [n, h, w]: [usize; 3],
 ) -> anyhow::Result<()> {
     fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    write_npy_u8(&out.join("rgb.npy"), &[n, h, w, 3], rgb)?;
-    write_npy_u8(&out.join("label.npy"), &[n, h, w], labels)
+    write_npy(&out.join("rgb.npy"), "|u1", &[n, h, w, 3], rgb)?;
+    let depth_bytes: Vec<u8> = depth.iter().flat_map(|d| d.to_le_bytes()).collect();
+    write_npy(&out.join("depth.npy"), "<u2", &[n, h, w], &depth_bytes)?;
+    write_npy(&out.join("label.npy"), "|u1", &[n, h, w], labels)
 }
 
 /// A camera in a free spot of the workspace looking at a random fruit (or plant) with some
@@ -171,15 +182,17 @@ fn random_view(scene: &Scene, seed: u64) -> Isometry3<f64> {
     )
 }
 
-/// A NumPy `.npy` file (format 1.0) of `u8` in C order.
-fn write_npy_u8(path: &Path, shape: &[usize], data: &[u8]) -> anyhow::Result<()> {
+/// A NumPy `.npy` file (format 1.0) in C order; `descr` is the element type (`|u1`, `<u2`) and
+/// `data` its bytes.
+fn write_npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) -> anyhow::Result<()> {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
     let shape_text = if dims.len() == 1 {
         format!("({},)", dims[0])
     } else {
         format!("({})", dims.join(", "))
     };
-    let mut header = format!("{{'descr': '|u1', 'fortran_order': False, 'shape': {shape_text}, }}");
+    let mut header =
+        format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_text}, }}");
     // Magic (6) + version (2) + length (2) + header + newline is padded to a multiple of 64.
     let unpadded = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - unpadded % 64) % 64));

@@ -1,20 +1,35 @@
 #!/usr/bin/env python3
 """Trains the detector's per-pixel fruit segmenter on simulator frames and exports it as ONNX.
 
-The network is a tiny fully convolutional one: Conv KxK (3->h1) -> Relu -> Conv 1x1 (h1->h2)
--> Relu -> Conv 1x1 (h2->1) -> Sigmoid. As every layer after the first is 1x1, it is the same
-as an MLP applied to each pixel's KxK RGB patch, and it is trained that way: in numpy, with
-hand-written backpropagation, Adam and binary cross-entropy, seeded and on the CPU only.
+The network is a small fully convolutional one with a fine and a coarse path (README.md draws
+it):
 
-Input data: a directory written by `glasshouse dataset --out DIR` holding rgb.npy
-(N, H, W, 3) uint8, label.npy (N, H, W) uint8 (1 = fruit) and meta.json (frames, width,
-height, fruit_colour per frame, seed).
+- full resolution: Conv 3x3 on the input, for colour and edges;
+- 1/4 resolution: Conv 4x4 with stride 4 on the input;
+- 1/8 resolution: Conv 2x2 with stride 2, then dilated Conv 3x3 layers (dilations 1, 2, 3, 4)
+  with residual additions, which see about 170 px around each pixel: the shape and shading of
+  what the pixel belongs to. DepthToSpace brings this back to 1/4 resolution, where it meets
+  the 1/4 features, and again to full resolution;
+- a head of 1x1 convolutions on the full-resolution features and the coarse path's, then a
+  sigmoid.
 
-Outputs: the ONNX model at --out (input `rgb` float32 [1, 3, height, width] = RGB8 / 255,
-output `fruit_probability` float32 [1, 1, height, width]) and, beside it with the suffix
-.json, the held-out metrics with the command line, seed, parameter count and dataset shape.
-Metrics are pixel precision, recall, F1 and IoU of the fruit class at threshold 0.5 over
-every pixel of the held-out frames (the last --held-out-share of each fruit colour's frames).
+It is trained on random crops of the frames, in numpy, with hand-written backpropagation, Adam
+and a weighted binary cross-entropy, seeded and on one CPU thread. --logit-offset then sets the
+operating point.
+
+Input data: directories written by `glasshouse dataset --out DIR`, each holding rgb.npy
+(N, H, W, 3) uint8, label.npy (N, H, W) uint8 (1 = fruit), depth.npy (N, H, W) uint16 in
+millimetres (0 = no depth; read for the metrics and --depth) and meta.json (frames, width,
+height, fruit_colour per frame, seed, world).
+
+Outputs: the ONNX model at --out (input `rgb` float32 [1, 3, height, width] = RGB8 / 255, or
+with --depth `rgbd` float32 [1, 4, height, width] with depth in metres as the fourth channel;
+output `fruit_probability` float32 [1, 1, height, width]; height and width multiples of 8, the
+metadata's `size_multiple`) and, beside it with the suffix .json, the held-out metrics with
+the command line, seed, parameter count and datasets. Metrics are pixel precision, recall, F1
+and IoU of the fruit class at the detector's threshold 0.5 on the --test datasets (or, without
+them, on the last --held-out-share of each fruit colour's frames), over every pixel and over
+the pixels with depth (those the detector turns into points).
 """
 
 import argparse
@@ -26,21 +41,29 @@ import sys
 import time
 from pathlib import Path
 
-# One BLAS thread, set before numpy loads: the matrices are thin, so threads only add overhead
-# (2-3x slower on a busy machine), and results then cannot depend on the machine's core count.
+# One BLAS thread, set before numpy loads: results then cannot depend on the machine's core
+# count, and the machine is shared.
 os.environ["OPENBLAS_NUM_THREADS"] = "1"
 os.environ["OMP_NUM_THREADS"] = "1"
+os.environ["MKL_NUM_THREADS"] = "1"
 
 import numpy as np  # noqa: E402
+from numpy.lib.stride_tricks import as_strided  # noqa: E402
 
 THRESHOLD = 0.5
 OPSET = 13
 IR_VERSION = 8
-# The cost budget is stated for the camera's 640x480 frames.
+# Height and width of the input must be multiples of this (the context path's stride); the
+# runtime pads the image with zeros at the bottom and right up to it and crops the output.
+SIZE_MULTIPLE = 8
+# The cost is stated for the camera's 640x480 frames.
 COST_FRAME_PX = 640 * 480
-MAX_MULTIPLY_ADDS_PER_FRAME = 150e6
+MAX_MULTIPLY_ADDS_PER_FRAME = 400e6
 MAX_ABS_DIFF_TO_REFERENCE = 1e-4
-FORWARD_CHUNK_PX = 8192
+DEPTH_SCALE_M = 0.001
+# The unit depth is normalised to before the first layers.
+DEPTH_UNIT_M = 0.1
+F32 = np.float32
 
 
 def parse_args(argv):
@@ -50,63 +73,135 @@ def parse_args(argv):
         pass
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
-    parser.add_argument("--data", type=Path, required=True,
-                        help="dataset directory (rgb.npy, label.npy, meta.json)")
+    parser.add_argument("--data", type=Path, nargs="+", required=True,
+                        help="training dataset directories (rgb.npy, label.npy, meta.json)")
+    parser.add_argument("--test", type=Path, nargs="*", default=[],
+                        help="held-out dataset directories (other scene seeds); without them "
+                             "the last --held-out-share of each colour's training frames is "
+                             "held out")
     parser.add_argument("--out", type=Path, default=None,
                         help="ONNX file to write; metrics go beside it as .json "
                              "(default: fruit-segmenter.onnx beside train.py)")
     parser.add_argument("--seed", type=int, default=1, help="seed of sampling and initialisation")
-    parser.add_argument("--epochs", type=int, default=12, help="passes over the sampled pixels")
-    parser.add_argument("--samples-per-class", type=int, default=150_000,
-                        help="training pixels drawn per class (fruit, non-fruit)")
-    parser.add_argument("--kernel-px", type=int, default=3, choices=(3, 5),
-                        help="side of the first convolution (receptive field); 5 needs "
-                             "narrower hidden layers to stay within 150 M multiply-adds per "
-                             "640x480 frame, e.g. --hidden 4,8")
-    parser.add_argument("--hidden", type=str, default="8,8",
-                        help="widths of the two hidden layers, comma separated")
+    parser.add_argument("--depth", action="store_true",
+                        help="feed depth (metres, 0 = none) as a fourth input channel, input "
+                             "`rgbd`: for comparison only, the detector feeds colour and "
+                             "refuses such a model (README.md: it gained nothing)")
+    parser.add_argument("--steps", type=int, default=6000, help="Adam steps")
+    parser.add_argument("--batch", type=int, default=8, help="crops per Adam step")
+    parser.add_argument("--crop-px", type=int, default=160,
+                        help="side of the training crops (a multiple of 4)")
+    parser.add_argument("--fruit-crop-share", type=float, default=0.6,
+                        help="share of crops centred near a fruit pixel (the rest anywhere)")
+    parser.add_argument("--fruit-weight", type=float, default=2.0,
+                        help="loss weight of fruit pixels against 1 for the rest")
+    parser.add_argument("--full-channels", type=int, default=8,
+                        help="channels of the full-resolution Conv 3x3 (colour, edges)")
+    parser.add_argument("--quarter-channels", type=int, default=16,
+                        help="channels of the 1/4-resolution Conv 4x4 stride 4")
+    parser.add_argument("--context-channels", type=int, default=32,
+                        help="channels of the 1/8-resolution context layers")
+    parser.add_argument("--dilations", type=str, default="1,2,3,4",
+                        help="dilations of the context layers (Conv 3x3 at 1/8 resolution)")
+    parser.add_argument("--up8-channels", type=int, default=8,
+                        help="channels the context hands back at 1/4 resolution")
+    parser.add_argument("--mid-channels", type=int, default=16,
+                        help="channels of the 1/4-resolution layer joining context and detail")
+    parser.add_argument("--up-channels", type=int, default=4,
+                        help="full-resolution channels the coarse path hands the head")
+    parser.add_argument("--head-channels", type=int, default=8,
+                        help="width of the head's hidden 1x1 layer")
+    parser.add_argument("--colour-weights", type=str, default="leaf-green=2",
+                        help="how much more often crops come from frames of these fruit "
+                             "colours (colour=weight, comma separated; others weigh 1)")
+    parser.add_argument("--logit-offset", type=float, default=2.0,
+                        help="added to the output's logit at export, which moves the "
+                             "detector's 0.5 threshold to a trained probability of "
+                             "1 / (1 + e^offset) (2.0: 0.12); chosen in the planning loop on "
+                             "tuning seeds (README.md)")
     parser.add_argument("--learning-rate", type=float, default=3e-3, help="Adam step size")
-    parser.add_argument("--batch", type=int, default=1024, help="pixels per Adam step")
     parser.add_argument("--held-out-share", type=float, default=0.2,
-                        help="last share of each colour's frames kept for evaluation")
-    parser.add_argument("--near-fruit-weight", type=float, default=8.0,
-                        help="sampling weight of non-fruit pixels within 2 px of fruit "
-                             "(plain non-fruit pixels weigh 1)")
-    parser.add_argument("--leaf-weight", type=float, default=3.0,
-                        help="sampling weight of green (leaf- or stem-coloured) non-fruit pixels")
-    # Small: larger shares crowd the sample with pixels whose colour fruit and leaves share,
-    # and recall drops faster than precision rises (0.5 on the simulator set: IoU 0.93 vs 0.98).
-    parser.add_argument("--hard-share", type=float, default=0.05,
-                        help="share of non-fruit pixels drawn, for the second half of the epochs, "
-                             "in proportion to the first half's fruit probability on each pixel")
+                        help="without --test: last share of each colour's frames held out")
     args = parser.parse_args(argv)
     args.out = args.out or here / "fruit-segmenter.onnx"
-    args.hidden_widths = [int(h) for h in args.hidden.split(",")]
-    if len(args.hidden_widths) != 2 or min(args.hidden_widths) < 1:
-        parser.error("--hidden takes two positive widths, e.g. 8,8")
+    args.dilation_list = [int(d) for d in args.dilations.split(",") if d]
+    if args.crop_px % SIZE_MULTIPLE or args.crop_px < 16:
+        parser.error(f"--crop-px must be a multiple of {SIZE_MULTIPLE}, at least 16")
+    args.colour_weight = {}
+    for item in filter(None, args.colour_weights.split(",")):
+        colour, _, weight = item.partition("=")
+        args.colour_weight[colour.strip()] = float(weight)
+    if min([args.full_channels, args.quarter_channels, args.context_channels, args.up8_channels,
+            args.mid_channels, args.up_channels, args.head_channels, *args.dilation_list]) < 1:
+        parser.error("channel counts and dilations must be positive")
     return args
 
 
 # ---------------------------------------------------------------- data
 
 
-def load_dataset(data_dir):
-    """Frames as a read-only memory map (a dataset can be hundreds of MB), labels and meta."""
-    meta = json.loads((data_dir / "meta.json").read_text())
-    rgb = np.load(data_dir / "rgb.npy", mmap_mode="r")
-    label = np.load(data_dir / "label.npy", mmap_mode="r")
-    expected = (meta["frames"], meta["height"], meta["width"])
-    if rgb.shape != expected + (3,) or label.shape != expected or rgb.dtype != np.uint8:
-        sys.exit(f"dataset shapes {rgb.shape} {rgb.dtype} / {label.shape} "
-                 f"do not match meta {expected}")
-    if len(meta["fruit_colour"]) != meta["frames"]:
-        sys.exit("meta.json: fruit_colour needs one entry per frame")
-    return rgb, label, meta
+class Dataset:
+    """Frames of one or more dataset directories as read-only memory maps (a dataset can be
+    gigabytes), with each frame's fruit colour and world."""
+
+    def __init__(self, dirs, with_depth):
+        self.parts, self.index, self.colours, self.worlds = [], [], [], []
+        shape = None
+        for d in dirs:
+            meta = json.loads((d / "meta.json").read_text())
+            rgb = np.load(d / "rgb.npy", mmap_mode="r")
+            label = np.load(d / "label.npy", mmap_mode="r")
+            # Depth is read when present: the metrics count the pixels with depth apart.
+            depth = (np.load(d / "depth.npy", mmap_mode="r") if (d / "depth.npy").exists()
+                     else None)
+            if with_depth and depth is None:
+                sys.exit(f"{d}: --depth needs depth.npy (a newer `glasshouse dataset`)")
+            expected = (meta["frames"], meta["height"], meta["width"])
+            if rgb.shape != expected + (3,) or label.shape != expected or rgb.dtype != np.uint8:
+                sys.exit(f"{d}: shapes {rgb.shape} {rgb.dtype} / {label.shape} "
+                         f"do not match meta {expected}")
+            if depth is not None and (depth.shape != expected or depth.dtype != np.uint16):
+                sys.exit(f"{d}: depth.npy {depth.shape} {depth.dtype} is not {expected} uint16")
+            if len(meta["fruit_colour"]) != meta["frames"]:
+                sys.exit(f"{d}/meta.json: fruit_colour needs one entry per frame")
+            if shape not in (None, expected[1:]):
+                sys.exit(f"{d}: frames of {expected[1:]} among frames of {shape}")
+            shape = expected[1:]
+            world = world_name(meta)
+            part = len(self.parts)
+            self.parts.append((d, meta, rgb, label, depth))
+            for i in range(meta["frames"]):
+                self.index.append((part, i))
+                self.colours.append(meta["fruit_colour"][i])
+                self.worlds.append(world)
+        self.height, self.width = shape
+        self.with_depth = with_depth
+
+    def __len__(self):
+        return len(self.index)
+
+    def frame(self, k):
+        """(rgb uint8 (H, W, 3), depth uint16 (H, W) or None, fruit bool (H, W))."""
+        part, i = self.index[k]
+        _, _, rgb, label, depth = self.parts[part]
+        return (np.asarray(rgb[i]), None if depth is None else np.asarray(depth[i]),
+                np.asarray(label[i]) == 1)
+
+    def describe(self):
+        return [{"path": str(d), "shape": list(rgb.shape), "seed": meta.get("seed"),
+                 "scenarios": meta.get("scenarios"), "world": world_name(meta),
+                 "fruit_colours": sorted(set(meta["fruit_colour"]))}
+                for d, meta, rgb, _, _ in self.parts]
+
+
+def world_name(meta):
+    """`realistic` when the frames have the realistic world's light, else `clean`."""
+    world = meta.get("world") or {}
+    return "realistic" if world.get("perception", {}).get("shadows") else "clean"
 
 
 def split_frames(colours, held_out_share):
-    """Train and held-out frame indices: the last share of each colour's frames is held out,
-    so both colours are evaluated whatever order the frames come in."""
+    """Train and held-out frame indices: the last share of each colour's frames is held out."""
     train, held_out = [], []
     for colour in sorted(set(colours)):
         frames = [i for i, c in enumerate(colours) if c == colour]
@@ -116,231 +211,383 @@ def split_frames(colours, held_out_share):
     return sorted(train), sorted(held_out)
 
 
-def padded_unit_rgb(frame_rgb8, kernel_px):
-    """RGB / 255 with a zero border, as the exported Conv pads its input with zeros."""
-    pad_px = kernel_px // 2
-    unit = frame_rgb8.astype(np.float64) / 255.0
-    return np.pad(unit, ((pad_px, pad_px), (pad_px, pad_px), (0, 0)))
+def input_planes(rgb8, depth_mm, with_depth):
+    """The model's input as (H, W, C) float32: RGB8 / 255 and, with depth, metres."""
+    planes = [rgb8.astype(F32) / F32(255)]
+    if with_depth:
+        planes.append((depth_mm.astype(F32) * F32(DEPTH_SCALE_M))[..., None])
+    return np.concatenate(planes, axis=2)
 
 
-def patch_features(padded, rows, cols, kernel_px):
-    """KxK patches around pixels (rows, cols), flattened in Conv weight order (c, ky, kx)."""
-    return np.stack(
-        [padded[rows + ky, cols + kx, c]
-         for c in range(3) for ky in range(kernel_px) for kx in range(kernel_px)],
-        axis=1,
-    )
+def padded_to_multiple(x):
+    """Zero rows and columns at the bottom and right up to multiples of SIZE_MULTIPLE."""
+    h, w = x.shape[:2]
+    ph, pw = (-h) % SIZE_MULTIPLE, (-w) % SIZE_MULTIPLE
+    if ph or pw:
+        x = np.pad(x, ((0, ph), (0, pw)) + ((0, 0),) * (x.ndim - 2))
+    return x
 
 
-def frame_features(frame_rgb8, kernel_px):
-    """Patches of every pixel in row-major order (slices: much faster than patch_features)."""
-    height_px, width_px, _ = frame_rgb8.shape
-    padded = padded_unit_rgb(frame_rgb8, kernel_px)
-    out = np.empty((height_px, width_px, 3, kernel_px, kernel_px))
-    for ky in range(kernel_px):
-        for kx in range(kernel_px):
-            out[:, :, :, ky, kx] = padded[ky: ky + height_px, kx: kx + width_px]
-    return out.reshape(height_px * width_px, -1)
+class CropSampler:
+    """Random crops, each with a one-pixel margin for the full-resolution Conv (zeros beyond
+    the frame, as the exported Conv pads): a share centred near a fruit pixel, the rest
+    anywhere, frames drawn in proportion to their colour's weight. Crops start on the coarsest
+    grid, as in a whole frame."""
+
+    def __init__(self, data, frames, args, rng):
+        self.data, self.frames, self.args, self.rng = data, frames, args, rng
+        self.fruit_px = {k: np.flatnonzero(data.frame(k)[2]) for k in frames}
+        self.with_fruit = [k for k in frames if self.fruit_px[k].size]
+        self.p_all = self._weights(frames)
+        self.p_fruit = self._weights(self.with_fruit)
+
+    def _weights(self, frames):
+        w = np.array([self.args.colour_weight.get(self.data.colours[k], 1.0) for k in frames])
+        return w / w.sum() if len(frames) else w
+
+    def batch(self):
+        a, c = self.args, self.args.crop_px
+        h, w = self.data.height, self.data.width
+        xs, ys = [], []
+        for _ in range(a.batch):
+            if self.with_fruit and self.rng.random() < a.fruit_crop_share:
+                k = self.with_fruit[self.rng.choice(len(self.with_fruit), p=self.p_fruit)]
+                px = self.fruit_px[k][self.rng.integers(self.fruit_px[k].size)]
+                cy, cx = divmod(int(px), w)
+                top = cy - c // 2 + int(self.rng.integers(-c // 3, c // 3 + 1))
+                left = cx - c // 2 + int(self.rng.integers(-c // 3, c // 3 + 1))
+            else:
+                k = self.frames[self.rng.choice(len(self.frames), p=self.p_all)]
+                top = int(self.rng.integers(0, h - c + 1))
+                left = int(self.rng.integers(0, w - c + 1))
+            top = min(max(0, top), h - c) // SIZE_MULTIPLE * SIZE_MULTIPLE
+            left = min(max(0, left), w - c) // SIZE_MULTIPLE * SIZE_MULTIPLE
+            rgb, depth, fruit = self.data.frame(k)
+            # The crop and its margin, zeros where the margin leaves the frame.
+            y0, y1, x0, x1 = max(top - 1, 0), min(top + c + 1, h), max(left - 1, 0), \
+                min(left + c + 1, w)
+            planes = input_planes(rgb[y0:y1, x0:x1],
+                                  None if depth is None else depth[y0:y1, x0:x1],
+                                  self.data.with_depth)
+            xs.append(np.pad(planes, ((y0 - (top - 1), top + c + 1 - y1),
+                                      (x0 - (left - 1), left + c + 1 - x1), (0, 0))))
+            ys.append(fruit[top: top + c, left: left + c])
+        return np.stack(xs), np.stack(ys).astype(F32)
 
 
-def near_fruit_mask(fruit, radius_px=2):
-    """Non-fruit pixels within radius_px (Chebyshev) of a fruit pixel: edges are the hard part."""
-    grown = fruit.copy()
-    padded = np.pad(fruit, radius_px)
-    height_px, width_px = fruit.shape
-    for dy in range(2 * radius_px + 1):
-        for dx in range(2 * radius_px + 1):
-            grown |= padded[dy: dy + height_px, dx: dx + width_px]
-    return grown & ~fruit
+def input_statistics(data, frames, rng, n_frames=64):
+    """Per-channel mean and standard deviation of the input, from a sample of frames."""
+    pick = rng.choice(frames, min(n_frames, len(frames)), replace=False)
+    c_in = 3 + data.with_depth
+    xs = [input_planes(*data.frame(k)[:2], data.with_depth)[::4, ::4].reshape(-1, c_in)
+          for k in sorted(pick)]
+    x = np.concatenate(xs).astype(np.float64)
+    mean, std = x.mean(axis=0), x.std(axis=0) + 1e-3
+    if data.with_depth:
+        # Depth is scaled so that a fruit's relief (a few cm) is a tenth of a unit and the
+        # step at a silhouette a few units: what the first layers must tell apart.
+        mean[3], std[3] = 0.0, DEPTH_UNIT_M
+    return mean.astype(F32), std.astype(F32)
 
 
-def negative_weights(frame_rgb8, fruit, args):
-    """Sampling weight per non-fruit pixel: more on fruit borders and green plant parts, which
-    a colour rule confuses with fruit most easily (yellow-green fruit against light leaves)."""
-    rgb = frame_rgb8.astype(np.int16)
-    green = (rgb[..., 1] > rgb[..., 0]) & (rgb[..., 1] > rgb[..., 2])
-    weight = np.ones(fruit.shape)
-    weight += (args.leaf_weight - 1.0) * green
-    weight += (args.near_fruit_weight - 1.0) * near_fruit_mask(fruit)
-    weight[fruit] = 0.0
-    return weight.ravel()
+# ---------------------------------------------------------------- layers (NHWC, float32)
 
 
-def mixed_choice(base_weight, hard_weight, hard_share, n, rng):
-    """n pixel indices drawn from base_weight, with hard_share of the draw's probability
-    moved onto hard_weight (the current model's mistakes) when given."""
-    p = base_weight / base_weight.sum()
-    if hard_weight is not None and hard_weight.sum() > 0:
-        p = (1 - hard_share) * p + hard_share * hard_weight / hard_weight.sum()
-    return rng.choice(p.size, n, p=p)
+def conv_forward(x, w, b, stride=1, dilation=1):
+    """Valid convolution of x (N, H, W, C) with w (k, k, C, O): output and the im2col columns."""
+    k, _, c_in, c_out = w.shape
+    n, h, wd, _ = x.shape
+    span = dilation * (k - 1) + 1
+    ho, wo = (h - span) // stride + 1, (wd - span) // stride + 1
+    if k == 1 and stride == 1:
+        cols = x
+    else:
+        s = x.strides
+        cols = np.ascontiguousarray(as_strided(
+            x, shape=(n, ho, wo, k, k, c_in),
+            strides=(s[0], s[1] * stride, s[2] * stride, s[1] * dilation, s[2] * dilation, s[3]),
+            writeable=False))
+    out = cols.reshape(-1, k * k * c_in) @ w.reshape(-1, c_out)
+    out += b
+    return out.reshape(n, ho, wo, c_out), cols
 
 
-def sample_pixels(rgb, label, frames, args, rng, model=None):
-    """Equal numbers of fruit and non-fruit training pixels as (features, targets).
-
-    With a model (layers, kernel_px), --hard-share of the non-fruit pixels is drawn in
-    proportion to that model's fruit probability, so the second round sees the rare look-alikes
-    (the lightest leaves, shaded floor) that plain sampling seldom picks. Fruit pixels are not
-    mined: a few fruits have a leaf's colour, and chasing them teaches the model that leaves
-    are fruit."""
-    n_fruit_px = [int(label[i].sum()) for i in frames]
-    fruit_total_px = max(1, sum(n_fruit_px))
-    per_frame_neg = -(-args.samples_per_class // len(frames))  # ceil
-    features, targets = [], []
-    for i, n_fruit in zip(frames, n_fruit_px):
-        frame, fruit = np.asarray(rgb[i]), np.asarray(label[i]) == 1
-        prob = probability_map(model[0], frame, model[1]).ravel() if model else None
-        # Each frame gives fruit pixels in proportion to its fruit area, as in the data.
-        n_pos = int(round(args.samples_per_class * n_fruit / fruit_total_px)) if n_fruit else 0
-        pos = rng.choice(np.flatnonzero(fruit), n_pos) if n_pos else np.empty(0, int)
-        hard = None if prob is None else prob * ~fruit.ravel()
-        neg = mixed_choice(negative_weights(frame, fruit, args), hard, args.hard_share,
-                           per_frame_neg, rng)
-        rows, cols = np.divmod(np.concatenate([pos, neg]), frame.shape[1])
-        features.append(patch_features(padded_unit_rgb(frame, args.kernel_px), rows, cols,
-                                       args.kernel_px))
-        targets.append(np.concatenate([np.ones(pos.size), np.zeros(neg.size)]))
-    return np.concatenate(features), np.concatenate(targets)
+def conv_backward(g, cols, w, x_shape, stride=1, dilation=1, need_input=True):
+    """Gradients of conv_forward: (input, weight, bias); input is None unless need_input."""
+    k, _, c_in, c_out = w.shape
+    n, ho, wo, _ = g.shape
+    g2 = g.reshape(-1, c_out)
+    gw = (cols.reshape(-1, k * k * c_in).T @ g2).reshape(w.shape)
+    gb = g2.sum(axis=0)
+    if not need_input:
+        return None, gw, gb
+    gcols = g2 @ w.reshape(-1, c_out).T
+    if k == 1 and stride == 1:
+        return gcols.reshape(x_shape), gw, gb
+    gcols = gcols.reshape(n, ho, wo, k, k, c_in)
+    gx = np.zeros(x_shape, F32)
+    for ky in range(k):
+        for kx in range(k):
+            y0, x0 = ky * dilation, kx * dilation
+            gx[:, y0: y0 + stride * (ho - 1) + 1: stride,
+               x0: x0 + stride * (wo - 1) + 1: stride, :] += gcols[:, :, :, ky, kx, :]
+    return gx, gw, gb
 
 
-# ---------------------------------------------------------------- network
+def pad_hw(x, p):
+    return np.pad(x, ((0, 0), (p, p), (p, p), (0, 0))) if p else x
 
 
-def init_layers(sizes, rng):
-    """He-initialised (weight [in, out], bias [out]) pairs."""
-    return [(rng.normal(0.0, np.sqrt(2.0 / n_in), (n_in, n_out)), np.zeros(n_out))
-            for n_in, n_out in zip(sizes[:-1], sizes[1:])]
+def depth_to_space(x, block):
+    """ONNX DepthToSpace, mode DCR, in NHWC: channel (i * block + j) * C + c of a cell goes to
+    row offset i, column offset j, channel c."""
+    n, h, w, cb = x.shape
+    c = cb // (block * block)
+    return (x.reshape(n, h, w, block, block, c).transpose(0, 1, 3, 2, 4, 5)
+            .reshape(n, h * block, w * block, c))
 
 
-def forward(layers, x):
-    """Activations of every layer; the last is the logit (before the sigmoid)."""
-    acts = [x]
-    for k, (w, b) in enumerate(layers):
-        z = acts[-1] @ w + b
-        acts.append(np.maximum(z, 0.0) if k < len(layers) - 1 else z[:, 0])
-    return acts
+def space_to_depth(g, block):
+    """The adjoint of depth_to_space (for its gradient)."""
+    n, hb, wb, c = g.shape
+    h, w = hb // block, wb // block
+    return (g.reshape(n, h, block, w, block, c).transpose(0, 1, 3, 2, 4, 5)
+            .reshape(n, h, w, block * block * c))
 
 
 def sigmoid(z):
     return 0.5 * (1.0 + np.tanh(0.5 * z))  # stable for any z
 
 
-def bce_with_logits(logit, target):
-    return float(np.mean(np.maximum(logit, 0) - logit * target + np.log1p(np.exp(-np.abs(logit)))))
+# ---------------------------------------------------------------- network
 
 
-def backward(layers, acts, target):
-    """Gradients of the mean binary cross-entropy for every (weight, bias)."""
-    grad_z = ((sigmoid(acts[-1]) - target) / target.size)[:, None]
-    grads = []
-    for k in range(len(layers) - 1, -1, -1):
-        w, _ = layers[k]
-        grads.append((acts[k].T @ grad_z, grad_z.sum(axis=0)))
-        if k:
-            grad_z = (grad_z @ w.T) * (acts[k] > 0)
-    return grads[::-1]
+class Network:
+    """Parameters (weights (k, k, C_in, C_out), biases (C_out,)) by name, and the forward and
+    backward passes over normalised inputs (`folded` moves the normalisation into the two
+    convolutions that read the input, for export). The layers, by name:
+
+    full      Conv 3x3, input -> F, Relu                          full resolution
+    down4     Conv 4x4 stride 4, input -> D4, Relu                1/4
+    down8     Conv 2x2 stride 2, D4 -> D8, Relu                   1/8
+    contextI  Conv 3x3 dilation d_I, D8 -> D8, Relu, added        1/8
+    up8       Conv 1x1 D8 -> 4 U8, Relu, DepthToSpace 2           1/8 -> 1/4
+    mid       Conv 1x1 (U8 + D4) -> M, Relu (Concat with down4)   1/4
+    up4       Conv 1x1 M -> 16 U4, Relu, DepthToSpace 4           1/4 -> full
+    head      Conv 1x1 (F + U4) -> H, Relu (Concat with full)     full
+    out       Conv 1x1 H -> 1, then the sigmoid                   full
+    """
+
+    LOW_RES = {"down4": 16, "mid": 16, "up4": 16, "down8": 64, "up8": 64}
+
+    def __init__(self, params, dilations):
+        self.params, self.dilations = params, list(dilations)
+
+    @classmethod
+    def initial(cls, args, c_in, rng):
+        """He-initialised weights, zero biases; the residual branches start small."""
+        f, d4, d8 = args.full_channels, args.quarter_channels, args.context_channels
+        u8, m, u4, hh = args.up8_channels, args.mid_channels, args.up_channels, args.head_channels
+        shapes = {"full": (3, c_in, f), "down4": (4, c_in, d4), "down8": (2, d4, d8)}
+        for i, _ in enumerate(args.dilation_list):
+            shapes[f"context{i}"] = (3, d8, d8)
+        shapes.update({"up8": (1, d8, 4 * u8), "mid": (1, u8 + d4, m), "up4": (1, m, 16 * u4),
+                       "head": (1, f + u4, hh), "out": (1, hh, 1)})
+        params = {}
+        for name, (k, n_in, n_out) in shapes.items():
+            std = np.sqrt(2.0 / (k * k * n_in)) * (0.5 if name.startswith("context") else 1.0)
+            params[name + ".weight"] = rng.normal(0, std, (k, k, n_in, n_out)).astype(F32)
+            params[name + ".bias"] = np.zeros(n_out, F32)
+        return cls(params, args.dilation_list)
+
+    def p(self, name):
+        return self.params[name + ".weight"], self.params[name + ".bias"]
+
+    def _conv_relu(self, cache, name, x, stride=1, dilation=1):
+        z, cache[name] = conv_forward(x, *self.p(name), stride=stride, dilation=dilation)
+        z = np.maximum(z, 0, out=z)
+        cache[name + "_out"] = z
+        return z
+
+    def forward(self, x):
+        """Logits (N, H, W) of x (N, H + 2, W + 2, C): normalised input with a one-pixel
+        margin. Returns the logits and the cache for backward."""
+        cache = {}
+        full = self._conv_relu(cache, "full", x)
+        d4 = self._conv_relu(cache, "down4", np.ascontiguousarray(x[:, 1:-1, 1:-1, :]),
+                             stride=4)
+        ctx = self._conv_relu(cache, "down8", d4, stride=2)
+        for i, dil in enumerate(self.dilations):
+            z, cols = conv_forward(pad_hw(ctx, dil), *self.p(f"context{i}"), dilation=dil)
+            r = np.maximum(z, 0)
+            cache[f"context{i}"] = (cols, r > 0, ctx.shape)
+            ctx = ctx + r
+        cache["context_out"] = ctx
+        u8 = depth_to_space(self._conv_relu(cache, "up8", ctx), 2)
+        mid = self._conv_relu(cache, "mid", np.concatenate([u8, d4], axis=3))
+        u4 = depth_to_space(self._conv_relu(cache, "up4", mid), 4)
+        hidden = self._conv_relu(cache, "head", np.concatenate([full, u4], axis=3))
+        logit, cache["out"] = conv_forward(hidden, *self.p("out"))
+        return logit[..., 0], cache
+
+    def backward(self, g_logit, cache):
+        """Gradients of every parameter given d loss / d logit (N, H, W)."""
+        grads = {}
+
+        def back(name, g, x_shape, stride=1, dilation=1, need_input=True):
+            gx, grads[name + ".weight"], grads[name + ".bias"] = conv_backward(
+                g, cache[name], self.p(name)[0], x_shape, stride, dilation, need_input)
+            return gx
+
+        def relu_back(name, g):
+            return g * (cache[name + "_out"] > 0)
+
+        hidden = cache["head_out"]
+        g = back("out", g_logit[..., None], hidden.shape)
+        g = back("head", relu_back("head", g), cache["head"].shape)
+        n_full = cache["full_out"].shape[3]
+        g_full, g_u4 = g[..., :n_full], space_to_depth(g[..., n_full:], 4)
+        g = back("mid", relu_back("mid", back("up4", relu_back("up4", g_u4),
+                                              cache["up4"].shape)),
+                 cache["mid"].shape)
+        n_u8 = g.shape[3] - cache["down4_out"].shape[3]
+        g_u8, g_d4 = space_to_depth(g[..., :n_u8], 2), g[..., n_u8:]
+        g_ctx = back("up8", relu_back("up8", g_u8), cache["up8"].shape)
+        for i in range(len(self.dilations) - 1, -1, -1):
+            dil = self.dilations[i]
+            cols, active, shape = cache[f"context{i}"]
+            padded = (shape[0], shape[1] + 2 * dil, shape[2] + 2 * dil, shape[3])
+            gx, grads[f"context{i}.weight"], grads[f"context{i}.bias"] = conv_backward(
+                g_ctx * active, cols, self.p(f"context{i}")[0], padded, dilation=dil)
+            g_ctx = g_ctx + gx[:, dil:-dil, dil:-dil, :]
+        g_d4 = g_d4 + back("down8", relu_back("down8", g_ctx), cache["down4_out"].shape,
+                           stride=2)
+        back("down4", relu_back("down4", g_d4), None, stride=4, need_input=False)
+        back("full", relu_back("full", np.ascontiguousarray(g_full)), None, need_input=False)
+        return grads
+
+    def folded(self, mean, std):
+        """Parameters acting on raw inputs: the normalisation (x - mean) / std moved into the
+        convolutions that read the input. Exact, also at the frame border: training pads the
+        raw input with zeros before normalising, as the exported Conv pads the raw input."""
+        out = dict(self.params)
+        for name in ("full", "down4"):
+            w, b = self.p(name)
+            w2 = w / std[None, None, :, None]
+            out[name + ".weight"] = w2.astype(F32)
+            out[name + ".bias"] = (b - np.einsum("yxco,c->o", w2, mean)).astype(F32)
+        return out
+
+    def parameter_count(self):
+        return int(sum(v.size for v in self.params.values()))
+
+    def multiply_adds_per_px(self):
+        """Multiply-adds per input pixel (a layer at 1/4 resolution counts 1/16 per pixel)."""
+        total = 0.0
+        for name, w in self.params.items():
+            if name.endswith(".weight"):
+                layer = name.split(".")[0]
+                share = self.LOW_RES.get(layer, 64 if layer.startswith("context") else 1)
+                total += w.size / share
+        return total
+
+    def architecture(self):
+        def io(name):
+            w = self.params[name + ".weight"]
+            return f"{w.shape[2]}->{w.shape[3]}"
+        dil = ", ".join(f"Conv 3x3 dilation {d} {io(f'context{i}')}, Relu, Add"
+                        for i, d in enumerate(self.dilations))
+        return (f"full: Conv 3x3 {io('full')}, Relu; 1/4: Conv 4x4 stride 4 {io('down4')}, Relu; "
+                f"1/8: Conv 2x2 stride 2 {io('down8')}, Relu, {dil}, Conv 1x1 {io('up8')}, Relu, "
+                f"DepthToSpace 2; 1/4: Concat, Conv 1x1 {io('mid')}, Relu, Conv 1x1 {io('up4')}, "
+                f"Relu, DepthToSpace 4; full: Concat, Conv 1x1 {io('head')}, Relu, "
+                f"Conv 1x1 {io('out')}, Sigmoid")
+
+
+def forward_folded(params, dilations, x_raw):
+    """Probability (H, W) of one raw input (H, W, C) with folded parameters: the same
+    arithmetic as the exported graph (zero padding at the border), for evaluation."""
+    h, w = x_raw.shape[:2]
+    x = padded_to_multiple(x_raw)[None]
+    logit, _ = Network(params, dilations).forward(pad_hw(x, 1))
+    return sigmoid(logit[0, :h, :w])
 
 
 class Adam:
-    def __init__(self, layers, learning_rate, beta1=0.9, beta2=0.999, eps=1e-8):
+    def __init__(self, params, learning_rate, beta1=0.9, beta2=0.999, eps=1e-8):
         self.lr, self.b1, self.b2, self.eps, self.t = learning_rate, beta1, beta2, eps, 0
-        self.m = [[np.zeros_like(p) for p in layer] for layer in layers]
-        self.v = [[np.zeros_like(p) for p in layer] for layer in layers]
+        self.m = {k: np.zeros_like(v) for k, v in params.items()}
+        self.v = {k: np.zeros_like(v) for k, v in params.items()}
 
-    def step(self, layers, grads, lr_scale):
+    def step(self, params, grads, lr_scale):
         self.t += 1
         lr = self.lr * lr_scale * np.sqrt(1 - self.b2 ** self.t) / (1 - self.b1 ** self.t)
-        for layer, grad, m, v in zip(layers, grads, self.m, self.v):
-            for p, g, mp, vp in zip(layer, grad, m, v):
-                mp *= self.b1
-                mp += (1 - self.b1) * g
-                vp *= self.b2
-                vp += (1 - self.b2) * g * g
-                p -= lr * mp / (np.sqrt(vp) + self.eps)
+        for k, g in grads.items():
+            m, v = self.m[k], self.v[k]
+            m *= self.b1
+            m += (1 - self.b1) * g
+            v *= self.b2
+            v += (1 - self.b2) * g * g
+            params[k] -= (lr * m / (np.sqrt(v) + self.eps)).astype(F32)
 
 
-def train_epochs(layers, adam, x, targets, epochs, args, rng):
-    """Adam over shuffled mini-batches; epochs is this round's (first, last + 1) of the run,
-    so the cosine decay runs once over both rounds: large steps first, then settle."""
-    steps_per_epoch = -(-len(x) // args.batch)
-    for epoch in range(*epochs):
-        order = rng.permutation(len(x))
-        for s in range(steps_per_epoch):
-            batch = order[s * args.batch: (s + 1) * args.batch]
-            progress = (epoch * steps_per_epoch + s) / (args.epochs * steps_per_epoch)
-            acts = forward(layers, x[batch])
-            adam.step(layers, backward(layers, acts, targets[batch]),
-                      0.5 * (1 + np.cos(np.pi * progress)))
-        loss = bce_with_logits(forward(layers, x)[-1], targets)
-        print(f"epoch {epoch + 1:3d}/{args.epochs}: balanced training loss {loss:.4f}")
-
-
-def train(rgb, label, frames, args, rng):
-    """Two rounds: on a class-balanced sample, then on a fresh one where part of the non-fruit
-    pixels is drawn from the first round's mistakes. Returns layers acting on raw RGB / 255."""
-    features, targets = sample_pixels(rgb, label, frames, args, rng)
-    print(f"round 1: {int(targets.sum())} fruit and {int((1 - targets).sum())} non-fruit pixels")
-    # Standardised inputs train faster; the scaling is folded into the first layer afterwards.
-    mean, std = features.mean(axis=0), features.std(axis=0) + 1e-6
-    layers = init_layers([features.shape[1], *args.hidden_widths, 1], rng)
-    adam = Adam(layers, args.learning_rate)
-    first_round_epochs = (args.epochs + 1) // 2
-    train_epochs(layers, adam, (features - mean) / std, targets, (0, first_round_epochs), args, rng)
-    if first_round_epochs < args.epochs:
-        model = (fold_normalisation(layers, mean, std), args.kernel_px)
-        features, targets = sample_pixels(rgb, label, frames, args, rng, model)
-        print(f"round 2: {args.hard_share:.0%} of non-fruit pixels drawn from round 1's mistakes")
-        train_epochs(layers, adam, (features - mean) / std, targets,
-                     (first_round_epochs, args.epochs), args, rng)
-    return fold_normalisation(layers, mean, std)
-
-
-def fold_normalisation(layers, mean, std):
-    """First layer acting on raw RGB/255 patches: w' = w / std, b' = b - (mean / std) @ w."""
-    (w, b), rest = layers[0], layers[1:]
-    return [(w / std[:, None], b - (mean / std) @ w), *rest]
-
-
-def probability_map(layers, frame_rgb8, kernel_px):
-    """Per-pixel fruit probability of one frame, (H, W), with folded layers."""
-    x = frame_features(frame_rgb8, kernel_px)
-    # Cache-sized chunks: a whole frame's thin (N, 8) activations run several times slower.
-    logit = np.concatenate([forward(layers, x[i: i + FORWARD_CHUNK_PX])[-1]
-                            for i in range(0, len(x), FORWARD_CHUNK_PX)])
-    return sigmoid(logit).reshape(frame_rgb8.shape[:2])
-
-
-def layer_sizes(args):
-    return [3 * args.kernel_px ** 2, *args.hidden_widths, 1]
-
-
-def parameter_count(sizes):
-    return sum((n_in + 1) * n_out for n_in, n_out in zip(sizes[:-1], sizes[1:]))
-
-
-def multiply_adds_per_px(sizes):
-    return sum(n_in * n_out for n_in, n_out in zip(sizes[:-1], sizes[1:]))
+def train(data, frames, args, rng):
+    """Adam on weighted binary cross-entropy over random crops, cosine decay of the step.
+    Returns the network and the input normalisation."""
+    mean, std = input_statistics(data, frames, rng)
+    net = Network.initial(args, 3 + data.with_depth, rng)
+    adam = Adam(net.params, args.learning_rate)
+    sampler = CropSampler(data, frames, args, rng)
+    started, running = time.monotonic(), None
+    for step in range(args.steps):
+        x, y = sampler.batch()
+        logit, cache = net.forward((x - mean) / std)
+        weight = np.where(y > 0, F32(args.fruit_weight), F32(1.0))
+        p = sigmoid(logit)
+        loss = float(np.mean(weight * (np.maximum(logit, 0) - logit * y
+                                       + np.log1p(np.exp(-np.abs(logit))))))
+        running = loss if running is None else 0.98 * running + 0.02 * loss
+        g = (weight * (p - y) / y.size).astype(F32)
+        grads = net.backward(g, cache)
+        adam.step(net.params, grads, 0.5 * (1 + np.cos(np.pi * step / args.steps)))
+        if (step + 1) % 100 == 0 or step + 1 == args.steps:
+            print(f"step {step + 1:5d}/{args.steps}: weighted loss {running:.4f} "
+                  f"({time.monotonic() - started:.0f} s)", flush=True)
+    return net, mean, std
 
 
 # ---------------------------------------------------------------- evaluation
 
 
-def evaluate(layers, rgb, label, frames, colours, kernel_px):
-    """Pixel counts per subset (all, and per fruit colour) over every held-out pixel."""
+def probability_map(params, dilations, rgb8, depth_mm, with_depth):
+    return forward_folded(params, dilations, input_planes(rgb8, depth_mm, with_depth))
+
+
+def evaluate(params, dilations, data, frames):
+    """Pixel counts per subset (all, per fruit colour, per world and colour) over every pixel
+    of the held-out frames, and over those with depth."""
     counts = {}
-    for i in frames:
-        predicted = probability_map(layers, np.asarray(rgb[i]), kernel_px) >= THRESHOLD
-        truth = np.asarray(label[i]) == 1
-        for subset in ("all", colours[i]):
-            c = counts.setdefault(
-                subset, dict(frames=0, pixels=0, fruit_pixels=0, tp=0, fp=0, fn=0))
-            c["frames"] += 1
-            c["pixels"] += truth.size
-            c["fruit_pixels"] += int(truth.sum())
-            c["tp"] += int((predicted & truth).sum())
-            c["fp"] += int((predicted & ~truth).sum())
-            c["fn"] += int((~predicted & truth).sum())
-    return {subset: with_scores(c) for subset, c in counts.items()}
+    worlds = set(data.worlds[k] for k in frames)
+    for k in frames:
+        rgb, depth, truth = data.frame(k)
+        predicted = probability_map(params, dilations, rgb, depth, data.with_depth) >= THRESHOLD
+        has_depth = np.ones_like(truth) if depth is None else depth > 0
+        subsets = ["all", data.colours[k]]
+        if len(worlds) > 1:
+            subsets.append(f"{data.worlds[k]} {data.colours[k]}")
+        for subset in subsets:
+            for scope, mask in (("pixels", None), ("with_depth", has_depth)):
+                c = counts.setdefault(subset, {}).setdefault(
+                    scope, dict(frames=0, pixels=0, fruit_pixels=0, tp=0, fp=0, fn=0))
+                t, pr = (truth, predicted) if mask is None else (truth[mask], predicted[mask])
+                c["frames"] += 1
+                c["pixels"] += int(t.size)
+                c["fruit_pixels"] += int(t.sum())
+                c["tp"] += int((pr & t).sum())
+                c["fp"] += int((pr & ~t).sum())
+                c["fn"] += int((~pr & t).sum())
+    return {subset: {scope: with_scores(c) for scope, c in scopes.items()}
+            for subset, scopes in counts.items()}
 
 
 def ratio(num, den):
@@ -356,88 +603,122 @@ def with_scores(c):
             "iou": ratio(tp, tp + fp + fn)}
 
 
-def metrics_table(metrics):
+def metrics_table(metrics, scope):
     def fmt(v):
         return "   -  " if v is None else f"{v:6.4f}"
     lines = ["| subset | frames | fruit px | precision | recall | F1 | IoU |",
              "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for subset in ("all", "red", "green"):
-        if subset in metrics:
-            m = metrics[subset]
-            lines.append(f"| {subset} | {m['frames']} | {m['fruit_pixels']} "
-                         f"| {fmt(m['precision'])} | {fmt(m['recall'])} | {fmt(m['f1'])} "
-                         f"| {fmt(m['iou'])} |")
+    for subset in sorted(metrics, key=lambda s: (s != "all", s)):
+        m = metrics[subset][scope]
+        lines.append(f"| {subset} | {m['frames']} | {m['fruit_pixels']} "
+                     f"| {fmt(m['precision'])} | {fmt(m['recall'])} | {fmt(m['f1'])} "
+                     f"| {fmt(m['iou'])} |")
     return "\n".join(lines)
 
 
 # ---------------------------------------------------------------- export
 
 
-def to_onnx(layers, kernel_px, metadata):
-    """Conv/Relu graph with symbolic height and width; pads keep the input's H and W."""
+def to_onnx(params, dilations, with_depth, metadata):
+    """The graph of Network.forward in NCHW with symbolic height and width."""
     from onnx import TensorProto, helper, numpy_helper
 
-    nodes, inits, previous = [], [], "rgb"
-    for k, (w, b) in enumerate(layers):
-        side_px = kernel_px if k == 0 else 1
-        # Patch features are ordered (c, ky, kx): exactly the Conv weight layout [out, in, ky, kx].
-        weight = w.T.reshape(w.shape[1], -1, side_px, side_px).astype(np.float32)
-        inits += [numpy_helper.from_array(weight, f"conv{k}.weight"),
-                  numpy_helper.from_array(b.astype(np.float32), f"conv{k}.bias")]
-        pad_px = side_px // 2
+    input_name = "rgbd" if with_depth else "rgb"
+    c_in = 4 if with_depth else 3
+    nodes, inits = [], []
+
+    def conv(name, source, stride=1, dilation=1, pad=0):
+        w, b = params[name + ".weight"], params[name + ".bias"]
+        k = w.shape[0]
+        # (k, k, C_in, C_out) to ONNX's [C_out, C_in, ky, kx].
+        inits.append(numpy_helper.from_array(
+            np.ascontiguousarray(w.transpose(3, 2, 0, 1)).astype(F32), name + ".weight"))
+        inits.append(numpy_helper.from_array(b.astype(F32), name + ".bias"))
         nodes.append(helper.make_node(
-            "Conv", [previous, f"conv{k}.weight", f"conv{k}.bias"], [f"conv{k}"],
-            name=f"conv{k}", kernel_shape=[side_px, side_px], pads=[pad_px] * 4,
-            strides=[1, 1], dilations=[1, 1], group=1))
-        last = k == len(layers) - 1
-        out = "fruit_probability" if last else f"relu{k}"
-        nodes.append(helper.make_node("Sigmoid" if last else "Relu", [f"conv{k}"], [out], name=out))
-        previous = out
+            "Conv", [source, name + ".weight", name + ".bias"], [name], name=name,
+            kernel_shape=[k, k], pads=[pad] * 4, strides=[stride, stride],
+            dilations=[dilation, dilation], group=1))
+        return name
+
+    def op(kind, inputs, name, **attrs):
+        nodes.append(helper.make_node(kind, inputs, [name], name=name, **attrs))
+        return name
+
+    def conv_relu(name, source, **kw):
+        return op("Relu", [conv(name, source, **kw)], name + "_relu")
+
+    full = conv_relu("full", input_name, pad=1)
+    d4 = conv_relu("down4", input_name, stride=4)
+    ctx = conv_relu("down8", d4, stride=2)
+    for i, dil in enumerate(dilations):
+        r = conv_relu(f"context{i}", ctx, dilation=dil, pad=dil)
+        ctx = op("Add", [ctx, r], f"context{i}_add")
+    u8 = op("DepthToSpace", [conv_relu("up8", ctx)], "up8_space", blocksize=2, mode="DCR")
+    mid = conv_relu("mid", op("Concat", [u8, d4], "mid_in", axis=1))
+    u4 = op("DepthToSpace", [conv_relu("up4", mid)], "up4_space", blocksize=4, mode="DCR")
+    hidden = conv_relu("head", op("Concat", [full, u4], "head_in", axis=1))
+    op("Sigmoid", [conv("out", hidden)], "fruit_probability")
     graph = helper.make_graph(
         nodes, "fruit_segmenter",
-        [helper.make_tensor_value_info("rgb", TensorProto.FLOAT, [1, 3, "height", "width"])],
+        [helper.make_tensor_value_info(input_name, TensorProto.FLOAT,
+                                       [1, c_in, "height", "width"])],
         [helper.make_tensor_value_info("fruit_probability", TensorProto.FLOAT,
                                        [1, 1, "height", "width"])],
         inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                               producer_name="glasshouse detector-service/model/train.py")
     model.ir_version = IR_VERSION
-    model.doc_string = ("Per-pixel fruit probability from RGB8/255; "
+    model.doc_string = ("Per-pixel fruit probability from RGB8/255"
+                        + (" and depth in metres" if with_depth else "")
+                        + f"; height and width multiples of {SIZE_MULTIPLE}; "
                         "see detector-service/model/README.md")
     helper.set_model_props(model, metadata)
     return model
 
 
-def check_against_reference(path, layers, frame_rgb8, kernel_px):
+def onnx_input(rgb8, depth_mm, with_depth):
+    """One frame as the exported model's NCHW input, padded to the size multiple."""
+    x = padded_to_multiple(input_planes(rgb8, depth_mm, with_depth))
+    return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+
+
+def check_against_reference(path, params, dilations, rgb8, depth_mm, with_depth):
     """onnx's checker, then its reference runtime on a frame against the numpy forward pass."""
     import onnx
     from onnx.reference import ReferenceEvaluator
 
     model = onnx.load(str(path))
     onnx.checker.check_model(model, full_check=True)
-    unit = (frame_rgb8.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
-    (onnx_prob,) = ReferenceEvaluator(model).run(None, {"rgb": unit})
-    expected = probability_map(layers, frame_rgb8, kernel_px)
-    if onnx_prob.shape != (1, 1) + frame_rgb8.shape[:2] or onnx_prob.dtype != np.float32:
+    x = onnx_input(rgb8, depth_mm, with_depth)
+    name = model.graph.input[0].name
+    (onnx_prob,) = ReferenceEvaluator(model).run(None, {name: x})
+    h, w = rgb8.shape[:2]
+    expected = probability_map(params, dilations, rgb8, depth_mm, with_depth)
+    if onnx_prob.shape != (1, 1) + x.shape[2:] or onnx_prob.dtype != np.float32:
         raise SystemExit(f"ONNX output {onnx_prob.shape} {onnx_prob.dtype} breaks the contract")
-    diff = float(np.max(np.abs(onnx_prob[0, 0] - expected)))
+    diff = float(np.max(np.abs(onnx_prob[0, 0, :h, :w] - expected)))
     if not diff < MAX_ABS_DIFF_TO_REFERENCE:
         raise SystemExit(f"ONNX and numpy disagree: max abs difference {diff:.3g}")
     return diff, expected
 
 
-def check_with_tract(path, frame_rgb8, expected):
+def check_with_tract(path, rgb8, depth_mm, with_depth, expected):
     """The Rust side's runtime, when its Python bindings (pip `tract`) are installed: loads the
-    model with symbolic H and W, as tract-onnx does, and compares on the same frame."""
+    model and fixes the input size, as tract-onnx does in the detector, and compares on the
+    same frame."""
     try:
         import tract
     except ImportError:
         return None
-    unit = np.ascontiguousarray((frame_rgb8.astype(np.float32) / 255.0).transpose(2, 0, 1)[None])
-    runnable = tract.onnx().model_for_path(str(path)).into_optimized().into_runnable()
-    out = runnable.run([unit])[0].to_numpy()
-    diff = float(np.max(np.abs(out[0, 0] - expected)))
-    if out.shape != (1, 1) + frame_rgb8.shape[:2] or not diff < MAX_ABS_DIFF_TO_REFERENCE:
+    x = onnx_input(rgb8, depth_mm, with_depth)
+    model = tract.onnx().model_for_path(str(path))
+    # As the Rust side does: a plan per image size (both paths then agree on H and W).
+    model.set_input_fact(0, ",".join(map(str, x.shape)) + ",f32")
+    runnable = model.into_optimized().into_runnable()
+    out = runnable.run([x])[0].to_numpy()
+    h, w = rgb8.shape[:2]
+    diff = float(np.max(np.abs(out[0, 0, :h, :w] - expected)))
+    if out.shape != (1, 1) + x.shape[2:] or not diff < MAX_ABS_DIFF_TO_REFERENCE:
         raise SystemExit(f"tract output {out.shape} differs from numpy by {diff:.3g}")
     return diff
 
@@ -463,65 +744,85 @@ def sha256(path):
 def main(argv=None):
     args = parse_args(sys.argv[1:] if argv is None else argv)
     started_s = time.monotonic()
-    rgb, label, meta = load_dataset(args.data)
-    colours = meta["fruit_colour"]
-    train_frames, held_out_frames = split_frames(colours, args.held_out_share)
-    if not train_frames or not held_out_frames:
-        sys.exit("need at least two frames to split into train and held-out")
-    print(f"dataset {args.data}: {meta['frames']} frames of {meta['width']}x{meta['height']}, "
-          f"{len(train_frames)} train, {len(held_out_frames)} held out")
+    data = Dataset(args.data, args.depth)
+    if args.test:
+        test = Dataset(args.test, args.depth)
+        train_frames, held_out = list(range(len(data))), list(range(len(test)))
+        if (test.height, test.width) != (data.height, data.width):
+            sys.exit("--test frames differ in size from --data frames")
+    else:
+        test = data
+        train_frames, held_out = split_frames(data.colours, args.held_out_share)
+    if not train_frames or not held_out:
+        sys.exit("need training and held-out frames")
+    if min(data.height, data.width) < args.crop_px:
+        sys.exit(f"--crop-px {args.crop_px} is larger than the {data.width}x{data.height} frames")
+    print(f"training on {len(train_frames)} frames of {data.width}x{data.height}, "
+          f"evaluating on {len(held_out)}", flush=True)
 
-    n_params = parameter_count(layer_sizes(args))
-    mult_adds = multiply_adds_per_px(layer_sizes(args)) * COST_FRAME_PX
+    rng = np.random.default_rng(args.seed)
+    probe = Network.initial(args, 3 + args.depth, np.random.default_rng(0))
+    mult_adds = probe.multiply_adds_per_px() * COST_FRAME_PX
     if mult_adds > MAX_MULTIPLY_ADDS_PER_FRAME:
         sys.exit(f"{mult_adds / 1e6:.0f} M multiply-adds per 640x480 frame is over the "
                  f"{MAX_MULTIPLY_ADDS_PER_FRAME / 1e6:.0f} M budget")
 
-    rng = np.random.default_rng(args.seed)
-    layers = train(rgb, label, train_frames, args, rng)
+    net, mean, std = train(data, train_frames, args, rng)
     training_s = time.monotonic() - started_s
-    metrics = evaluate(layers, rgb, label, held_out_frames, colours, args.kernel_px)
-    print(metrics_table(metrics))
+    params = net.folded(mean, std)
+    params["out.bias"] = (params["out.bias"] + F32(args.logit_offset)).astype(F32)
+    metrics = evaluate(params, net.dilations, test, held_out)
+    print("every pixel:\n" + metrics_table(metrics, "pixels"))
+    print("pixels with depth:\n" + metrics_table(metrics, "with_depth"))
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     model_props = {"seed": str(args.seed), "threshold": str(THRESHOLD),
-                   "dataset_shape": "x".join(map(str, rgb.shape))}
-    args.out.write_bytes(to_onnx(layers, args.kernel_px, model_props).SerializeToString())
-    check_frame = held_out_frames[0]
-    diff, expected = check_against_reference(args.out, layers, np.asarray(rgb[check_frame]),
-                                             args.kernel_px)
+                   "size_multiple": str(SIZE_MULTIPLE),
+                   "input": "rgbd" if args.depth else "rgb",
+                   "dataset_shape": "x".join(map(str, (len(train_frames), data.height,
+                                                        data.width)))}
+    args.out.write_bytes(
+        to_onnx(params, net.dilations, args.depth, model_props).SerializeToString())
+    check_frame = held_out[0]
+    rgb8, depth_mm, _ = test.frame(check_frame)
+    diff, expected = check_against_reference(args.out, params, net.dilations, rgb8, depth_mm,
+                                             args.depth)
     print(f"ONNX checked: reference runtime on held-out frame {check_frame} within {diff:.2e}")
-    tract_diff = check_with_tract(args.out, np.asarray(rgb[check_frame]), expected)
+    tract_diff = check_with_tract(args.out, rgb8, depth_mm, args.depth, expected)
     print("tract: not installed, skipped" if tract_diff is None
           else f"tract: same frame within {tract_diff:.2e}")
 
-    hidden = args.hidden_widths
     report = {
         "model": args.out.name,
         "model_sha256": sha256(args.out),
         "model_bytes": args.out.stat().st_size,
         "command": shlex.join(["python", *(sys.argv if argv is None else [__file__, *argv])]),
         "seed": args.seed,
-        "architecture": (f"Conv {args.kernel_px}x{args.kernel_px} 3->{hidden[0]}, Relu, "
-                         f"Conv 1x1 {hidden[0]}->{hidden[1]}, Relu, "
-                         f"Conv 1x1 {hidden[1]}->1, Sigmoid"),
-        "parameters": n_params,
-        "multiply_adds_per_640x480_frame": mult_adds,
+        "input": "rgbd" if args.depth else "rgb",
+        "architecture": net.architecture(),
+        "parameters": net.parameter_count(),
+        "multiply_adds_per_pixel": mult_adds / COST_FRAME_PX,
+        "multiply_adds_per_640x480_frame": int(mult_adds),
         "threshold": THRESHOLD,
-        "dataset": {"path": str(args.data), "shape": list(rgb.shape), "seed": meta.get("seed"),
-                    "train_frames": len(train_frames),
-                    "held_out_frames": index_ranges(held_out_frames)},
-        "training": {"epochs": args.epochs, "samples_per_class": args.samples_per_class,
-                     "batch": args.batch, "learning_rate": args.learning_rate,
-                     "near_fruit_weight": args.near_fruit_weight, "leaf_weight": args.leaf_weight,
-                     "hard_share": args.hard_share, "seconds": round(training_s, 1),
+        "size_multiple": SIZE_MULTIPLE,
+        "training_data": data.describe(),
+        "held_out_data": (test.describe() if args.test
+                          else {"frames": index_ranges(held_out)}),
+        "training": {"steps": args.steps, "batch": args.batch, "crop_px": args.crop_px,
+                     "fruit_crop_share": args.fruit_crop_share,
+                     "colour_weights": args.colour_weight,
+                     "fruit_weight": args.fruit_weight, "learning_rate": args.learning_rate,
+                     "logit_offset": args.logit_offset,
+                     "input_mean": [float(v) for v in mean],
+                     "input_std": [float(v) for v in std],
+                     "seconds": round(training_s, 1),
                      "seconds_with_evaluation_and_export": round(time.monotonic() - started_s, 1)},
         "onnx_reference_max_abs_diff": diff,
         "tract_max_abs_diff": tract_diff,
         "held_out_metrics": metrics,
     }
     args.out.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {args.out} ({report['model_bytes']} bytes, {n_params} parameters, "
+    print(f"wrote {args.out} ({report['model_bytes']} bytes, {report['parameters']} parameters, "
           f"{mult_adds / 1e6:.0f} M multiply-adds per 640x480 frame) and "
           f"{args.out.with_suffix('.json').name}; "
           f"{report['training']['seconds_with_evaluation_and_export']} s in all")

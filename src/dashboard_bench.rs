@@ -222,6 +222,7 @@ pub async fn run(args: DashboardBenchArgs) -> anyhow::Result<()> {
             record: args.record.clone(),
             serve: None,
             http_listen: Some("127.0.0.1:0".into()),
+            mcap: None,
         },
         stop.clone(),
         fleet.clone(),

@@ -38,6 +38,9 @@ pub struct DemoArgs {
     /// Write a Rerun recording of the run.
     #[arg(long, value_name = "FILE.rrd")]
     pub record: Option<PathBuf>,
+    /// Write an MCAP recording of the run to DIR (opens in Foxglove; `glasshouse replay`).
+    #[arg(long, value_name = "DIR")]
+    pub mcap: Option<PathBuf>,
     /// Serve while running: the fleet web page, a live Rerun stream and the Rerun web viewer
     /// (the URLs are printed).
     #[arg(long)]
@@ -370,6 +373,13 @@ fn dashboard_settings(args: &DemoArgs) -> DashboardSettings {
         record: args.record.clone(),
         serve,
         http_listen: args.serve.then(|| args.http.clone()),
+        mcap: args
+            .mcap
+            .clone()
+            .map(|dir| glasshouse_dashboard::McapSettings {
+                dir,
+                ..Default::default()
+            }),
     }
 }
 

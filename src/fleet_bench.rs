@@ -82,6 +82,10 @@ pub struct FleetBenchArgs {
     /// (seconds) passes in wall-clock time, as on a real trolley.
     #[arg(long)]
     pub realtime: bool,
+    /// Record the whole run to MCAP in DIR with `glasshouse record` (a process beside the fleet)
+    /// and report what it wrote, dropped and cost on disk per frame.
+    #[arg(long, value_name = "DIR")]
+    pub record: Option<PathBuf>,
     /// Run the fleet secured: a fresh PKI in the logs folder, every process its own identity
     /// over mutual TLS, the router with the generated ACL (what `glasshouse secure` deploys), to
     /// measure what TLS and the ACL cost against a plain run.
@@ -212,6 +216,8 @@ struct KindReport {
 
 #[derive(Serialize)]
 struct Report {
+    /// What the MCAP recorder wrote (`--record`).
+    recorder: Option<RecorderReport>,
     trolleys: u32,
     planners: u32,
     detectors: u32,
@@ -355,10 +361,34 @@ async fn run_fleet(args: &FleetBenchArgs) -> anyhow::Result<Report> {
     drop(subscriber);
     let _ = observer.close().await;
     fleet.stop();
+    if let Some(dir) = &args.record {
+        report.recorder = Some(recorder_report(dir)?);
+    }
     Ok(report)
 }
 
+/// What `glasshouse record` wrote (its `summary.json`, written when it stopped).
+#[derive(Serialize, serde::Deserialize)]
+struct RecorderReport {
+    messages: u64,
+    frames: u64,
+    dropped: u64,
+    disk_bytes: u64,
+    files: Vec<PathBuf>,
+}
+
+fn recorder_report(dir: &Path) -> anyhow::Result<RecorderReport> {
+    let path = dir.join("summary.json");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("the recorder left no {} (see its log)", path.display()))?;
+    Ok(serde_json::from_str(&text)?)
+}
+
 fn validate(args: &FleetBenchArgs) -> anyhow::Result<()> {
+    ensure!(
+        !(args.secure && args.record.is_some()),
+        "--record runs without --secure (the recorder has no identity in the bench's roster)"
+    );
     ensure!(
         !args.trolley_counts.is_empty() && args.trolley_counts.iter().all(|n| (1..=64).contains(n)),
         "--trolleys must be counts within 1..=64"
@@ -476,17 +506,23 @@ impl Fleet {
         bin: &str,
         extra: &[String],
     ) -> anyhow::Result<()> {
-        let mut a: Vec<String> = [
-            "-e",
-            &self.endpoint,
-            "--mode",
-            "client",
-            "--lease-ms",
-            &self.lease,
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
+        // The CLI's subcommand comes before its session flags.
+        let (mut a, extra) = match (bin, extra.split_first()) {
+            ("glasshouse", Some((command, rest))) => (vec![command.clone()], rest),
+            _ => (Vec::new(), extra),
+        };
+        a.extend(
+            [
+                "-e",
+                &self.endpoint,
+                "--mode",
+                "client",
+                "--lease-ms",
+                &self.lease,
+            ]
+            .iter()
+            .map(|s| s.to_string()),
+        );
         // The edge process is a trolley's identity.
         let role = if kind == "edge" { "trolley" } else { kind };
         a.extend(self.config_flags(&format!("{role}-{name}")));
@@ -508,6 +544,14 @@ impl Fleet {
                 extra.extend(["--replica-refresh-clouds".into(), n.to_string()]);
             }
             self.spawn_client("planner", format!("p{i}"), "planner-service", &extra)?;
+        }
+        if let Some(dir) = &args.record {
+            let extra = [
+                "record".into(),
+                "--out".into(),
+                dir.to_string_lossy().into_owned(),
+            ];
+            self.spawn_client("recorder", "recorder".into(), "glasshouse", &extra)?;
         }
         // Let the planners and detectors find each other before the trolleys appear.
         tokio::time::sleep(Duration::from_secs(2)).await;
@@ -969,6 +1013,7 @@ fn build_report(
     let per_trolley_mib = |kib: Option<u64>| kib.map(|k| k as f64 / 1024.0 / n);
     let cost = planner_cost(o, m, frames);
     Report {
+        recorder: None,
         planner_cpu_ms_per_frame_minute1: cost.cpu_ms_per_frame_minute1,
         planner_cpu_ms_per_frame_last_minute: cost.cpu_ms_per_frame_last_minute,
         planner_stage_ms_per_frame: cost.stage_ms_per_frame,
@@ -1076,6 +1121,17 @@ fn print_report(r: &Report) {
         println!(
             "  scans lost: {} (t1's map at {}: {} scans, rebuilt offline from {} clouds: {} scans; equal voxel for voxel: {})",
             t.scans_lost, t.survivor, t.scans_in_survivor_map, t.clouds_observed, t.scans_rebuilt, t.maps_equal
+        );
+    }
+    if let Some(rec) = &r.recorder {
+        println!(
+            "  MCAP recorder: {} messages ({} frames) in {} file(s), {} dropped, {:.1} MB on disk ({:.0} kB per frame)",
+            rec.messages,
+            rec.frames,
+            rec.files.len(),
+            rec.dropped,
+            rec.disk_bytes as f64 / 1e6,
+            rec.disk_bytes as f64 / 1e3 / rec.frames.max(1) as f64
         );
     }
     println!("  per process kind: CPU (% of one core, all processes of the kind) and peak RSS per process");

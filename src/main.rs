@@ -8,6 +8,7 @@ mod demo;
 mod eval;
 mod fleet_bench;
 mod probe;
+mod record;
 mod render;
 mod secure;
 
@@ -53,6 +54,13 @@ enum Command {
     /// Secure a deployment: a CA, a certificate per identity, the router's mTLS listener and
     /// access control list, and one client config per identity (`init`, then `issue` to add).
     Secure(secure::SecureArgs),
+    /// Record every Glasshouse key to MCAP files (our messages with their schema, and the same in
+    /// Foxglove's schemas, so Foxglove opens a run with no plugin); files rotate by size and
+    /// duration. Stops on Ctrl-C, SIGTERM or --duration-s.
+    Record(record::RecordArgs),
+    /// Put an MCAP recording back on the bus with its timing (`--only info,roi` to re-run a
+    /// fresh planner on a run's clouds).
+    Replay(record::ReplayArgs),
     /// Run a Zenoh router for a deployment: listens where `--zenoh-config` or `-l` says, else on
     /// tcp/0.0.0.0:7447.
     Router {
@@ -79,6 +87,8 @@ async fn main() -> anyhow::Result<()> {
         Command::Render(args) => render::run(args),
         Command::Dataset(args) => dataset::run(args),
         Command::Secure(args) => secure::run(args).await,
+        Command::Record(args) => record::record(args).await,
+        Command::Replay(args) => record::replay(args).await,
         Command::Router { bus } => {
             let config = glasshouse_bus::router_config(&bus, DEFAULT_ROUTER_LISTEN)?;
             let listen = config.get_json("listen/endpoints").unwrap_or_default();

@@ -7,6 +7,8 @@
 //! arrows with the executed one highlighted, fruit boxes labelled with size and volume, and time
 //! series. Timelines: `sim_time` (the stamp of the data) and `wall_time`.
 
+pub mod foxglove;
+pub mod mcap_recorder;
 mod recorder;
 pub mod web;
 
@@ -26,6 +28,7 @@ use glasshouse_proto::{
 use serde::Deserialize;
 use zenoh::Session;
 
+pub use mcap_recorder::{McapRecorder, McapSettings, McapSummary};
 pub use recorder::Recorder;
 
 /// Dashboard settings; a JSON5 file may set any of them.
@@ -38,6 +41,9 @@ pub struct DashboardSettings {
     pub serve: Option<ServeSettings>,
     /// Address of the fleet web page and JSON API (e.g. `0.0.0.0:8080`); none = off.
     pub http_listen: Option<String>,
+    /// Record every key to MCAP files in a folder (`{ dir, max_file_bytes, max_file_s,
+    /// foxglove, queue }`), for Foxglove and for `glasshouse replay`.
+    pub mcap: Option<McapSettings>,
 }
 
 /// Live Rerun serving: a gRPC server that buffers up to a memory limit, plus the web viewer.
@@ -99,6 +105,8 @@ pub struct TrolleyView {
     pub info: Option<TrolleyInfo>,
     pub status: Option<TrolleyStatus>,
     pub fruits: Vec<FruitEstimate>,
+    /// The frame the latest fruits were estimated on.
+    pub fruits_based_on_seq: u64,
     pub last_views: Option<RankedViews>,
     pub frames: u64,
     pub clouds: u64,
@@ -189,6 +197,7 @@ impl FleetState {
                     }
                     (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => {
                         t.fruits = f.fruits.clone();
+                        t.fruits_based_on_seq = f.based_on_seq;
                         t.covered_volume = covered_volume(&t.fruits, &t.truth);
                     }
                     (TrolleyTopic::Truth, Message::FruitEstimates(f)) if t.truth != f.fruits => {
@@ -241,6 +250,8 @@ pub struct DashboardCounters {
     pub drops: Arc<DropCounters>,
     /// The bound address of the web page, once it listens.
     pub http_addr: Mutex<Option<SocketAddr>>,
+    /// What the MCAP recording wrote, once it is closed.
+    pub mcap: Mutex<Option<McapSummary>>,
 }
 
 /// Logs the series the dashboard derives itself (latency, covered volume).
@@ -296,13 +307,24 @@ pub async fn run(
         Some(addr) => Some(serve_web(addr, &settings, &shutdown, &state, &counters).await?),
         None => None,
     };
+    let mcap = match &settings.mcap {
+        Some(mcap) => {
+            let run = mcap_recorder::run_metadata(glasshouse_bus::wall_clock_ns(), &[]);
+            Some(McapRecorder::start(mcap.clone(), run)?)
+        }
+        None => None,
+    };
     let (_subscribers, mut rx) = subscribe_all(&session, &counters).await?;
-    tracing::info!(record = ?settings.record, "dashboard started");
+    tracing::info!(record = ?settings.record, mcap = ?settings.mcap.as_ref().map(|m| &m.dir), "dashboard started");
     loop {
         tokio::select! {
             _ = shutdown.wait() => break,
             received = rx.recv() => {
-                let Some(received) = received else { break };
+                let Some(mut received) = received else { break };
+                if let Some(mcap) = &mcap {
+                    let payload = std::mem::take(&mut received.payload);
+                    mcap.record(&received.key, payload, glasshouse_bus::wall_clock_ns());
+                }
                 let Some(key) = keys::parse(&received.key) else { continue };
                 if let Ok(mut s) = state.lock() {
                     s.apply(&key, &received.header, &received.message, Instant::now());
@@ -319,7 +341,11 @@ pub async fn run(
         }
     }
     // Drain what already arrived so the recording ends with the latest results.
-    while let Ok(received) = rx.try_recv() {
+    while let Ok(mut received) = rx.try_recv() {
+        if let Some(mcap) = &mcap {
+            let payload = std::mem::take(&mut received.payload);
+            mcap.record(&received.key, payload, glasshouse_bus::wall_clock_ns());
+        }
         if let Some(key) = keys::parse(&received.key) {
             if let Ok(mut s) = state.lock() {
                 s.apply(&key, &received.header, &received.message, Instant::now());
@@ -331,6 +357,19 @@ pub async fn run(
     }
     if let Some(recorder) = recorder {
         recorder.finish()?;
+    }
+    if let Some(mcap) = mcap {
+        let summary = mcap.finish()?;
+        tracing::info!(
+            files = summary.files.len(),
+            messages = summary.messages,
+            disk_bytes = summary.disk_bytes,
+            dropped = summary.dropped,
+            "MCAP recording closed"
+        );
+        if let Ok(mut c) = counters.mcap.lock() {
+            *c = Some(summary);
+        }
     }
     if let Some(http) = http {
         stop_web(http).await;

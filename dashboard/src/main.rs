@@ -12,7 +12,8 @@ use glasshouse_dashboard::{DashboardSettings, FleetState, ServeSettings};
 /// /api/fleet, /api/trolleys/{id}/fruits, /healthz), a Rerun recording and/or a live Rerun stream.
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: record, serve {bind_ip, grpc_port,
-/// web_viewer_port, public_host, memory_limit_bytes}, http_listen), then the flags below.
+/// web_viewer_port, public_host, memory_limit_bytes}, http_listen, mcap {dir, max_file_bytes,
+/// max_file_s, foxglove, queue}), then the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "dashboard", version)]
 struct Cli {
@@ -40,6 +41,10 @@ struct Cli {
     /// Do not serve the web page.
     #[arg(long)]
     no_http: bool,
+    /// Record every key to MCAP files in DIR: our messages (flatbuffer, with their schema) and
+    /// the same in Foxglove's schemas; files rotate by size and duration.
+    #[arg(long, value_name = "DIR")]
+    mcap: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -55,6 +60,10 @@ fn main() -> anyhow::Result<()> {
 
 fn apply_flags(cli: Cli, settings: &mut DashboardSettings) -> anyhow::Result<()> {
     set_flag(&mut settings.record, cli.record.map(Some));
+    if let Some(dir) = cli.mcap {
+        let mcap = settings.mcap.get_or_insert_with(Default::default);
+        mcap.dir = dir;
+    }
     if cli.serve {
         settings.serve = Some(ServeSettings {
             grpc_port: cli.grpc_port,

@@ -7,6 +7,7 @@
 //! feeds back what happened. The clock is simulated: each view costs its motion time plus a
 //! capture time.
 
+pub mod ros2;
 pub mod source;
 mod world_args;
 pub use world_args::WorldArgs;
@@ -23,14 +24,14 @@ use glasshouse_bus::{
     Shutdown, Subscriber,
 };
 use glasshouse_pipeline::{
-    EdgeAction, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer, SimTrolley, SimTrolleySettings,
-    TrolleySource,
+    EdgeAction, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer, TrolleySource,
 };
 use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{
     ArmState, FruitEstimates, Header, ImageEncoding, RgbdFrame, TrolleyInfo, TrolleyStatus,
 };
 use glasshouse_sim::{ScenarioKind, WorldSettings};
+use glasshouse_simtrolley::{SimTrolley, SimTrolleySettings};
 use serde::Deserialize;
 use source::{FrameRecorder, ReplaySource};
 use tokio::time::Instant;
@@ -38,11 +39,43 @@ use zenoh::Session;
 
 pub use glasshouse_pipeline::EdgeEvent;
 
+/// Where the edge's frames come from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum SourceKind {
+    /// The simulated glasshouse (`scenario`, `seed`, `world`).
+    #[default]
+    Sim,
+    /// Frames recorded by an edge with `record_frames_dir` (`replay_dir`).
+    Replay,
+    /// A rosbag2 recording (MCAP storage, `bag`) with a camera's colour, aligned depth, camera
+    /// info and TF (`ros.topics`), played as a trolley.
+    Bag,
+    /// A live ROS 2 camera, TF and arm driver over Zenoh, as rmw_zenoh speaks it (`ros`).
+    Ros2,
+}
+
+/// A ROS 2 or bag source: the camera's topics and frames, and what ROS messages do not carry.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RosSettings {
+    pub topics: glasshouse_ros::RosTopics,
+    pub trolley: glasshouse_ros::RosTrolley,
+    /// The live source's domain, node name, timeouts.
+    pub live: ros2::Ros2Settings,
+}
+
 /// Edge settings; every field has a default, a JSON5 file may set any of them.
 #[derive(Clone, Debug, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EdgeConfig {
     pub trolley_id: String,
+    /// Where frames come from: `sim` (default), `replay` or `bag`.
+    pub source: SourceKind,
+    /// The rosbag2 bag (its folder or one `.mcap` file) of the `bag` source.
+    pub bag: Option<PathBuf>,
+    /// Topics, frames and the trolley of the `bag` source.
+    pub ros: RosSettings,
     /// Scenario: `1`, `2` or `row`.
     pub scenario: ScenarioKind,
     pub seed: u64,
@@ -83,6 +116,9 @@ impl Default for EdgeConfig {
     fn default() -> Self {
         Self {
             trolley_id: "t1".into(),
+            source: SourceKind::Sim,
+            bag: None,
+            ros: RosSettings::default(),
             scenario: ScenarioKind::One,
             seed: 1,
             width: 640,
@@ -106,6 +142,22 @@ impl EdgeConfig {
     pub fn validate(&self) -> anyhow::Result<()> {
         keys::validate_id(&self.trolley_id)?;
         self.sim().validate()?;
+        if self.source == SourceKind::Ros2 {
+            self.ros.topics.validate().map_err(anyhow::Error::msg)?;
+        }
+        if self.source == SourceKind::Bag {
+            anyhow::ensure!(
+                self.bag.is_some(),
+                "the bag source needs a bag (`--source bag FILE`)"
+            );
+            self.ros.topics.validate().map_err(anyhow::Error::msg)?;
+        }
+        if self.source == SourceKind::Replay {
+            anyhow::ensure!(
+                self.replay_dir.is_some(),
+                "the replay source needs a folder (`--source replay DIR`)"
+            );
+        }
         anyhow::ensure!(
             self.capture_time_s.is_finite() && self.capture_time_s >= 0.0,
             "capture time must be finite and >= 0"
@@ -122,7 +174,11 @@ impl EdgeConfig {
         EdgeSettings {
             trolley_id: self.trolley_id.clone(),
             max_views: self.max_views,
-            capture_time_s: self.capture_time_s,
+            // A bag's motion times are the recorded gaps between frames, capture included.
+            capture_time_s: match self.source {
+                SourceKind::Bag => 0.0,
+                _ => self.capture_time_s,
+            },
             segment_done_utility: self.segment_done_utility,
         }
     }
@@ -145,10 +201,40 @@ impl EdgeConfig {
         }
     }
 
-    fn open_source(&self) -> anyhow::Result<Box<dyn TrolleySource>> {
-        Ok(match &self.replay_dir {
-            Some(dir) => Box::new(ReplaySource::open(dir)?),
-            None => Box::new(SimTrolley::new(self.sim())?),
+    fn open_source(
+        &self,
+        session: &Session,
+        drops: &Arc<DropCounters>,
+    ) -> anyhow::Result<Box<dyn TrolleySource>> {
+        let source = match (self.source, &self.replay_dir) {
+            // An older settings file names only the folder.
+            (SourceKind::Sim, Some(_)) => SourceKind::Replay,
+            (kind, _) => kind,
+        };
+        Ok(match source {
+            SourceKind::Sim => Box::new(SimTrolley::new(self.sim())?),
+            SourceKind::Replay => {
+                let dir = self.replay_dir.as_deref().context("no replay folder")?;
+                Box::new(ReplaySource::open(dir)?)
+            }
+            SourceKind::Bag => {
+                let bag = self.bag.as_deref().context("no bag")?;
+                let (topics, trolley) = (self.ros.topics.clone(), self.ros.trolley.clone());
+                let source = glasshouse_ros::BagSource::open(bag, topics, trolley)
+                    .with_context(|| format!("cannot play {}", bag.display()))?;
+                Box::new(source)
+            }
+            SourceKind::Ros2 => {
+                let ros = &self.ros;
+                let source = ros2::Ros2Source::open(
+                    session,
+                    ros.live.clone(),
+                    ros.topics.clone(),
+                    ros.trolley.clone(),
+                    drops.clone(),
+                )?;
+                Box::new(source)
+            }
         })
     }
 }
@@ -422,7 +508,7 @@ pub async fn run(
     let views = Subscriber::declare(&session, &keys::views(&tid)?, drops.clone()).await?;
     let planners = MemberWatch::declare(&session, MemberKind::Planner).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
-    let source = config.open_source()?;
+    let source = config.open_source(&session, &drops)?;
     let truth = source.ground_truth().map(|fruits| FruitEstimates {
         fruits,
         based_on_seq: 0,

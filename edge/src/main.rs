@@ -1,4 +1,5 @@
-//! `edge`: one trolley (simulated glasshouse source) on the Glasshouse bus.
+//! `edge`: one trolley on the Glasshouse bus: the simulated glasshouse, recorded frames, or a
+//! rosbag2 recording of a ROS 2 camera.
 
 use std::path::PathBuf;
 
@@ -8,9 +9,21 @@ use glasshouse_edge::EdgeConfig;
 
 /// Streams RGB-D frames and arm state of one trolley and executes the views planners send.
 ///
+/// Sources: `--source sim` (default: the simulated glasshouse), `--source replay DIR` (frames an
+/// edge recorded with --record-frames), `--source bag FILE.mcap|BAG_DIR` (a rosbag2 recording of
+/// a camera: colour `sensor_msgs/Image` rgb8/bgr8, aligned depth 16UC1 mm or 32FC1 m, its
+/// `CameraInfo`, and `/tf` from the world frame to the camera's optical frame, grouped by stamp;
+/// topics, frames and the trolley's workspace and robot in the settings file's `ros: { topics:
+/// {..}, trolley: {..} }`). With --realtime a bag plays at its recorded speed. `--source ros2`
+/// drives a live ROS 2 robot over the edge's Zenoh session the way rmw_zenoh does (same topics,
+/// plus `ros.live: { domain_id, node_name, .. }`): the chosen view goes out as
+/// `geometry_msgs/PoseStamped`, the ranked views as `PoseArray`, and the arm's driver answers
+/// on `view_reached` (`std_msgs/Bool`).
+///
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
-/// frame_interval_ms, segment_length_m, segment_done_utility, replay_dir, record_frames_dir,
+/// frame_interval_ms, segment_length_m, segment_done_utility, source, bag, ros, replay_dir,
+/// record_frames_dir,
 /// world: { perception: {..}, scene: {..}, pose: {..} }, compress_frames, realtime), then the
 /// flags below (`--world` replaces the file's world with a preset, the other world flags
 /// override one part of it).
@@ -39,7 +52,14 @@ struct Cli {
     /// Image height in pixels.
     #[arg(long)]
     height: Option<u32>,
-    /// Play back the frames recorded in this folder instead of simulating.
+    /// Where frames come from: sim, replay (a folder from --record-frames), bag (a rosbag2 MCAP
+    /// file or bag folder) or ros2 (a live ROS 2 robot); replay and bag take the PATH that follows.
+    #[arg(long, value_enum)]
+    source: Option<glasshouse_edge::SourceKind>,
+    /// The folder (replay) or bag (bag) of --source.
+    #[arg(value_name = "PATH")]
+    path: Option<PathBuf>,
+    /// Play back the frames recorded in this folder instead of simulating (= --source replay DIR).
     #[arg(long, value_name = "DIR")]
     replay: Option<PathBuf>,
     /// Record every captured frame to this folder (for --replay).
@@ -76,6 +96,21 @@ fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
         set_flag(&mut c.height, cli.height);
     }
     set_flag(&mut c.replay_dir, cli.replay.map(Some));
+    if let Some(source) = cli.source {
+        c.source = source;
+    }
+    match (c.source, cli.path) {
+        (glasshouse_edge::SourceKind::Bag, Some(path)) => c.bag = Some(path),
+        (glasshouse_edge::SourceKind::Replay, Some(path)) => c.replay_dir = Some(path),
+        (glasshouse_edge::SourceKind::Sim | glasshouse_edge::SourceKind::Ros2, Some(path)) => {
+            anyhow::bail!(
+                "--source {:?} takes no PATH (got {})",
+                c.source,
+                path.display()
+            )
+        }
+        _ => {}
+    }
     set_flag(&mut c.record_frames_dir, cli.record_frames.map(Some));
     c.world = cli.world.apply_to(c.world)?;
     if cli.raw_frames {

@@ -1,6 +1,6 @@
 //! Recorded trolleys: [`FrameRecorder`] writes what a trolley captures, [`ReplaySource`] plays it
 //! back behind the same [`TrolleySource`] trait as the simulated glasshouse
-//! ([`glasshouse_pipeline::SimTrolley`]) and a real camera and arm driver.
+//! ([`glasshouse_simtrolley::SimTrolley`]) and a real camera and arm driver.
 
 use std::fs;
 use std::path::{Path, PathBuf};

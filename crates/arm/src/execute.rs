@@ -31,6 +31,31 @@ pub struct ViewMotion {
     pub duration_s: f64,
 }
 
+/// What executing a view did: which goal of the list, and how long the motion took.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Executed {
+    /// Index of the executed goal in the list.
+    pub index: usize,
+    /// Arm and mount motion time, without capture time.
+    pub motion_s: f64,
+}
+
+impl From<ViewMotion> for Executed {
+    fn from(motion: ViewMotion) -> Self {
+        Self {
+            index: motion.index,
+            motion_s: motion.duration_s,
+        }
+    }
+}
+
+/// Clearance the camera centre keeps from every solid the trolley knows of (a view closer than
+/// this is not taken, and a planner does not propose it).
+pub const CAMERA_CLEARANCE_M: f64 = 0.05;
+
+/// Clearance every link capsule keeps from the mount's structure when the arm is placed or moved.
+pub const ARM_CLEARANCE_M: f64 = 0.02;
+
 /// Settings of view execution.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ExecuteSettings {
@@ -46,7 +71,7 @@ impl Default for ExecuteSettings {
         Self {
             limits: MotionLimits::default(),
             path_step_rad: 5f64.to_radians(),
-            margin_m: 0.02,
+            margin_m: ARM_CLEARANCE_M,
         }
     }
 }
@@ -97,7 +122,9 @@ impl Robot {
         Err(ArmError::Unreachable)
     }
 
-    /// The first goal of `goals` (best first) the robot can move to, with its index; None when
+    /// Algorithm 1's "moveToPose, else the next view": the first goal of `goals` (best first)
+    /// that `camera_position_free` accepts (the camera's clearance from what the caller knows of
+    /// the world) and the robot can move to on a collision-free path, with its index; None when
     /// none can be reached. Goals that are errors (non-finite, out of reach, in collision) are
     /// skipped: a bad view never stops the trolley.
     pub fn first_reachable(
@@ -106,8 +133,12 @@ impl Robot {
         goals: &[Isometry3<f64>],
         obstacles: &[Obstacle],
         settings: &ExecuteSettings,
+        camera_position_free: impl Fn(&nalgebra::Point3<f64>) -> bool,
     ) -> Option<ViewMotion> {
         goals.iter().enumerate().find_map(|(index, goal)| {
+            if !camera_position_free(&goal.translation.vector.into()) {
+                return None;
+            }
             self.motion_to(from, goal, obstacles, settings)
                 .ok()
                 .map(|m| ViewMotion { index, ..m })
@@ -159,14 +190,28 @@ mod tests {
         let bad = Isometry3::translation(f64::NAN, 0.0, 1.0);
         let near = look_at(&Point3::new(0.3, 0.3, 1.0), &Point3::new(0.7, 0.5, 0.8));
         let motion = robot
-            .first_reachable(&from, &[far, bad, near], &[], &ExecuteSettings::default())
+            .first_reachable(
+                &from,
+                &[far, bad, near],
+                &[],
+                &ExecuteSettings::default(),
+                |_| true,
+            )
             .expect("the near view is reachable");
         assert_eq!(motion.index, 2);
         let reached = motion.world_from_camera.translation.vector;
         assert!((reached - near.translation.vector).norm() < 1e-6);
         assert!(motion.duration_s > 0.0 && motion.duration_s < 10.0);
         assert!(robot
-            .first_reachable(&from, &[far, bad], &[], &ExecuteSettings::default())
+            .first_reachable(&from, &[far, bad], &[], &ExecuteSettings::default(), |_| {
+                true
+            })
+            .is_none());
+        // A goal whose camera position the caller rules out is skipped like an unreachable one.
+        let not_near = |p: &Point3<f64>| (p.coords - near.translation.vector).norm() > 0.01;
+        let settings = ExecuteSettings::default();
+        assert!(robot
+            .first_reachable(&from, &[far, near], &[], &settings, not_near)
             .is_none());
     }
 

@@ -50,7 +50,9 @@ pub use collision::{
     CollisionWorld, Contact, ContactWith, Obstacle, OccupancyQuery, PathContact, WorldCapsule,
 };
 pub use error::{ArmError, Result};
-pub use execute::{ArmPose, ExecuteSettings, ViewMotion};
+pub use execute::{
+    ArmPose, ExecuteSettings, Executed, ViewMotion, ARM_CLEARANCE_M, CAMERA_CLEARANCE_M,
+};
 pub use kinematics::{
     best_solution, joint_distance, ArmModel, JointLimits, JointVector, LinkCapsule, UrDh,
     CAMERA_FRAME, JOINT_COUNT, UR_ALPHA,

@@ -322,7 +322,8 @@ pub struct Received<M> {
     pub key: String,
     pub header: Header,
     pub message: M,
-    pub payload_bytes: usize,
+    /// The verified envelope as it arrived (for recorders that keep the bytes).
+    pub payload: Vec<u8>,
 }
 
 /// The queue between a Zenoh subscriber callback and the decoding `recv` of both subscribers.
@@ -401,7 +402,7 @@ impl Inbox {
                 key,
                 header,
                 message,
-                payload_bytes: bytes.len(),
+                payload: bytes,
             }),
             Err(e) => {
                 let n = self.counters.corrupt.fetch_add(1, Ordering::Relaxed) + 1;

@@ -21,12 +21,12 @@ use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
 use glasshouse_geom::FruitEstimate;
 use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
-    detect_frame_with, ranked_views, CaptureError, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
-    EdgeSettings, PlanningError, PlanningSettings, RoiEvidence, RoiTargets, SimTrolley,
-    SimTrolleySettings, TrolleyPlanner, TrolleySource,
+    detect_frame_with, ranked_views, EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings,
+    PlanningError, PlanningSettings, RoiEvidence, RoiTargets, TrolleyPlanner, TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame, RoiCloud, TrolleyInfo};
 use glasshouse_sim::{FruitTruth, ScenarioKind, Scene, WorldSettings};
+use glasshouse_simtrolley::{CaptureError, SimTrolley, SimTrolleySettings};
 use serde::Serialize;
 
 use crate::metrics::{evaluate, evaluate_against, Metrics, TruthMeasure};

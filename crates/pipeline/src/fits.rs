@@ -29,7 +29,7 @@ struct CachedFit {
 /// The fits of the latest clusters, keyed by each cluster's smallest voxel, and the shapes of
 /// their voxels.
 #[derive(Clone, Debug, Default)]
-pub(crate) struct FitCache {
+pub struct FitCache {
     by_first_voxel: HashMap<VoxelKey, CachedFit>,
     shapes: HashMap<VoxelKey, (Vec<VoxelKey>, ClusterShape)>,
 }
@@ -38,7 +38,7 @@ impl FitCache {
     /// The fits of `clusters` on `map`, in cluster order, refitting only the clusters whose
     /// voxels or surroundings changed since their last fit; also returns how many were refitted.
     /// The result equals fitting every cluster afresh.
-    pub(crate) fn update<'a>(
+    pub fn update<'a>(
         &mut self,
         map: &RoiMap,
         clusters: impl IntoIterator<Item = &'a RoiCluster>,
@@ -150,7 +150,7 @@ struct CachedSplit {
 /// cluster's smallest voxel and kept while neither the cluster nor what its fits read changed:
 /// a cluster long enough to be tried costs up to three fits, and a row holds many of them.
 #[derive(Clone, Debug, Default)]
-pub(crate) struct SplitCache {
+pub struct SplitCache {
     by_first_voxel: HashMap<VoxelKey, CachedSplit>,
 }
 
@@ -159,7 +159,7 @@ impl SplitCache {
     /// [`glasshouse_nbv::split::split_touching`], trying again only the clusters whose voxels
     /// or surroundings changed since their last split; also returns how many were tried again.
     /// The fits a split makes of its parts go to `fits`.
-    pub(crate) fn update<'a>(
+    pub fn update<'a>(
         &mut self,
         map: &RoiMap,
         clusters: impl Iterator<Item = &'a RoiCluster>,

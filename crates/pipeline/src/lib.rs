@@ -10,22 +10,20 @@
 //! The services call these steps across the bus (the edge drives [`EdgeNode`] and a
 //! [`TrolleySource`], the detector calls [`detect_frame`], the planner keeps a [`TrolleyPlanner`]
 //! per trolley); the experiments (`glasshouse-eval`) call the very same steps in one thread with
-//! a simulated clock. Seeds ([`noise_seed`], [`plan_seed`]), the depth packing and the planner's
-//! defaults ([`PlanningSettings::default`]) exist only here. No I/O: time and seeds are passed in.
+//! a simulated clock. The plan seed ([`plan_seed`]), the depth packing and the planner's defaults
+//! ([`PlanningSettings::default`]) exist only here. No I/O: time and seeds are passed in. The
+//! simulator is not here: the simulated trolley (`glasshouse-simtrolley`) is one
+//! [`TrolleySource`] among others, and nothing a real trolley runs links it.
 
-mod capture;
 mod detection;
 mod edge;
-mod fits;
+pub mod fits;
 mod order;
 mod planning;
 mod published;
 mod reach;
+mod source;
 
-pub use capture::{
-    noise_seed, render_frame, CaptureError, Executed, SimTrolley, SimTrolleySettings,
-    TrolleySource, DEPTH_SCALE_M,
-};
 pub use detection::{detect_frame, detect_frame_with};
 pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer};
 pub use glasshouse_register::{Alignment, AlignmentCounts};
@@ -37,6 +35,7 @@ pub use planning::{
     RoiTargets, TrolleyPlanner, ROI_EVIDENCE_LOGODDS,
 };
 pub use reach::ReachFilter;
+pub use source::{Executed, TrolleySource, DEPTH_SCALE_M};
 
 #[cfg(test)]
 mod tests;

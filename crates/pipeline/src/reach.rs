@@ -4,9 +4,9 @@ use std::sync::Arc;
 
 use glasshouse_arm::{
     shared_reachability_map, ArmError, ReachCheck, ReachabilityParams, Robot, ViewReachability,
+    ARM_CLEARANCE_M, CAMERA_CLEARANCE_M,
 };
 use glasshouse_roimap::{Occupancy, RoiMap};
-use glasshouse_sim::{Scene, CAMERA_CLEARANCE_M};
 use nalgebra::{Isometry3, Point3};
 
 /// The edge's own test, repeated cheaply for every candidate view before it is scored: the arm
@@ -23,7 +23,7 @@ impl ReachFilter {
     /// The filter for `robot` (the reachability map is built once per process and arm).
     pub fn for_robot(robot: Robot) -> Result<Self, ArmError> {
         let map = shared_reachability_map(&ReachabilityParams::paper(&robot.arm))?;
-        let reach = ViewReachability::new(robot, map, ReachCheck::Pose, Scene::ARM_CLEARANCE_M)?;
+        let reach = ViewReachability::new(robot, map, ReachCheck::Pose, ARM_CLEARANCE_M)?;
         Ok(Self {
             reach: Arc::new(reach),
         })

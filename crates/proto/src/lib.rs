@@ -33,6 +33,14 @@ use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 /// Version written into every envelope; readers reject other versions.
 pub const PROTOCOL_VERSION: u16 = 1;
 
+/// The schema's binary reflection form (`flatc -b --schema`, root type `Envelope`): what a
+/// reader needs to decode our messages without our code, stored with every MCAP recording's
+/// `flatbuffer` channels. `scripts/gen-proto --check` keeps it equal to the schema.
+pub const SCHEMA_BFBS: &[u8] = include_bytes!("../schema/glasshouse.bfbs");
+
+/// The fully qualified name of the schema's root type, as MCAP schema records name it.
+pub const SCHEMA_ROOT_NAME: &str = "glasshouse.wire.Envelope";
+
 /// Errors of decoding a received payload.
 #[derive(thiserror::Error, Debug)]
 pub enum ProtoError {

@@ -82,21 +82,15 @@ pub fn arm_state() -> ArmState {
 pub fn trolley_info() -> TrolleyInfo {
     let intrinsics = intrinsics();
     TrolleyInfo {
-        arm_model: ArmModel::Ur5e,
-        mount: MountKind::RailLift,
         world_from_base: Isometry3::translation(0.0, -0.7, 0.3),
-        joint_min_rad: vec![-std::f64::consts::TAU; 6],
-        joint_max_rad: vec![std::f64::consts::TAU; 6],
-        rail_min_m: 0.0,
-        rail_max_m: 20.0,
-        lift_min_m: 0.0,
-        lift_max_m: 3.0,
         camera_workspace: region(),
         sampling_region: region().inflated(0.1),
         scenario: "row".into(),
         scene_seed: 7,
         intrinsics,
-        robot_json: r#"{"arm":"ur5e"}"#.into(),
+        robot: Some(Box::new(glasshouse_arm::Robot::row(
+            glasshouse_arm::Interval::new(0.0, 20.0),
+        ))),
     }
 }
 

@@ -36,7 +36,7 @@ pub use generate::{
     FruitShape, ParseFruitShapeError, SceneOptions, SceneOptionsError, MAX_RED_CLUTTER,
 };
 pub use light::{COVERED_SKY_SHARE, DROPOUT_HIGHLIGHT, EXPOSURE_RANGE};
-pub use trolley::{Executed, SimArm};
+pub use trolley::SimArm;
 pub use world::{
     ParseWorldPresetError, PoseError, PoseErrorError, WorldError, WorldPreset, WorldSettings,
 };
@@ -47,8 +47,9 @@ use light::{Lighting, SurfaceHit};
 use generate::{Plant, Solid, FLOOR_ALBEDO};
 use shapes::{Bvh, Packet, Ray, Shape, NO_HIT, PACKET, PACKET_HEIGHT, PACKET_WIDTH};
 
-/// Minimum distance from the camera centre to any solid for a position to count as free.
-pub const CAMERA_CLEARANCE_M: f64 = 0.05;
+/// Minimum distance from the camera centre to any solid for a position to count as free (the
+/// arm crate's, which planners also keep).
+pub use glasshouse_arm::CAMERA_CLEARANCE_M;
 
 /// Shading: `albedo * (AMBIENT + DIFFUSE * max(0, n·l))`.
 pub const AMBIENT: f32 = 0.45;
@@ -402,7 +403,7 @@ impl Scene {
     }
 
     /// Clearance the arm keeps from the mount's structure when placed at the initial view.
-    pub const ARM_CLEARANCE_M: f64 = 0.02;
+    pub const ARM_CLEARANCE_M: f64 = glasshouse_arm::ARM_CLEARANCE_M;
 
     /// The UR5e on this scenario's mount: the static pole at the origin (1), the ceiling gantry
     /// over the 2 x 2 m square (2), or the rail trolley along the row, its travel spanning the

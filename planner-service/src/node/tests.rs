@@ -2,9 +2,10 @@
 
 use glasshouse_detect::DetectorConfig;
 use glasshouse_pipeline::Alignment;
-use glasshouse_pipeline::{detect_frame, SimTrolley, SimTrolleySettings, TrolleySource};
+use glasshouse_pipeline::{detect_frame, TrolleySource};
 use glasshouse_proto::{FrameId, FrameRegistration, RegistrationReason, RegistrationVerdict};
 use glasshouse_sim::ScenarioKind;
+use glasshouse_simtrolley::{SimTrolley, SimTrolleySettings};
 
 use super::*;
 

@@ -3252,15 +3252,7 @@ impl<'a> ::flatbuffers::Follow<'a> for TrolleyInfo<'a> {
 }
 
 impl<'a> TrolleyInfo<'a> {
-  pub const VT_ARM_MODEL: ::flatbuffers::VOffsetT = 4;
-  pub const VT_MOUNT: ::flatbuffers::VOffsetT = 6;
   pub const VT_WORLD_FROM_BASE: ::flatbuffers::VOffsetT = 8;
-  pub const VT_JOINT_MIN_RAD: ::flatbuffers::VOffsetT = 10;
-  pub const VT_JOINT_MAX_RAD: ::flatbuffers::VOffsetT = 12;
-  pub const VT_RAIL_MIN_M: ::flatbuffers::VOffsetT = 14;
-  pub const VT_RAIL_MAX_M: ::flatbuffers::VOffsetT = 16;
-  pub const VT_LIFT_MIN_M: ::flatbuffers::VOffsetT = 18;
-  pub const VT_LIFT_MAX_M: ::flatbuffers::VOffsetT = 20;
   pub const VT_CAMERA_WORKSPACE: ::flatbuffers::VOffsetT = 22;
   pub const VT_SAMPLING_REGION: ::flatbuffers::VOffsetT = 24;
   pub const VT_SCENARIO: ::flatbuffers::VOffsetT = 26;
@@ -3279,86 +3271,22 @@ impl<'a> TrolleyInfo<'a> {
   ) -> ::flatbuffers::WIPOffset<TrolleyInfo<'bldr>> {
     let mut builder = TrolleyInfoBuilder::new(_fbb);
     builder.add_scene_seed(args.scene_seed);
-    builder.add_lift_max_m(args.lift_max_m);
-    builder.add_lift_min_m(args.lift_min_m);
-    builder.add_rail_max_m(args.rail_max_m);
-    builder.add_rail_min_m(args.rail_min_m);
     if let Some(x) = args.robot_json { builder.add_robot_json(x); }
     if let Some(x) = args.intrinsics { builder.add_intrinsics(x); }
     if let Some(x) = args.scenario { builder.add_scenario(x); }
     if let Some(x) = args.sampling_region { builder.add_sampling_region(x); }
     if let Some(x) = args.camera_workspace { builder.add_camera_workspace(x); }
-    if let Some(x) = args.joint_max_rad { builder.add_joint_max_rad(x); }
-    if let Some(x) = args.joint_min_rad { builder.add_joint_min_rad(x); }
     if let Some(x) = args.world_from_base { builder.add_world_from_base(x); }
-    builder.add_mount(args.mount);
-    builder.add_arm_model(args.arm_model);
     builder.finish()
   }
 
 
-  #[inline]
-  pub fn arm_model(&self) -> ArmModel {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<ArmModel>(TrolleyInfo::VT_ARM_MODEL, Some(ArmModel::None)).unwrap()}
-  }
-  #[inline]
-  pub fn mount(&self) -> MountKind {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<MountKind>(TrolleyInfo::VT_MOUNT, Some(MountKind::FreeCamera)).unwrap()}
-  }
   #[inline]
   pub fn world_from_base(&self) -> Option<&'a Pose> {
     // Safety:
     // Created from valid Table for this object
     // which contains a valid value in this slot
     unsafe { self._tab.get::<Pose>(TrolleyInfo::VT_WORLD_FROM_BASE, None)}
-  }
-  #[inline]
-  pub fn joint_min_rad(&self) -> Option<::flatbuffers::Vector<'a, f64>> {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, f64>>>(TrolleyInfo::VT_JOINT_MIN_RAD, None)}
-  }
-  #[inline]
-  pub fn joint_max_rad(&self) -> Option<::flatbuffers::Vector<'a, f64>> {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, f64>>>(TrolleyInfo::VT_JOINT_MAX_RAD, None)}
-  }
-  #[inline]
-  pub fn rail_min_m(&self) -> f64 {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<f64>(TrolleyInfo::VT_RAIL_MIN_M, Some(0.0)).unwrap()}
-  }
-  #[inline]
-  pub fn rail_max_m(&self) -> f64 {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<f64>(TrolleyInfo::VT_RAIL_MAX_M, Some(0.0)).unwrap()}
-  }
-  #[inline]
-  pub fn lift_min_m(&self) -> f64 {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<f64>(TrolleyInfo::VT_LIFT_MIN_M, Some(0.0)).unwrap()}
-  }
-  #[inline]
-  pub fn lift_max_m(&self) -> f64 {
-    // Safety:
-    // Created from valid Table for this object
-    // which contains a valid value in this slot
-    unsafe { self._tab.get::<f64>(TrolleyInfo::VT_LIFT_MAX_M, Some(0.0)).unwrap()}
   }
   #[inline]
   pub fn camera_workspace(&self) -> Option<&'a Box3> {
@@ -3410,15 +3338,7 @@ impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
     v: &mut ::flatbuffers::Verifier, pos: usize
   ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
     v.visit_table(pos)?
-     .visit_field::<ArmModel>("arm_model", Self::VT_ARM_MODEL, false)?
-     .visit_field::<MountKind>("mount", Self::VT_MOUNT, false)?
      .visit_field::<Pose>("world_from_base", Self::VT_WORLD_FROM_BASE, false)?
-     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, f64>>>("joint_min_rad", Self::VT_JOINT_MIN_RAD, false)?
-     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, f64>>>("joint_max_rad", Self::VT_JOINT_MAX_RAD, false)?
-     .visit_field::<f64>("rail_min_m", Self::VT_RAIL_MIN_M, false)?
-     .visit_field::<f64>("rail_max_m", Self::VT_RAIL_MAX_M, false)?
-     .visit_field::<f64>("lift_min_m", Self::VT_LIFT_MIN_M, false)?
-     .visit_field::<f64>("lift_max_m", Self::VT_LIFT_MAX_M, false)?
      .visit_field::<Box3>("camera_workspace", Self::VT_CAMERA_WORKSPACE, false)?
      .visit_field::<Box3>("sampling_region", Self::VT_SAMPLING_REGION, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("scenario", Self::VT_SCENARIO, false)?
@@ -3430,15 +3350,7 @@ impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
   }
 }
 pub struct TrolleyInfoArgs<'a> {
-    pub arm_model: ArmModel,
-    pub mount: MountKind,
     pub world_from_base: Option<&'a Pose>,
-    pub joint_min_rad: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, f64>>>,
-    pub joint_max_rad: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, f64>>>,
-    pub rail_min_m: f64,
-    pub rail_max_m: f64,
-    pub lift_min_m: f64,
-    pub lift_max_m: f64,
     pub camera_workspace: Option<&'a Box3>,
     pub sampling_region: Option<&'a Box3>,
     pub scenario: Option<::flatbuffers::WIPOffset<&'a str>>,
@@ -3450,15 +3362,7 @@ impl<'a> Default for TrolleyInfoArgs<'a> {
   #[inline]
   fn default() -> Self {
     TrolleyInfoArgs {
-      arm_model: ArmModel::None,
-      mount: MountKind::FreeCamera,
       world_from_base: None,
-      joint_min_rad: None,
-      joint_max_rad: None,
-      rail_min_m: 0.0,
-      rail_max_m: 0.0,
-      lift_min_m: 0.0,
-      lift_max_m: 0.0,
       camera_workspace: None,
       sampling_region: None,
       scenario: None,
@@ -3475,40 +3379,8 @@ pub struct TrolleyInfoBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
 }
 impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyInfoBuilder<'a, 'b, A> {
   #[inline]
-  pub fn add_arm_model(&mut self, arm_model: ArmModel) {
-    self.fbb_.push_slot::<ArmModel>(TrolleyInfo::VT_ARM_MODEL, arm_model, ArmModel::None);
-  }
-  #[inline]
-  pub fn add_mount(&mut self, mount: MountKind) {
-    self.fbb_.push_slot::<MountKind>(TrolleyInfo::VT_MOUNT, mount, MountKind::FreeCamera);
-  }
-  #[inline]
   pub fn add_world_from_base(&mut self, world_from_base: &Pose) {
     self.fbb_.push_slot_always::<&Pose>(TrolleyInfo::VT_WORLD_FROM_BASE, world_from_base);
-  }
-  #[inline]
-  pub fn add_joint_min_rad(&mut self, joint_min_rad: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , f64>>) {
-    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyInfo::VT_JOINT_MIN_RAD, joint_min_rad);
-  }
-  #[inline]
-  pub fn add_joint_max_rad(&mut self, joint_max_rad: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , f64>>) {
-    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyInfo::VT_JOINT_MAX_RAD, joint_max_rad);
-  }
-  #[inline]
-  pub fn add_rail_min_m(&mut self, rail_min_m: f64) {
-    self.fbb_.push_slot::<f64>(TrolleyInfo::VT_RAIL_MIN_M, rail_min_m, 0.0);
-  }
-  #[inline]
-  pub fn add_rail_max_m(&mut self, rail_max_m: f64) {
-    self.fbb_.push_slot::<f64>(TrolleyInfo::VT_RAIL_MAX_M, rail_max_m, 0.0);
-  }
-  #[inline]
-  pub fn add_lift_min_m(&mut self, lift_min_m: f64) {
-    self.fbb_.push_slot::<f64>(TrolleyInfo::VT_LIFT_MIN_M, lift_min_m, 0.0);
-  }
-  #[inline]
-  pub fn add_lift_max_m(&mut self, lift_max_m: f64) {
-    self.fbb_.push_slot::<f64>(TrolleyInfo::VT_LIFT_MAX_M, lift_max_m, 0.0);
   }
   #[inline]
   pub fn add_camera_workspace(&mut self, camera_workspace: &Box3) {
@@ -3552,15 +3424,7 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyInfoBuilder<'a, 'b, A>
 impl ::core::fmt::Debug for TrolleyInfo<'_> {
   fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
     let mut ds = f.debug_struct("TrolleyInfo");
-      ds.field("arm_model", &self.arm_model());
-      ds.field("mount", &self.mount());
       ds.field("world_from_base", &self.world_from_base());
-      ds.field("joint_min_rad", &self.joint_min_rad());
-      ds.field("joint_max_rad", &self.joint_max_rad());
-      ds.field("rail_min_m", &self.rail_min_m());
-      ds.field("rail_max_m", &self.rail_max_m());
-      ds.field("lift_min_m", &self.lift_min_m());
-      ds.field("lift_max_m", &self.lift_max_m());
       ds.field("camera_workspace", &self.camera_workspace());
       ds.field("sampling_region", &self.sampling_region());
       ds.field("scenario", &self.scenario());

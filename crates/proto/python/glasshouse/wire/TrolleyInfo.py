@@ -34,20 +34,6 @@ class TrolleyInfo(object):
         self._tab = flatbuffers.table.Table(buf, pos)
 
     # TrolleyInfo
-    def ArmModel(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(4))
-        if o != 0:
-            return self._tab.Get(flatbuffers.number_types.Uint8Flags, o + self._tab.Pos)
-        return 0
-
-    # TrolleyInfo
-    def Mount(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(6))
-        if o != 0:
-            return self._tab.Get(flatbuffers.number_types.Uint8Flags, o + self._tab.Pos)
-        return 0
-
-    # TrolleyInfo
     def WorldFromBase(self) -> Optional[Pose]:
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(8))
         if o != 0:
@@ -56,88 +42,6 @@ class TrolleyInfo(object):
             obj.Init(self._tab.Bytes, x)
             return obj
         return None
-
-    # TrolleyInfo
-    def JointMinRad(self, j: int):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
-        if o != 0:
-            a = self._tab.Vector(o)
-            return self._tab.Get(flatbuffers.number_types.Float64Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 8))
-        return 0
-
-    # TrolleyInfo
-    def JointMinRadAsNumpy(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
-        if o != 0:
-            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Float64Flags, o)
-        return 0
-
-    # TrolleyInfo
-    def JointMinRadLength(self) -> int:
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
-        if o != 0:
-            return self._tab.VectorLen(o)
-        return 0
-
-    # TrolleyInfo
-    def JointMinRadIsNone(self) -> bool:
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
-        return o == 0
-
-    # TrolleyInfo
-    def JointMaxRad(self, j: int):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
-        if o != 0:
-            a = self._tab.Vector(o)
-            return self._tab.Get(flatbuffers.number_types.Float64Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 8))
-        return 0
-
-    # TrolleyInfo
-    def JointMaxRadAsNumpy(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
-        if o != 0:
-            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Float64Flags, o)
-        return 0
-
-    # TrolleyInfo
-    def JointMaxRadLength(self) -> int:
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
-        if o != 0:
-            return self._tab.VectorLen(o)
-        return 0
-
-    # TrolleyInfo
-    def JointMaxRadIsNone(self) -> bool:
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
-        return o == 0
-
-    # TrolleyInfo
-    def RailMinM(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
-        if o != 0:
-            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
-        return 0.0
-
-    # TrolleyInfo
-    def RailMaxM(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
-        if o != 0:
-            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
-        return 0.0
-
-    # TrolleyInfo
-    def LiftMinM(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
-        if o != 0:
-            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
-        return 0.0
-
-    # TrolleyInfo
-    def LiftMaxM(self):
-        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
-        if o != 0:
-            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
-        return 0.0
 
     # TrolleyInfo
     def CameraWorkspace(self) -> Optional[Box3]:
@@ -196,71 +100,11 @@ def TrolleyInfoStart(builder: flatbuffers.Builder):
 def Start(builder: flatbuffers.Builder):
     TrolleyInfoStart(builder)
 
-def TrolleyInfoAddArmModel(builder: flatbuffers.Builder, armModel: int):
-    builder.PrependUint8Slot(0, armModel, 0)
-
-def AddArmModel(builder: flatbuffers.Builder, armModel: int):
-    TrolleyInfoAddArmModel(builder, armModel)
-
-def TrolleyInfoAddMount(builder: flatbuffers.Builder, mount: int):
-    builder.PrependUint8Slot(1, mount, 0)
-
-def AddMount(builder: flatbuffers.Builder, mount: int):
-    TrolleyInfoAddMount(builder, mount)
-
 def TrolleyInfoAddWorldFromBase(builder: flatbuffers.Builder, worldFromBase: Any):
     builder.PrependStructSlot(2, flatbuffers.number_types.UOffsetTFlags.py_type(worldFromBase), 0)
 
 def AddWorldFromBase(builder: flatbuffers.Builder, worldFromBase: Any):
     TrolleyInfoAddWorldFromBase(builder, worldFromBase)
-
-def TrolleyInfoAddJointMinRad(builder: flatbuffers.Builder, jointMinRad: int):
-    builder.PrependUOffsetTRelativeSlot(3, flatbuffers.number_types.UOffsetTFlags.py_type(jointMinRad), 0)
-
-def AddJointMinRad(builder: flatbuffers.Builder, jointMinRad: int):
-    TrolleyInfoAddJointMinRad(builder, jointMinRad)
-
-def TrolleyInfoStartJointMinRadVector(builder, numElems: int) -> int:
-    return builder.StartVector(8, numElems, 8)
-
-def StartJointMinRadVector(builder, numElems: int) -> int:
-    return TrolleyInfoStartJointMinRadVector(builder, numElems)
-
-def TrolleyInfoAddJointMaxRad(builder: flatbuffers.Builder, jointMaxRad: int):
-    builder.PrependUOffsetTRelativeSlot(4, flatbuffers.number_types.UOffsetTFlags.py_type(jointMaxRad), 0)
-
-def AddJointMaxRad(builder: flatbuffers.Builder, jointMaxRad: int):
-    TrolleyInfoAddJointMaxRad(builder, jointMaxRad)
-
-def TrolleyInfoStartJointMaxRadVector(builder, numElems: int) -> int:
-    return builder.StartVector(8, numElems, 8)
-
-def StartJointMaxRadVector(builder, numElems: int) -> int:
-    return TrolleyInfoStartJointMaxRadVector(builder, numElems)
-
-def TrolleyInfoAddRailMinM(builder: flatbuffers.Builder, railMinM: float):
-    builder.PrependFloat64Slot(5, railMinM, 0.0)
-
-def AddRailMinM(builder: flatbuffers.Builder, railMinM: float):
-    TrolleyInfoAddRailMinM(builder, railMinM)
-
-def TrolleyInfoAddRailMaxM(builder: flatbuffers.Builder, railMaxM: float):
-    builder.PrependFloat64Slot(6, railMaxM, 0.0)
-
-def AddRailMaxM(builder: flatbuffers.Builder, railMaxM: float):
-    TrolleyInfoAddRailMaxM(builder, railMaxM)
-
-def TrolleyInfoAddLiftMinM(builder: flatbuffers.Builder, liftMinM: float):
-    builder.PrependFloat64Slot(7, liftMinM, 0.0)
-
-def AddLiftMinM(builder: flatbuffers.Builder, liftMinM: float):
-    TrolleyInfoAddLiftMinM(builder, liftMinM)
-
-def TrolleyInfoAddLiftMaxM(builder: flatbuffers.Builder, liftMaxM: float):
-    builder.PrependFloat64Slot(8, liftMaxM, 0.0)
-
-def AddLiftMaxM(builder: flatbuffers.Builder, liftMaxM: float):
-    TrolleyInfoAddLiftMaxM(builder, liftMaxM)
 
 def TrolleyInfoAddCameraWorkspace(builder: flatbuffers.Builder, cameraWorkspace: Any):
     builder.PrependStructSlot(9, flatbuffers.number_types.UOffsetTFlags.py_type(cameraWorkspace), 0)

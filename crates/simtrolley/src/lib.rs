@@ -1,18 +1,16 @@
-//! Capture: the trolley's camera and arm behind [`TrolleySource`], and the simulated trolley
-//! ([`SimTrolley`]) that the edge and the experiments share.
+//! The simulated trolley: a seeded glasshouse scene rendered at the camera pose of the scene's
+//! UR5e, behind the loop's [`TrolleySource`], for the edge's `--source sim` and the experiments.
+//! Nothing on a real trolley's path links this crate (`scripts/check-layers`).
 
-use glasshouse_arm::{Interval, Mount, MountState};
+use glasshouse_arm::MountState;
 use glasshouse_geom::FruitEstimate;
-use glasshouse_proto::{ArmModel, ArmState, MountKind, RgbdFrame, TrolleyInfo};
+use glasshouse_proto::{ArmState, RgbdFrame, TrolleyInfo};
 use glasshouse_sim::{
     CameraModel, PerceptionNoise, ScenarioKind, Scene, Segment, SimArm, WorldError, WorldSettings,
 };
 use nalgebra::{Isometry3, Translation3};
 
-pub use glasshouse_sim::Executed;
-
-/// Depth travels as millimetres.
-pub const DEPTH_SCALE_M: f32 = 0.001;
+use glasshouse_pipeline::{Executed, TrolleySource, DEPTH_SCALE_M};
 
 /// Why a simulated trolley cannot be set up.
 #[derive(thiserror::Error, Debug, Clone, PartialEq)]
@@ -54,25 +52,6 @@ pub fn render_frame(
         depth_encoding: Default::default(),
         rgb_encoding: Default::default(),
     }
-}
-
-/// A trolley's camera and arm, as the edge's loop sees them: the simulator, a recording, or a
-/// real driver.
-pub trait TrolleySource: Send + Sync {
-    /// What planners need to know about this trolley now (regions follow the segment).
-    fn info(&self) -> TrolleyInfo;
-    /// Ground truth, when the source knows it (the simulator does).
-    fn ground_truth(&self) -> Option<Vec<FruitEstimate>>;
-    /// Captures frame `frame_seq` at the current pose. `Ok(None)` when the source has no more
-    /// frames; `Err` with a reason when the capture failed.
-    fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String>;
-    /// The arm now.
-    fn arm_state(&self, moving: bool, views_done: u32) -> ArmState;
-    /// Moves to the first of `goals` (best first) the arm can reach; None, and no motion, when it
-    /// reaches none.
-    fn execute(&mut self, goals: &[Isometry3<f64>]) -> Option<Executed>;
-    /// Moves on to the next part of the row; the motion time, or None when the row is done.
-    fn next_segment(&mut self) -> Option<f64>;
 }
 
 /// The settings that define a simulated trolley.
@@ -209,48 +188,22 @@ impl SimTrolley {
             sampling_region: self.scene.sampling_region(),
         })
     }
-
-    fn mount_ranges(&self) -> (MountKind, Interval, Interval) {
-        let zero = Interval::new(0.0, 0.0);
-        match &self.arm.robot().mount {
-            Mount::Fixed { .. } => (MountKind::StaticPole, zero, zero),
-            Mount::CeilingGantry {
-                max_extension_m, ..
-            } => (
-                MountKind::CeilingGantry,
-                zero,
-                Interval::new(0.0, *max_extension_m),
-            ),
-            Mount::RailLift {
-                position_m, lift_m, ..
-            } => (MountKind::RailLift, *position_m, *lift_m),
-        }
-    }
 }
 
 impl TrolleySource for SimTrolley {
     fn info(&self) -> TrolleyInfo {
         let robot = self.arm.robot();
-        let (mount, rail, lift) = self.mount_ranges();
         let segment = self.segment();
         TrolleyInfo {
-            arm_model: ArmModel::Ur5e,
-            mount,
             world_from_base: robot
                 .world_from_base(&self.arm.pose().mount)
                 .unwrap_or_else(|_| Isometry3::identity()),
-            joint_min_rad: robot.arm.limits.lower.to_vec(),
-            joint_max_rad: robot.arm.limits.upper.to_vec(),
-            rail_min_m: rail.min,
-            rail_max_m: rail.max,
-            lift_min_m: lift.min,
-            lift_max_m: lift.max,
             camera_workspace: segment.camera_workspace,
             sampling_region: segment.sampling_region,
             scenario: self.settings.scenario.to_string(),
             scene_seed: self.settings.seed,
             intrinsics: self.camera.intrinsics,
-            robot_json: serde_json::to_string(robot).unwrap_or_default(),
+            robot: Some(Box::new(robot.clone())),
         }
     }
 

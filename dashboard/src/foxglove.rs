@@ -207,6 +207,20 @@ fn colour(r: f64, g: f64, b: f64, a: f64) -> Value {
     json!({"r": r, "g": g, "b": b, "a": a})
 }
 
+/// A `foxglove.SceneEntity` in the world frame, kept until replaced: `primitives` holds the
+/// lists it has (arrows, cubes, spheres, texts, ...); the others are empty.
+fn entity(stamp: u64, id: String, metadata: Value, primitives: Value) -> Value {
+    let mut entity = json!({
+        "timestamp": time(stamp), "frame_id": WORLD_FRAME, "id": id,
+        "lifetime": time(0), "frame_locked": false, "metadata": metadata,
+        "arrows": [], "cubes": [], "spheres": [], "cylinders": [], "lines": [],
+        "triangles": [], "texts": [], "models": []});
+    if let (Some(all), Value::Object(given)) = (entity.as_object_mut(), primitives) {
+        all.extend(given);
+    }
+    entity
+}
+
 /// Each fruit as its fitted solid (an ellipsoid: a scaled sphere) or, without one, its box,
 /// labelled with its id and volume. The entities replace the previous scene of the topic.
 fn fruit_scene<'a>(
@@ -226,15 +240,13 @@ fn fruit_scene<'a>(
             let above = Point3::new(centre.x, centre.y, centre.z + size.z * 0.5 + 0.02);
             let shape = json!({"pose": pose(&body), "size": vec3(&size), "color": colour(0.9, 0.2, 0.1, 0.8)});
             let (spheres, cubes) = if f.solid.is_some() { (vec![shape], vec![]) } else { (vec![], vec![shape]) };
-            json!({
-                "timestamp": time(stamp), "frame_id": WORLD_FRAME, "id": format!("{owner}/{id}"),
-                "lifetime": time(0), "frame_locked": false,
-                "metadata": [{"key": "confidence", "value": format!("{:.2}", f.confidence)}],
-                "arrows": [], "cubes": cubes, "spheres": spheres, "cylinders": [], "lines": [],
-                "triangles": [], "models": [],
-                "texts": [{"pose": pose(&Isometry3::translation(above.x, above.y, above.z)),
-                           "billboard": true, "font_size": 12.0, "scale_invariant": true,
-                           "color": colour(1.0, 1.0, 1.0, 1.0), "text": label}]})
+            let text = json!({"pose": pose(&Isometry3::translation(above.x, above.y, above.z)),
+                "billboard": true, "font_size": 12.0, "scale_invariant": true,
+                "color": colour(1.0, 1.0, 1.0, 1.0), "text": label});
+            let confidence = format!("{:.2}", f.confidence);
+            let metadata = json!([{"key": "confidence", "value": confidence}]);
+            entity(stamp, format!("{owner}/{id}"), metadata, json!({
+                "cubes": cubes, "spheres": spheres, "texts": [text]}))
         })
         .collect();
     // Clear what this topic showed before: a fruit merged away must not linger.
@@ -265,14 +277,15 @@ fn views_scene(tid: &str, stamp: u64, v: &RankedViews) -> FoxgloveMessage {
                    "head_length": 0.03, "head_diameter": 0.015, "color": c})
         })
         .collect();
-    let entity = json!({
-        "timestamp": time(stamp), "frame_id": WORLD_FRAME, "id": format!("{tid}/views"),
-        "lifetime": time(0), "frame_locked": false, "metadata": [],
-        "arrows": arrows, "cubes": [], "spheres": [], "cylinders": [], "lines": [],
-        "triangles": [], "texts": [], "models": []});
+    let views_entity = entity(
+        stamp,
+        format!("{tid}/views"),
+        json!([]),
+        json!({"arrows": arrows}),
+    );
     message(
         format!("/{tid}/views"),
         "foxglove.SceneUpdate",
-        &json!({"deletions": [], "entities": [entity]}),
+        &json!({"deletions": [], "entities": [views_entity]}),
     )
 }

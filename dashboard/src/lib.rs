@@ -287,7 +287,79 @@ fn log_derived(
     Ok(())
 }
 
-/// Runs the dashboard until `shutdown` fires; the recording is flushed before it returns.
+/// Where every received message goes besides the fleet state: the Rerun recording or stream
+/// and the MCAP recording, each when configured.
+struct Sinks {
+    rerun: Option<Recorder>,
+    mcap: Option<McapRecorder>,
+}
+
+impl Sinks {
+    fn open(settings: &DashboardSettings) -> anyhow::Result<Self> {
+        let rerun = if settings.record.is_some() || settings.serve.is_some() {
+            Some(Recorder::new(
+                settings.record.as_deref(),
+                settings.serve.as_ref(),
+            )?)
+        } else {
+            None
+        };
+        let mcap = match &settings.mcap {
+            Some(mcap) => {
+                let run = mcap_recorder::run_metadata(glasshouse_bus::wall_clock_ns(), &[]);
+                Some(McapRecorder::start(mcap.clone(), run)?)
+            }
+            None => None,
+        };
+        Ok(Self { rerun, mcap })
+    }
+
+    /// Records `received` (every key to MCAP, the project's keys to Rerun) and applies it to
+    /// the fleet state.
+    fn take(&mut self, mut received: Received<Message>, state: &Mutex<FleetState>) {
+        if let Some(mcap) = &self.mcap {
+            let payload = std::mem::take(&mut received.payload);
+            mcap.record(&received.key, payload, glasshouse_bus::wall_clock_ns());
+        }
+        let Some(key) = keys::parse(&received.key) else {
+            return;
+        };
+        if let Ok(mut s) = state.lock() {
+            s.apply(&key, &received.header, &received.message, Instant::now());
+        }
+        if let Some(recorder) = self.rerun.as_mut() {
+            if let Err(e) = recorder.log(&key, &received.header, &received.message) {
+                tracing::warn!(error = %e, "rerun logging failed");
+            }
+            if let Err(e) = log_derived(recorder, state, &key, &received.message) {
+                tracing::warn!(error = %e, "rerun logging failed");
+            }
+        }
+    }
+
+    /// Flushes the Rerun recording and closes the MCAP files (their summary goes to `counters`).
+    fn finish(self, counters: &DashboardCounters) -> anyhow::Result<()> {
+        if let Some(recorder) = self.rerun {
+            recorder.finish()?;
+        }
+        if let Some(mcap) = self.mcap {
+            let summary = mcap.finish()?;
+            tracing::info!(
+                files = summary.files.len(),
+                messages = summary.messages,
+                disk_bytes = summary.disk_bytes,
+                dropped = summary.dropped,
+                "MCAP recording closed"
+            );
+            if let Ok(mut c) = counters.mcap.lock() {
+                *c = Some(summary);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Runs the dashboard until `shutdown` fires; the recordings are flushed before it returns.
 pub async fn run(
     session: Session,
     settings: DashboardSettings,
@@ -295,23 +367,9 @@ pub async fn run(
     state: Arc<Mutex<FleetState>>,
     counters: Arc<DashboardCounters>,
 ) -> anyhow::Result<()> {
-    let mut recorder = if settings.record.is_some() || settings.serve.is_some() {
-        Some(Recorder::new(
-            settings.record.as_deref(),
-            settings.serve.as_ref(),
-        )?)
-    } else {
-        None
-    };
+    let mut sinks = Sinks::open(&settings)?;
     let http = match &settings.http_listen {
         Some(addr) => Some(serve_web(addr, &settings, &shutdown, &state, &counters).await?),
-        None => None,
-    };
-    let mcap = match &settings.mcap {
-        Some(mcap) => {
-            let run = mcap_recorder::run_metadata(glasshouse_bus::wall_clock_ns(), &[]);
-            Some(McapRecorder::start(mcap.clone(), run)?)
-        }
         None => None,
     };
     let (_subscribers, mut rx) = subscribe_all(&session, &counters).await?;
@@ -319,58 +377,17 @@ pub async fn run(
     loop {
         tokio::select! {
             _ = shutdown.wait() => break,
-            received = rx.recv() => {
-                let Some(mut received) = received else { break };
-                if let Some(mcap) = &mcap {
-                    let payload = std::mem::take(&mut received.payload);
-                    mcap.record(&received.key, payload, glasshouse_bus::wall_clock_ns());
-                }
-                let Some(key) = keys::parse(&received.key) else { continue };
-                if let Ok(mut s) = state.lock() {
-                    s.apply(&key, &received.header, &received.message, Instant::now());
-                }
-                if let Some(recorder) = recorder.as_mut() {
-                    if let Err(e) = recorder.log(&key, &received.header, &received.message) {
-                        tracing::warn!(error = %e, "rerun logging failed");
-                    }
-                    if let Err(e) = log_derived(recorder, &state, &key, &received.message) {
-                        tracing::warn!(error = %e, "rerun logging failed");
-                    }
-                }
-            }
+            received = rx.recv() => match received {
+                Some(received) => sinks.take(received, &state),
+                None => break,
+            },
         }
     }
-    // Drain what already arrived so the recording ends with the latest results.
-    while let Ok(mut received) = rx.try_recv() {
-        if let Some(mcap) = &mcap {
-            let payload = std::mem::take(&mut received.payload);
-            mcap.record(&received.key, payload, glasshouse_bus::wall_clock_ns());
-        }
-        if let Some(key) = keys::parse(&received.key) {
-            if let Ok(mut s) = state.lock() {
-                s.apply(&key, &received.header, &received.message, Instant::now());
-            }
-            if let Some(recorder) = recorder.as_mut() {
-                let _ = recorder.log(&key, &received.header, &received.message);
-            }
-        }
+    // Take what already arrived so the recordings end with the latest results.
+    while let Ok(received) = rx.try_recv() {
+        sinks.take(received, &state);
     }
-    if let Some(recorder) = recorder {
-        recorder.finish()?;
-    }
-    if let Some(mcap) = mcap {
-        let summary = mcap.finish()?;
-        tracing::info!(
-            files = summary.files.len(),
-            messages = summary.messages,
-            disk_bytes = summary.disk_bytes,
-            dropped = summary.dropped,
-            "MCAP recording closed"
-        );
-        if let Ok(mut c) = counters.mcap.lock() {
-            *c = Some(summary);
-        }
-    }
+    sinks.finish(&counters)?;
     if let Some(http) = http {
         stop_web(http).await;
     }

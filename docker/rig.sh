@@ -13,7 +13,10 @@
 #   docker/rig.sh logs [SERVICE...]   the last 50 log lines of the rig (or of some services)
 #
 # Environment (all optional):
-#   GH_SKIP_BUILD=1        up: do not run cargo; stage what target/release already has
+#   GH_SKIP_BUILD=1        up: do not run cargo; stage what target/<profile> already has
+#   GH_PROFILE=dev         up: build and stage the dev profile (target/debug; the algorithm crates
+#                          are optimised even there) instead of release: CI reuses the binaries
+#                          the tests built rather than compiling the workspace a second time
 #   GH_NEW_PKI=1           up: make a new PKI even if docker/.stage/pki exists
 #   GH_CARGO_JOBS=N        up: cargo build -j N (default: cargo's own)
 #   GH_DEBIAN_MIRROR=URL   debootstrap mirror (default http://deb.debian.org/debian)
@@ -28,6 +31,12 @@ set -euo pipefail
 
 DOCKER_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 REPO="$(cd "$DOCKER_DIR/.." && pwd)"
+PROFILE="${GH_PROFILE:-release}"
+case "$PROFILE" in
+    release) PROFILE_DIR="${CARGO_TARGET_DIR:-$REPO/target}/release" ;;
+    dev) PROFILE_DIR="${CARGO_TARGET_DIR:-$REPO/target}/debug" ;;
+    *) echo "rig.sh: GH_PROFILE must be release or dev, not $PROFILE" >&2; exit 2 ;;
+esac
 COMPOSE_FILE="$DOCKER_DIR/compose.yaml"
 PROJECT=glasshouse
 STAGE="$DOCKER_DIR/.stage"
@@ -99,8 +108,8 @@ build_binaries() {
         return
     fi
     local t0=$SECONDS
-    log "cargo build --release --workspace --bins ${GH_CARGO_JOBS:+-j $GH_CARGO_JOBS}"
-    (cd "$REPO" && cargo build --release --workspace --bins ${GH_CARGO_JOBS:+-j "$GH_CARGO_JOBS"})
+    log "cargo build --profile $PROFILE --workspace --bins ${GH_CARGO_JOBS:+-j $GH_CARGO_JOBS}"
+    (cd "$REPO" && cargo build --locked --profile "$PROFILE" --workspace --bins ${GH_CARGO_JOBS:+-j "$GH_CARGO_JOBS"})
     log "binaries built in $((SECONDS - t0)) s"
 }
 
@@ -110,9 +119,9 @@ stage_binaries() {
     rm -rf "$STAGE/bin.new"
     mkdir -p "$STAGE/bin.new"
     for b in "${BINS[@]}"; do
-        [[ -x "$REPO/target/release/$b" ]] ||
-            fail "target/release/$b is missing (run without GH_SKIP_BUILD=1)"
-        strip --strip-all -o "$STAGE/bin.new/$b" "$REPO/target/release/$b"
+        [[ -x "$PROFILE_DIR/$b" ]] ||
+            fail "$PROFILE_DIR/$b is missing (run without GH_SKIP_BUILD=1)"
+        strip --strip-all -o "$STAGE/bin.new/$b" "$PROFILE_DIR/$b"
     done
     rm -rf "${STAGE:?}/bin"
     mv "$STAGE/bin.new" "$STAGE/bin"

@@ -223,6 +223,7 @@ pub async fn run(args: DashboardBenchArgs) -> anyhow::Result<()> {
             serve: None,
             http_listen: Some("127.0.0.1:0".into()),
             mcap: None,
+            foxglove: None,
         },
         stop.clone(),
         fleet.clone(),

@@ -41,6 +41,10 @@ pub struct DemoArgs {
     /// Write an MCAP recording of the run to DIR (opens in Foxglove; `glasshouse replay`).
     #[arg(long, value_name = "DIR")]
     pub mcap: Option<PathBuf>,
+    /// Serve Foxglove's live WebSocket protocol on ADDR (default 127.0.0.1:8765): in
+    /// Foxglove, "Open connection", Foxglove WebSocket, ws://ADDR.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8765")]
+    pub foxglove: Option<String>,
     /// Serve while running: the fleet web page, a live Rerun stream and the Rerun web viewer
     /// (the URLs are printed).
     #[arg(long)]
@@ -378,6 +382,13 @@ fn dashboard_settings(args: &DemoArgs) -> DashboardSettings {
             .clone()
             .map(|dir| glasshouse_dashboard::McapSettings {
                 dir,
+                ..Default::default()
+            }),
+        foxglove: args
+            .foxglove
+            .clone()
+            .map(|listen| glasshouse_dashboard::FoxgloveLiveSettings {
+                listen,
                 ..Default::default()
             }),
     }

@@ -8,6 +8,7 @@
 //! series. Timelines: `sim_time` (the stamp of the data) and `wall_time`.
 
 pub mod foxglove;
+pub mod foxglove_live;
 pub mod mcap_recorder;
 mod recorder;
 pub mod web;
@@ -28,6 +29,7 @@ use glasshouse_proto::{
 use serde::Deserialize;
 use zenoh::Session;
 
+pub use foxglove_live::{FoxgloveLive, FoxgloveLiveSettings, FoxgloveLiveSummary};
 pub use mcap_recorder::{McapRecorder, McapSettings, McapSummary};
 pub use recorder::Recorder;
 
@@ -44,6 +46,9 @@ pub struct DashboardSettings {
     /// Record every key to MCAP files in a folder (`{ dir, max_file_bytes, max_file_s,
     /// foxglove, queue }`), for Foxglove and for `glasshouse replay`.
     pub mcap: Option<McapSettings>,
+    /// Serve Foxglove's live WebSocket protocol (`{ listen, queue }`; listen defaults to
+    /// `127.0.0.1:8765`, Foxglove's default connection).
+    pub foxglove: Option<FoxgloveLiveSettings>,
 }
 
 /// Live Rerun serving: a gRPC server that buffers up to a memory limit, plus the web viewer.
@@ -252,6 +257,10 @@ pub struct DashboardCounters {
     pub http_addr: Mutex<Option<SocketAddr>>,
     /// What the MCAP recording wrote, once it is closed.
     pub mcap: Mutex<Option<McapSummary>>,
+    /// The Foxglove server's address, once it listens.
+    pub foxglove_addr: Mutex<Option<SocketAddr>>,
+    /// What the Foxglove server sent, once it is stopped.
+    pub foxglove: Mutex<Option<FoxgloveLiveSummary>>,
 }
 
 /// Logs the series the dashboard derives itself (latency, covered volume).
@@ -287,15 +296,19 @@ fn log_derived(
     Ok(())
 }
 
-/// Where every received message goes besides the fleet state: the Rerun recording or stream
-/// and the MCAP recording, each when configured.
+/// Where every received message goes besides the fleet state: the Rerun recording or stream,
+/// the MCAP recording and the Foxglove server, each when configured.
 struct Sinks {
     rerun: Option<Recorder>,
     mcap: Option<McapRecorder>,
+    foxglove: Option<FoxgloveLive>,
 }
 
 impl Sinks {
-    fn open(settings: &DashboardSettings) -> anyhow::Result<Self> {
+    async fn open(
+        settings: &DashboardSettings,
+        counters: &DashboardCounters,
+    ) -> anyhow::Result<Self> {
         let rerun = if settings.record.is_some() || settings.serve.is_some() {
             Some(Recorder::new(
                 settings.record.as_deref(),
@@ -311,12 +324,36 @@ impl Sinks {
             }
             None => None,
         };
-        Ok(Self { rerun, mcap })
+        let foxglove = match &settings.foxglove {
+            Some(live) => {
+                let server = FoxgloveLive::start(live).await?;
+                if let (Ok(mut addr), Ok(ip)) = (
+                    counters.foxglove_addr.lock(),
+                    live.listen.parse::<SocketAddr>().map(|a| a.ip()),
+                ) {
+                    *addr = Some(SocketAddr::new(ip, server.port()));
+                }
+                Some(server)
+            }
+            None => None,
+        };
+        Ok(Self {
+            rerun,
+            mcap,
+            foxglove,
+        })
     }
 
     /// Records `received` (every key to MCAP, the project's keys to Rerun) and applies it to
     /// the fleet state.
     fn take(&mut self, mut received: Received<Message>, state: &Mutex<FleetState>) {
+        if let Some(live) = self.foxglove.as_mut() {
+            live.offer(
+                &received.key,
+                &received.payload,
+                glasshouse_bus::wall_clock_ns(),
+            );
+        }
         if let Some(mcap) = &self.mcap {
             let payload = std::mem::take(&mut received.payload);
             mcap.record(&received.key, payload, glasshouse_bus::wall_clock_ns());
@@ -337,8 +374,16 @@ impl Sinks {
         }
     }
 
-    /// Flushes the Rerun recording and closes the MCAP files (their summary goes to `counters`).
-    fn finish(self, counters: &DashboardCounters) -> anyhow::Result<()> {
+    /// Flushes the Rerun recording, closes the MCAP files and stops the Foxglove server (their
+    /// summaries go to `counters`).
+    async fn finish(self, counters: &DashboardCounters) -> anyhow::Result<()> {
+        if let Some(live) = self.foxglove {
+            let summary = live.finish().await;
+            tracing::info!(?summary, "Foxglove server stopped");
+            if let Ok(mut c) = counters.foxglove.lock() {
+                *c = Some(summary);
+            }
+        }
         if let Some(recorder) = self.rerun {
             recorder.finish()?;
         }
@@ -367,7 +412,7 @@ pub async fn run(
     state: Arc<Mutex<FleetState>>,
     counters: Arc<DashboardCounters>,
 ) -> anyhow::Result<()> {
-    let mut sinks = Sinks::open(&settings)?;
+    let mut sinks = Sinks::open(&settings, &counters).await?;
     let http = match &settings.http_listen {
         Some(addr) => Some(serve_web(addr, &settings, &shutdown, &state, &counters).await?),
         None => None,
@@ -387,7 +432,7 @@ pub async fn run(
     while let Ok(received) = rx.try_recv() {
         sinks.take(received, &state);
     }
-    sinks.finish(&counters)?;
+    sinks.finish(&counters).await?;
     if let Some(http) = http {
         stop_web(http).await;
     }

@@ -13,7 +13,7 @@ use glasshouse_dashboard::{DashboardSettings, FleetState, ServeSettings};
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: record, serve {bind_ip, grpc_port,
 /// web_viewer_port, public_host, memory_limit_bytes}, http_listen, mcap {dir, max_file_bytes,
-/// max_file_s, foxglove, queue}), then the flags below.
+/// max_file_s, foxglove, queue}, foxglove {listen, queue}), then the flags below.
 #[derive(Parser, Debug)]
 #[command(name = "dashboard", version)]
 struct Cli {
@@ -45,6 +45,11 @@ struct Cli {
     /// the same in Foxglove's schemas; files rotate by size and duration.
     #[arg(long, value_name = "DIR")]
     mcap: Option<PathBuf>,
+    /// Serve Foxglove's live WebSocket protocol on ADDR (default 127.0.0.1:8765, Foxglove's own
+    /// default; loopback only unless you say otherwise, as the protocol has no authentication):
+    /// in Foxglove, "Open connection", Foxglove WebSocket, ws://ADDR.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8765")]
+    foxglove: Option<String>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -63,6 +68,10 @@ fn apply_flags(cli: Cli, settings: &mut DashboardSettings) -> anyhow::Result<()>
     if let Some(dir) = cli.mcap {
         let mcap = settings.mcap.get_or_insert_with(Default::default);
         mcap.dir = dir;
+    }
+    if let Some(listen) = cli.foxglove {
+        let live = settings.foxglove.get_or_insert_with(Default::default);
+        live.listen = listen;
     }
     if cli.serve {
         settings.serve = Some(ServeSettings {

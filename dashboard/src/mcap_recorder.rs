@@ -325,7 +325,7 @@ impl OpenFile {
 
 /// The Foxglove form of an envelope that arrived on `key` (none when it does not decode: the
 /// bus verified it, so that does not happen for what the dashboard hears).
-fn foxglove_messages(key: &str, payload: &[u8]) -> Vec<foxglove::FoxgloveMessage> {
+pub(crate) fn foxglove_messages(key: &str, payload: &[u8]) -> Vec<foxglove::FoxgloveMessage> {
     let (Some(parsed), Ok((header, message))) =
         (keys::parse(key), glasshouse_proto::decode(payload))
     else {

@@ -19,11 +19,11 @@ use glasshouse_pipeline::{Executed, TrolleySource};
 use glasshouse_proto::{ArmState, RgbdFrame, TrolleyInfo};
 use glasshouse_ros::assemble::transform_of;
 use glasshouse_ros::msg::{
-    decode_cdr, encode_cdr, Bool, CameraInfo, Header, Image, Pose, PoseArray, PoseStamped,
-    Quaternion, RosMessage, TfMessage, Time, Vector3,
+    decode_cdr, encode_cdr, Bool, CameraInfo, Header, Image, JointState, Pose, PoseArray,
+    PoseStamped, Quaternion, RosMessage, TfMessage, Time, Vector3,
 };
-use glasshouse_ros::rmw::{self, Attachment, Endpoint, RosNode};
-use glasshouse_ros::{FrameAssembler, RosTopics, RosTrolley, StampedFrame};
+use glasshouse_ros::rmw::{self, Attachment, Durability, Endpoint, History, Qos, RosNode};
+use glasshouse_ros::{FrameAssembler, PoseSource, RosTopics, RosTrolley, StampedFrame};
 use nalgebra::Isometry3;
 use serde::Deserialize;
 use zenoh::Wait;
@@ -66,6 +66,7 @@ enum Incoming {
     Depth(Vec<u8>),
     CameraInfo(Vec<u8>),
     Tf(Vec<u8>, bool),
+    Joints(Vec<u8>),
     Reached(Vec<u8>),
 }
 
@@ -112,17 +113,35 @@ impl Ros2Source {
         let mut graph = Graph::new(session, node, tx, drops.clone(), settings.humble);
         graph.node()?;
         let d = settings.domain_id;
-        graph.subscribe::<Image>(&topics.colour, Incoming::Colour)?;
-        graph.subscribe::<Image>(&topics.depth, Incoming::Depth)?;
-        graph.subscribe::<CameraInfo>(&topics.camera_info, Incoming::CameraInfo)?;
-        graph.subscribe::<TfMessage>(&topics.tf, |b| Incoming::Tf(b, false))?;
-        graph.subscribe::<TfMessage>(&topics.tf_static, |b| Incoming::Tf(b, true))?;
-        graph.subscribe::<Bool>(&topics.view_reached, Incoming::Reached)?;
-        let view = graph.publisher::<PoseStamped>(&topics.view)?;
-        let ranked = graph.publisher::<PoseArray>(&topics.ranked_views)?;
-        tracing::info!(domain = d, node = %settings.node_name, colour = %topics.colour, "ROS 2 source up");
+        let qos = &topics.qos;
+        graph.subscribe::<Image>(&topics.colour, &qos.camera, Incoming::Colour)?;
+        graph.subscribe::<Image>(&topics.depth, &qos.camera, Incoming::Depth)?;
+        graph.subscribe::<CameraInfo>(&topics.camera_info, &qos.camera, Incoming::CameraInfo)?;
+        match topics.pose_source {
+            PoseSource::Tf => {
+                graph.subscribe::<TfMessage>(&topics.tf, &qos.tf, |b| Incoming::Tf(b, false))?;
+                graph.subscribe::<TfMessage>(&topics.tf_static, &qos.tf_static, |b| {
+                    Incoming::Tf(b, true)
+                })?;
+            }
+            PoseSource::JointStates => {
+                anyhow::ensure!(
+                    trolley.robot.is_some(),
+                    "pose_source joint_states needs the trolley's robot description (ros.trolley.robot)"
+                );
+                graph.subscribe::<JointState>(
+                    &topics.joint_states,
+                    &qos.joint_states,
+                    Incoming::Joints,
+                )?;
+            }
+        }
+        graph.subscribe::<Bool>(&topics.view_reached, &qos.view_reached, Incoming::Reached)?;
+        let view = graph.publisher::<PoseStamped>(&topics.view, &qos.views)?;
+        let ranked = graph.publisher::<PoseArray>(&topics.ranked_views, &qos.views)?;
+        tracing::info!(domain = d, node = %settings.node_name, colour = %topics.colour, pose = ?topics.pose_source, "ROS 2 source up");
         Ok(Self {
-            assembler: FrameAssembler::new(topics.clone()),
+            assembler: FrameAssembler::new(topics.clone()).with_robot(trolley.robot.clone()),
             settings,
             topics,
             trolley,
@@ -165,6 +184,11 @@ impl Ros2Source {
                 .map(|m| self.assembler.push_camera_info(m)),
             Incoming::Tf(b, is_static) => decode_cdr::<TfMessage>(&b, TfMessage::TYPE_NAME)
                 .map(|m| self.assembler.push_tf(&m, is_static)),
+            Incoming::Joints(b) => decode_cdr::<JointState>(&b, JointState::TYPE_NAME).map(|m| {
+                if let Err(e) = self.assembler.push_joint_state(&m) {
+                    tracing::warn!(topic = %self.topics.joint_states, "joint state dropped: {e}");
+                }
+            }),
             Incoming::Reached(b) => match decode_cdr::<Bool>(&b, Bool::TYPE_NAME) {
                 Ok(answer) => return Some(answer.data),
                 Err(e) => Err(e),
@@ -340,6 +364,26 @@ impl RosPublisher {
     }
 }
 
+/// Moves a sample's payload from a Zenoh callback to the source's inbox (a full inbox is a
+/// counted overflow).
+#[derive(Clone)]
+struct Deliver {
+    tx: SyncSender<Incoming>,
+    drops: Arc<DropCounters>,
+    wrap: fn(Vec<u8>) -> Incoming,
+}
+
+impl Deliver {
+    fn deliver(&self, sample: &zenoh::sample::Sample) {
+        let bytes = sample.payload().to_bytes().into_owned();
+        if let Err(TrySendError::Full(_)) = self.tx.try_send((self.wrap)(bytes)) {
+            self.drops
+                .overflow
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+}
+
 /// Declares the node's Zenoh entities and their liveliness tokens.
 struct Graph<'a> {
     session: &'a zenoh::Session,
@@ -390,45 +434,74 @@ impl<'a> Graph<'a> {
     fn subscribe<M: RosMessage>(
         &mut self,
         topic: &str,
+        qos: &Qos,
         wrap: fn(Vec<u8>) -> Incoming,
     ) -> anyhow::Result<()> {
         let key = rmw::topic_subscription_key::<M>(self.node.domain, topic);
-        let tx = self.tx.clone();
-        let drops = self.drops.clone();
+        let deliver = Deliver {
+            tx: self.tx.clone(),
+            drops: self.drops.clone(),
+            wrap,
+        };
+        let live = deliver.clone();
         let subscriber = self
             .session
             .declare_subscriber(key.clone())
-            .callback(move |sample| {
-                let bytes = sample.payload().to_bytes().into_owned();
-                if let Err(TrySendError::Full(_)) = tx.try_send(wrap(bytes)) {
-                    drops
-                        .overflow
-                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                }
-            })
+            .callback(move |sample| live.deliver(&sample))
             .wait()
             .map_err(|e| anyhow::anyhow!("cannot subscribe to {key}: {e}"))?;
         self.subscribers.push(subscriber);
+        if qos.durability == Durability::TransientLocal {
+            self.ask_latched(&key, qos, deliver)?;
+        }
         let entity = self.next_entity;
         self.next_entity += 1;
         let token =
             self.node
-                .endpoint_token::<M>(entity, Endpoint::Subscription, topic, self.humble);
+                .endpoint_token::<M>(entity, Endpoint::Subscription, topic, self.humble, qos);
         self.token(token)
     }
 
-    fn publisher<M: RosMessage>(&mut self, topic: &str) -> anyhow::Result<RosPublisher> {
+    /// Asks the latched publishers of `key` for what they kept (their last `depth` samples), as
+    /// a late transient-local subscription does; the answers arrive like live samples.
+    fn ask_latched(&self, key: &str, qos: &Qos, deliver: Deliver) -> anyhow::Result<()> {
+        let mut cache = format!("{key}/{}", rmw::LATCHED_CACHE_SUFFIX);
+        if qos.history == History::KeepLast && qos.depth > 0 {
+            cache = format!("{cache}?_max={}", qos.depth);
+        }
+        self.session
+            .get(cache.as_str())
+            .accept_replies(zenoh::query::ReplyKeyExpr::Any)
+            .consolidation(zenoh::query::ConsolidationMode::None)
+            .timeout(Duration::from_secs(5))
+            .callback(move |reply| match reply.result() {
+                Ok(sample) => deliver.deliver(sample),
+                Err(e) => tracing::debug!("latched sample refused: {e:?}"),
+            })
+            .wait()
+            .map_err(|e| anyhow::anyhow!("cannot ask {cache}: {e}"))?;
+        tracing::debug!(%cache, "asked the latched publishers");
+        Ok(())
+    }
+
+    fn publisher<M: RosMessage>(&mut self, topic: &str, qos: &Qos) -> anyhow::Result<RosPublisher> {
         let key = rmw::topic_key::<M>(self.node.domain, topic, self.humble);
+        // As rmw_zenoh: only a reliable keep-all publisher waits for a slow subscriber.
+        let congestion = match (qos.reliability, qos.history) {
+            (rmw::Reliability::Reliable, History::KeepAll) => zenoh::qos::CongestionControl::Block,
+            _ => zenoh::qos::CongestionControl::Drop,
+        };
         let publisher = self
             .session
             .declare_publisher(key.clone())
+            .congestion_control(congestion)
             .wait()
             .map_err(|e| anyhow::anyhow!("cannot publish on {key}: {e}"))?;
         let entity = self.next_entity;
         self.next_entity += 1;
-        let token = self
-            .node
-            .endpoint_token::<M>(entity, Endpoint::Publisher, topic, self.humble);
+        let token =
+            self.node
+                .endpoint_token::<M>(entity, Endpoint::Publisher, topic, self.humble, qos);
         let gid = rmw::publisher_gid(&token);
         self.token(token)?;
         Ok(RosPublisher {

@@ -34,6 +34,16 @@ pub async fn within<T>(secs: u64, what: &str, future: impl Future<Output = T>) -
     }
 }
 
+/// Waits until `condition` holds (checked every 50 ms), or fails the test after `secs` seconds.
+pub async fn until(secs: u64, what: &str, mut condition: impl FnMut() -> bool) {
+    within(secs, what, async {
+        while !condition() {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+}
+
 /// A client session to `endpoint`.
 pub async fn client(endpoint: &str) -> Session {
     open(&BusArgs::client(endpoint)).await
@@ -206,7 +216,27 @@ impl Pipeline {
             }
         })
         .await;
+        if !matches!(events.last(), Some(EdgeEvent::Finished { .. })) {
+            self.edge_failure().await;
+        }
         events
+    }
+
+    /// Panics with the edge's error when its task ended early (its events stopped).
+    async fn edge_failure(&mut self) {
+        let ended = self
+            .services
+            .iter()
+            .position(|(name, task)| *name == "edge" && task.is_finished());
+        if let Some(index) = ended {
+            self.triggers.remove(index);
+            let (_, task) = self.services.remove(index);
+            match task.await {
+                Ok(Err(e)) => panic!("the edge failed: {e:#}"),
+                Err(e) => panic!("the edge task panicked: {e}"),
+                Ok(Ok(())) => {}
+            }
+        }
     }
 
     /// Stops every service and checks that each one ended cleanly.

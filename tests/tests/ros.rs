@@ -9,14 +9,14 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use glasshouse_dashboard::{DashboardSettings, McapSettings};
+use glasshouse_dashboard::{DashboardSettings, FoxgloveLiveSettings, McapSettings};
 use glasshouse_edge::{EdgeConfig, EdgeEvent, SourceKind};
 use glasshouse_geom::FruitEstimate;
 use glasshouse_pipeline::TrolleySource;
 use glasshouse_planner::PlannerSettings;
 use glasshouse_proto::{decode_typed, TrolleyInfo};
 use glasshouse_ros::{BagSource, DropReason, RosTopics, RosTrolley};
-use glasshouse_tests::{procs, test_edge_config, within, Pipeline};
+use glasshouse_tests::{procs, test_edge_config, until, within, Pipeline};
 
 fn workspace() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -243,17 +243,65 @@ async fn a_recording_opens_in_the_mcap_reader_and_replays_to_the_same_fruits() {
             dir: dir.clone(),
             ..McapSettings::default()
         }),
+        foxglove: Some(FoxgloveLiveSettings {
+            listen: "127.0.0.1:0".into(),
+            ..FoxgloveLiveSettings::default()
+        }),
         ..DashboardSettings::default()
     };
-    let mut live = Pipeline::start_with(
-        EdgeConfig {
-            scenario: glasshouse_sim::ScenarioKind::Two,
-            ..test_edge_config(4)
-        },
-        dashboard,
-    )
+    let mut live = Pipeline::start_services(dashboard, PlannerSettings::default()).await;
+    // A Foxglove client watches the run live: connected before the trolley starts.
+    let counters = live.dashboard_counters.clone();
+    until(30, "the Foxglove server up", || {
+        counters.foxglove_addr.lock().is_ok_and(|a| a.is_some())
+    })
+    .await;
+    let foxglove_addr = counters.foxglove_addr.lock().unwrap().expect("listening");
+    let (ready, foxglove_summary) = (dir.join("foxglove.ready"), dir.join("foxglove.json"));
+    let mut args = vec![
+        "--url".to_string(),
+        format!("ws://{foxglove_addr}"),
+        "--ready-file".into(),
+        ready.to_string_lossy().into_owned(),
+        "--summary".into(),
+        foxglove_summary.to_string_lossy().into_owned(),
+        "--timeout-s".into(),
+        "150".into(),
+        "--want-topic".into(),
+        "gh/trolley/t1/fruits".into(),
+    ];
+    for schema in [
+        "glasshouse.wire.Envelope",
+        "foxglove.RawImage",
+        "foxglove.CameraCalibration",
+        "foxglove.FrameTransform",
+        "foxglove.PointCloud",
+        "foxglove.SceneUpdate",
+    ] {
+        args.extend(["--want".to_string(), schema.to_string()]);
+    }
+    let client = tokio::task::spawn_blocking(move || {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        script("foxglove-client", &args)
+    });
+    until(60, "the Foxglove client connected", || {
+        ready.exists() || client.is_finished()
+    })
+    .await;
+    live.start_edge(EdgeConfig {
+        scenario: glasshouse_sim::ScenarioKind::Two,
+        ..test_edge_config(4)
+    })
     .await;
     let frames = finished_frames(&live.run_to_end(180).await);
+    within(160, "the Foxglove client to finish", client)
+        .await
+        .expect("client task");
+    let seen: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&foxglove_summary).expect("summary"))
+            .expect("summary JSON");
+    assert_eq!(seen["ok"].as_bool(), Some(true), "{seen}");
+    assert_eq!(seen["server_name"].as_str(), Some("glasshouse"), "{seen}");
     let live_fruits = fruits_after(&live, frames).await;
     live.stop().await;
     let report = script(
@@ -297,6 +345,36 @@ async fn a_standin_ros2_node_drives_the_ros2_source() {
 
     let mut pipeline =
         Pipeline::start_services(DashboardSettings::default(), PlannerSettings::default()).await;
+    // The node latches its static transform before the edge exists: the edge's transient-local
+    // /tf_static subscription can only get it from the publisher's cache.
+    let summary = dir.join("standin.json");
+    let ready = dir.join("standin.ready");
+    let endpoint = pipeline.endpoint.clone();
+    let args: Vec<String> = [
+        "--connect",
+        &endpoint,
+        "--bag",
+        &bag.to_string_lossy(),
+        "--static-tf",
+        "--ready-file",
+        &ready.to_string_lossy(),
+        "--timeout-s",
+        "60",
+        "--linger-s",
+        "8",
+        "--summary",
+        &summary.to_string_lossy(),
+    ]
+    .map(String::from)
+    .to_vec();
+    let standin = tokio::task::spawn_blocking(move || {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        script("ros2-standin", &args)
+    });
+    until(60, "the stand-in node up", || {
+        ready.exists() || standin.is_finished()
+    })
+    .await;
     // The edge captures one frame after its last view: that one gets views but none is executed.
     let views = u32::try_from(frames - 1).unwrap();
     pipeline
@@ -309,29 +387,6 @@ async fn a_standin_ros2_node_drives_the_ros2_source() {
             ..test_edge_config(views)
         })
         .await;
-    let summary = dir.join("standin.json");
-    let endpoint = pipeline.endpoint.clone();
-    let (bag_arg, summary_arg) = (
-        bag.to_string_lossy().into_owned(),
-        summary.to_string_lossy().into_owned(),
-    );
-    let standin = tokio::task::spawn_blocking(move || {
-        script(
-            "ros2-standin",
-            &[
-                "--connect",
-                &endpoint,
-                "--bag",
-                &bag_arg,
-                "--timeout-s",
-                "60",
-                "--linger-s",
-                "8",
-                "--summary",
-                &summary_arg,
-            ],
-        )
-    });
     let events = pipeline.run_to_end(180).await;
     assert_eq!(finished_frames(&events), frames);
     within(90, "the stand-in node to finish", standin)
@@ -345,6 +400,22 @@ async fn a_standin_ros2_node_drives_the_ros2_source() {
         "{summary}"
     );
     assert_eq!(summary["attachment_ok"].as_bool(), Some(true), "{summary}");
+    assert_eq!(
+        summary["static_tf_subscribers_at_publish"].as_u64(),
+        Some(0),
+        "the static transform went out before the edge subscribed: {summary}"
+    );
+    // Our tokens: the type hashes rosbags computes, and /tf_static as transient local.
+    assert_eq!(
+        summary["hash_mismatches"],
+        serde_json::json!([]),
+        "{summary}"
+    );
+    assert_eq!(
+        summary["qos"]["MS /tf_static"].as_str(),
+        Some("1:1:1,1:,:,:,,"),
+        "{summary}"
+    );
     assert!(
         summary["ranked_views_received"].as_u64() >= Some(frames - 1),
         "{summary}"

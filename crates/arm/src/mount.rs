@@ -271,6 +271,31 @@ impl Mount {
         }
     }
 
+    /// The state of this mount's kind with `values` in [`Mount::axis_names`] order, checked.
+    pub fn state_from_values(&self, values: &[f64]) -> Result<MountState> {
+        let names = self.axis_names();
+        if values.len() != names.len() {
+            return Err(ArmError::InvalidParameter {
+                name: "mount state",
+                reason: format!("{} values for the axes {names:?}", values.len()),
+            });
+        }
+        let state = match self {
+            Mount::Fixed { .. } => MountState::Fixed,
+            Mount::CeilingGantry { .. } => MountState::Gantry {
+                x_m: values[0],
+                y_m: values[1],
+                extension_m: values[2],
+            },
+            Mount::RailLift { .. } => MountState::Rail {
+                position_m: values[0],
+                lift_m: values[1],
+            },
+        };
+        self.check_state(&state)?;
+        Ok(state)
+    }
+
     /// Error unless `state` is of this mount's kind, finite and within the ranges.
     pub fn check_state(&self, state: &MountState) -> Result<()> {
         self.validate()?;

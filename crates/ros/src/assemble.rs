@@ -9,7 +9,11 @@ use glasshouse_pipeline::DEPTH_SCALE_M;
 use glasshouse_proto::RgbdFrame;
 use nalgebra::{Isometry3, Quaternion as NaQuaternion, Translation3, UnitQuaternion};
 
-use crate::msg::{CameraInfo, Image, TfMessage, Time, Transform};
+use glasshouse_arm::Robot;
+
+use crate::msg::{
+    CameraInfo, Header, Image, JointState, TfMessage, Time, Transform, TransformStamped,
+};
 use crate::settings::RosTopics;
 
 /// Why a frame was dropped.
@@ -28,6 +32,9 @@ pub enum DropReason {
     CameraInfo,
     /// A message that does not decode as its type.
     Corrupt,
+    /// A joint state that gives no camera pose (a joint missing or out of the mount's range,
+    /// or no robot description).
+    JointState,
 }
 
 impl DropReason {
@@ -39,6 +46,7 @@ impl DropReason {
             DropReason::Unpaired => "unpaired",
             DropReason::CameraInfo => "camera_info",
             DropReason::Corrupt => "corrupt",
+            DropReason::JointState => "joint_state",
         }
     }
 }
@@ -187,6 +195,8 @@ pub struct FrameAssembler {
     depth: BTreeMap<u64, Image>,
     camera_info: Option<CameraInfo>,
     tf: TfBuffer,
+    /// The robot description joint states go through (with `pose_source: joint_states`).
+    robot: Option<Robot>,
     /// The newest stamp seen on any topic: what is older than it by more than the wait is late.
     newest_ns: u64,
     drops: BTreeMap<DropReason, u64>,
@@ -200,9 +210,16 @@ impl FrameAssembler {
             depth: BTreeMap::new(),
             camera_info: None,
             tf: TfBuffer::default(),
+            robot: None,
             newest_ns: 0,
             drops: BTreeMap::new(),
         }
+    }
+
+    /// The robot description joint states go through.
+    pub fn with_robot(mut self, robot: Option<Robot>) -> Self {
+        self.robot = robot;
+        self
     }
 
     pub fn topics(&self) -> &RosTopics {
@@ -240,10 +257,45 @@ impl FrameAssembler {
     }
 
     pub fn push_tf(&mut self, message: &TfMessage, is_static: bool) {
-        for t in &message.transforms {
-            self.seen(t.header.stamp);
+        // A static transform holds at any time, whatever its stamp says (publishers stamp it
+        // when they start): it does not make older frames late.
+        if !is_static {
+            for t in &message.transforms {
+                self.seen(t.header.stamp);
+            }
         }
         self.tf.insert(message, is_static);
+    }
+
+    /// The camera pose of a joint state, kept as a world → camera transform at its stamp; a
+    /// state that gives none is a counted drop, and the error says why.
+    pub fn push_joint_state(&mut self, state: &JointState) -> Result<(), String> {
+        let pose = match &self.robot {
+            Some(robot) => crate::joints::world_from_camera(state, &self.topics, robot),
+            None => Err("no robot description in the trolley settings".into()),
+        };
+        let world_from_camera = match pose {
+            Ok(pose) => pose,
+            Err(e) => {
+                *self.drops.entry(DropReason::JointState).or_default() += 1;
+                return Err(e);
+            }
+        };
+        let edge = TransformStamped {
+            header: Header {
+                stamp: state.header.stamp,
+                frame_id: self.topics.world_frame.clone(),
+            },
+            child_frame_id: self.topics.camera_frame.clone(),
+            transform: transform_of(&world_from_camera),
+        };
+        self.push_tf(
+            &TfMessage {
+                transforms: vec![edge],
+            },
+            false,
+        );
+        Ok(())
     }
 
     /// Counts a message that did not decode.

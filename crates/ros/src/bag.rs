@@ -14,8 +14,8 @@ use glasshouse_proto::{ArmState, RgbdFrame, TrolleyInfo};
 use nalgebra::Isometry3;
 
 use crate::assemble::{DropReason, FrameAssembler, StampedFrame};
-use crate::msg::{decode_cdr, CameraInfo, Image, RosMessage, TfMessage};
-use crate::settings::{RosTopics, RosTrolley};
+use crate::msg::{decode_cdr, CameraInfo, Image, JointState, RosMessage, TfMessage};
+use crate::settings::{PoseSource, RosTopics, RosTrolley};
 use crate::RosError;
 
 /// The reader of the bag file being played (behind a lock: the reader is not `Sync`, a
@@ -60,7 +60,7 @@ impl BagSource {
         Ok(Self {
             files,
             reading: None,
-            assembler: FrameAssembler::new(topics),
+            assembler: FrameAssembler::new(topics).with_robot(trolley.robot.clone()),
             ready: VecDeque::new(),
             trolley,
             intrinsics: None,
@@ -154,6 +154,20 @@ impl BagSource {
             decode_typed::<Image>(message).map(|m| self.assembler.push_depth(m))
         } else if topic == topics.camera_info {
             decode_typed::<CameraInfo>(message).map(|m| self.assembler.push_camera_info(m))
+        } else if topics.pose_source == PoseSource::JointStates {
+            if topic == topics.joint_states {
+                match decode_typed::<JointState>(message) {
+                    Ok(m) => {
+                        if let Err(e) = self.assembler.push_joint_state(&m) {
+                            tracing::warn!(topic, "joint state dropped: {e}");
+                        }
+                        Ok(())
+                    }
+                    Err(e) => Err(e),
+                }
+            } else {
+                Ok(())
+            }
         } else if topic == topics.tf || topic == topics.tf_static {
             let is_static = topic == topics.tf_static;
             decode_typed::<TfMessage>(message).map(|m| self.assembler.push_tf(&m, is_static))

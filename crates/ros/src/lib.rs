@@ -8,6 +8,7 @@
 
 pub mod assemble;
 pub mod bag;
+pub mod joints;
 pub mod msg;
 pub mod rmw;
 pub mod settings;
@@ -20,7 +21,7 @@ use nalgebra::Isometry3;
 
 pub use assemble::{DropReason, Dropped, FrameAssembler, StampedFrame};
 pub use bag::BagSource;
-pub use settings::{RosTopics, RosTrolley};
+pub use settings::{PoseSource, RosTopics, RosTrolley, TopicQos};
 
 /// Why a ROS 2 input cannot be used.
 #[derive(thiserror::Error, Debug, Clone, PartialEq)]

@@ -190,6 +190,17 @@ pub struct Bool {
     pub data: bool,
 }
 
+/// `sensor_msgs/JointState`: the arm's (and its mount's) joints at one stamp, by name.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct JointState {
+    pub header: Header,
+    pub name: Vec<String>,
+    /// Radians (revolute) or metres (prismatic).
+    pub position: Vec<f64>,
+    pub velocity: Vec<f64>,
+    pub effort: Vec<f64>,
+}
+
 /// A ROS 2 message type: its name as `ros2 topic list -t` shows it, and its type hash as
 /// rmw_zenoh's keys and liveliness tokens carry it (ROS 2 Iron and later).
 pub trait RosMessage: Serialize + for<'de> Deserialize<'de> {
@@ -209,7 +220,7 @@ macro_rules! ros_message {
 }
 
 // The hashes as `rosbags` computes them for Jazzy (the same for Humble's definitions of these
-// types); `scripts/ros2-type-hashes` checks them.
+// types); the stand-in ROS 2 node of tests/tests/ros.rs checks every hash our tokens announce.
 ros_message!(
     Image => "sensor_msgs/msg/Image",
         "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47";
@@ -223,4 +234,6 @@ ros_message!(
         "RIHS01_af0cc36d190e104d546d168d6b39df04fa4b4ccecf59cb4c9ed328d3d5004aa0";
     Bool => "std_msgs/msg/Bool",
         "RIHS01_feb91e995ff9ebd09c0cb3d2aed18b11077585839fb5db80193b62d74528f6c9";
+    JointState => "sensor_msgs/msg/JointState",
+        "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e";
 );

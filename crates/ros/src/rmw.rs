@@ -2,6 +2,8 @@
 //! sample, and the liveliness tokens through which `ros2 topic list` sees a node and its
 //! publishers and subscriptions. Formats only; the edge's ROS 2 source moves the bytes.
 
+use serde::{Deserialize, Serialize};
+
 use crate::msg::RosMessage;
 
 /// A ROS 2 type as rmw_zenoh spells it in keys: `sensor_msgs::msg::dds_::Image_`.
@@ -54,8 +56,120 @@ pub fn mangle(name: &str) -> String {
     }
 }
 
-/// The QoS of our endpoints in a token: reliable, volatile, keep last 10, other fields default.
-pub const QOS_RELIABLE_KEEP_LAST_10: &str = "1:2:1,10:,:,:,,";
+/// Whether lost samples are sent again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Reliability {
+    Reliable,
+    BestEffort,
+}
+
+/// Whether a subscription that joins late gets what was published before it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Durability {
+    Volatile,
+    /// Latched: publishers keep their last `depth` samples for late subscriptions
+    /// (`/tf_static`, `/robot_description`).
+    TransientLocal,
+}
+
+/// How many samples are kept.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum History {
+    KeepLast,
+    KeepAll,
+}
+
+/// A ROS 2 QoS profile, the part rmw_zenoh acts on (deadline, lifespan and liveliness stay at
+/// their defaults, as rmw_zenoh implements none of them).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Qos {
+    pub reliability: Reliability,
+    pub durability: Durability,
+    pub history: History,
+    /// Samples kept with `keep_last` (0: rmw_zenoh's default of 42).
+    pub depth: u32,
+}
+
+impl Qos {
+    /// Reliable, volatile, keep last `depth`: ROS 2's default profile.
+    pub const fn reliable(depth: u32) -> Self {
+        Self {
+            reliability: Reliability::Reliable,
+            durability: Durability::Volatile,
+            history: History::KeepLast,
+            depth,
+        }
+    }
+
+    /// Reliable, transient local, keep last `depth`: what `/tf_static` publishers use.
+    pub const fn latched(depth: u32) -> Self {
+        Self {
+            durability: Durability::TransientLocal,
+            ..Self::reliable(depth)
+        }
+    }
+
+    /// The profile as the last field of a liveliness token spells it:
+    /// `<reliability>:<durability>:<history>,<depth>:<deadline>:<lifespan>:<liveliness>` with
+    /// rmw's numbering (reliable 1, best effort 2; transient local 1, volatile 2; keep last 1,
+    /// keep all 2) and the unimplemented fields empty.
+    pub fn token(&self) -> String {
+        let reliability = match self.reliability {
+            Reliability::Reliable => 1,
+            Reliability::BestEffort => 2,
+        };
+        let durability = match self.durability {
+            Durability::TransientLocal => 1,
+            Durability::Volatile => 2,
+        };
+        let history = match self.history {
+            History::KeepLast => 1,
+            History::KeepAll => 2,
+        };
+        format!("{reliability}:{durability}:{history},{}:,:,:,,", self.depth)
+    }
+
+    /// The profile a token's QoS field announces; None when it is not one.
+    pub fn from_token(field: &str) -> Option<Self> {
+        let mut parts = field.split(':');
+        let reliability = match parts.next()? {
+            "1" | "" => Reliability::Reliable,
+            "2" => Reliability::BestEffort,
+            _ => return None,
+        };
+        let durability = match parts.next()? {
+            "1" => Durability::TransientLocal,
+            "2" | "" => Durability::Volatile,
+            _ => return None,
+        };
+        let (history, depth) = parts.next()?.split_once(',')?;
+        let history = match history {
+            "1" | "" => History::KeepLast,
+            "2" => History::KeepAll,
+            _ => return None,
+        };
+        let depth = if depth.is_empty() {
+            0
+        } else {
+            depth.parse().ok()?
+        };
+        Some(Self {
+            reliability,
+            durability,
+            history,
+            depth,
+        })
+    }
+}
+
+/// The suffix under which a latched publisher's cache answers late subscriptions
+/// (zenoh-ext's advanced publisher, which rmw_zenoh uses for transient local): a late
+/// subscription asks `<data key>/@adv/**` once, accepting replies on the data key itself.
+pub const LATCHED_CACHE_SUFFIX: &str = "@adv/**";
 
 /// A ROS 2 node as a liveliness token sees it.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -107,6 +221,7 @@ impl RosNode {
         endpoint: Endpoint,
         topic: &str,
         humble: bool,
+        qos: &Qos,
     ) -> String {
         let kind = match endpoint {
             Endpoint::Publisher => "MP",
@@ -118,7 +233,7 @@ impl RosNode {
             mangle(topic),
             dds_type_name(M::TYPE_NAME),
             type_hash::<M>(humble),
-            QOS_RELIABLE_KEEP_LAST_10
+            qos.token()
         )
     }
 }
@@ -212,10 +327,17 @@ mod tests {
             Endpoint::Publisher,
             "/glasshouse/next_view",
             false,
+            &Qos::reliable(10),
         );
         assert!(token.starts_with("@ros2_lv/0/abc/0/4/MP/%/%/glasshouse_edge/%glasshouse%next_view/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_"));
         assert!(token.ends_with("/1:2:1,10:,:,:,,"));
-        let humble = node.endpoint_token::<PoseStamped>(4, Endpoint::Publisher, "/v", true);
+        let humble = node.endpoint_token::<PoseStamped>(
+            4,
+            Endpoint::Publisher,
+            "/v",
+            true,
+            &Qos::reliable(10),
+        );
         assert!(
             humble.contains("::PoseStamped_/TypeHashNotSupported/"),
             "{humble}"
@@ -229,6 +351,26 @@ mod tests {
             "@ros2_lv/0/abc/0/0/NN/%/%robot1/glasshouse_edge"
         );
         assert_ne!(publisher_gid("a"), publisher_gid("b"));
+    }
+
+    #[test]
+    fn qos_profiles_round_trip_through_their_token_field() {
+        // What rmw_zenoh announces for ROS 2's default profile and for /tf_static.
+        assert_eq!(Qos::reliable(10).token(), "1:2:1,10:,:,:,,");
+        assert_eq!(Qos::latched(1).token(), "1:1:1,1:,:,:,,");
+        let sensor = Qos {
+            reliability: Reliability::BestEffort,
+            durability: Durability::Volatile,
+            history: History::KeepLast,
+            depth: 5,
+        };
+        for qos in [Qos::reliable(10), Qos::latched(1), sensor] {
+            assert_eq!(Qos::from_token(&qos.token()), Some(qos));
+        }
+        // Empty fields are rmw's defaults; garbage is refused.
+        assert_eq!(Qos::from_token("::,:,:,:,,"), Some(Qos::reliable(0)));
+        assert_eq!(Qos::from_token("3:2:1,10:,:,:,,"), None);
+        assert_eq!(Qos::from_token("1:2:1"), None);
     }
 
     #[test]

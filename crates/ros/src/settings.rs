@@ -6,6 +6,49 @@ use glasshouse_geom::Aabb;
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
+use crate::rmw::{Durability, Qos};
+
+/// Where the camera's pose comes from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseSource {
+    /// `world_frame` → `camera_frame` through `/tf` and `/tf_static`.
+    #[default]
+    Tf,
+    /// `sensor_msgs/JointState` through the trolley's robot description (its UR parameters,
+    /// mount and hand-eye transform in [`RosTrolley::robot`]).
+    JointStates,
+}
+
+/// The QoS of each topic, announced in the graph and acted on: a `transient_local`
+/// subscription asks the publishers' caches for what they latched before it joined.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TopicQos {
+    /// Colour, depth and camera info.
+    pub camera: Qos,
+    pub tf: Qos,
+    pub tf_static: Qos,
+    pub joint_states: Qos,
+    /// The chosen and the ranked views (volatile only: a latched view would move an arm
+    /// driver that starts later to a view nobody sent it).
+    pub views: Qos,
+    pub view_reached: Qos,
+}
+
+impl Default for TopicQos {
+    fn default() -> Self {
+        Self {
+            camera: Qos::reliable(10),
+            tf: Qos::reliable(100),
+            tf_static: Qos::latched(1),
+            joint_states: Qos::reliable(10),
+            views: Qos::reliable(10),
+            view_reached: Qos::reliable(10),
+        }
+    }
+}
+
 /// Topics, frames and pairing of a RealSense-style camera driver and the arm's driver. The
 /// defaults are `realsense2_camera`'s topics with `align_depth` on, and TF from `world`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -41,6 +84,17 @@ pub struct RosTopics {
     pub view_reached: String,
     /// How long to wait for that answer before the view counts as not reached.
     pub view_reached_timeout_ms: u64,
+    /// Where the camera pose comes from: TF, or joint states through the robot description.
+    pub pose_source: PoseSource,
+    /// `sensor_msgs/JointState` of the arm and the mount's axes (with `joint_states`).
+    pub joint_states: String,
+    /// The arm's six joints in JointState, base to wrist (`ur_robot_driver`'s names).
+    pub arm_joints: Vec<String>,
+    /// The mount's axes in JointState, in the robot's axis order (gantry: x, y, extension;
+    /// rail: position, lift); empty: the robot's own axis names.
+    pub mount_joints: Vec<String>,
+    /// QoS of every topic.
+    pub qos: TopicQos,
 }
 
 impl Default for RosTopics {
@@ -62,6 +116,20 @@ impl Default for RosTopics {
             ranked_views: "/glasshouse/ranked_views".into(),
             view_reached: "/glasshouse/view_reached".into(),
             view_reached_timeout_ms: 30_000,
+            pose_source: PoseSource::Tf,
+            joint_states: "/joint_states".into(),
+            arm_joints: [
+                "shoulder_pan_joint",
+                "shoulder_lift_joint",
+                "elbow_joint",
+                "wrist_1_joint",
+                "wrist_2_joint",
+                "wrist_3_joint",
+            ]
+            .map(String::from)
+            .to_vec(),
+            mount_joints: Vec::new(),
+            qos: TopicQos::default(),
         }
     }
 }
@@ -78,6 +146,7 @@ impl RosTopics {
             &self.view,
             &self.ranked_views,
             &self.view_reached,
+            &self.joint_states,
         ];
         if let Some(bad) = topics.iter().find(|t| !valid_topic(t)) {
             return Err(format!(
@@ -96,6 +165,20 @@ impl RosTopics {
         }
         if !(self.depth_unit_m > 0.0 && self.depth_unit_m.is_finite()) {
             return Err(format!("depth_unit_m {} must be > 0", self.depth_unit_m));
+        }
+        if self.arm_joints.len() != glasshouse_arm::JOINT_COUNT {
+            return Err(format!(
+                "arm_joints names {} joints; the arm has {}",
+                self.arm_joints.len(),
+                glasshouse_arm::JOINT_COUNT
+            ));
+        }
+        if self.qos.views.durability == Durability::TransientLocal {
+            return Err(
+                "qos.views must be volatile: a latched view would move an arm driver \
+                        that starts later to a view nobody sent it"
+                    .into(),
+            );
         }
         Ok(())
     }

@@ -145,8 +145,17 @@ fn a_pose_through_a_chain_of_transforms_and_float_depth() {
     a.push_camera_info(camera_info(T0_NS));
     let world_from_base = pose(3);
     let base_from_camera = pose(4);
-    // The mount is static; the arm's link moves.
-    a.push_tf(&tf(0, "world", "base_link", &world_from_base), true);
+    // The mount is static (stamped long after the frame, when its publisher started: a static
+    // transform makes no frame late); the arm's link moves.
+    a.push_tf(
+        &tf(
+            T0_NS + 3_600_000_000_000,
+            "world",
+            "base_link",
+            &world_from_base,
+        ),
+        true,
+    );
     a.push_tf(
         &tf(
             T0_NS + 5_000_000,
@@ -157,6 +166,11 @@ fn a_pose_through_a_chain_of_transforms_and_float_depth() {
         false,
     );
     a.push_colour(colour(T0_NS, "rgb8"));
+    let (frames, dropped) = a.poll(false);
+    assert!(
+        frames.is_empty() && dropped.is_empty(),
+        "{dropped:?}: waits for its depth"
+    );
     let mut depth = depth_16(T0_NS);
     depth.encoding = "32FC1".into();
     depth.step = 16;
@@ -238,4 +252,57 @@ fn images_whose_data_is_short_of_their_size_are_dropped_not_read_past() {
     let (frames, dropped) = a.poll(false);
     assert!(frames.is_empty());
     assert_eq!(dropped[0].reason, DropReason::Size);
+}
+
+#[test]
+fn joint_states_pose_frames_through_the_robot_and_bad_ones_are_counted() {
+    use crate::settings::PoseSource;
+    let robot = glasshouse_arm::Robot::scenario_two();
+    let topics = RosTopics {
+        pose_source: PoseSource::JointStates,
+        ..RosTopics::default()
+    };
+    let mut names = topics.arm_joints.clone();
+    names.extend(robot.mount.axis_names().iter().map(|n| n.to_string()));
+    let q = [0.2, -1.1, 1.3, -0.6, 1.4, 0.1];
+    let mount = robot.mount.default_state();
+    let mut position = q.to_vec();
+    position.extend(mount.values());
+    let state = |stamp_ns, position: Vec<f64>| JointState {
+        header: header(stamp_ns, ""),
+        name: names.clone(),
+        position,
+        ..JointState::default()
+    };
+    // Without a robot description a joint state gives no pose.
+    let mut bare = FrameAssembler::new(topics.clone());
+    assert!(bare
+        .push_joint_state(&state(T0_NS, position.clone()))
+        .is_err());
+    assert_eq!(bare.drops().get(&DropReason::JointState), Some(&1));
+
+    let mut a = FrameAssembler::new(topics).with_robot(Some(robot.clone()));
+    a.push_camera_info(camera_info(T0_NS));
+    a.push_colour(colour(T0_NS, "rgb8"));
+    a.push_depth(depth_16(T0_NS));
+    a.push_joint_state(&state(T0_NS + 1_000_000, position.clone()))
+        .unwrap();
+    let mut short = position.clone();
+    short.pop();
+    assert!(a
+        .push_joint_state(&state(T0_NS + 2_000_000, short))
+        .is_err());
+    let (frames, dropped) = a.poll(false);
+    assert!(dropped.is_empty(), "{dropped:?}");
+    assert_eq!(frames.len(), 1);
+    let want = robot.world_from_camera(&q, &mount).unwrap();
+    let got = frames[0].frame.world_from_camera;
+    assert!((got.to_homogeneous() - want.to_homogeneous()).abs().max() < 1e-12);
+    assert_eq!(a.drops().get(&DropReason::JointState), Some(&1));
+    // And the message itself survives CDR.
+    let message = state(T0_NS, position);
+    assert_eq!(
+        decode_cdr::<JointState>(&encode_cdr(&message), "joint state").unwrap(),
+        message
+    );
 }

@@ -261,6 +261,45 @@ pub struct DashboardCounters {
     pub foxglove_addr: Mutex<Option<SocketAddr>>,
     /// What the Foxglove server sent, once it is stopped.
     pub foxglove: Mutex<Option<FoxgloveLiveSummary>>,
+    /// Messages received (every key).
+    pub messages: std::sync::atomic::AtomicU64,
+}
+
+impl glasshouse_bus::metrics::ServiceMetrics for DashboardCounters {
+    fn kind() -> &'static str {
+        "dashboard"
+    }
+
+    fn register(
+        self: Arc<Self>,
+        registry: &mut glasshouse_bus::metrics::prometheus_client::registry::Registry,
+    ) {
+        use std::sync::atomic::{AtomicU64, Ordering};
+        let c = |read: fn(&DashboardCounters) -> &AtomicU64| {
+            let counters = self.clone();
+            move || read(&counters).load(Ordering::Relaxed) as f64
+        };
+        glasshouse_bus::metrics::Readings::default()
+            .counter(
+                "messages_received",
+                "Bus messages received",
+                &[],
+                c(|k| &k.messages),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "corrupt")],
+                c(|k| &k.drops.corrupt),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "overflow")],
+                c(|k| &k.drops.overflow),
+            )
+            .register(registry);
+    }
 }
 
 /// Logs the series the dashboard derives itself (latency, covered volume).
@@ -423,7 +462,10 @@ pub async fn run(
         tokio::select! {
             _ = shutdown.wait() => break,
             received = rx.recv() => match received {
-                Some(received) => sinks.take(received, &state),
+                Some(received) => {
+                    counters.messages.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    sinks.take(received, &state)
+                }
                 None => break,
             },
         }

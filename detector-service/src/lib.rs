@@ -92,6 +92,54 @@ pub struct DetectorCounters {
     pub trolleys_served: std::sync::atomic::AtomicU64,
 }
 
+impl glasshouse_bus::metrics::ServiceMetrics for DetectorCounters {
+    fn kind() -> &'static str {
+        "detector"
+    }
+
+    fn register(
+        self: Arc<Self>,
+        registry: &mut glasshouse_bus::metrics::prometheus_client::registry::Registry,
+    ) {
+        let c = |read: fn(&DetectorCounters) -> &std::sync::atomic::AtomicU64| {
+            let counters = self.clone();
+            move || read(&counters).load(Ordering::Relaxed) as f64
+        };
+        glasshouse_bus::metrics::Readings::default()
+            .counter(
+                "frames_processed",
+                "RGB-D frames turned into ROI clouds",
+                &[],
+                c(|k| &k.frames_processed),
+            )
+            .counter(
+                "frames_rejected",
+                "Frames that decoded but could not be processed",
+                &[],
+                c(|k| &k.frames_rejected),
+            )
+            .gauge(
+                "trolleys_served",
+                "Trolleys whose frames this detector takes now",
+                &[],
+                c(|k| &k.trolleys_served),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "corrupt")],
+                c(|k| &k.drops.corrupt),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "overflow")],
+                c(|k| &k.drops.overflow),
+            )
+            .register(registry);
+    }
+}
+
 /// The trolleys `did` serves: those for which it ranks first among the live detectors.
 pub fn served_trolleys<'a>(
     did: &str,

@@ -245,6 +245,75 @@ pub struct EdgeCounters {
     pub drops: Arc<DropCounters>,
     /// RankedViews refused because they did not come from the planner owning the trolley.
     pub refused_views: std::sync::atomic::AtomicU64,
+    /// The loop's status after its last step (frames, views, unreachable views, re-announces).
+    pub status: std::sync::Mutex<Option<TrolleyStatus>>,
+}
+
+impl glasshouse_bus::metrics::ServiceMetrics for EdgeCounters {
+    fn kind() -> &'static str {
+        "edge"
+    }
+
+    fn register(
+        self: Arc<Self>,
+        registry: &mut glasshouse_bus::metrics::prometheus_client::registry::Registry,
+    ) {
+        let c = |read: fn(&EdgeCounters) -> &std::sync::atomic::AtomicU64| {
+            let counters = self.clone();
+            move || read(&counters).load(Ordering::Relaxed) as f64
+        };
+        let s = |read: fn(&TrolleyStatus) -> f64| {
+            let counters = self.clone();
+            move || match counters.status.lock() {
+                Ok(status) => status.as_ref().map_or(0.0, read),
+                Err(_) => 0.0,
+            }
+        };
+        glasshouse_bus::metrics::Readings::default()
+            .counter(
+                "frames_published",
+                "RGB-D frames published",
+                &[],
+                s(|st| st.frames_published as f64),
+            )
+            .counter(
+                "views_executed",
+                "Views the arm moved to",
+                &[],
+                s(|st| f64::from(st.views_done)),
+            )
+            .counter(
+                "unreachable_views",
+                "View sets none of whose views the arm reached",
+                &[],
+                s(|st| f64::from(st.unreachable_views)),
+            )
+            .counter(
+                "reannounces",
+                "Frames announced again after no views came in time",
+                &[],
+                s(|st| f64::from(st.reannounces)),
+            )
+            .counter(
+                "refused_views",
+                "View sets refused: not from the trolley's owner",
+                &[],
+                c(|k| &k.refused_views),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "corrupt")],
+                c(|k| &k.drops.corrupt),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "overflow")],
+                c(|k| &k.drops.overflow),
+            )
+            .register(registry);
+    }
 }
 
 /// The edge's publishers.
@@ -561,6 +630,9 @@ pub async fn run(
             .refused_views
             .store(node.status().refused_views, Ordering::Relaxed);
         driver.drain(&mut node, actions).await?;
+        if let Ok(mut status) = counters.status.lock() {
+            *status = Some(node.status().clone());
+        }
     }
     let last = node.finish();
     driver.drain(&mut node, last).await?;

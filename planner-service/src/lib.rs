@@ -19,6 +19,7 @@
 //! [`node::PlannerAction`]s. The planner ranked first for the fleet (the rendezvous winner for
 //! the key `fleet`) also merges every trolley's fruits into the fleet map on `gh/fleet/fruits`.
 
+pub mod metrics;
 pub mod node;
 mod registration;
 
@@ -92,6 +93,10 @@ pub struct PlannerCounters {
     /// [`node::PlannerNode`]).
     pub clouds_refused: AtomicU64,
     pub views_published: AtomicU64,
+    /// The last status the planner published (its roles, map size and registrations).
+    pub status: std::sync::Mutex<Option<PlannerStatus>>,
+    /// Each cloud's time per stage.
+    pub stage_seconds: metrics::StageHistograms,
 }
 
 /// Snapshots are asked of each candidate in turn for this long: a row's map is hundreds of MB and
@@ -386,6 +391,7 @@ pub async fn run(
     tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
     while let Some(event) = inputs.next(&mut shutdown, &drops).await {
         // Integration, fits and planning are heavy: the node works on a blocking thread.
+        let stages_before = node.stats().stages;
         let (back, actions) = tokio::task::spawn_blocking(move || {
             let actions = node.handle(event);
             (node, actions)
@@ -394,6 +400,9 @@ pub async fn run(
         .context("planner task failed")?;
         node = back;
         let stats = node.stats();
+        counters
+            .stage_seconds
+            .observe(&stages_before, &stats.stages);
         counters
             .clouds_integrated
             .store(stats.clouds_integrated, Ordering::Relaxed);
@@ -407,6 +416,11 @@ pub async fn run(
             .clouds_refused
             .store(stats.clouds_refused, Ordering::Relaxed);
         for action in actions {
+            if let PlannerAction::PublishStatus { status, .. } = &action {
+                if let Ok(mut last) = counters.status.lock() {
+                    *last = Some(status.clone());
+                }
+            }
             perform(action, &mut inputs, &mut out).await?;
         }
     }

@@ -7,6 +7,8 @@ pub mod procs;
 
 use std::future::Future;
 use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::Command;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -252,4 +254,38 @@ impl Pipeline {
         }
         let _ = self.router.close().await;
     }
+}
+
+/// The workspace's root.
+pub fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The Python with rosbags, mcap and zenoh (`scripts/test` makes it: `.venv`).
+pub fn python() -> PathBuf {
+    let python = std::env::var_os("GLASSHOUSE_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace().join(".venv/bin/python"));
+    assert!(
+        python.is_file(),
+        "{} missing: run scripts/test (it makes .venv from tests/python-requirements.txt)",
+        python.display()
+    );
+    python
+}
+
+/// Runs one of `scripts/` with the project's Python; its stdout.
+pub fn script(name: &str, args: &[&str]) -> String {
+    let out = Command::new(python())
+        .arg(workspace().join("scripts").join(name))
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {name}: {e}"));
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{name} {args:?} failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
 }

@@ -1,4 +1,6 @@
-//! (b) The four real binaries as separate OS processes on free ports, around a `glasshouse router`.
+//! (b) The four real binaries as separate OS processes on free ports, around a `glasshouse router`,
+//! each serving OpenMetrics on `--metrics`, scraped during the run and parsed with the Prometheus
+//! project's own Python parser.
 
 use std::time::{Duration, Instant};
 
@@ -8,7 +10,41 @@ use glasshouse_bus::{Delivery, DropCounters, Subscriber};
 use glasshouse_proto::keys;
 use glasshouse_proto::TrolleyState;
 use glasshouse_tests::procs::{build_binaries, Proc};
-use glasshouse_tests::{client, free_port, within};
+use glasshouse_tests::{client, free_port, script, within};
+
+/// `GET /metrics` of a service, as text (HTTP/1.0, so the body ends with the connection).
+fn scrape(port: u16) -> String {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).expect("metrics port");
+    stream
+        .write_all(b"GET /metrics HTTP/1.0\r\nHost: localhost\r\n\r\n")
+        .expect("request");
+    let mut response = String::new();
+    stream.read_to_string(&mut response).expect("response");
+    let (head, body) = response.split_once("\r\n\r\n").expect("an HTTP response");
+    assert!(
+        head.starts_with("HTTP/1.0 200") || head.starts_with("HTTP/1.1 200"),
+        "{head}"
+    );
+    assert!(head.contains("application/openmetrics-text"), "{head}");
+    body.to_string()
+}
+
+/// The value of `sample` (with `labels`, a subset) in a check-metrics family; None if absent.
+fn sample(
+    families: &serde_json::Value,
+    family: &str,
+    sample: &str,
+    labels: &[(&str, &str)],
+) -> Option<f64> {
+    families[family]["samples"]
+        .as_array()?
+        .iter()
+        .find_map(|s| {
+            let matches = s[0] == sample && labels.iter().all(|(k, v)| s[1][k] == *v);
+            matches.then(|| s[2].as_f64()).flatten()
+        })
+}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn real_binaries_close_the_loop() {
@@ -39,20 +75,32 @@ async fn real_binaries_close_the_loop() {
         &logs,
     );
     // Clients retry their connection, so the start order does not matter.
-    let args = with(&["--record", &rrd_arg]);
+    let metrics: Vec<(&str, u16)> = ["dashboard", "detector", "planner", "edge"]
+        .iter()
+        .map(|kind| (*kind, free_port()))
+        .collect();
+    let metrics_of = |kind: &str| {
+        let port = metrics.iter().find(|(k, _)| *k == kind).expect("a port").1;
+        (format!("127.0.0.1:{port}"), port)
+    };
+    let (dashboard_metrics, _) = metrics_of("dashboard");
+    let args = with(&["--record", &rrd_arg, "--metrics", &dashboard_metrics]);
     let dashboard = Proc::start(
         "dashboard",
         "dashboard",
         &args.iter().map(String::as_str).collect::<Vec<_>>(),
         &logs,
     );
-    let args = with(&[]);
+    let (detector_metrics, _) = metrics_of("detector");
+    let args = with(&["--metrics", &detector_metrics]);
     let detector = Proc::start(
         "detector",
         "detector-service",
         &args.iter().map(String::as_str).collect::<Vec<_>>(),
         &logs,
     );
+    let (planner_metrics, _) = metrics_of("planner");
+    let args = with(&["--metrics", &planner_metrics]);
     let planner = Proc::start(
         "planner",
         "planner-service",
@@ -72,7 +120,15 @@ async fn real_binaries_close_the_loop() {
     let fruits_sub = Subscriber::declare_with(&observer, &fruits_key, Delivery::Monitor, drops)
         .await
         .expect("subscriber");
-    let args = with(&["--max-views", "6", "--width", "160"]);
+    let (edge_metrics, edge_port) = metrics_of("edge");
+    let args = with(&[
+        "--max-views",
+        "6",
+        "--width",
+        "160",
+        "--metrics",
+        &edge_metrics,
+    ]);
     let mut edge = Proc::start(
         "edge",
         "edge",
@@ -80,12 +136,16 @@ async fn real_binaries_close_the_loop() {
         &logs,
     );
 
-    // The edge exits by itself once its six views are done.
+    // The edge exits by itself once its six views are done: scraped after its second view.
+    let mut edge_text = None;
     let done = within(240, "edge to finish six views", async {
         loop {
             match status_sub.recv().await {
                 Some(received) if received.message.state == TrolleyState::Done => {
                     return received.message
+                }
+                Some(received) if received.message.views_done >= 2 && edge_text.is_none() => {
+                    edge_text = Some(scrape(edge_port));
                 }
                 Some(_) => {}
                 None => panic!("status subscriber closed"),
@@ -121,6 +181,102 @@ async fn real_binaries_close_the_loop() {
     drop(status_sub);
     drop(fruits_sub);
     let _ = observer.close().await;
+
+    // Every service's metrics, parsed by the stock OpenMetrics parser.
+    let mut files = Vec::new();
+    for (kind, port) in &metrics {
+        let text = match *kind {
+            "edge" => edge_text.clone().expect("the edge was scraped"),
+            _ => scrape(*port),
+        };
+        let file = logs.join(format!("{kind}.metrics"));
+        std::fs::write(&file, text).expect("metrics file");
+        files.push(file.to_string_lossy().into_owned());
+    }
+    let parsed: serde_json::Value = serde_json::from_str(&script(
+        "check-metrics",
+        &files.iter().map(String::as_str).collect::<Vec<_>>(),
+    ))
+    .expect("check-metrics JSON");
+    let of = |kind: &str| {
+        &parsed[logs
+            .join(format!("{kind}.metrics"))
+            .to_string_lossy()
+            .as_ref()]
+    };
+    let planner_m = of("planner");
+    let positive =
+        |families: &serde_json::Value, family: &str, name: &str, labels: &[(&str, &str)]| {
+            let value = sample(families, family, name, labels);
+            assert!(
+                value.is_some_and(|v| v > 0.0),
+                "{name} {labels:?}: {value:?} in {families}"
+            );
+        };
+    positive(
+        planner_m,
+        "glasshouse_planner_clouds_integrated",
+        "glasshouse_planner_clouds_integrated_total",
+        &[],
+    );
+    positive(
+        planner_m,
+        "glasshouse_planner_stage_seconds",
+        "glasshouse_planner_stage_seconds_count",
+        &[("stage", "integrate")],
+    );
+    positive(
+        planner_m,
+        "glasshouse_planner_stage_seconds",
+        "glasshouse_planner_stage_seconds_bucket",
+        &[("stage", "plan"), ("le", "+Inf")],
+    );
+    assert_eq!(
+        planner_m["glasshouse_planner_stage_seconds"]["type"],
+        "histogram"
+    );
+    assert_eq!(
+        sample(
+            planner_m,
+            "glasshouse_planner_trolleys",
+            "glasshouse_planner_trolleys",
+            &[("role", "owner")]
+        ),
+        Some(1.0)
+    );
+    positive(
+        planner_m,
+        "glasshouse_planner_process_resident_memory_bytes",
+        "glasshouse_planner_process_resident_memory_bytes",
+        &[],
+    );
+    positive(
+        of("detector"),
+        "glasshouse_detector_frames_processed",
+        "glasshouse_detector_frames_processed_total",
+        &[],
+    );
+    positive(
+        of("edge"),
+        "glasshouse_edge_frames_published",
+        "glasshouse_edge_frames_published_total",
+        &[],
+    );
+    positive(
+        of("dashboard"),
+        "glasshouse_dashboard_messages_received",
+        "glasshouse_dashboard_messages_received_total",
+        &[],
+    );
+    assert_eq!(
+        sample(
+            of("dashboard"),
+            "glasshouse_dashboard_dropped_messages",
+            "glasshouse_dashboard_dropped_messages_total",
+            &[("reason", "corrupt")]
+        ),
+        Some(0.0)
+    );
 
     for p in [planner, detector, dashboard, router] {
         p.terminate();

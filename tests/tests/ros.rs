@@ -16,40 +16,7 @@ use glasshouse_pipeline::TrolleySource;
 use glasshouse_planner::PlannerSettings;
 use glasshouse_proto::{decode_typed, TrolleyInfo};
 use glasshouse_ros::{BagSource, DropReason, RosTopics, RosTrolley};
-use glasshouse_tests::{procs, test_edge_config, until, within, Pipeline};
-
-fn workspace() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-/// The Python with rosbags, mcap and zenoh (`scripts/test` makes it: `.venv`).
-fn python() -> PathBuf {
-    let python = std::env::var_os("GLASSHOUSE_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| workspace().join(".venv/bin/python"));
-    assert!(
-        python.is_file(),
-        "{} missing: run scripts/test (it makes .venv from tests/python-requirements.txt)",
-        python.display()
-    );
-    python
-}
-
-/// Runs one of `scripts/` with the project's Python; its stdout.
-fn script(name: &str, args: &[&str]) -> String {
-    let out = Command::new(python())
-        .arg(workspace().join("scripts").join(name))
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {name}: {e}"));
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "{name} {args:?} failed:\n{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout
-}
+use glasshouse_tests::{procs, script, test_edge_config, until, within, Pipeline};
 
 fn temp_dir(what: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("glasshouse-{what}-{}", std::process::id()));

@@ -18,6 +18,7 @@
 //! `glasshouse-proto`; a payload that fails is counted in [`DropCounters`] and skipped.
 
 mod config;
+pub mod metrics;
 pub mod probe;
 mod queue;
 
@@ -781,6 +782,10 @@ pub struct ServiceArgs {
     pub config: Option<PathBuf>,
     #[command(flatten)]
     pub bus: BusArgs,
+    /// Serve OpenMetrics on http://ADDR/metrics (e.g. 127.0.0.1:9464) for Prometheus: counts,
+    /// drops by reason, gauges and, in the planner, stage times as histograms.
+    #[arg(long, value_name = "ADDR")]
+    pub metrics: Option<String>,
 }
 
 /// The whole `main` of a service binary: logs to stderr, parses the binary's own flags `C`
@@ -794,7 +799,7 @@ pub fn service_main<C, S, K, E, Fut>(
 where
     C: clap::Parser,
     S: serde::de::DeserializeOwned + Default,
-    K: Default,
+    K: Default + metrics::ServiceMetrics,
     E: From<BusError> + From<std::io::Error>,
     Fut: std::future::Future<Output = Result<(), E>>,
 {
@@ -823,9 +828,17 @@ where
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?
-        .block_on(run_service(&service_args.bus, |session, shutdown| {
-            service(session, settings, shutdown, Arc::default())
-        }))
+        .block_on(run_service(
+            &service_args.bus,
+            |session, shutdown| async move {
+                let counters: Arc<K> = Arc::default();
+                if let Some(addr) = &service_args.metrics {
+                    let registry = metrics::registry_of(counters.clone());
+                    metrics::serve(addr, registry, shutdown.clone()).await?;
+                }
+                service(session, settings, shutdown, counters).await
+            },
+        ))
 }
 
 /// Overrides a setting with a flag, when the flag was given.

@@ -1,0 +1,175 @@
+//! The planner's OpenMetrics (`--metrics ADDR`): clouds, views, drops, the trolleys it owns and
+//! keeps standby, its map, registrations, and each cloud's time per stage as histograms.
+
+use std::fmt;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use glasshouse_bus::metrics::prometheus_client::metrics::family::Family;
+use glasshouse_bus::metrics::prometheus_client::metrics::histogram::{
+    exponential_buckets, Histogram,
+};
+use glasshouse_bus::metrics::prometheus_client::registry::{Registry, Unit};
+use glasshouse_bus::metrics::{Readings, ServiceMetrics};
+use glasshouse_proto::{PlannerStatus, StageTimes};
+
+use crate::PlannerCounters;
+
+type StageFamily = Family<Vec<(&'static str, &'static str)>, Histogram, fn() -> Histogram>;
+
+/// Each cloud's time per stage, seconds: 0.5 ms to about 8 s in doublings.
+#[derive(Clone)]
+pub struct StageHistograms(StageFamily);
+
+impl Default for StageHistograms {
+    fn default() -> Self {
+        fn buckets() -> Histogram {
+            Histogram::new(exponential_buckets(0.0005, 2.0, 15))
+        }
+        Self(Family::new_with_constructor(buckets))
+    }
+}
+
+impl fmt::Debug for StageHistograms {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("StageHistograms")
+    }
+}
+
+impl StageHistograms {
+    /// Observes one cloud's handling: `after - before` of the planner's stage totals.
+    pub fn observe(&self, before: &StageTimes, after: &StageTimes) {
+        for ((stage, was_ms), (_, now_ms)) in before.named().iter().zip(after.named()) {
+            let ms = now_ms - was_ms;
+            if ms > 0.0 {
+                self.0
+                    .get_or_create(&vec![("stage", *stage)])
+                    .observe(ms / 1e3);
+            }
+        }
+    }
+}
+
+fn status_value(counters: &PlannerCounters, read: fn(&PlannerStatus) -> f64) -> f64 {
+    match counters.status.lock() {
+        Ok(status) => status.as_ref().map_or(0.0, read),
+        Err(_) => 0.0,
+    }
+}
+
+impl ServiceMetrics for PlannerCounters {
+    fn kind() -> &'static str {
+        "planner"
+    }
+
+    fn register(self: Arc<Self>, registry: &mut Registry) {
+        registry.register_with_unit(
+            "stage",
+            "Time a cloud spends in each stage of the planner",
+            Unit::Seconds,
+            self.stage_seconds.0.clone(),
+        );
+        let c = |read: fn(&PlannerCounters) -> &AtomicU64| {
+            let counters = self.clone();
+            move || read(&counters).load(Ordering::Relaxed) as f64
+        };
+        let s = |read: fn(&PlannerStatus) -> f64| {
+            let counters = self.clone();
+            move || status_value(&counters, read)
+        };
+        Readings::default()
+            .counter(
+                "clouds_integrated",
+                "ROI clouds integrated into a map",
+                &[],
+                c(|k| &k.clouds_integrated),
+            )
+            .counter(
+                "clouds_rejected",
+                "ROI clouds that decoded but could not be integrated",
+                &[],
+                c(|k| &k.clouds_rejected),
+            )
+            .counter(
+                "clouds_refused",
+                "ROI clouds refused: not from a live detector, or a frame no trolley sends",
+                &[],
+                c(|k| &k.clouds_refused),
+            )
+            .counter(
+                "views_published",
+                "Ranked view sets published",
+                &[],
+                c(|k| &k.views_published),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "corrupt")],
+                c(|k| &k.drops.corrupt),
+            )
+            .counter(
+                "dropped_messages",
+                "Bus messages dropped, by reason",
+                &[("reason", "overflow")],
+                c(|k| &k.drops.overflow),
+            )
+            .gauge(
+                "trolleys",
+                "Trolleys by role",
+                &[("role", "owner")],
+                s(|st| st.owned_trolleys.len() as f64),
+            )
+            .gauge(
+                "trolleys",
+                "Trolleys by role",
+                &[("role", "standby")],
+                s(|st| st.standby_trolleys.len() as f64),
+            )
+            .gauge(
+                "map_voxels",
+                "Known voxels over every map held",
+                &[],
+                s(|st| st.map_voxels as f64),
+            )
+            .gauge(
+                "planning_time_mean",
+                "Mean planning time per view set",
+                &[],
+                s(|st| f64::from(st.mean_planning_time_ms) / 1e3),
+            )
+            .in_unit(Unit::Seconds)
+            .counter(
+                "catch_up",
+                "Time catching up trolleys taken over",
+                &[],
+                s(|st| st.catch_up_ms / 1e3),
+            )
+            .in_unit(Unit::Seconds)
+            .counter(
+                "registrations",
+                "Scan registrations of owned trolleys, by verdict",
+                &[("verdict", "applied")],
+                s(|st| st.registrations.applied as f64),
+            )
+            .counter(
+                "registrations",
+                "Scan registrations of owned trolleys, by verdict",
+                &[("verdict", "kept_as_sent")],
+                s(|st| st.registrations.kept_as_sent as f64),
+            )
+            .counter(
+                "registrations",
+                "Scan registrations of owned trolleys, by verdict",
+                &[("verdict", "rejected")],
+                s(|st| st.registrations.rejected as f64),
+            )
+            .counter(
+                "registrations",
+                "Scan registrations of owned trolleys, by verdict",
+                &[("verdict", "skipped")],
+                s(|st| st.registrations.skipped as f64),
+            )
+            .register(registry);
+    }
+}

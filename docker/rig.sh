@@ -22,6 +22,7 @@
 #   GH_DEBIAN_MIRROR=URL   debootstrap mirror (default http://deb.debian.org/debian)
 #   BASE_IMAGE=IMAGE       use this local base image instead of looking for one
 #   GH_HTTP_PORT=8080      host port of the dashboard page + JSON API (also read by compose.yaml)
+#   GH_PROMETHEUS_PORT=9091 host port of Prometheus (also read by compose.yaml)
 #   GH_FRUIT_TIMEOUT=240   test: seconds to wait until every trolley has at least one fruit
 #   GH_FAILOVER_TIMEOUT=30 test: seconds for the failover and the rejoin checks
 #   GH_SETTLE_S=3          test: views reaching the dashboard this soon after the kill don't count
@@ -58,6 +59,9 @@ RIG_IMAGE=glasshouse-rig:latest
 MIRROR="${GH_DEBIAN_MIRROR:-http://deb.debian.org/debian}"
 export GH_HTTP_PORT="${GH_HTTP_PORT:-8080}"
 API="http://127.0.0.1:${GH_HTTP_PORT}"
+PROMETHEUS_IMAGE=glasshouse-prometheus:latest
+export GH_PROMETHEUS_PORT="${GH_PROMETHEUS_PORT:-9091}"
+PROMETHEUS="http://127.0.0.1:${GH_PROMETHEUS_PORT}"
 FRUIT_TIMEOUT="${GH_FRUIT_TIMEOUT:-240}"
 FAILOVER_TIMEOUT="${GH_FAILOVER_TIMEOUT:-30}"
 SETTLE_S="${GH_SETTLE_S:-3}"
@@ -228,7 +232,10 @@ cmd_up() {
     log "building $RIG_IMAGE from $BASE_IMAGE (docker build)"
     docker build --build-arg "BASE_IMAGE=$BASE_IMAGE" -t "$RIG_IMAGE" -f "$DOCKER_DIR/Dockerfile" \
         "$DOCKER_DIR" || fail "image build failed"
-    # The previous image (now untagged) only holds older binaries.
+    log "building $PROMETHEUS_IMAGE from $BASE_IMAGE (Debian's prometheus package)"
+    docker build -q --build-arg "BASE_IMAGE=$BASE_IMAGE" -t "$PROMETHEUS_IMAGE" \
+        "$DOCKER_DIR/prometheus" >/dev/null || fail "Prometheus image build failed"
+    # The previous images (now untagged) only hold older binaries.
     docker image prune -f --filter label=org.glasshouse.rig=1 >/dev/null || true
     log "image built in $((SECONDS - t0)) s ($(docker image inspect -f '{{.Size}}' "$RIG_IMAGE" |
         awk '{printf "%.0f MB", $1 / 1e6}'))"
@@ -399,6 +406,45 @@ run_rogue() {
     log "rogue: $ROGUE_LINE; every trolley got new views after it"
 }
 
+# Every scrape target up; then every query of docker/grafana/glasshouse-dashboard.json answers
+# with at least one series (rates need two scrapes: the check retries for up to a minute).
+PROMETHEUS_TARGETS_PY='
+import json, sys
+targets = json.load(sys.stdin)["data"]["activeTargets"]
+down = sorted(t["labels"]["instance"] for t in targets if t["health"] != "up")
+print(f"{len(targets) - len(down)} of {len(targets)} targets up" + (f"; down: {down}" if down else ""))
+sys.exit(1 if down or not targets else 0)'
+PROMETHEUS_PANELS_PY='
+import json, sys, urllib.parse, urllib.request
+base, dashboard = sys.argv[1], sys.argv[2]
+empty = []
+panels = json.load(open(dashboard))["panels"]
+for panel in panels:
+    for target in panel["targets"]:
+        url = base + "/api/v1/query?" + urllib.parse.urlencode({"query": target["expr"]})
+        result = json.load(urllib.request.urlopen(url, timeout=5))["data"]["result"]
+        if not result:
+            empty.append(panel["title"])
+print(f"{len(panels) - len(empty)} of {len(panels)} dashboard panels have data" + (f"; empty: {empty}" if empty else ""))
+sys.exit(1 if empty else 0)'
+
+check_prometheus() {
+    local t0=$SECONDS out=""
+    log "waiting up to 90 s until Prometheus scrapes every service and the dashboard's panels have data"
+    until out="$(curl -fsS --max-time 5 "$PROMETHEUS/api/v1/targets" 2>/dev/null |
+        python3 -c "$PROMETHEUS_TARGETS_PY" 2>&1)"; do
+        ((SECONDS - t0 < 90)) || fail "Prometheus: ${out:-no answer from $PROMETHEUS}" prometheus
+        sleep 2
+    done
+    log "  Prometheus: $out after $((SECONDS - t0)) s"
+    until out="$(python3 -c "$PROMETHEUS_PANELS_PY" "$PROMETHEUS" \
+        "$DOCKER_DIR/grafana/glasshouse-dashboard.json" 2>&1)"; do
+        ((SECONDS - t0 < 90)) || fail "Grafana dashboard: $out" prometheus
+        sleep 2
+    done
+    log "  $out after $((SECONDS - t0)) s"
+}
+
 cmd_test() {
     local t_test=$SECONDS
     # Any unexpected error during the test also shows the logs.
@@ -452,6 +498,9 @@ cmd_test() {
     local t_fruits=$((SECONDS - t0))
     log "every trolley has fruit after ${t_fruits} s: $FLEET_LINE"
     log "planners: $PLANNER_LINE"
+
+    # 1b. Prometheus scrapes every service, and every panel of the Grafana dashboard has data.
+    check_prometheus
 
     # 2. A rogue container on the rig's network: every attempt must be refused, the fleet goes on.
     run_rogue "${tids[@]}"

@@ -7,6 +7,7 @@
 //! arrows with the executed one highlighted, fruit boxes labelled with size and volume, and time
 //! series. Timelines: `sim_time` (the stamp of the data) and `wall_time`.
 
+pub mod blueprint;
 pub mod foxglove;
 pub mod foxglove_live;
 pub mod mcap_recorder;

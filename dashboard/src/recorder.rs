@@ -27,6 +27,12 @@ pub struct Recorder {
     truth_logged: std::sync::Mutex<std::collections::HashSet<(usize, String)>>,
     /// Keeps the web viewer's server alive.
     _web_viewer: Option<Box<dyn std::any::Any + Send>>,
+    /// Trolleys seen so far (the layout has a camera view for each).
+    trolleys: std::collections::BTreeSet<String>,
+    /// Each trolley's last state, for the event log.
+    states: HashMap<String, glasshouse_proto::TrolleyState>,
+    /// Each planner's owned trolleys, for the event log.
+    owners: HashMap<String, Vec<String>>,
 }
 
 struct VoxelSnapshot {
@@ -95,6 +101,9 @@ impl Recorder {
             voxel_snapshot: None,
             truth_logged: Default::default(),
             _web_viewer: web_viewer,
+            trolleys: Default::default(),
+            states: HashMap::new(),
+            owners: HashMap::new(),
         })
     }
 
@@ -109,9 +118,54 @@ impl Recorder {
             (ParsedKey::Trolley { tid, .. }, Message::MapUpdate(m)) => self.fold_map_update(tid, m),
             _ => None,
         };
+        self.log_events(key, message)?;
         for i in 0..self.streams.len() {
             let rec = self.streams[i].clone();
             self.log_to(i, &rec, key, header, message)?;
+        }
+        Ok(())
+    }
+
+    /// The event log, and the layout when a trolley first appears.
+    fn log_events(&mut self, key: &ParsedKey, message: &Message) -> anyhow::Result<()> {
+        let mut events = Vec::new();
+        match (key, message) {
+            (ParsedKey::Trolley { tid, .. }, _) if !self.trolleys.contains(tid) => {
+                self.trolleys.insert(tid.clone());
+                let layout = crate::blueprint::layout(&self.trolleys);
+                let activation = rerun::blueprint::BlueprintActivation {
+                    make_active: true,
+                    make_default: true,
+                };
+                for rec in &self.streams {
+                    layout.send(rec, activation)?;
+                }
+                events.push(format!("trolley {tid} joined"));
+            }
+            (ParsedKey::Trolley { tid, .. }, Message::TrolleyStatus(s))
+                if self.states.get(tid) != Some(&s.state) =>
+            {
+                self.states.insert(tid.clone(), s.state);
+                events.push(format!(
+                    "trolley {tid}: {:?}, {} views",
+                    s.state, s.views_done
+                ));
+            }
+            (ParsedKey::PlannerStatus { pid }, Message::PlannerStatus(s))
+                if self.owners.get(pid) != Some(&s.owned_trolleys) =>
+            {
+                events.push(format!("planner {pid} owns {:?}", s.owned_trolleys));
+                self.owners.insert(pid.clone(), s.owned_trolleys.clone());
+            }
+            _ => {}
+        }
+        for line in events {
+            for rec in &self.streams {
+                rec.log(
+                    crate::blueprint::LOG_ENTITY,
+                    &rerun::TextLog::new(line.as_str()),
+                )?;
+            }
         }
         Ok(())
     }

@@ -127,6 +127,8 @@ pub struct TrolleyView {
     /// Share of the ground-truth fruit voxels inside detected boxes (paper-method §5), when
     /// the truth is known.
     pub covered_volume: Option<f64>,
+    /// Where the camera is (world frame, metres), from the latest arm state.
+    pub camera_position_m: Option<[f64; 3]>,
 }
 
 /// Everything the dashboard has heard.
@@ -181,6 +183,9 @@ impl FleetState {
                         }
                     }
                     (TrolleyTopic::Info, Message::TrolleyInfo(info)) => t.info = Some(info.clone()),
+                    (TrolleyTopic::Arm, Message::ArmState(a)) => {
+                        t.camera_position_m = Some(a.world_from_camera.translation.vector.into());
+                    }
                     (TrolleyTopic::Status, Message::TrolleyStatus(s)) => t.status = Some(s.clone()),
                     (TrolleyTopic::Roi, Message::RoiCloud(_)) => t.clouds += 1,
                     (TrolleyTopic::Views, Message::RankedViews(v)) => {

@@ -47,6 +47,10 @@ pub struct TrolleyRow {
     pub covered_volume: Option<f64>,
     /// How the planner registered the trolley's last registered cloud.
     pub registration: Option<RegistrationDoc>,
+    /// The camera's position seen from above (world x, y, metres), for the plan view.
+    pub camera_xy_m: Option<[f64; 2]>,
+    /// The plants the trolley samples views around, from above: min and max (x, y), metres.
+    pub region_xy_m: Option<[[f64; 2]; 2]>,
 }
 
 /// One cloud's registration to its trolley's map, as the owning planner reported it.
@@ -176,6 +180,11 @@ pub fn fleet_doc(
                 refused_views: t.status.as_ref().map_or(0, |s| s.refused_views),
                 covered_volume: t.covered_volume,
                 registration: t.last_registration.as_ref().map(RegistrationDoc::new),
+                camera_xy_m: t.camera_position_m.map(|p| [p[0], p[1]]),
+                region_xy_m: t.info.as_ref().map(|i| {
+                    let r = &i.sampling_region;
+                    [[r.min.x, r.min.y], [r.max.x, r.max.y]]
+                }),
             })
             .collect(),
         planners: fleet

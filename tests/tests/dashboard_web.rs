@@ -1,5 +1,7 @@
 //! The fleet web page in a real headless browser (Debian's `chromium`): after a run, the page's
-//! fleet table shows the trolley with fruits, and a screenshot is saved as a CI artifact.
+//! fleet table shows the trolley with fruits, its plan view draws the trolley's row, camera and
+//! one dot per fruit, its fruit table shows the fitted volumes, and a screenshot is saved as a CI
+//! artifact.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -101,6 +103,30 @@ async fn fleet_page_shows_the_trolley_with_fruits_in_a_real_browser() {
         "fleet table shows no fruits for t1 (got {fruits:?}); DOM:\n{dom}"
     );
     assert!(dom.contains("Fruits of t1"), "no fruit table for t1");
+    // The plan view: t1's panel with its row, its camera and a dot per fruit of the table.
+    let panel_start = dom
+        .find("<svg width=")
+        .and_then(|_| dom.find("data-trolley=\"t1\"><rect"))
+        .unwrap_or_else(|| panic!("no plan panel for t1; DOM:\n{dom}"));
+    let panel = &dom[panel_start..];
+    let panel = &panel[..panel.find("</svg>").expect("panel end")];
+    assert!(
+        panel.contains("class=\"region\""),
+        "no row in the plan: {panel}"
+    );
+    assert!(
+        panel.contains("class=\"camera\""),
+        "no camera in the plan: {panel}"
+    );
+    assert_eq!(
+        panel.matches("class=\"fruit\"").count() as u64,
+        fruits.unwrap_or(0),
+        "a dot per fruit: {panel}"
+    );
+    // The fruit table shows the fitted volume of at least one fruit.
+    let fitted = dom.matches("<td class=\"fitted\">").count();
+    let unfitted = dom.matches("<td class=\"fitted\">–</td>").count();
+    assert!(fitted > unfitted, "no fitted volume in the fruit table");
 
     let shot = artifacts_dir().join("dashboard-page.png");
     let shot_arg = format!("--screenshot={}", shot.display());

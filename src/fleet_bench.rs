@@ -239,7 +239,14 @@ struct Report {
     messages_dropped: u64,
     observer_corrupt: u64,
     killed_planner: Option<String>,
+    /// t1's takeover: seconds from the kill to its first views from another planner.
     takeover_s: Option<f64>,
+    /// Every trolley the killed planner owned, the same way (None: no views from another
+    /// planner before the run ended); t1 is the first caught up by construction, the others
+    /// wait their turn.
+    takeovers_s: BTreeMap<String, Option<f64>>,
+    /// The slowest of them (None when one was never taken over).
+    takeover_max_s: Option<f64>,
     /// Mean RGB-D frame payload on the wire.
     bytes_per_frame: Option<f64>,
     /// Share of the arms' time spent waiting for the views on their frames (the sum of frame ->
@@ -770,6 +777,8 @@ struct Measurement {
     drops_at_start: BTreeMap<String, u64>,
     /// The planner killed and when.
     killed: Option<(String, Instant)>,
+    /// The trolleys it owned then: every one of them is taken over, and each takeover is timed.
+    killed_owned: Vec<String>,
     /// CPU seconds of each killed process at its kill.
     cpu_at_kill: HashMap<String, f64>,
     /// Resident memory of the live planners together, one minute in and at the end.
@@ -839,6 +848,7 @@ async fn measure(
     );
     bar.set_message("fleet-bench");
     let mut killed: Option<(String, Instant)> = None;
+    let mut killed_owned = Vec::new();
     let mut cpu_at_kill: HashMap<String, f64> = HashMap::new();
     let mut planner_rss_kib_minute1 = None;
     let mut next_cpu_sample = Duration::ZERO;
@@ -854,12 +864,14 @@ async fn measure(
             }
         }
         if kill_enabled && killed.is_none() && started.elapsed() >= kill_at {
-            killed = kill_owner_of_t1(procs, observed, &mut cpu_at_kill);
-            if let Some((pid, _)) = &killed {
+            if let Some((pid, at, owned)) = kill_owner_of_t1(procs, observed, &mut cpu_at_kill) {
                 bar.println(format!(
-                    "killed {pid}, the owner of t1, at {:.1} s",
+                    "killed {pid}, the owner of {}, at {:.1} s",
+                    owned.join(", "),
                     started.elapsed().as_secs_f64()
                 ));
+                killed = Some((pid, at));
+                killed_owned = owned;
             }
         }
         if planner_rss_kib_minute1.is_none() && started.elapsed() >= Duration::from_secs(60) {
@@ -877,6 +889,7 @@ async fn measure(
         elapsed_s: started.elapsed().as_secs_f64(),
         drops_at_start,
         killed,
+        killed_owned,
         cpu_at_kill,
         planner_rss_kib_minute1,
         planner_rss_kib_end: planner_rss_kib(procs),
@@ -884,16 +897,17 @@ async fn measure(
 }
 
 /// Kills the planner that owns t1 with SIGKILL, noting its CPU time; `None` if no planner owns it.
+/// Kills the planner owning t1: who, when, and the trolleys it owned then.
 fn kill_owner_of_t1(
     procs: &mut [Proc],
     observed: &Mutex<Observed>,
     cpu_at_kill: &mut HashMap<String, f64>,
-) -> Option<(String, Instant)> {
-    let pid = observed.lock().ok().and_then(|o| {
+) -> Option<(String, Instant, Vec<String>)> {
+    let (pid, owned) = observed.lock().ok().and_then(|o| {
         o.owned
             .iter()
             .find(|(_, trolleys)| trolleys.iter().any(|t| t == "t1"))
-            .map(|(pid, _)| pid.clone())
+            .map(|(pid, owned)| (pid.clone(), owned.clone()))
     })?;
     let p = procs
         .iter_mut()
@@ -905,7 +919,7 @@ fn kill_owner_of_t1(
     let _ = p.child.kill();
     let _ = p.child.wait();
     p.killed = true;
-    Some((pid, Instant::now()))
+    Some((pid, Instant::now(), owned))
 }
 
 /// CPU and peak memory per process kind over the measured run.
@@ -940,14 +954,31 @@ fn per_kind_usage(procs: &[Proc], m: &Measurement) -> BTreeMap<String, KindRepor
         .collect()
 }
 
-/// Seconds from the kill of t1's owner to t1's first views from another planner.
-fn takeover_s(o: &Observed, m: &Measurement) -> Option<f64> {
+/// Seconds from the kill of its owner to `tid`'s first views from another planner.
+fn takeover_s(o: &Observed, m: &Measurement, tid: &str) -> Option<f64> {
     let (pid, at) = m.killed.as_ref()?;
-    let t1 = o.trolleys.get("t1")?;
-    t1.views_from
+    let trolley = o.trolleys.get(tid)?;
+    trolley
+        .views_from
         .iter()
         .find(|(when, from)| when > at && from != pid)
         .map(|(when, _)| when.duration_since(*at).as_secs_f64())
+}
+
+/// Every trolley the killed planner owned, timed; and the slowest.
+fn takeovers(o: &Observed, m: &Measurement) -> (BTreeMap<String, Option<f64>>, Option<f64>) {
+    let each: BTreeMap<String, Option<f64>> = m
+        .killed_owned
+        .iter()
+        .map(|tid| (tid.clone(), takeover_s(o, m, tid)))
+        .collect();
+    let slowest = each
+        .values()
+        .try_fold(None::<f64>, |max, t| {
+            t.map(|t| Some(max.map_or(t, |m| m.max(t))))
+        })
+        .flatten();
+    (each, slowest)
 }
 
 /// The planners' cost along the run and by stage (see `cost`).
@@ -999,7 +1030,8 @@ fn build_report(
         .collect();
     let frames: usize = o.trolleys.values().map(|t| t.cloud_at.len()).sum();
     let views: u64 = o.trolleys.values().map(|t| t.views).sum();
-    let takeover_s = takeover_s(o, m);
+    let takeover_s = takeover_s(o, m, "t1");
+    let (takeovers_s, takeover_max_s) = takeovers(o, m);
     let dropped: u64 = o
         .drops
         .iter()
@@ -1039,6 +1071,8 @@ fn build_report(
         observer_corrupt: o.corrupt,
         killed_planner: m.killed.as_ref().map(|(p, _)| p.clone()),
         takeover_s,
+        takeovers_s,
+        takeover_max_s,
         bytes_per_frame: (o.rgbd_frames > 0).then(|| o.rgbd_bytes as f64 / o.rgbd_frames as f64),
         arm_wait_share: all_views.iter().sum::<f64>() / 1e3 / (elapsed_s * n),
         planner_cpu_ms_per_frame: (frames > 0).then(|| planner_cpu_s * 1e3 / frames as f64),
@@ -1108,14 +1142,25 @@ fn print_report(r: &Report) {
         mib(r.planner_rss_mib_per_trolley_minute1),
         mib(r.planner_rss_mib_per_trolley_end)
     );
-    match (&r.killed_planner, r.takeover_s) {
-        (Some(p), Some(t)) => {
-            println!("  takeover: t1's owner {p} killed; views from another planner after {t:.2} s")
+    match &r.killed_planner {
+        Some(p) => {
+            let each: Vec<String> = r
+                .takeovers_s
+                .iter()
+                .map(|(tid, t)| match t {
+                    Some(t) => format!("{tid} {t:.2} s"),
+                    None => format!("{tid} NEVER"),
+                })
+                .collect();
+            let slowest = r
+                .takeover_max_s
+                .map_or("not all taken over".to_string(), |t| format!("{t:.2} s"));
+            println!(
+                "  takeover: {p} killed (owner of t1); first views from another planner: {} (slowest: {slowest})",
+                each.join(", ")
+            )
         }
-        (Some(p), None) => {
-            println!("  takeover: t1's owner {p} killed; NO views from another planner afterwards")
-        }
-        _ => println!("  takeover: no planner killed"),
+        None => println!("  takeover: no planner killed"),
     }
     if let Some(t) = &r.t1_scans {
         println!(

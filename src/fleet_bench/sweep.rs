@@ -13,12 +13,12 @@ pub(super) fn print_table(reports: &[Report]) {
     println!();
     println!("capacity sweep ({} runs)", reports.len());
     println!(
-        "| trolleys | frames/s per trolley | frame -> views p50 / p99 | arms waiting | planner CPU per frame: run / minute 1 / last minute | planner RSS per trolley, minute 1 / end | bytes per frame | drops | takeover | scans lost |"
+        "| trolleys | frames/s per trolley | frame -> views p50 / p99 | arms waiting | planner CPU per frame: run / minute 1 / last minute | planner RSS per trolley, minute 1 / end | bytes per frame | drops | takeover t1 / slowest | scans lost |"
     );
     println!("|---:|---:|---|---:|---:|---|---:|---:|---:|---:|");
     for r in reports {
         println!(
-            "| {} | {:.2} | {} / {} | {:.0} % | {} / {} / {} | {} / {} | {} | {} | {} | {} |",
+            "| {} | {:.2} | {} / {} | {:.0} % | {} / {} / {} | {} / {} | {} | {} | {} / {} | {} |",
             r.trolleys,
             r.frames_per_s_per_trolley,
             ms(r.frame_to_views_ms_p50),
@@ -33,6 +33,7 @@ pub(super) fn print_table(reports: &[Report]) {
                 .map_or("–".into(), |b| format!("{:.0} kB", b / 1e3)),
             r.messages_dropped,
             r.takeover_s.map_or("–".into(), |s| format!("{s:.2} s")),
+            r.takeover_max_s.map_or("–".into(), |s| format!("{s:.2} s")),
             r.t1_scans
                 .as_ref()
                 .map_or("–".into(), |t| match t.maps_equal {

@@ -280,10 +280,8 @@ impl glasshouse_bus::metrics::ServiceMetrics for DashboardCounters {
         self: Arc<Self>,
         registry: &mut glasshouse_bus::metrics::prometheus_client::registry::Registry,
     ) {
-        use std::sync::atomic::{AtomicU64, Ordering};
-        let c = |read: fn(&DashboardCounters) -> &AtomicU64| {
-            let counters = self.clone();
-            move || read(&counters).load(Ordering::Relaxed) as f64
+        let c = |field: fn(&DashboardCounters) -> &std::sync::atomic::AtomicU64| {
+            glasshouse_bus::metrics::atomic(&self, field)
         };
         glasshouse_bus::metrics::Readings::default()
             .counter(
@@ -292,18 +290,7 @@ impl glasshouse_bus::metrics::ServiceMetrics for DashboardCounters {
                 &[],
                 c(|k| &k.messages),
             )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "corrupt")],
-                c(|k| &k.drops.corrupt),
-            )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "overflow")],
-                c(|k| &k.drops.overflow),
-            )
+            .drops(&self.drops)
             .register(registry);
     }
 }

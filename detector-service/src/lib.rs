@@ -101,9 +101,8 @@ impl glasshouse_bus::metrics::ServiceMetrics for DetectorCounters {
         self: Arc<Self>,
         registry: &mut glasshouse_bus::metrics::prometheus_client::registry::Registry,
     ) {
-        let c = |read: fn(&DetectorCounters) -> &std::sync::atomic::AtomicU64| {
-            let counters = self.clone();
-            move || read(&counters).load(Ordering::Relaxed) as f64
+        let c = |field: fn(&DetectorCounters) -> &std::sync::atomic::AtomicU64| {
+            glasshouse_bus::metrics::atomic(&self, field)
         };
         glasshouse_bus::metrics::Readings::default()
             .counter(
@@ -124,18 +123,7 @@ impl glasshouse_bus::metrics::ServiceMetrics for DetectorCounters {
                 &[],
                 c(|k| &k.trolleys_served),
             )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "corrupt")],
-                c(|k| &k.drops.corrupt),
-            )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "overflow")],
-                c(|k| &k.drops.overflow),
-            )
+            .drops(&self.drops)
             .register(registry);
     }
 }

@@ -258,17 +258,9 @@ impl glasshouse_bus::metrics::ServiceMetrics for EdgeCounters {
         self: Arc<Self>,
         registry: &mut glasshouse_bus::metrics::prometheus_client::registry::Registry,
     ) {
-        let c = |read: fn(&EdgeCounters) -> &std::sync::atomic::AtomicU64| {
-            let counters = self.clone();
-            move || read(&counters).load(Ordering::Relaxed) as f64
-        };
-        let s = |read: fn(&TrolleyStatus) -> f64| {
-            let counters = self.clone();
-            move || match counters.status.lock() {
-                Ok(status) => status.as_ref().map_or(0.0, read),
-                Err(_) => 0.0,
-            }
-        };
+        use glasshouse_bus::metrics::{atomic, last};
+        let c = |field: fn(&EdgeCounters) -> &std::sync::atomic::AtomicU64| atomic(&self, field);
+        let s = |read: fn(&TrolleyStatus) -> f64| last(&self, |k| &k.status, read);
         glasshouse_bus::metrics::Readings::default()
             .counter(
                 "frames_published",
@@ -300,18 +292,7 @@ impl glasshouse_bus::metrics::ServiceMetrics for EdgeCounters {
                 &[],
                 c(|k| &k.refused_views),
             )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "corrupt")],
-                c(|k| &k.drops.corrupt),
-            )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "overflow")],
-                c(|k| &k.drops.overflow),
-            )
+            .drops(&self.drops)
             .register(registry);
     }
 }

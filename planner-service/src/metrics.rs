@@ -2,7 +2,7 @@
 //! keeps standby, its map, registrations, and each cloud's time per stage as histograms.
 
 use std::fmt;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
 
 use glasshouse_bus::metrics::prometheus_client::metrics::family::Family;
@@ -10,7 +10,7 @@ use glasshouse_bus::metrics::prometheus_client::metrics::histogram::{
     exponential_buckets, Histogram,
 };
 use glasshouse_bus::metrics::prometheus_client::registry::{Registry, Unit};
-use glasshouse_bus::metrics::{Readings, ServiceMetrics};
+use glasshouse_bus::metrics::{atomic, last, Readings, ServiceMetrics};
 use glasshouse_proto::{PlannerStatus, StageTimes};
 
 use crate::PlannerCounters;
@@ -50,13 +50,6 @@ impl StageHistograms {
     }
 }
 
-fn status_value(counters: &PlannerCounters, read: fn(&PlannerStatus) -> f64) -> f64 {
-    match counters.status.lock() {
-        Ok(status) => status.as_ref().map_or(0.0, read),
-        Err(_) => 0.0,
-    }
-}
-
 impl ServiceMetrics for PlannerCounters {
     fn kind() -> &'static str {
         "planner"
@@ -69,14 +62,8 @@ impl ServiceMetrics for PlannerCounters {
             Unit::Seconds,
             self.stage_seconds.0.clone(),
         );
-        let c = |read: fn(&PlannerCounters) -> &AtomicU64| {
-            let counters = self.clone();
-            move || read(&counters).load(Ordering::Relaxed) as f64
-        };
-        let s = |read: fn(&PlannerStatus) -> f64| {
-            let counters = self.clone();
-            move || status_value(&counters, read)
-        };
+        let c = |field: fn(&PlannerCounters) -> &AtomicU64| atomic(&self, field);
+        let s = |read: fn(&PlannerStatus) -> f64| last(&self, |k| &k.status, read);
         Readings::default()
             .counter(
                 "clouds_integrated",
@@ -102,18 +89,7 @@ impl ServiceMetrics for PlannerCounters {
                 &[],
                 c(|k| &k.views_published),
             )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "corrupt")],
-                c(|k| &k.drops.corrupt),
-            )
-            .counter(
-                "dropped_messages",
-                "Bus messages dropped, by reason",
-                &[("reason", "overflow")],
-                c(|k| &k.drops.overflow),
-            )
+            .drops(&self.drops)
             .gauge(
                 "trolleys",
                 "Trolleys by role",

@@ -8,6 +8,7 @@
 
 use std::fmt;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use prometheus_client::collector::Collector;
@@ -97,6 +98,27 @@ impl Readings {
         self.push(name, help, MetricType::Gauge, labels, read)
     }
 
+    /// The bus messages a service dropped, by reason (`dropped_messages_total{reason=…}`).
+    pub fn drops(self, drops: &Arc<crate::DropCounters>) -> Self {
+        let read = |field: fn(&crate::DropCounters) -> &AtomicU64| {
+            let drops = drops.clone();
+            move || field(&drops).load(Ordering::Relaxed) as f64
+        };
+        let help = "Bus messages dropped, by reason";
+        self.counter(
+            "dropped_messages",
+            help,
+            &[("reason", "corrupt")],
+            read(|d| &d.corrupt),
+        )
+        .counter(
+            "dropped_messages",
+            help,
+            &[("reason", "overflow")],
+            read(|d| &d.overflow),
+        )
+    }
+
     /// The last reading's unit (its name gets the unit's suffix).
     pub fn in_unit(mut self, unit: Unit) -> Self {
         if let Some(last) = self.items.last_mut() {
@@ -150,6 +172,28 @@ impl Collector for Readings {
             i += family_len;
         }
         Ok(())
+    }
+}
+
+/// A reading of one atomic counter of a service's counters.
+pub fn atomic<K: Send + Sync + 'static>(
+    counters: &Arc<K>,
+    field: fn(&K) -> &AtomicU64,
+) -> impl Fn() -> f64 + Send + Sync + 'static {
+    let counters = counters.clone();
+    move || field(&counters).load(Ordering::Relaxed) as f64
+}
+
+/// A reading of the last status a service kept (0 before the first).
+pub fn last<K: Send + Sync + 'static, S: 'static>(
+    counters: &Arc<K>,
+    status: fn(&K) -> &std::sync::Mutex<Option<S>>,
+    read: fn(&S) -> f64,
+) -> impl Fn() -> f64 + Send + Sync + 'static {
+    let counters = counters.clone();
+    move || match status(&counters).lock() {
+        Ok(last) => last.as_ref().map_or(0.0, read),
+        Err(_) => 0.0,
     }
 }
 

@@ -97,6 +97,8 @@ pub struct PlannerCounters {
     pub status: std::sync::Mutex<Option<PlannerStatus>>,
     /// Each cloud's time per stage.
     pub stage_seconds: metrics::StageHistograms,
+    /// Map snapshot bytes sent to planners taking a trolley over.
+    pub snapshot_bytes_sent: AtomicU64,
 }
 
 /// Snapshots are asked of each candidate in turn for this long: a row's map is hundreds of MB and
@@ -225,10 +227,18 @@ impl Inputs {
     }
 
     /// Answers query `query_id` (the node's `ReplySnapshot`).
-    async fn reply(&mut self, query_id: u64, answer: Result<(Header, Box<MapSnapshot>), String>) {
-        if let Some(query) = self.queries.remove(&query_id) {
-            let answer = answer.map(|(header, snapshot)| (header, *snapshot));
-            self.snapshots.reply(&query, answer).await;
+    /// Answers a snapshot query; the snapshot bytes sent.
+    async fn reply(
+        &mut self,
+        query_id: u64,
+        answer: Result<(Header, Box<MapSnapshot>), String>,
+    ) -> usize {
+        match self.queries.remove(&query_id) {
+            Some(query) => {
+                let answer = answer.map(|(header, snapshot)| (header, *snapshot));
+                self.snapshots.reply(&query, answer).await
+            }
+            None => 0,
         }
     }
 }
@@ -341,12 +351,12 @@ impl Outputs {
     }
 }
 
-/// Performs one of the node's actions.
+/// Performs one of the node's actions; the snapshot bytes it sent (0 for every other action).
 async fn perform(
     action: PlannerAction,
     inputs: &mut Inputs,
     out: &mut Outputs,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<u64> {
     match action {
         PlannerAction::Publish {
             tid,
@@ -360,14 +370,16 @@ async fn perform(
             out.fleet.publish(&header, &fruits).await?
         }
         PlannerAction::AskSnapshot { tid, sources } => out.ask_snapshot(tid, sources),
-        PlannerAction::ReplySnapshot { query_id, answer } => inputs.reply(query_id, answer).await,
+        PlannerAction::ReplySnapshot { query_id, answer } => {
+            return Ok(inputs.reply(query_id, answer).await as u64);
+        }
         PlannerAction::Release { tid } => out.release(&tid).await,
         PlannerAction::CatchUp { tid } => {
             // Back into the event queue: the node picks it up after what is already waiting.
             let _ = out.events.send(PlannerEvent::CatchUp { tid });
         }
     }
-    Ok(())
+    Ok(0)
 }
 
 /// Runs the planner until `shutdown` fires.
@@ -421,7 +433,10 @@ pub async fn run(
                     *last = Some(status.clone());
                 }
             }
-            perform(action, &mut inputs, &mut out).await?;
+            let snapshot_bytes = perform(action, &mut inputs, &mut out).await?;
+            counters
+                .snapshot_bytes_sent
+                .fetch_add(snapshot_bytes, Ordering::Relaxed);
         }
     }
     out.close().await;

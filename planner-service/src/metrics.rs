@@ -1,4 +1,5 @@
-//! The planner's OpenMetrics (`--metrics ADDR`): clouds, views, drops, the trolleys it owns and
+//! The planner's OpenMetrics (`--metrics ADDR`): clouds, views, drops, snapshot bytes sent, the
+//! trolleys it owns and
 //! keeps standby, its map, registrations, and each cloud's time per stage as histograms.
 
 use std::fmt;
@@ -89,6 +90,13 @@ impl ServiceMetrics for PlannerCounters {
                 &[],
                 c(|k| &k.views_published),
             )
+            .counter(
+                "snapshot_sent",
+                "Map snapshot bytes sent to planners taking a trolley over",
+                &[],
+                c(|k| &k.snapshot_bytes_sent),
+            )
+            .in_unit(Unit::Bytes)
             .drops(&self.drops)
             .gauge(
                 "trolleys",

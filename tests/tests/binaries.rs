@@ -235,6 +235,16 @@ async fn real_binaries_close_the_loop() {
         planner_m["glasshouse_planner_stage_seconds"]["type"],
         "histogram"
     );
+    // One planner: no takeover, no snapshot sent; the counter is there, in bytes.
+    assert_eq!(
+        sample(
+            planner_m,
+            "glasshouse_planner_snapshot_sent_bytes",
+            "glasshouse_planner_snapshot_sent_bytes_total",
+            &[]
+        ),
+        Some(0.0)
+    );
     assert_eq!(
         sample(
             planner_m,

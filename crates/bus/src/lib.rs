@@ -588,14 +588,28 @@ impl<M: Wire> Responder<M> {
     }
 
     /// Replies to `query` with one message, or with an error text the asker can log.
-    pub async fn reply(&self, query: &zenoh::query::Query, answer: Result<(Header, M), String>) {
+    /// Answers `query` with a message (or declines it); the bytes of the message sent, 0 for a
+    /// refusal or a failed reply.
+    pub async fn reply(
+        &self,
+        query: &zenoh::query::Query,
+        answer: Result<(Header, M), String>,
+    ) -> usize {
         let key = query.key_expr().clone();
-        let outcome = match answer {
-            Ok((header, message)) => query.reply(key, encode(&header, &message)).await,
-            Err(reason) => query.reply_err(reason).await,
+        let (outcome, bytes) = match answer {
+            Ok((header, message)) => {
+                let payload = encode(&header, &message);
+                let bytes = payload.len();
+                (query.reply(key, payload).await, bytes)
+            }
+            Err(reason) => (query.reply_err(reason).await, 0),
         };
-        if let Err(e) = outcome {
-            tracing::warn!(key = %query.key_expr(), error = %e, "reply failed");
+        match outcome {
+            Ok(()) => bytes,
+            Err(e) => {
+                tracing::warn!(key = %query.key_expr(), error = %e, "reply failed");
+                0
+            }
         }
     }
 }

@@ -815,6 +815,48 @@ fn planner_rss_kib(procs: &[Proc]) -> Option<u64> {
         .sum()
 }
 
+/// Measure from here: resets the observer's logs; the drop counters, stage totals and catch-up
+/// times the run starts from.
+fn reset_observer(
+    observed: &Mutex<Observed>,
+) -> (
+    BTreeMap<String, u64>,
+    BTreeMap<String, StageTimes>,
+    BTreeMap<String, f64>,
+) {
+    match observed.lock() {
+        Ok(mut o) => {
+            for t in o.trolleys.values_mut() {
+                *t = TrolleyLog::default();
+            }
+            o.corrupt = 0;
+            o.rgbd_frames = 0;
+            o.rgbd_bytes = 0;
+            (o.drops.clone(), o.stages.clone(), o.catch_up_ms.clone())
+        }
+        Err(_) => Default::default(),
+    }
+}
+
+fn progress_bar(measured: Duration) -> ProgressBar {
+    let bar = ProgressBar::new(measured.as_secs());
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} s (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_message("fleet-bench");
+    bar
+}
+
+/// Raises each live process's peak resident memory to what it uses now.
+fn track_peak_rss(procs: &mut [Proc]) {
+    for p in procs.iter_mut().filter(|p| !p.killed) {
+        if let Some(rss) = rss_kib(p.child.id()) {
+            p.peak_rss_kib = p.peak_rss_kib.max(rss);
+        }
+    }
+}
+
 /// The measured run: resets the observer's logs, samples memory, kills t1's owner at `kill_at`.
 async fn measure(
     procs: &mut [Proc],
@@ -823,30 +865,13 @@ async fn measure(
     kill_enabled: bool,
     kill_at: Duration,
 ) -> Measurement {
-    // Measure from here: reset the logs.
-    if let Ok(mut o) = observed.lock() {
-        for t in o.trolleys.values_mut() {
-            *t = TrolleyLog::default();
-        }
-        o.corrupt = 0;
-        o.rgbd_frames = 0;
-        o.rgbd_bytes = 0;
-    }
-    let (drops_at_start, stages_at_start, catch_up_ms_at_start) = observed
-        .lock()
-        .map(|o| (o.drops.clone(), o.stages.clone(), o.catch_up_ms.clone()))
-        .unwrap_or_default();
+    let (drops_at_start, stages_at_start, catch_up_ms_at_start) = reset_observer(observed);
     let mut planner_cpu = cost::CpuSamples::default();
     for p in procs.iter_mut() {
         p.cpu_at_start_s = cpu_seconds(p.child.id()).unwrap_or(0.0);
     }
     let started = Instant::now();
-    let bar = ProgressBar::new(measured.as_secs());
-    bar.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} s (eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    bar.set_message("fleet-bench");
+    let bar = progress_bar(measured);
     let mut killed: Option<(String, Instant)> = None;
     let mut killed_owned = Vec::new();
     let mut cpu_at_kill: HashMap<String, f64> = HashMap::new();
@@ -858,11 +883,7 @@ async fn measure(
             planner_cpu.push(started.elapsed(), planners_cpu_s(procs, &cpu_at_kill));
             next_cpu_sample += Duration::from_secs(5);
         }
-        for p in procs.iter_mut().filter(|p| !p.killed) {
-            if let Some(rss) = rss_kib(p.child.id()) {
-                p.peak_rss_kib = p.peak_rss_kib.max(rss);
-            }
-        }
+        track_peak_rss(procs);
         if kill_enabled && killed.is_none() && started.elapsed() >= kill_at {
             if let Some((pid, at, owned)) = kill_owner_of_t1(procs, observed, &mut cpu_at_kill) {
                 bar.println(format!(
@@ -896,8 +917,8 @@ async fn measure(
     }
 }
 
-/// Kills the planner that owns t1 with SIGKILL, noting its CPU time; `None` if no planner owns it.
-/// Kills the planner owning t1: who, when, and the trolleys it owned then.
+/// Kills the planner that owns t1 with SIGKILL, noting its CPU time: who, when, and the trolleys
+/// it owned then; `None` if no planner owns t1.
 fn kill_owner_of_t1(
     procs: &mut [Proc],
     observed: &Mutex<Observed>,
@@ -1091,6 +1112,13 @@ fn mib(v: Option<f64>) -> String {
 }
 
 fn print_report(r: &Report) {
+    print_throughput(r);
+    print_takeover(r);
+    print_resources(r);
+}
+
+/// The fleet's pace, latencies, drops and planner cost.
+fn print_throughput(r: &Report) {
     println!(
         "fleet-bench: {} trolleys ({} scenario, {} px wide, at most {} frames/s each{}), {} planners, {} detectors, {:.0} s measured over {}",
         r.trolleys,
@@ -1142,6 +1170,10 @@ fn print_report(r: &Report) {
         mib(r.planner_rss_mib_per_trolley_minute1),
         mib(r.planner_rss_mib_per_trolley_end)
     );
+}
+
+/// The takeover of every trolley the killed planner owned, and t1's scans.
+fn print_takeover(r: &Report) {
     match &r.killed_planner {
         Some(p) => {
             let each: Vec<String> = r
@@ -1168,6 +1200,10 @@ fn print_report(r: &Report) {
             t.scans_lost, t.survivor, t.scans_in_survivor_map, t.clouds_observed, t.scans_rebuilt, t.maps_equal
         );
     }
+}
+
+/// The recorder and each kind of process.
+fn print_resources(r: &Report) {
     if let Some(rec) = &r.recorder {
         println!(
             "  MCAP recorder: {} messages ({} frames) in {} file(s), {} dropped, {:.1} MB on disk ({:.0} kB per frame)",

@@ -469,6 +469,7 @@ impl<'a> Graph<'a> {
         if qos.history == History::KeepLast && qos.depth > 0 {
             cache = format!("{cache}?_max={}", qos.depth);
         }
+        let asked = cache.clone();
         self.session
             .get(cache.as_str())
             .accept_replies(zenoh::query::ReplyKeyExpr::Any)
@@ -476,7 +477,7 @@ impl<'a> Graph<'a> {
             .timeout(Duration::from_secs(5))
             .callback(move |reply| match reply.result() {
                 Ok(sample) => deliver.deliver(sample),
-                Err(e) => tracing::debug!("latched sample refused: {e:?}"),
+                Err(e) => tracing::warn!(cache = %asked, "a latched publisher declined: {e:?}"),
             })
             .wait()
             .map_err(|e| anyhow::anyhow!("cannot ask {cache}: {e}"))?;

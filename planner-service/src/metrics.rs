@@ -63,97 +63,94 @@ impl ServiceMetrics for PlannerCounters {
             Unit::Seconds,
             self.stage_seconds.0.clone(),
         );
-        let c = |field: fn(&PlannerCounters) -> &AtomicU64| atomic(&self, field);
-        let s = |read: fn(&PlannerStatus) -> f64| last(&self, |k| &k.status, read);
-        Readings::default()
-            .counter(
-                "clouds_integrated",
-                "ROI clouds integrated into a map",
-                &[],
-                c(|k| &k.clouds_integrated),
-            )
-            .counter(
-                "clouds_rejected",
-                "ROI clouds that decoded but could not be integrated",
-                &[],
-                c(|k| &k.clouds_rejected),
-            )
-            .counter(
-                "clouds_refused",
-                "ROI clouds refused: not from a live detector, or a frame no trolley sends",
-                &[],
-                c(|k| &k.clouds_refused),
-            )
-            .counter(
-                "views_published",
-                "Ranked view sets published",
-                &[],
-                c(|k| &k.views_published),
-            )
-            .counter(
-                "snapshot_sent",
-                "Map snapshot bytes sent to planners taking a trolley over",
-                &[],
-                c(|k| &k.snapshot_bytes_sent),
-            )
-            .in_unit(Unit::Bytes)
-            .drops(&self.drops)
-            .gauge(
-                "trolleys",
-                "Trolleys by role",
-                &[("role", "owner")],
-                s(|st| st.owned_trolleys.len() as f64),
-            )
-            .gauge(
-                "trolleys",
-                "Trolleys by role",
-                &[("role", "standby")],
-                s(|st| st.standby_trolleys.len() as f64),
-            )
-            .gauge(
-                "map_voxels",
-                "Known voxels over every map held",
-                &[],
-                s(|st| st.map_voxels as f64),
-            )
-            .gauge(
-                "planning_time_mean",
-                "Mean planning time per view set",
-                &[],
-                s(|st| f64::from(st.mean_planning_time_ms) / 1e3),
-            )
-            .in_unit(Unit::Seconds)
-            .counter(
-                "catch_up",
-                "Time catching up trolleys taken over",
-                &[],
-                s(|st| st.catch_up_ms / 1e3),
-            )
-            .in_unit(Unit::Seconds)
-            .counter(
-                "registrations",
-                "Scan registrations of owned trolleys, by verdict",
-                &[("verdict", "applied")],
-                s(|st| st.registrations.applied as f64),
-            )
-            .counter(
-                "registrations",
-                "Scan registrations of owned trolleys, by verdict",
-                &[("verdict", "kept_as_sent")],
-                s(|st| st.registrations.kept_as_sent as f64),
-            )
-            .counter(
-                "registrations",
-                "Scan registrations of owned trolleys, by verdict",
-                &[("verdict", "rejected")],
-                s(|st| st.registrations.rejected as f64),
-            )
-            .counter(
-                "registrations",
-                "Scan registrations of owned trolleys, by verdict",
-                &[("verdict", "skipped")],
-                s(|st| st.registrations.skipped as f64),
-            )
-            .register(registry);
+        let readings = counts(&self, Readings::default()).drops(&self.drops);
+        from_status(&self, readings).register(registry);
     }
+}
+
+/// What the planner counts itself: clouds, views, snapshot bytes.
+fn counts(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings {
+    let c = |field: fn(&PlannerCounters) -> &AtomicU64| atomic(counters, field);
+    readings
+        .counter(
+            "clouds_integrated",
+            "ROI clouds integrated into a map",
+            &[],
+            c(|k| &k.clouds_integrated),
+        )
+        .counter(
+            "clouds_rejected",
+            "ROI clouds that decoded but could not be integrated",
+            &[],
+            c(|k| &k.clouds_rejected),
+        )
+        .counter(
+            "clouds_refused",
+            "ROI clouds refused: not from a live detector, or a frame no trolley sends",
+            &[],
+            c(|k| &k.clouds_refused),
+        )
+        .counter(
+            "views_published",
+            "Ranked view sets published",
+            &[],
+            c(|k| &k.views_published),
+        )
+        .counter(
+            "snapshot_sent",
+            "Map snapshot bytes sent to planners taking a trolley over",
+            &[],
+            c(|k| &k.snapshot_bytes_sent),
+        )
+        .in_unit(Unit::Bytes)
+}
+
+/// A value read off the planner's last status.
+type StatusRead = fn(&PlannerStatus) -> f64;
+
+/// What the planner's last status says: its roles, maps, planning, catch-up, registrations.
+fn from_status(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings {
+    let s = |read: StatusRead| last(counters, |k| &k.status, read);
+    let roles: [(&str, StatusRead); 2] = [
+        ("owner", |st| st.owned_trolleys.len() as f64),
+        ("standby", |st| st.standby_trolleys.len() as f64),
+    ];
+    let verdicts: [(&str, StatusRead); 4] = [
+        ("applied", |st| st.registrations.applied as f64),
+        ("kept_as_sent", |st| st.registrations.kept_as_sent as f64),
+        ("rejected", |st| st.registrations.rejected as f64),
+        ("skipped", |st| st.registrations.skipped as f64),
+    ];
+    let readings = roles.into_iter().fold(readings, |r, (role, read)| {
+        r.gauge("trolleys", "Trolleys by role", &[("role", role)], s(read))
+    });
+    let readings = readings
+        .gauge(
+            "map_voxels",
+            "Known voxels over every map held",
+            &[],
+            s(|st| st.map_voxels as f64),
+        )
+        .gauge(
+            "planning_time_mean",
+            "Mean planning time per view set",
+            &[],
+            s(|st| f64::from(st.mean_planning_time_ms) / 1e3),
+        )
+        .in_unit(Unit::Seconds)
+        .counter(
+            "catch_up",
+            "Time catching up trolleys taken over",
+            &[],
+            s(|st| st.catch_up_ms / 1e3),
+        )
+        .in_unit(Unit::Seconds);
+    verdicts.into_iter().fold(readings, |r, (verdict, read)| {
+        r.counter(
+            "registrations",
+            "Scan registrations of owned trolleys, by verdict",
+            &[("verdict", verdict)],
+            s(read),
+        )
+    })
 }

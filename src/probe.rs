@@ -35,6 +35,11 @@ pub struct ProbeArgs {
     /// Seconds to wait for a session, a control message or an answer.
     #[arg(long, value_name = "S", default_value_t = 10)]
     timeout_s: u64,
+    /// Seconds to wait for the rogue's and the observer's sessions and the first control: until
+    /// the router has linked them (slow on a loaded machine; the probe goes on as soon as they
+    /// are linked).
+    #[arg(long, value_name = "S", default_value_t = 90)]
+    link_timeout_s: u64,
     /// Also write the attempts as JSON here.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -80,6 +85,7 @@ pub async fn run(args: ProbeArgs) -> anyhow::Result<()> {
         foreign_cert: foreign.cert(&victim.common_name()),
         scratch: scratch.clone(),
         timeout: Duration::from_secs(args.timeout_s.max(1)),
+        link_timeout: Duration::from_secs(args.link_timeout_s.max(1)),
     };
     let outcome = probe(&setup).await;
     let _ = std::fs::remove_dir_all(&scratch);

@@ -93,6 +93,7 @@ fn probe_setup(
         foreign_cert: other.join("trolley-t1.pem"),
         scratch: dir.join("probe"),
         timeout: Duration::from_secs(10),
+        link_timeout: Duration::from_secs(60),
     }
 }
 

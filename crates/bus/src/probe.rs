@@ -44,6 +44,11 @@ pub struct ProbeSetup {
     pub scratch: PathBuf,
     /// How long to wait for a session, a control or an answer.
     pub timeout: Duration,
+    /// How long to wait for the first control: until the router has told the rogue of the
+    /// observer's subscriptions. On a loaded machine (a rig just started, images being built)
+    /// links take far longer to come up than one message takes to pass them; this is a wait on
+    /// a condition, so a generous bound costs nothing when the links are quick.
+    pub link_timeout: Duration,
 }
 
 /// One thing the rogue tried.
@@ -80,8 +85,8 @@ fn zenoh_error(e: impl std::fmt::Display) -> ProbeError {
 /// Runs every attempt; `Ok` lists them with their outcome (any `accepted` is a hole).
 pub async fn probe(setup: &ProbeSetup) -> Result<Vec<Attempt>, ProbeError> {
     let mut attempts = connection_attempts(setup).await?;
-    let observer = open_as(&setup.observer, "observer", setup.timeout).await?;
-    let rogue = open_as(&setup.rogue, "rogue", setup.timeout).await?;
+    let observer = open_as(&setup.observer, "observer", setup.link_timeout).await?;
+    let rogue = open_as(&setup.rogue, "rogue", setup.link_timeout).await?;
     let mut watch = Observer::declare(&observer).await?;
     let mut rogue = Rogue {
         session: &rogue,
@@ -91,7 +96,7 @@ pub async fn probe(setup: &ProbeSetup) -> Result<Vec<Attempt>, ProbeError> {
         timeout: setup.timeout,
     };
     // The method itself: a control must arrive (repeated until the rogue knows the observer).
-    rogue.first_control(&mut watch).await?;
+    rogue.first_control(&mut watch, setup.link_timeout).await?;
     for (what, key) in forbidden_puts(setup)? {
         let accepted = rogue.put_passes(&mut watch, &key).await?;
         attempts.push(Attempt { what, accepted });
@@ -176,7 +181,7 @@ async fn open_as(
 async fn connection_attempts(setup: &ProbeSetup) -> Result<Vec<Attempt>, ProbeError> {
     // The rogue's own config, made to try once, must connect: else a refusal proves nothing.
     let same = one_try_config(setup, "same", |_| {})?;
-    open_once(&same, setup.timeout).await?;
+    open_once(&same, setup.link_timeout).await?;
     let no_cert = one_try_config(setup, "no-cert", |tls| {
         tls["enable_mtls"] = false.into();
         if let Some(tls) = tls.as_object_mut() {
@@ -359,8 +364,12 @@ impl Rogue<'_> {
 
     /// Controls until one arrives: a client sends a put only once it has heard of a subscriber,
     /// and the observer's subscriptions reach the rogue through the router a moment later.
-    async fn first_control(&mut self, watch: &mut Observer) -> Result<(), ProbeError> {
-        let deadline = tokio::time::Instant::now() + self.timeout;
+    async fn first_control(
+        &mut self,
+        watch: &mut Observer,
+        link_timeout: Duration,
+    ) -> Result<(), ProbeError> {
+        let deadline = tokio::time::Instant::now() + link_timeout;
         while tokio::time::Instant::now() < deadline {
             let wait = Duration::from_millis(250);
             if self
@@ -371,7 +380,11 @@ impl Rogue<'_> {
                 return Ok(());
             }
         }
-        Err(self.no_control())
+        Err(ProbeError::NoControl {
+            number: self.sent,
+            after: self.last.clone(),
+            timeout: link_timeout,
+        })
     }
 
     /// Puts a tagged payload on `key`, then a control; true when the observer saw the first.

@@ -316,6 +316,22 @@ pub fn max_message_bytes_for(kind: Kind) -> usize {
     received + MESSAGE_HEADROOM_BYTES
 }
 
+/// Link lease of every deployed process, ms. A link silent this long is dropped with its
+/// liveliness tokens, so this is how long a hung planner or a cut cable keeps its trolleys
+/// (Zenoh's default is 10 s). Trolleys roam between a glasshouse's Wi-Fi access points along
+/// their rails, and a handover without fast roaming takes up to about 2 s: 3 s rides one out
+/// without moving a trolley to another planner, and a planner that stops answering loses its
+/// trolleys a third as late as with the default.
+pub const LAN_LEASE_MS: u64 = 3_000;
+
+/// Keep-alives per lease: a keep-alive every 750 ms, so three may be lost before the lease ends.
+pub const LAN_KEEP_ALIVES: u64 = 4;
+
+/// The `transport/link/tx` section of every deployed config.
+fn lan_tx() -> Value {
+    json!({ "lease": LAN_LEASE_MS, "keep_alive": LAN_KEEP_ALIVES })
+}
+
 /// The router's Zenoh config: an mTLS listener, the roster's ACL, bounded messages.
 pub fn router_config(roster: &Roster, layout: &Layout) -> Result<Value> {
     Ok(json!({
@@ -330,6 +346,7 @@ pub fn router_config(roster: &Roster, layout: &Layout) -> Result<Value> {
                 "enable_mtls": true,
             },
             "rx": { "max_message_size": max_message_bytes() },
+            "tx": lan_tx(),
         } },
         "access_control": acl(roster),
     }))
@@ -351,6 +368,7 @@ pub fn client_config(roster: &Roster, identity: &Identity, layout: &Layout) -> V
                 "enable_mtls": true,
             },
             "rx": { "max_message_size": max_message_bytes_for(identity.kind) },
+            "tx": lan_tx(),
         } },
     })
 }
@@ -484,6 +502,15 @@ mod tests {
             "/pki/router.key"
         );
         assert_eq!(router["access_control"]["default_permission"], "deny");
+        for config in [&client, &router] {
+            let tx = &config["transport"]["link"]["tx"];
+            assert_eq!(
+                tx["lease"],
+                json!(LAN_LEASE_MS),
+                "a LAN lease, not Zenoh's 10 s"
+            );
+            assert_eq!(tx["keep_alive"], json!(LAN_KEEP_ALIVES));
+        }
         let max = router["transport"]["link"]["rx"]["max_message_size"]
             .as_u64()
             .expect("a size");

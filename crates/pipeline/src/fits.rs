@@ -3,12 +3,13 @@
 //! surface), so a scan that changed neither leaves the fit exactly as it was. The per-frame fit
 //! cost then follows what the scan touched, not how many fruits the row holds. The evidence
 //! that a cluster is a fruit (its shape and colour, [`ClusterEvidence`]) reads only the cluster's
-//! voxels, so it is kept with the fit. The same holds for the touching-fruit splits
+//! voxels, and what the map knows inside the fitted solid ([`Interior`]) only the map within the
+//! solid's box, which the fit reads too, so both are kept with the fit. The same holds for the touching-fruit splits
 //! ([`SplitCache`]).
 
 use std::collections::HashMap;
 
-use glasshouse_nbv::evidence::{ClusterEvidence, ClusterShape};
+use glasshouse_nbv::evidence::{ClusterEvidence, ClusterShape, Interior};
 use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid};
 use glasshouse_nbv::split::{split_cluster, ReadBox};
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
@@ -24,6 +25,7 @@ struct CachedFit {
     at_scans: u64,
     shape: FruitSolid,
     evidence: ClusterEvidence,
+    interior: Interior,
 }
 
 /// The fits of the latest clusters, keyed by each cluster's smallest voxel, and the shapes of
@@ -82,6 +84,7 @@ impl FitCache {
             read_min: read.0,
             read_max: read.1,
             at_scans: map.scans_inserted(),
+            interior: Interior::of_fruit(map, &shape),
             shape,
             evidence: ClusterEvidence::of(map, cluster),
         };
@@ -91,8 +94,18 @@ impl FitCache {
     /// What the voxels of `cluster` say (its shape and colour), kept since its last fit by
     /// [`FitCache::update`]; `None` for a cluster that update did not see.
     pub(crate) fn evidence_of(&self, cluster: &RoiCluster) -> Option<&ClusterEvidence> {
+        self.cached(cluster).map(|cached| &cached.evidence)
+    }
+
+    /// What the map knew inside the fitted solid of `cluster` at its last fit; `None` for a
+    /// cluster that update did not see.
+    pub(crate) fn interior_of(&self, cluster: &RoiCluster) -> Option<Interior> {
+        self.cached(cluster).map(|cached| cached.interior)
+    }
+
+    fn cached(&self, cluster: &RoiCluster) -> Option<&CachedFit> {
         let cached = self.by_first_voxel.get(cluster.voxels.first()?)?;
-        (cached.voxels == cluster.voxels).then_some(&cached.evidence)
+        (cached.voxels == cluster.voxels).then_some(cached)
     }
 
     /// The shape of each cluster's voxels ([`ClusterShape`]), in cluster order, computed again
@@ -130,6 +143,7 @@ fn fit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> CachedFit {
         read_min: min,
         read_max: max,
         at_scans: map.scans_inserted(),
+        interior: Interior::of_fruit(map, &shape),
         shape,
         evidence: ClusterEvidence::of(map, cluster),
     }

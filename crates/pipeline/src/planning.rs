@@ -4,6 +4,7 @@
 use std::borrow::Cow;
 
 use glasshouse_arm::Robot;
+use glasshouse_nbv::evidence::interior_holds;
 use glasshouse_nbv::fit::{FitConfig, FruitSolid};
 use glasshouse_nbv::split::fragments;
 use glasshouse_nbv::{
@@ -479,8 +480,9 @@ impl TrolleyPlanner {
 
     /// Every fruit of the latest clusters with its fitted solid and, as its confidence, the
     /// evidence's that it is a fruit, leaving out clusters whose shape says they are not ([`glasshouse_nbv::evidence`]:
-    /// flat, thin, too small or too large; these are not fitted at all) and clusters that are a
-    /// second patch of a fruit another cluster reports ([`fragments`]). Fits are made here, not
+    /// flat, thin, too small or too large; these are not fitted at all), clusters whose fitted
+    /// solid hides nothing (a sheet) and clusters that are a second patch of a fruit another
+    /// cluster reports ([`fragments`]). Fits are made here, not
     /// on integration (a replica integrates without them), and only for the fruits whose voxels
     /// or surroundings changed since their last fit.
     pub fn fruits(&mut self) -> Vec<FruitEstimate> {
@@ -496,30 +498,47 @@ impl TrolleyPlanner {
                     .update(&self.map, clusters, &self.settings.fit);
             self.fits_stale = false;
         }
-        let counts: Vec<usize> = shaped
+        let (solid, fits): (Vec<usize>, Vec<FruitSolid>) = shaped
+            .into_iter()
+            .zip(&self.fits)
+            .filter(|(i, _)| self.hides_something(*i))
+            .unzip();
+        let counts: Vec<usize> = solid
             .iter()
             .map(|&i| self.clusters[i].voxels.len())
             .collect();
-        let fragment = fragments(&self.fits, &counts);
-        shaped
+        let fragment = fragments(&fits, &counts);
+        solid
             .into_iter()
-            .zip(&self.fits)
+            .zip(&fits)
             .zip(fragment)
             .filter(|(_, fragment)| !fragment)
             .map(|((i, fitted), _)| self.record(i, fitted))
             .collect()
     }
 
+    /// Whether the fitted solid of cluster `i` hides unknown space, as a fruit does and a red
+    /// sheet does not ([`glasshouse_nbv::evidence::interior_holds`]).
+    fn hides_something(&self, i: usize) -> bool {
+        let interior = self.fit_cache.interior_of(&self.clusters[i]);
+        interior.is_none_or(|inside| interior_holds(&inside, &self.settings.fit.evidence))
+    }
+
     /// The fruit of cluster `i`, fitted `fitted`, with its evidence's confidence.
     fn record(&self, i: usize, fitted: &FruitSolid) -> FruitEstimate {
-        use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence};
+        use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence, Interior};
         let (cluster, estimate) = (&self.clusters[i], &self.estimates[i]);
         let seen = match self.fit_cache.evidence_of(cluster) {
             Some(seen) => *seen,
             None => ClusterEvidence::of(&self.map, cluster),
         };
         let views = estimate.view_directions;
-        let evidence = FruitEvidence::judge(&seen, fitted, views, &self.settings.fit.evidence);
+        let interior = match self.fit_cache.interior_of(cluster) {
+            Some(inside) => inside,
+            None => Interior::of_fruit(&self.map, fitted),
+        };
+        let config = &self.settings.fit.evidence;
+        let evidence = FruitEvidence::judge(&seen, fitted, interior, views, config);
         FruitEstimate {
             confidence: evidence.confidence,
             solid: Some(*fitted),

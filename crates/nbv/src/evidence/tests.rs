@@ -41,7 +41,8 @@ fn scanned(
 fn judged(m: &RoiMap, cluster: &RoiCluster, views: u32) -> FruitEvidence {
     let fit = fit_ellipsoid(m, cluster, &clean_scan_config());
     let seen = ClusterEvidence::of(m, cluster);
-    FruitEvidence::judge(&seen, &fit, views, &EvidenceConfig::default())
+    let inside = Interior::of_fruit(m, &fit);
+    FruitEvidence::judge(&seen, &fit, inside, views, &EvidenceConfig::default())
 }
 
 /// Front, the two sides and the back of a body facing −x, slightly from above and below.
@@ -123,6 +124,69 @@ fn a_red_leaf_two_voxels_thick_with_its_petiole_is_rejected() {
         .unwrap();
     let evidence = judged(&m, &clusters[largest], views[largest].view_directions);
     assert_eq!(evidence.verdict, Verdict::Flat, "{evidence:?}");
+}
+
+/// The leaf above, but the views below see it 12 mm nearer the views above (a pose error of a
+/// degree or a centimetre, or a stereo camera's correlated error): a 2 cm deep red patch whose
+/// shape passes for a fruit's cap. The views below see through where the views above saw the
+/// leaf, so nothing inside the solid fitted to it is unknown: a sheet, not a fruit.
+#[test]
+fn a_red_leaf_doubled_by_a_pose_error_hides_nothing() {
+    let c = centre();
+    let tilt = turn(Vector3::new(1.0, 0.3, 0.0), 8.0);
+    let leaf = |offset_m: f64| Lobe {
+        centre: c + tilt * Vector3::z() * offset_m,
+        world_from_lobe: tilt,
+        semi_axes_m: Vector3::new(0.032, 0.024, 0.0005),
+    };
+    let (above, below) = (leaf(0.0), leaf(0.012));
+    let towards_above = [Vector3::new(-0.5, 0.2, 1.0), Vector3::new(0.4, -0.6, 1.0)];
+    let towards_below = [Vector3::new(-0.6, 0.1, -1.0), Vector3::new(0.5, 0.5, -1.0)];
+    let mut m = map();
+    let mut tracker = FruitTracker::default();
+    let scans = eyes(c, &towards_above)
+        .into_iter()
+        .map(|e| (e, above))
+        .chain(eyes(c, &towards_below).into_iter().map(|e| (e, below)));
+    for (eye, sheet) in scans {
+        let hits = scan_with(&mut m, c, eye, |o, d| sheet.hit(o, d));
+        tracker.note_scan(eye, hits.iter().map(|p| m.key_of(p)).collect());
+    }
+    let clusters = m.clusters(1);
+    let views = tracker.update(&clusters);
+    let largest = (0..clusters.len())
+        .max_by_key(|&i| clusters[i].voxels.len())
+        .unwrap();
+    let evidence = judged(&m, &clusters[largest], views[largest].view_directions);
+    let config = EvidenceConfig::default();
+    assert_eq!(
+        evidence.shape.verdict(&config),
+        Verdict::Fruit,
+        "{evidence:?}"
+    );
+    assert_eq!(evidence.interior.unknown, 0, "{evidence:?}");
+    assert_eq!(evidence.verdict, Verdict::Sheet, "{evidence:?}");
+    assert_eq!(evidence.confidence, 0.0);
+    let off = EvidenceConfig {
+        min_unknown_inside: 0,
+        ..config
+    };
+    assert!(
+        interior_holds(&evidence.interior, &off),
+        "0 turns the test off"
+    );
+}
+
+/// A fruit hides its inside from every side: seen all round, the voxels deep inside the solid
+/// fitted to it are still unknown.
+#[test]
+fn a_fruit_seen_all_round_hides_its_inside() {
+    let body = capsicum(centre(), 4, 25.0, Vector3::new(0.024, 0.022, 0.04));
+    let (m, cluster, views) = scanned(&eyes(centre(), &all_round()), |o, d| first_hit(&body, o, d));
+    let evidence = judged(&m, &cluster, views);
+    assert!(views >= 4, "{views}");
+    assert!(evidence.interior.unknown >= 20, "{evidence:?}");
+    assert_eq!(evidence.verdict, Verdict::Fruit, "{evidence:?}");
 }
 
 #[test]

@@ -36,7 +36,7 @@ pub struct MetricDef {
 /// rule). `_fitted` variants use the fitted ellipsoid estimates (centre; box around it; its box
 /// volume `8·a·b·c`, comparable with the truth's box volume). The fruit counts (count ratio,
 /// precision, recall, F1, false fruits) are those of the box estimates.
-pub const METRICS: [MetricDef; 15] = [
+pub const METRICS: [MetricDef; 18] = [
     MetricDef {
         key: "detected",
         label: "detected ROIs",
@@ -134,6 +134,27 @@ pub const METRICS: [MetricDef; 15] = [
         better: Better::Higher,
         decimals: 2,
         value: |s| s.boxes.counts.f1,
+    },
+    MetricDef {
+        key: "precision_5cm",
+        label: "fruit precision, centres within 5 cm",
+        better: Better::Higher,
+        decimals: 2,
+        value: |s| s.boxes.counts_near.precision,
+    },
+    MetricDef {
+        key: "recall_5cm",
+        label: "fruit recall, centres within 5 cm",
+        better: Better::Higher,
+        decimals: 2,
+        value: |s| s.boxes.counts_near.recall,
+    },
+    MetricDef {
+        key: "f1_5cm",
+        label: "fruit F1, centres within 5 cm",
+        better: Better::Higher,
+        decimals: 2,
+        value: |s| s.boxes.counts_near.f1,
     },
     MetricDef {
         key: "false_fruits",
@@ -644,6 +665,7 @@ mod tests {
             detected,
             // Two reported fruits more than detected.
             counts: FruitCounts::new(detected, detected + 2, 28),
+            counts_near: FruitCounts::new(detected, detected + 2, 28),
             center_distance_cm: if detected > 0 { 2.0 } else { f64::NAN },
             volume_accuracy: 0.5,
             volume_accuracy_gt05: f64::NAN,

@@ -563,6 +563,8 @@ pub async fn run(
         fruits,
         based_on_seq: 0,
         planner_id: format!("truth-{tid}"),
+        // The truth has no owner.
+        owner_epoch: 0,
     });
     let recorder = config
         .record_frames_dir

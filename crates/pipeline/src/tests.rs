@@ -37,6 +37,7 @@ fn views(seq: u64, utilities: &[f32]) -> RankedViews {
         based_on_epoch_ns: EPOCH_NS,
         planning_time_ms: 1.0,
         planner_id: "p1".into(),
+        owner_epoch: 0,
     }
 }
 

@@ -251,6 +251,20 @@ pub fn trolley_status() -> TrolleyStatus {
         last_views_seq: 4,
         message: "moving".into(),
         refused_views: 3,
+        stale_views: 1,
+        owner_epoch: SAMPLE_OWNER_EPOCH,
+        owner_terms: vec![
+            OwnerTerm {
+                planner_id: "p2".into(),
+                owner_epoch: SAMPLE_OWNER_EPOCH - 1_000,
+                views_executed: 1,
+            },
+            OwnerTerm {
+                planner_id: "p1".into(),
+                owner_epoch: SAMPLE_OWNER_EPOCH,
+                views_executed: 3,
+            },
+        ],
     }
 }
 

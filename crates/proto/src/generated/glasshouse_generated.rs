@@ -5602,6 +5602,9 @@ impl<'a> TrolleyStatus<'a> {
   pub const VT_LAST_VIEWS_SEQ: ::flatbuffers::VOffsetT = 16;
   pub const VT_MESSAGE: ::flatbuffers::VOffsetT = 18;
   pub const VT_REFUSED_VIEWS: ::flatbuffers::VOffsetT = 20;
+  pub const VT_STALE_VIEWS: ::flatbuffers::VOffsetT = 22;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 24;
+  pub const VT_OWNER_TERMS: ::flatbuffers::VOffsetT = 26;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5613,10 +5616,13 @@ impl<'a> TrolleyStatus<'a> {
     args: &'args TrolleyStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<TrolleyStatus<'bldr>> {
     let mut builder = TrolleyStatusBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
+    builder.add_stale_views(args.stale_views);
     builder.add_refused_views(args.refused_views);
     builder.add_last_views_seq(args.last_views_seq);
     builder.add_dropped_messages(args.dropped_messages);
     builder.add_frames_published(args.frames_published);
+    if let Some(x) = args.owner_terms { builder.add_owner_terms(x); }
     if let Some(x) = args.message { builder.add_message(x); }
     builder.add_reannounces(args.reannounces);
     builder.add_unreachable_views(args.unreachable_views);
@@ -5690,6 +5696,30 @@ impl<'a> TrolleyStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(TrolleyStatus::VT_REFUSED_VIEWS, Some(0)).unwrap()}
   }
+  /// RankedViews refused because their ownership epoch was older than the newest taken.
+  #[inline]
+  pub fn stale_views(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(TrolleyStatus::VT_STALE_VIEWS, Some(0)).unwrap()}
+  }
+  /// The newest ownership epoch views were taken under (0: none yet).
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(TrolleyStatus::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
+  /// Views executed per ownership term, oldest first (the last 16 terms).
+  #[inline]
+  pub fn owner_terms(&self) -> Option<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<OwnerTerm<'a>>>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<OwnerTerm>>>>(TrolleyStatus::VT_OWNER_TERMS, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for TrolleyStatus<'_> {
@@ -5707,6 +5737,9 @@ impl ::flatbuffers::Verifiable for TrolleyStatus<'_> {
      .visit_field::<u64>("last_views_seq", Self::VT_LAST_VIEWS_SEQ, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("message", Self::VT_MESSAGE, false)?
      .visit_field::<u64>("refused_views", Self::VT_REFUSED_VIEWS, false)?
+     .visit_field::<u64>("stale_views", Self::VT_STALE_VIEWS, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<OwnerTerm>>>>("owner_terms", Self::VT_OWNER_TERMS, false)?
      .finish();
     Ok(())
   }
@@ -5721,6 +5754,9 @@ pub struct TrolleyStatusArgs<'a> {
     pub last_views_seq: u64,
     pub message: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub refused_views: u64,
+    pub stale_views: u64,
+    pub owner_epoch: u64,
+    pub owner_terms: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<OwnerTerm<'a>>>>>,
 }
 impl<'a> Default for TrolleyStatusArgs<'a> {
   #[inline]
@@ -5735,6 +5771,9 @@ impl<'a> Default for TrolleyStatusArgs<'a> {
       last_views_seq: 0,
       message: None,
       refused_views: 0,
+      stale_views: 0,
+      owner_epoch: 0,
+      owner_terms: None,
     }
   }
 }
@@ -5781,6 +5820,18 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(TrolleyStatus::VT_REFUSED_VIEWS, refused_views, 0);
   }
   #[inline]
+  pub fn add_stale_views(&mut self, stale_views: u64) {
+    self.fbb_.push_slot::<u64>(TrolleyStatus::VT_STALE_VIEWS, stale_views, 0);
+  }
+  #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(TrolleyStatus::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
+  pub fn add_owner_terms(&mut self, owner_terms: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , ::flatbuffers::ForwardsUOffset<OwnerTerm<'b >>>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyStatus::VT_OWNER_TERMS, owner_terms);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> TrolleyStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     TrolleyStatusBuilder {
@@ -5807,6 +5858,140 @@ impl ::core::fmt::Debug for TrolleyStatus<'_> {
       ds.field("last_views_seq", &self.last_views_seq());
       ds.field("message", &self.message());
       ds.field("refused_views", &self.refused_views());
+      ds.field("stale_views", &self.stale_views());
+      ds.field("owner_epoch", &self.owner_epoch());
+      ds.field("owner_terms", &self.owner_terms());
+      ds.finish()
+  }
+}
+pub enum OwnerTermOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// Views a trolley executed during one ownership term: planner and epoch.
+pub struct OwnerTerm<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for OwnerTerm<'a> {
+  type Inner = OwnerTerm<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> OwnerTerm<'a> {
+  pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 4;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 6;
+  pub const VT_VIEWS_EXECUTED: ::flatbuffers::VOffsetT = 8;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    OwnerTerm { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args OwnerTermArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<OwnerTerm<'bldr>> {
+    let mut builder = OwnerTermBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
+    builder.add_views_executed(args.views_executed);
+    if let Some(x) = args.planner_id { builder.add_planner_id(x); }
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn planner_id(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(OwnerTerm::VT_PLANNER_ID, None)}
+  }
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(OwnerTerm::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn views_executed(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(OwnerTerm::VT_VIEWS_EXECUTED, Some(0)).unwrap()}
+  }
+}
+
+impl ::flatbuffers::Verifiable for OwnerTerm<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
+     .visit_field::<u32>("views_executed", Self::VT_VIEWS_EXECUTED, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct OwnerTermArgs<'a> {
+    pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub owner_epoch: u64,
+    pub views_executed: u32,
+}
+impl<'a> Default for OwnerTermArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    OwnerTermArgs {
+      planner_id: None,
+      owner_epoch: 0,
+      views_executed: 0,
+    }
+  }
+}
+
+pub struct OwnerTermBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> OwnerTermBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_planner_id(&mut self, planner_id: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(OwnerTerm::VT_PLANNER_ID, planner_id);
+  }
+  #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(OwnerTerm::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
+  pub fn add_views_executed(&mut self, views_executed: u32) {
+    self.fbb_.push_slot::<u32>(OwnerTerm::VT_VIEWS_EXECUTED, views_executed, 0);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> OwnerTermBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    OwnerTermBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<OwnerTerm<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for OwnerTerm<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("OwnerTerm");
+      ds.field("planner_id", &self.planner_id());
+      ds.field("owner_epoch", &self.owner_epoch());
+      ds.field("views_executed", &self.views_executed());
       ds.finish()
   }
 }

@@ -482,6 +482,16 @@ impl Progress {
             EdgeEvent::ViewsRefused { source_id, .. } => {
                 println!("views from {source_id} refused: not the trolley's owner");
             }
+            EdgeEvent::StaleViewsRefused {
+                source_id,
+                owner_epoch,
+                newest,
+                ..
+            } => {
+                println!(
+                    "views from {source_id} refused: epoch {owner_epoch}, older than {newest}"
+                );
+            }
             EdgeEvent::SegmentDone {
                 segments_done,
                 sim_time_s,

@@ -6,6 +6,11 @@
 //! latest ROI cloud, ROI and occupied voxels (rebuilt from MapUpdate deltas), ranked views as
 //! arrows with the executed one highlighted, fruit boxes labelled with size and volume, and time
 //! series. Timelines: `sim_time` (the stamp of the data) and `wall_time`.
+//!
+//! Views, map updates and fruits under an older ownership epoch than the newest seen for their
+//! trolley come from a replaced owner (paused, cut off): the fleet state and Rerun leave them out
+//! and count them (`dropped_messages{reason="stale_epoch"}`); the MCAP recording keeps every
+//! message as received.
 
 pub mod blueprint;
 pub mod foxglove;
@@ -21,6 +26,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use glasshouse_bus::{AnySubscriber, Delivery, DropCounters, Received, Shutdown};
+use glasshouse_fleet::EpochFence;
 use glasshouse_geom::FruitEstimate;
 use glasshouse_proto::keys::{self, ParsedKey, Qos, TrolleyTopic};
 use glasshouse_proto::{
@@ -142,6 +148,10 @@ pub struct FleetState {
     pub fleet_fruits: Option<FleetFruits>,
     pub detectors: BTreeMap<String, DetectorStatus>,
     pub messages: u64,
+    /// The newest ownership epoch seen per trolley (views, map updates, fruits).
+    pub fence: EpochFence,
+    /// Views, map updates and fruits left out: an older ownership epoch than the newest seen.
+    pub stale_epoch: u64,
 }
 
 impl TrolleyView {
@@ -162,10 +172,37 @@ impl TrolleyView {
     }
 }
 
+/// The ownership epoch of an owner's output (views, map update, fruits) on a trolley's key;
+/// None for every other message (the truth on its own key has no owner).
+fn owner_epoch(key: &ParsedKey, message: &Message) -> Option<u64> {
+    match (key, message) {
+        (ParsedKey::Trolley { topic, .. }, message) => match (topic, message) {
+            (TrolleyTopic::Views, Message::RankedViews(v)) => Some(v.owner_epoch),
+            (TrolleyTopic::Map, Message::MapUpdate(m)) => Some(m.owner_epoch),
+            (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => Some(f.owner_epoch),
+            _ => None,
+        },
+        _ => None,
+    }
+}
+
 impl FleetState {
-    /// Folds one received message, received at `now`, into the state.
-    pub fn apply(&mut self, key: &ParsedKey, header: &Header, message: &Message, now: Instant) {
+    /// Folds one received message, received at `now`, into the state; false when it is left out
+    /// (an owner's output under an older ownership epoch than the newest seen for its trolley).
+    pub fn apply(
+        &mut self,
+        key: &ParsedKey,
+        header: &Header,
+        message: &Message,
+        now: Instant,
+    ) -> bool {
         self.messages += 1;
+        if let (ParsedKey::Trolley { tid, .. }, Some(epoch)) = (key, owner_epoch(key, message)) {
+            if self.fence.observe(tid, epoch).is_stale() {
+                self.stale_epoch += 1;
+                return false;
+            }
+        }
         match (key, message) {
             (ParsedKey::Trolley { tid, topic }, message) => {
                 let t = self.trolleys.entry(tid.clone()).or_default();
@@ -238,6 +275,7 @@ impl FleetState {
             }
             _ => {}
         }
+        true
     }
 }
 
@@ -334,6 +372,8 @@ struct Sinks {
     rerun: Option<Recorder>,
     mcap: Option<McapRecorder>,
     foxglove: Option<FoxgloveLive>,
+    /// Where the fleet state's stale-epoch count is mirrored.
+    drops: Arc<DropCounters>,
 }
 
 impl Sinks {
@@ -373,6 +413,7 @@ impl Sinks {
             rerun,
             mcap,
             foxglove,
+            drops: counters.drops.clone(),
         })
     }
 
@@ -393,8 +434,17 @@ impl Sinks {
         let Some(key) = keys::parse(&received.key) else {
             return;
         };
-        if let Ok(mut s) = state.lock() {
-            s.apply(&key, &received.header, &received.message, Instant::now());
+        let taken = match state.lock() {
+            Ok(mut s) => {
+                let taken = s.apply(&key, &received.header, &received.message, Instant::now());
+                let stale = &self.drops.stale_epoch;
+                stale.store(s.stale_epoch, std::sync::atomic::Ordering::Relaxed);
+                taken
+            }
+            Err(_) => true,
+        };
+        if !taken {
+            return;
         }
         if let Some(recorder) = self.rerun.as_mut() {
             if let Err(e) = recorder.log(&key, &received.header, &received.message) {

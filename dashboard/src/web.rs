@@ -43,6 +43,11 @@ pub struct TrolleyRow {
     pub drops: u64,
     /// RankedViews the trolley refused: not from the planner owning it.
     pub refused_views: u64,
+    /// RankedViews the trolley refused: an older ownership epoch than the newest it took (a
+    /// replaced owner's).
+    pub stale_views: u64,
+    /// The newest ownership epoch the trolley took views under.
+    pub owner_epoch: u64,
     /// Share of ground-truth fruit volume inside detected boxes (simulated trolleys only).
     pub covered_volume: Option<f64>,
     /// How the planner registered the trolley's last registered cloud.
@@ -103,6 +108,11 @@ pub struct PlannerRow {
     pub dropped: u64,
     /// RoiClouds refused: not from a live detector, or a frame no trolley sends.
     pub refused_clouds: u64,
+    /// Fruits and snapshots dropped: an older ownership epoch than the newest seen.
+    pub stale_epoch: u64,
+    /// Ownership terms given up on seeing a newer epoch (it was replaced while paused or cut
+    /// off).
+    pub stepped_down: u64,
     /// Seconds since its last status (a lost planner's grows).
     pub last_status_age_s: Option<f64>,
     /// Clouds of the trolleys it owns registered to their maps, by verdict: corrected, let in
@@ -178,6 +188,8 @@ pub fn fleet_doc(
                 latency_p99_ms: t.latency_percentile_ms(99.0),
                 drops: t.drops(),
                 refused_views: t.status.as_ref().map_or(0, |s| s.refused_views),
+                stale_views: t.status.as_ref().map_or(0, |s| s.stale_views),
+                owner_epoch: t.status.as_ref().map_or(0, |s| s.owner_epoch),
                 covered_volume: t.covered_volume,
                 registration: t.last_registration.as_ref().map(RegistrationDoc::new),
                 camera_xy_m: t.camera_position_m.map(|p| [p[0], p[1]]),
@@ -201,6 +213,8 @@ pub fn fleet_doc(
                 map_voxels: p.map_voxels,
                 dropped: p.dropped_messages,
                 refused_clouds: p.refused_clouds,
+                stale_epoch: p.stale_epoch,
+                stepped_down: p.stepped_down,
                 last_status_age_s: fleet
                     .planner_seen_at
                     .get(id)
@@ -409,5 +423,45 @@ mod tests {
         let doc = RegistrationDoc::new(&rejected);
         assert_eq!((doc.verdict, doc.reason), ("rejected", "contradicts_map"));
         assert_eq!((doc.correction_mm, doc.correction_deg), (None, None));
+    }
+
+    #[test]
+    fn a_replaced_owners_views_map_and_fruits_are_left_out_and_counted() {
+        let mut fleet = FleetState::default();
+        let now = Instant::now();
+        let key = |topic| ParsedKey::Trolley {
+            tid: "t1".into(),
+            topic,
+        };
+        let header = samples::header(1);
+        let views = |owner_epoch| {
+            Message::RankedViews(glasshouse_proto::RankedViews {
+                owner_epoch,
+                ..samples::ranked_views()
+            })
+        };
+        let map = Message::MapUpdate(glasshouse_proto::MapUpdate {
+            owner_epoch: 10,
+            ..samples::map_update()
+        });
+        let fruits = |owner_epoch| {
+            Message::FruitEstimates(glasshouse_proto::FruitEstimates {
+                owner_epoch,
+                ..samples::fruit_estimates()
+            })
+        };
+        assert!(fleet.apply(&key(TrolleyTopic::Views), &header, &views(20), now));
+        // The owner replaced under epoch 20 still sends under 10: left out, counted.
+        assert!(!fleet.apply(&key(TrolleyTopic::Views), &header, &views(10), now));
+        assert!(!fleet.apply(&key(TrolleyTopic::Map), &header, &map, now));
+        assert!(!fleet.apply(&key(TrolleyTopic::Fruits), &header, &fruits(10), now));
+        let t = &fleet.trolleys["t1"];
+        assert_eq!((t.views_messages, t.map_updates), (1, 0));
+        assert!(t.fruits.is_empty());
+        assert_eq!(fleet.stale_epoch, 3);
+        // The simulator's truth has no owner: taken whatever its epoch.
+        assert!(fleet.apply(&key(TrolleyTopic::Truth), &header, &fruits(0), now));
+        assert!(fleet.apply(&key(TrolleyTopic::Fruits), &header, &fruits(20), now));
+        assert_eq!(fleet.trolleys["t1"].fruits.len(), 1);
     }
 }

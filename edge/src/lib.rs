@@ -418,10 +418,19 @@ impl Driver {
         Ok(EdgeInput::Captured { frame: true })
     }
 
-    async fn announce(&mut self, header: &Header) -> anyhow::Result<()> {
+    /// Publishes the announcement; its info carries the newest ownership epoch views were
+    /// taken under, and whose views they were.
+    async fn announce(
+        &mut self,
+        header: &Header,
+        owner_epoch: u64,
+        owner_id: String,
+    ) -> anyhow::Result<()> {
         let Some(a) = &mut self.announcement else {
             return Ok(());
         };
+        a.info.owner_epoch = owner_epoch;
+        a.info.owner_id = owner_id;
         if let (Some(recorder), false) = (&self.recorder, a.recorded) {
             recorder.write(header, &a.info)?;
             recorder.write(header, &a.frame)?;
@@ -457,6 +466,18 @@ impl Driver {
                 tracing::warn!(trolley = %tid, source = %source_id, owner = owner.as_deref().unwrap_or("none"), refused,
                     "views refused: not from the trolley's owner (logged once per source)");
             }
+            EdgeEvent::StaleViewsRefused {
+                source_id,
+                owner_epoch,
+                newest,
+                stale,
+            } if self
+                .logged_refusals
+                .insert(format!("{source_id} epoch {owner_epoch}")) =>
+            {
+                tracing::warn!(trolley = %tid, source = %source_id, owner_epoch, newest, stale,
+                    "views refused: an older ownership epoch than the newest taken, from a replaced owner (logged once per source and epoch)");
+            }
             _ => {}
         }
         if let Some(tx) = &self.events {
@@ -471,8 +492,11 @@ impl Driver {
             EdgeAction::Announce {
                 frame_seq,
                 sim_time_s,
+                owner_epoch,
+                owner_id,
             } => {
-                self.announce(&self.header(frame_seq, sim_time_s)).await?;
+                let header = self.header(frame_seq, sim_time_s);
+                self.announce(&header, owner_epoch, owner_id).await?;
                 None
             }
             EdgeAction::AwaitViews => {
@@ -563,6 +587,8 @@ pub async fn run(
         fruits,
         based_on_seq: 0,
         planner_id: format!("truth-{tid}"),
+        // The truth has no owner.
+        owner_epoch: 0,
     });
     let recorder = config
         .record_frames_dir
@@ -610,6 +636,9 @@ pub async fn run(
         counters
             .refused_views
             .store(node.status().refused_views, Ordering::Relaxed);
+        drops
+            .stale_epoch
+            .store(node.status().stale_views, Ordering::Relaxed);
         driver.drain(&mut node, actions).await?;
         if let Ok(mut status) = counters.status.lock() {
             *status = Some(node.status().clone());

@@ -14,6 +14,11 @@
 //! `gh/planner/{pid}/snapshot/{tid}`), buffers the trolley's clouds meanwhile, loads the snapshot
 //! and integrates the buffered clouds newer than it, so no scan is lost.
 //!
+//! Every ownership term has an epoch (a fencing token, [`glasshouse_fleet::epoch`]) that the
+//! owner's outputs carry: receivers drop what a replaced owner still sends, and an owner that
+//! sees a newer epoch than its own (it was paused or cut off while another planner took over)
+//! catches up from a snapshot before it plans again.
+//!
 //! The decisions live in [`node::PlannerNode`] (a state machine without I/O); [`run`] is its
 //! driver: it turns bus messages into [`node::PlannerEvent`]s and performs the
 //! [`node::PlannerAction`]s. The planner ranked first for the fleet (the rendezvous winner for
@@ -427,6 +432,9 @@ pub async fn run(
         counters
             .clouds_refused
             .store(stats.clouds_refused, Ordering::Relaxed);
+        drops
+            .stale_epoch
+            .store(stats.stale_epoch, Ordering::Relaxed);
         for action in actions {
             if let PlannerAction::PublishStatus { status, .. } = &action {
                 if let Ok(mut last) = counters.status.lock() {

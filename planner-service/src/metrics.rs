@@ -144,7 +144,13 @@ fn from_status(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings 
             &[],
             s(|st| st.catch_up_ms / 1e3),
         )
-        .in_unit(Unit::Seconds);
+        .in_unit(Unit::Seconds)
+        .counter(
+            "stepped_down",
+            "Ownership terms given up on seeing a newer epoch for the trolley",
+            &[],
+            s(|st| st.stepped_down as f64),
+        );
     verdicts.into_iter().fold(readings, |r, (verdict, read)| {
         r.counter(
             "registrations",

@@ -15,12 +15,22 @@
 //! the MapUpdate the cloud produces carries its [`glasshouse_proto::FrameRegistration`] (a
 //! rejected cloud's update changes no voxel and carries only that), and PlannerStatus the
 //! totals by verdict over the trolleys this planner owns.
+//!
+//! Fencing ([`glasshouse_fleet::epoch`]): each time this planner becomes a trolley's owner with
+//! an up-to-date copy it begins a term, whose epoch is later than every epoch it has seen for the
+//! trolley (its owners' fruits and snapshots, the edge's `TrolleyInfo::owner_epoch`), and its
+//! views, fruits and map updates carry it; its snapshots carry the newest epoch it knows. Fruits
+//! and snapshots of an older epoch than the newest seen for their trolley are dropped and
+//! counted (`PlannerStatus::stale_epoch`). An owner that sees a newer epoch than its own term was
+//! replaced while it could not hear (paused, cut off): it stops planning, catches up from a
+//! snapshot of the other planners (keeping its own copy only when none has one) and begins a new
+//! term before it plans again (`PlannerStatus::stepped_down`).
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Instant;
 
 pub use glasshouse_fleet::Role;
-use glasshouse_fleet::{Assignment, Membership, OwnershipChange};
+use glasshouse_fleet::{Assignment, EpochFence, Membership, OwnershipChange};
 use glasshouse_pipeline::{
     ranked_views, FrameVerdict, PlanningError, PlanningSettings, TrolleyPlanner,
 };
@@ -166,6 +176,11 @@ pub struct PlannerStats {
     /// Time catching up trolleys taken over (decode and replay; the replay also counts in
     /// `stages`).
     pub catch_up_ms: f64,
+    /// Fruits and snapshots dropped: an older ownership epoch than the newest seen for their
+    /// trolley.
+    pub stale_epoch: u64,
+    /// Terms this planner gave up on seeing a newer epoch for a trolley it owned.
+    pub stepped_down: u64,
 }
 
 /// Milliseconds between successive laps: the stages of one cloud's handling, timed in turn.
@@ -218,6 +233,9 @@ struct Slot {
     refresh_asked: bool,
     /// Taken over, not yet caught up and planned on.
     takeover_pending: bool,
+    /// The epoch of this planner's ownership term, which its outputs carry; 0 while it is no
+    /// owner, or an owner whose copy is still loading (the term begins once it is loaded).
+    term: u64,
 }
 
 impl Slot {
@@ -276,6 +294,10 @@ pub struct PlannerNode {
     /// Sources and trolleys whose refused clouds were logged (once each).
     logged_refusals: BTreeSet<String>,
     slots: BTreeMap<String, Slot>,
+    /// The newest ownership epoch seen per trolley (own terms included).
+    fence: EpochFence,
+    /// The latest wall-clock time an event brought (Unix ns): new terms' epochs start here.
+    clock_ns: u64,
     latest_fruits: BTreeMap<String, FruitEstimates>,
     stats: PlannerStats,
     status_seq: u64,
@@ -329,6 +351,8 @@ impl PlannerNode {
             unknown_source: VecDeque::new(),
             logged_refusals: BTreeSet::new(),
             slots: BTreeMap::new(),
+            fence: EpochFence::new(),
+            clock_ns: epoch_ns,
             latest_fruits: BTreeMap::new(),
             stats: PlannerStats::default(),
             status_seq: 0,
@@ -378,6 +402,17 @@ impl PlannerNode {
         self.slots.get(tid).map(|s| s.planner.as_ref())
     }
 
+    /// The epoch of this planner's ownership term of `tid`; None when it does not own the
+    /// trolley or its term has not begun (its copy is loading).
+    pub fn term(&self, tid: &str) -> Option<u64> {
+        self.slots.get(tid).map(|s| s.term).filter(|&t| t != 0)
+    }
+
+    /// The newest ownership epoch this planner has seen for `tid` (0: none).
+    pub fn newest_epoch(&self, tid: &str) -> u64 {
+        self.fence.newest(tid)
+    }
+
     /// Feeds one event; returns what to do.
     pub fn handle(&mut self, event: PlannerEvent) -> Vec<PlannerAction> {
         match event {
@@ -410,23 +445,19 @@ impl PlannerNode {
                 header,
                 cloud,
                 received_ns,
-            } => self.on_clouds(vec![(header, cloud)], received_ns),
+            } => {
+                self.clock_ns = self.clock_ns.max(received_ns);
+                self.on_clouds(vec![(header, cloud)], received_ns)
+            }
             PlannerEvent::Clouds {
                 clouds,
                 received_ns,
-            } => self.on_clouds(clouds, received_ns),
-            PlannerEvent::Info { header, info } => self.on_info(&header.trolley_id, info),
-            PlannerEvent::Fruits { header, fruits } => {
-                // The fleet map takes a trolley's fruits from its owner only.
-                let owner = self
-                    .membership
-                    .assignment(&header.trolley_id)
-                    .map(|a| a.owner);
-                if owner.as_ref() == Some(&header.source_id) {
-                    self.latest_fruits.insert(header.trolley_id, fruits);
-                }
-                Vec::new()
+            } => {
+                self.clock_ns = self.clock_ns.max(received_ns);
+                self.on_clouds(clouds, received_ns)
             }
+            PlannerEvent::Info { header, info } => self.on_info(&header.trolley_id, info),
+            PlannerEvent::Fruits { header, fruits } => self.on_fruits(header, fruits),
             PlannerEvent::SnapshotLoaded { tid, snapshot } => {
                 let refreshing = self.slots.get(&tid).is_some_and(|s| s.refresh_asked);
                 match refreshing {
@@ -440,6 +471,7 @@ impl PlannerNode {
                 dropped_messages,
                 now_ns,
             } => {
+                self.clock_ns = self.clock_ns.max(now_ns);
                 self.expire_unknown_sources(now_ns);
                 self.status(dropped_messages)
             }
@@ -476,14 +508,107 @@ impl PlannerNode {
         self.apply(&changes)
     }
 
+    /// A trolley's info: its arm and workspace, and the newest ownership epoch its edge took
+    /// views under (which may replace this planner as its owner).
     fn on_info(&mut self, tid: &str, info: TrolleyInfo) -> Vec<PlannerAction> {
-        let actions = self.introduce(tid);
+        if keys::validate_id(tid).is_err() {
+            return Vec::new();
+        }
+        let mut actions = self.introduce(tid);
+        actions.extend(self.note_epoch(tid, info.owner_epoch, &info.owner_id));
         if let Some(slot) = self.slots.get_mut(tid) {
             if let Err(e) = slot.planner.set_info(info) {
                 tracing::warn!(planner = %self.pid, trolley = %tid, error = %e, "views are not filtered by reach");
             }
         }
         actions
+    }
+
+    /// A trolley's fruits as its owner published them: dropped and counted under an older
+    /// ownership epoch than the newest seen for the trolley; taken for the fleet map from the
+    /// trolley's owner only; a newer epoch may replace this planner as the trolley's owner.
+    fn on_fruits(&mut self, header: Header, fruits: FruitEstimates) -> Vec<PlannerAction> {
+        let tid = header.trolley_id.clone();
+        if keys::validate_id(&tid).is_err() {
+            return Vec::new();
+        }
+        if self.fence.check(&tid, fruits.owner_epoch).is_stale() {
+            self.refuse_stale(&tid, &header.source_id, "fruits", fruits.owner_epoch);
+            return Vec::new();
+        }
+        let actions = match header.source_id == self.pid {
+            true => Vec::new(),
+            false => self.note_epoch(&tid, fruits.owner_epoch, &header.source_id),
+        };
+        let owner = self.membership.assignment(&tid).map(|a| a.owner);
+        if owner.as_ref() == Some(&header.source_id) {
+            self.latest_fruits.insert(tid, fruits);
+        }
+        actions
+    }
+
+    /// Counts (and logs once per trolley and source) a message of `tid` dropped because its
+    /// ownership epoch is older than the newest seen.
+    fn refuse_stale(&mut self, tid: &str, source: &str, what: &str, epoch: u64) {
+        self.stats.stale_epoch += 1;
+        if self.logged_refusals.insert(format!("stale {tid} {source}")) {
+            tracing::warn!(planner = %self.pid, trolley = %tid, %source, what, epoch, newest = self.fence.newest(tid),
+                "dropped: an older ownership epoch than the newest seen (logged once per trolley and source)");
+        }
+    }
+
+    /// Records `epoch`, seen for `tid` in another planner's or the edge's message, the term of
+    /// planner `holder` (empty when unknown). When it is newer than this planner's own term,
+    /// another planner owned the trolley meanwhile: step down.
+    fn note_epoch(&mut self, tid: &str, epoch: u64, holder: &str) -> Vec<PlannerAction> {
+        if !self.fence.observe(tid, epoch).is_newer() {
+            return Vec::new();
+        }
+        match self.slots.get(tid) {
+            Some(slot) if slot.role == Role::Owner && slot.term != 0 && epoch > slot.term => {
+                self.step_down(tid, epoch, holder)
+            }
+            _ => Vec::new(),
+        }
+    }
+
+    /// This planner's term of `tid` is over (a newer one, `newer`, began at `holder`): it plans
+    /// nothing more on its copy, which may lack what the newer owner integrated, until it has
+    /// caught up from a snapshot (its own copy stays only when no one has one); then, still
+    /// owner by the ranking, it begins a new term. The snapshot is asked of `holder` first, then
+    /// of the other live planners: a planner that was cut off may not see `holder`'s token yet
+    /// when it hears of its term.
+    fn step_down(&mut self, tid: &str, newer: u64, holder: &str) -> Vec<PlannerAction> {
+        let pid = self.pid.clone();
+        let mut sources: Vec<String> = Vec::new();
+        let ranked = self.membership.rank(tid);
+        for p in std::iter::once(holder).chain(ranked) {
+            if !p.is_empty() && p != pid && !sources.iter().any(|s| s == p) {
+                sources.push(p.to_owned());
+            }
+        }
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
+        };
+        tracing::warn!(planner = %pid, trolley = %tid, term = slot.term, newer, ?sources,
+            "stepping down: another planner owned the trolley under a newer epoch; catching up from a snapshot");
+        self.stats.stepped_down += 1;
+        slot.term = 0;
+        slot.takeover_pending = false;
+        slot.refresh_asked = false;
+        // The copy falls back to what this planner holds, decoded; the clouds it kept wait for
+        // the snapshot with the ones to come.
+        if let Some(held) = slot.held.take() {
+            if let Err(e) = slot.planner.restore(&held) {
+                tracing::warn!(planner = %pid, trolley = %tid, error = %e, "held snapshot not restored");
+            }
+        }
+        let buffered = std::mem::take(&mut slot.pending);
+        slot.sync = SyncState::Loading { buffered };
+        vec![PlannerAction::AskSnapshot {
+            tid: tid.to_owned(),
+            sources,
+        }]
     }
 
     fn on_cloud(&mut self, received: ReceivedCloud) -> Vec<PlannerAction> {
@@ -596,6 +721,11 @@ impl PlannerNode {
         if slot.role != Role::Replica {
             return Vec::new();
         }
+        // A replaced owner's copy is not kept: the replica integrates its clouds instead.
+        let snapshot = self.fresh(tid, snapshot);
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
+        };
         match snapshot.is_some_and(|snapshot| slot.hold(snapshot, &pid, tid)) {
             true => Vec::new(),
             false => self.catch_up(tid, false),
@@ -695,11 +825,16 @@ impl PlannerNode {
                     let took_over = role == Role::Owner && before != Some(Role::Owner);
                     slot.role = role;
                     if role != Role::Owner {
+                        slot.term = 0;
                         actions.push(PlannerAction::Release { tid: tid.clone() });
                     }
                     let live = matches!(slot.sync, SyncState::Live);
+                    // A copy still loading begins its term once it is loaded.
+                    if took_over && live {
+                        slot.term = self.fence.begin_term(&tid, self.clock_ns);
+                    }
                     if took_over {
-                        tracing::info!(planner = %pid, trolley = %tid, "took over as owner");
+                        tracing::info!(planner = %pid, trolley = %tid, term = slot.term, "took over as owner");
                     }
                     // The first trolley taken over catches up at once, the others one event each.
                     if took_over && live && !caught_up {
@@ -734,15 +869,35 @@ impl PlannerNode {
             pending: Vec::new(),
             refresh_asked: false,
             takeover_pending: false,
+            term: 0,
         };
         self.slots.insert(tid.clone(), slot);
         let sources = snapshot_sources(change, &self.pid);
         vec![PlannerAction::AskSnapshot { tid, sources }]
     }
 
+    /// `snapshot` unless it comes under an older ownership epoch than the newest seen for
+    /// `tid` (a replaced owner's copy, which may lack what the newer owner integrated): then it
+    /// is dropped and counted.
+    fn fresh(&mut self, tid: &str, snapshot: Option<Box<MapSnapshot>>) -> Option<Box<MapSnapshot>> {
+        let snapshot = snapshot?;
+        if self.fence.observe(tid, snapshot.owner_epoch).is_stale() {
+            self.refuse_stale(tid, &snapshot.planner_id, "snapshot", snapshot.owner_epoch);
+            return None;
+        }
+        Some(snapshot)
+    }
+
+    /// The copy of a trolley new to this planner (or of one it stepped down from) is loaded:
+    /// from `snapshot` when there is one, else the copy stays as it is. An owner begins its term
+    /// and plans on the last cloud.
     fn on_snapshot(&mut self, tid: &str, snapshot: Option<Box<MapSnapshot>>) -> Vec<PlannerAction> {
         let pid = self.pid.clone();
         let standby = self.replica_refresh_clouds > 0;
+        if !self.is_loading(tid) {
+            return Vec::new();
+        }
+        let snapshot = self.fresh(tid, snapshot);
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
@@ -759,6 +914,7 @@ impl PlannerNode {
             }
             return Vec::new();
         }
+        let mut from_snapshot = false;
         if let Some(snapshot) = snapshot {
             match TrolleyPlanner::from_snapshot(self.planning.clone(), &snapshot) {
                 Ok(mut loaded) => {
@@ -769,6 +925,7 @@ impl PlannerNode {
                         }
                     }
                     *slot.planner = loaded;
+                    from_snapshot = true;
                 }
                 Err(e) => {
                     tracing::warn!(planner = %pid, trolley = %tid, error = %e, "snapshot unusable: starting from the buffered clouds")
@@ -776,6 +933,16 @@ impl PlannerNode {
             }
         }
         let plan_last = slot.role == Role::Owner;
+        if plan_last {
+            slot.term = self.fence.begin_term(tid, self.clock_ns);
+            tracing::info!(planner = %pid, trolley = %tid, term = slot.term, from_snapshot, "ownership term begins");
+        }
+        // Nothing came while loading: the owner plans on the last cloud it had (a planner that
+        // stepped down; the edge may wait on it).
+        if let (true, true, Some(last)) = (plan_last, buffered.is_empty(), slot.last_cloud.clone())
+        {
+            return self.integrate(tid, last, true);
+        }
         // Buffered clouds the snapshot already holds are skipped: fed in order they would look
         // like a live stream behind the map's mark and resync it. The last one is still
         // planned on (the edge may wait on it).
@@ -806,9 +973,12 @@ impl PlannerNode {
                 ))
             }
         };
-        let snapshot = planner
-            .snapshot(tid, &self.pid)
-            .map_err(|e| e.to_string())?;
+        let snapshot = MapSnapshot {
+            owner_epoch: self.fence.newest(tid),
+            ..planner
+                .snapshot(tid, &self.pid)
+                .map_err(|e| e.to_string())?
+        };
         let header = Header {
             seq: snapshot.based_on_seq,
             epoch_ns: self.epoch_ns,
@@ -852,8 +1022,10 @@ impl PlannerNode {
         slot.planner.track();
         self.stats.stages.track_ms += laps.lap_ms();
         self.stats.clouds_integrated += 1;
+        let term = slot.term;
         let map = MapUpdate {
             registration,
+            owner_epoch: term,
             ..slot.planner.map_update(frame.seq, &pid)
         };
         self.stats.stages.publish_ms += laps.lap_ms();
@@ -873,6 +1045,7 @@ impl PlannerNode {
             fruits: slot.planner.fruits(),
             based_on_seq: seq,
             planner_id: pid.clone(),
+            owner_epoch: term,
         };
         self.stats.stages.fit_ms += laps.lap_ms();
         let planned = slot.planner.plan(&camera, seq);
@@ -880,7 +1053,10 @@ impl PlannerNode {
         let views = match planned {
             Ok(Some(plan)) => {
                 let ms = (started.elapsed().as_secs_f64() * 1e3) as f32;
-                Some(ranked_views(&plan, frame, ms, &pid))
+                Some(RankedViews {
+                    owner_epoch: term,
+                    ..ranked_views(&plan, frame, ms, &pid)
+                })
             }
             Ok(None) => {
                 tracing::info!(trolley = %tid, "no TrolleyInfo yet: cloud integrated, planning deferred");
@@ -966,6 +1142,8 @@ impl PlannerNode {
                     sum
                 },
             ),
+            stale_epoch: s.stale_epoch,
+            stepped_down: s.stepped_down,
         };
         let header = Header {
             seq: self.status_seq,

@@ -17,6 +17,8 @@ use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState};
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
 use glasshouse_planner::{PlannerCounters, PlannerSettings};
+use glasshouse_proto::RoiCloud;
+use glasshouse_roimap::RoiMap;
 use tokio::task::JoinHandle;
 use zenoh::Session;
 
@@ -288,4 +290,36 @@ pub fn script(name: &str, args: &[&str]) -> String {
         String::from_utf8_lossy(&out.stderr)
     );
     stdout
+}
+
+/// The map a planner with default settings builds from these clouds of one edge run, integrating
+/// each frame once, in arrival order (the planner's rule for an honest stream).
+pub fn rebuild(clouds: &[RoiCloud]) -> RoiMap {
+    let settings = PlannerSettings::default();
+    let mut map = RoiMap::new(settings.planning.map_config()).expect("map config");
+    let mut last = None;
+    for c in clouds {
+        if last.is_none_or(|l| c.source_frame() > l) {
+            map.insert_scan(&c.sensor_origin_in_world, &c.points_in_world, &c.roi)
+                .expect("cloud integrates");
+            last = Some(c.source_frame());
+        }
+    }
+    map
+}
+
+/// A map's voxels (key, occupancy and ROI log-odds bits), sorted: equal lists, equal maps.
+pub fn voxels(map: &RoiMap) -> Vec<([i32; 3], u32, u32)> {
+    let mut v: Vec<_> = map
+        .iter()
+        .map(|(k, x)| {
+            (
+                [k.x, k.y, k.z],
+                x.occupancy_logodds.to_bits(),
+                x.roi_logodds.to_bits(),
+            )
+        })
+        .collect();
+    v.sort_unstable();
+    v
 }

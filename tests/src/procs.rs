@@ -103,3 +103,26 @@ impl Proc {
         let _ = self.child.wait();
     }
 }
+
+impl Proc {
+    /// SIGSTOP: the process hangs (a stuck planner, a host that stops answering) with its links
+    /// left open; peers notice only when their lease expires.
+    pub fn pause(&self) {
+        self.signal("-STOP");
+    }
+
+    /// SIGCONT: a paused process runs on from where it stopped, unaware of the time it lost.
+    pub fn resume(&self) {
+        self.signal("-CONT");
+    }
+
+    fn signal(&self, signal: &str) {
+        let pid = self.child.id().to_string();
+        let status = Command::new("kill").args([signal, &pid]).status();
+        assert!(
+            status.is_ok_and(|s| s.success()),
+            "kill {signal} {} failed",
+            self.name
+        );
+    }
+}

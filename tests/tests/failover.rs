@@ -10,12 +10,11 @@ use std::time::{Duration, Instant};
 use std::sync::Arc;
 
 use glasshouse_bus::{Delivery, DropCounters, Subscriber};
-use glasshouse_planner::PlannerSettings;
 use glasshouse_proto::keys::{self, Key};
 use glasshouse_proto::{FrameId, RoiCloud, Wire};
 use glasshouse_roimap::RoiMap;
 use glasshouse_tests::procs::{build_binaries, Proc};
-use glasshouse_tests::{client, free_port, within};
+use glasshouse_tests::{client, free_port, rebuild, voxels, within};
 
 /// An observer's subscriber: a deep drop-oldest queue, so phases that do not read it never
 /// push back on the fleet (a test that loses what it needs fails on the map comparison).
@@ -24,37 +23,6 @@ async fn observe<M: Wire>(observer: &zenoh::Session, key: &Key<M>) -> Subscriber
     Subscriber::declare_with(observer, key, Delivery::Monitor, drops)
         .await
         .expect("subscriber")
-}
-
-/// The map a planner with default settings builds from these clouds of one edge run, integrating
-/// each frame once, in arrival order (the planner's rule for an honest stream).
-fn rebuild(clouds: &[RoiCloud]) -> RoiMap {
-    let settings = PlannerSettings::default();
-    let mut map = RoiMap::new(settings.planning.map_config()).expect("map config");
-    let mut last = None;
-    for c in clouds {
-        if last.is_none_or(|l| c.source_frame() > l) {
-            map.insert_scan(&c.sensor_origin_in_world, &c.points_in_world, &c.roi)
-                .expect("cloud integrates");
-            last = Some(c.source_frame());
-        }
-    }
-    map
-}
-
-fn voxels(map: &RoiMap) -> Vec<([i32; 3], u32, u32)> {
-    let mut v: Vec<_> = map
-        .iter()
-        .map(|(k, x)| {
-            (
-                [k.x, k.y, k.z],
-                x.occupancy_logodds.to_bits(),
-                x.roi_logodds.to_bits(),
-            )
-        })
-        .collect();
-    v.sort_unstable();
-    v
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -134,6 +134,10 @@ async fn rogue_clouds_and_views_are_refused_and_the_loop_goes_on() {
     let mut rogue_views = samples::ranked_views();
     rogue_views.based_on_epoch_ns = epoch_ns;
     rogue_views.planner_id = "p9".into();
+    // Claiming the newest ownership term there can be: refused all the same (p9 is not the
+    // owner), and the edge does not take that epoch up (the real owner's views would all be
+    // stale after it and the loop would stop).
+    rogue_views.owner_epoch = u64::MAX;
     let header = rogue_header("p9", FrameId::new(epoch_ns, 2));
     views.publish(&header, &rogue_views).await.expect("queued");
 
@@ -157,6 +161,8 @@ async fn rogue_clouds_and_views_are_refused_and_the_loop_goes_on() {
     .await;
     assert_eq!(refused_from.as_deref(), Some("p9"));
     assert!(pipeline.edge_counters.refused_views.load(Ordering::Relaxed) >= 1);
+    let stale = &pipeline.edge_counters.drops.stale_epoch;
+    assert_eq!(stale.load(Ordering::Relaxed), 0);
     assert!(
         views_after >= 4,
         "only {views_after} views after the rogues"

@@ -182,11 +182,17 @@ pub struct DropCounters {
     pub corrupt: AtomicU64,
     /// Stream samples dropped because a queue was full.
     pub overflow: AtomicU64,
+    /// Messages dropped because they came under an older ownership epoch than the newest the
+    /// service had seen for their trolley (a replaced owner's views, map updates, fruits or
+    /// snapshots); counted by the service's state machine, mirrored here by its driver.
+    pub stale_epoch: AtomicU64,
 }
 
 impl DropCounters {
     pub fn total(&self) -> u64 {
-        self.corrupt.load(Ordering::Relaxed) + self.overflow.load(Ordering::Relaxed)
+        self.corrupt.load(Ordering::Relaxed)
+            + self.overflow.load(Ordering::Relaxed)
+            + self.stale_epoch.load(Ordering::Relaxed)
     }
 }
 

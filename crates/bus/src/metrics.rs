@@ -117,6 +117,12 @@ impl Readings {
             &[("reason", "overflow")],
             read(|d| &d.overflow),
         )
+        .counter(
+            "dropped_messages",
+            help,
+            &[("reason", "stale_epoch")],
+            read(|d| &d.stale_epoch),
+        )
     }
 
     /// The last reading's unit (its name gets the unit's suffix).

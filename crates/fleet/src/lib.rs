@@ -5,6 +5,8 @@
 //! - [`membership`]: live planners and trolleys from liveliness events, and the ownership changes
 //!   each event causes.
 //! - [`merge`]: the fleet fruit map, de-duplicating fruits seen by several trolleys.
+//! - [`epoch`]: ownership epochs, the fencing tokens that let receivers drop what a replaced
+//!   owner still sends.
 //!
 //! # Why rendezvous hashing
 //!
@@ -25,10 +27,12 @@
 //! a ring needs virtual nodes to spread load; with a handful of planners ranking all of them per
 //! trolley is cheap and spreads evenly.
 
+pub mod epoch;
 pub mod membership;
 pub mod merge;
 pub mod rendezvous;
 
+pub use epoch::{next_epoch, EpochFence, EpochVerdict, NO_EPOCH};
 pub use membership::{Assignment, Membership, MembershipEvent, OwnershipChange, Role};
 pub use merge::{merge_fruits, FleetFruit, MergeResult, TrolleyFruit, MERGE_DISTANCE_M};
 pub use rendezvous::{rank_planners, top_two, weight};

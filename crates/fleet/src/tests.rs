@@ -648,3 +648,65 @@ fn sweep_finds_the_same_matches_as_all_pairs() {
     }
     assert_eq!(brute_pairs, 12);
 }
+
+// ---------------------------------------------------------------------------------------------
+// epoch
+
+use crate::epoch::{next_epoch, EpochFence, EpochVerdict, NO_EPOCH};
+
+#[test]
+fn a_new_term_is_later_than_every_epoch_seen_whatever_the_clock_says() {
+    // The clock ahead of the newest epoch: its reading.
+    assert_eq!(next_epoch(100, 5_000), 5_000);
+    // The clock behind it (another planner's clock runs ahead): one more than the newest.
+    assert_eq!(next_epoch(5_000, 100), 5_001);
+    assert_eq!(next_epoch(5_000, 5_000), 5_001);
+    assert_eq!(next_epoch(NO_EPOCH, 0), 1);
+    // Never wraps around to an old epoch.
+    assert_eq!(next_epoch(u64::MAX, 7), u64::MAX);
+}
+
+#[test]
+fn the_fence_keeps_the_newest_epoch_per_trolley_and_judges_the_others() {
+    let mut fence = EpochFence::new();
+    assert_eq!(fence.newest("t1"), NO_EPOCH);
+    assert_eq!(fence.observe("t1", 10), EpochVerdict::Newer { previous: 0 });
+    assert_eq!(fence.observe("t1", 10), EpochVerdict::Current);
+    assert_eq!(fence.observe("t1", 7), EpochVerdict::Stale { newest: 10 });
+    // A stale epoch does not lower the newest; another trolley has its own.
+    assert_eq!(fence.newest("t1"), 10);
+    assert_eq!(fence.check("t2", 7), EpochVerdict::Newer { previous: 0 });
+    assert_eq!(fence.newest("t2"), NO_EPOCH, "check records nothing");
+    // A sender without fencing is older than any term.
+    assert!(fence.check("t1", NO_EPOCH).is_stale());
+}
+
+#[test]
+fn every_term_begun_on_a_trolley_is_later_than_the_one_before() {
+    // Two planners begin terms on one trolley in turn, each knowing what the other published;
+    // their clocks disagree by a second either way.
+    let (mut a, mut b) = (EpochFence::new(), EpochFence::new());
+    let mut last = NO_EPOCH;
+    for (i, now_ns) in [
+        5_000_000_000u64,
+        4_000_000_000,
+        4_000_000_100,
+        6_000_000_000,
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let (mine, other) = if i % 2 == 0 {
+            (&mut a, &mut b)
+        } else {
+            (&mut b, &mut a)
+        };
+        let epoch = mine.begin_term("t1", now_ns);
+        assert!(epoch > last, "term {i}: {epoch} after {last}");
+        assert_eq!(
+            other.observe("t1", epoch),
+            EpochVerdict::Newer { previous: last }
+        );
+        last = epoch;
+    }
+}

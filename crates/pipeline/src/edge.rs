@@ -9,7 +9,13 @@
 //! The edge executes views only from the planner its own membership view ranks owner of its
 //! trolley (the live planners' tokens, ranked with the planners' own rendezvous hash), and only
 //! views planned on its latest frame (boot epoch and seq): views from anyone else are refused and
-//! counted (`TrolleyStatus::refused_views`).
+//! counted (`TrolleyStatus::refused_views`). Views also carry their owner's ownership epoch
+//! ([`glasshouse_fleet::epoch`]): views under an older epoch than the newest the edge has taken
+//! come from a replaced owner (paused, cut off) and are refused and counted
+//! (`TrolleyStatus::stale_views`), whoever sent them. The newest epoch goes out with every frame
+//! (`TrolleyInfo::owner_epoch`), so a replaced owner learns it was replaced; when the planner
+//! ranked owner is the one sending stale views (it ranks first again, but has not heard of the
+//! newer term yet), the frame is announced again at once rather than after the views timeout.
 //!
 //! The edge service's driver performs the actions on the bus and on its [`TrolleySource`]
 //! (`crate::TrolleySource`); the experiments perform them in-process. Both feed the outcomes
@@ -17,7 +23,10 @@
 
 use std::collections::BTreeSet;
 
-use glasshouse_proto::{FrameId, Header, RankedView, RankedViews, TrolleyState, TrolleyStatus};
+use glasshouse_fleet::EpochVerdict;
+use glasshouse_proto::{
+    FrameId, Header, OwnerTerm, RankedView, RankedViews, TrolleyState, TrolleyStatus, OWNER_TERMS,
+};
 use nalgebra::Isometry3;
 
 use crate::Executed;
@@ -60,6 +69,15 @@ pub enum EdgeEvent {
         owner: Option<String>,
         refused: u64,
     },
+    /// Views from `source_id` under ownership epoch `owner_epoch`, older than the `newest` the
+    /// edge has taken views under, were refused (a replaced owner's); `stale` counts every such
+    /// refusal so far.
+    StaleViewsRefused {
+        source_id: String,
+        owner_epoch: u64,
+        newest: u64,
+        stale: u64,
+    },
 }
 
 /// An event the driver feeds in.
@@ -88,8 +106,15 @@ pub enum EdgeInput {
 pub enum EdgeAction {
     /// Capture frame `frame_seq` at the current pose, then feed `Captured`.
     Capture { frame_seq: u64 },
-    /// Publish the captured frame with the trolley info, arm state (still) and ground truth.
-    Announce { frame_seq: u64, sim_time_s: f64 },
+    /// Publish the captured frame with the trolley info (carrying `owner_epoch`, the newest
+    /// ownership epoch views were taken under, and `owner_id`, whose views they were), arm state
+    /// (still) and ground truth.
+    Announce {
+        frame_seq: u64,
+        sim_time_s: f64,
+        owner_epoch: u64,
+        owner_id: String,
+    },
     /// (Re)start the timeout for views on the announced frame.
     AwaitViews,
     /// Publish the trolley's status (the driver fills in its drop count).
@@ -132,6 +157,10 @@ pub struct EdgeNode {
     epoch_ns: u64,
     /// The live planners, as their liveliness tokens say.
     planners: BTreeSet<String>,
+    /// The planner whose views were taken under the newest ownership epoch.
+    owner_id: String,
+    /// The frame announced again at once because the owner sent stale views on it (once each).
+    told_stale_owner: u64,
     frame_seq: u64,
     sim_time_s: f64,
     segments_done: u32,
@@ -146,6 +175,8 @@ impl EdgeNode {
             settings,
             epoch_ns,
             planners: BTreeSet::new(),
+            owner_id: String::new(),
+            told_stale_owner: 0,
             frame_seq: 0,
             sim_time_s: 0.0,
             segments_done: 0,
@@ -159,6 +190,9 @@ impl EdgeNode {
                 last_views_seq: 0,
                 message: String::new(),
                 refused_views: 0,
+                stale_views: 0,
+                owner_epoch: 0,
+                owner_terms: Vec::new(),
             },
             phase: Phase::Idle,
         }
@@ -191,6 +225,11 @@ impl EdgeNode {
         &self.status
     }
 
+    /// The newest ownership epoch views were taken under (0: none yet).
+    pub fn owner_epoch(&self) -> u64 {
+        self.status.owner_epoch
+    }
+
     pub fn is_done(&self) -> bool {
         self.phase == Phase::Done
     }
@@ -212,8 +251,19 @@ impl EdgeNode {
                 self.planners.remove(&id);
                 return Vec::new();
             }
+            EdgeInput::Views { header, views }
+                if EpochVerdict::of(views.owner_epoch, self.status.owner_epoch).is_stale() =>
+            {
+                return self.refuse_stale(header.source_id, views.owner_epoch);
+            }
             EdgeInput::Views { header, .. } if self.owner() != Some(&header.source_id) => {
                 return self.refuse(header.source_id);
+            }
+            EdgeInput::Views { header, views } => {
+                // From the owner, under the newest epoch or a newer one: the owner's term.
+                self.status.owner_epoch = views.owner_epoch;
+                self.owner_id.clone_from(&header.source_id);
+                EdgeInput::Views { header, views }
             }
             input => input,
         };
@@ -269,6 +319,49 @@ impl EdgeNode {
         })]
     }
 
+    /// Views under an older ownership epoch than the newest taken: counted, reported, never
+    /// executed. When they come from the planner ranked owner while the edge waits, that planner
+    /// has not heard of the newer term (it was paused or cut off): the frame is announced again
+    /// at once, its info carrying the newest epoch, instead of after the views timeout (once per
+    /// frame).
+    fn refuse_stale(&mut self, source_id: String, owner_epoch: u64) -> Vec<EdgeAction> {
+        self.status.stale_views += 1;
+        let tell = self.owner() == Some(source_id.as_str())
+            && self.phase == Phase::WaitingForViews
+            && self.told_stale_owner != self.frame_seq;
+        let mut actions = vec![EdgeAction::Report(EdgeEvent::StaleViewsRefused {
+            source_id,
+            owner_epoch,
+            newest: self.status.owner_epoch,
+            stale: self.status.stale_views,
+        })];
+        if tell {
+            self.told_stale_owner = self.frame_seq;
+            actions.extend(self.reannounce());
+        }
+        actions
+    }
+
+    /// Counts an executed view in its ownership term (the last [`OWNER_TERMS`] are kept).
+    fn count_term(&mut self, views: &RankedViews) {
+        let terms = &mut self.status.owner_terms;
+        let same = |t: &&mut OwnerTerm| {
+            t.owner_epoch == views.owner_epoch && t.planner_id == views.planner_id
+        };
+        if let Some(term) = terms.iter_mut().rev().find(same) {
+            term.views_executed += 1;
+            return;
+        }
+        if terms.len() >= OWNER_TERMS {
+            terms.remove(0);
+        }
+        terms.push(OwnerTerm {
+            planner_id: views.planner_id.clone(),
+            owner_epoch: views.owner_epoch,
+            views_executed: 1,
+        });
+    }
+
     fn status_action(&self) -> EdgeAction {
         EdgeAction::PublishStatus {
             frame_seq: self.frame_seq,
@@ -294,6 +387,8 @@ impl EdgeNode {
             EdgeAction::Announce {
                 frame_seq: self.frame_seq,
                 sim_time_s: self.sim_time_s,
+                owner_epoch: self.status.owner_epoch,
+                owner_id: self.owner_id.clone(),
             },
             self.status_action(),
             EdgeAction::AwaitViews,
@@ -310,6 +405,8 @@ impl EdgeNode {
             EdgeAction::Announce {
                 frame_seq: self.frame_seq,
                 sim_time_s: self.sim_time_s,
+                owner_epoch: self.status.owner_epoch,
+                owner_id: self.owner_id.clone(),
             },
             EdgeAction::AwaitViews,
         ]
@@ -381,6 +478,7 @@ impl EdgeNode {
             views_done: self.status.views_done,
         };
         self.status.views_done += 1;
+        self.count_term(views);
         let done = EdgeEvent::ViewDone {
             views_done: self.status.views_done,
             frame_seq: self.frame_seq,

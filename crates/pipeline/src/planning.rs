@@ -259,6 +259,8 @@ pub fn ranked_views(
         based_on_epoch_ns: based_on.epoch_ns,
         planning_time_ms,
         planner_id: pid.to_owned(),
+        // The planner service sets its ownership term; the experiments run without fencing.
+        owner_epoch: glasshouse_fleet::NO_EPOCH,
     }
 }
 
@@ -635,6 +637,8 @@ impl TrolleyPlanner {
             voxels,
             planner_id: pid.to_owned(),
             registration: None,
+            // Set by the planner service (its ownership term).
+            owner_epoch: glasshouse_fleet::NO_EPOCH,
         }
     }
 
@@ -657,6 +661,8 @@ impl TrolleyPlanner {
             map,
             tracked_fruits: tracked_fruits.collect(),
             next_fruit_id,
+            // Set by the planner service (the newest ownership epoch it knows).
+            owner_epoch: glasshouse_fleet::NO_EPOCH,
         })
     }
 

@@ -1,6 +1,6 @@
 #![allow(clippy::unwrap_used)]
 
-use glasshouse_proto::{Header, RankedView, RankedViews, TrolleyState, ViewKind};
+use glasshouse_proto::{Header, RankedView, RankedViews, TrolleyState, ViewKind, OWNER_TERMS};
 use nalgebra::{Isometry3, Translation3};
 
 use super::*;
@@ -37,6 +37,7 @@ fn views(seq: u64, utilities: &[f32]) -> RankedViews {
         based_on_epoch_ns: EPOCH_NS,
         planning_time_ms: 1.0,
         planner_id: "p1".into(),
+        owner_epoch: 0,
     }
 }
 
@@ -201,6 +202,145 @@ fn views_from_a_planner_that_does_not_own_the_trolley_are_refused() {
     assert_eq!(node.owner(), None);
     assert_eq!(node.handle(views_for(2, &[0.9])).len(), 1);
     assert_eq!(node.status().refused_views, 3);
+}
+
+/// Views on frame `seq` of this epoch from `pid`, under its ownership epoch `owner_epoch`.
+fn views_under(pid: &str, seq: u64, owner_epoch: u64) -> EdgeInput {
+    EdgeInput::Views {
+        header: views_header("t1", pid),
+        views: RankedViews {
+            planner_id: pid.into(),
+            owner_epoch,
+            ..views(seq, &[0.9])
+        },
+    }
+}
+
+/// Executes the views just taken and announces the next frame; the ownership term it announces
+/// (epoch and planner).
+fn execute_and_announce(node: &mut EdgeNode, seq: u64) -> (u64, String) {
+    let actions = node.handle(executed(0, 1.0));
+    assert_eq!(
+        actions.last(),
+        Some(&EdgeAction::Capture { frame_seq: seq })
+    );
+    let mut actions = node.handle(EdgeInput::Captured { frame: true });
+    let EdgeAction::Announce {
+        frame_seq,
+        owner_epoch,
+        owner_id,
+        ..
+    } = actions.remove(0)
+    else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(frame_seq, seq);
+    (owner_epoch, owner_id)
+}
+
+#[test]
+fn views_of_a_replaced_owner_are_refused_and_counted_never_executed() {
+    let live = ["p1".to_string(), "p2".to_string()];
+    let ranked = glasshouse_fleet::rank_planners("t1", &live);
+    let (first, second) = (ranked[0], ranked[1]);
+    let mut node = EdgeNode::new(settings(), EPOCH_NS);
+    for p in &live {
+        node.handle(EdgeInput::PlannerJoined(p.clone()));
+    }
+    node.handle(EdgeInput::Start);
+    node.handle(EdgeInput::Captured { frame: true });
+    // The owner's term 10: its views are executed, and the next frame announces the epoch.
+    assert!(matches!(
+        node.handle(views_under(first, 1, 10))[0],
+        EdgeAction::Execute { .. }
+    ));
+    assert_eq!(execute_and_announce(&mut node, 2), (10, first.to_owned()));
+    // The owner pauses; its token goes, the other planner takes over under term 20.
+    node.handle(EdgeInput::PlannerLeft(first.into()));
+    assert!(matches!(
+        node.handle(views_under(second, 2, 20))[0],
+        EdgeAction::Execute { .. }
+    ));
+    assert_eq!(execute_and_announce(&mut node, 3), (20, second.to_owned()));
+    // The paused owner wakes up: its token is back, it ranks first again, and it plans the
+    // latest frame under its old term. Refused and counted: the arm does not move. The frame
+    // goes out again at once, its info naming the newer term, so the woken owner learns of it.
+    node.handle(EdgeInput::PlannerJoined(first.into()));
+    assert_eq!(node.owner(), Some(first));
+    let refused = EdgeEvent::StaleViewsRefused {
+        source_id: first.into(),
+        owner_epoch: 10,
+        newest: 20,
+        stale: 1,
+    };
+    assert_eq!(
+        node.handle(views_under(first, 3, 10)),
+        vec![
+            EdgeAction::Report(refused),
+            EdgeAction::Report(EdgeEvent::Reannounced { frame_seq: 3 }),
+            EdgeAction::Announce {
+                frame_seq: 3,
+                sim_time_s: node.sim_time_s(),
+                owner_epoch: 20,
+                owner_id: second.into(),
+            },
+            EdgeAction::AwaitViews,
+        ]
+    );
+    // Once per frame: more of its stale views are only counted.
+    assert_eq!(node.handle(views_under(first, 3, 10)).len(), 1);
+    // So are views without any epoch (a planner without fencing), from anyone.
+    let unfenced = views_under(second, 3, 0);
+    assert_eq!(node.handle(unfenced).len(), 1);
+    assert_eq!(node.status().stale_views, 3);
+    assert!(node.is_waiting_for_views());
+    // The other planner is no longer the owner: refused as before, whatever its epoch.
+    node.handle(views_under(second, 3, 20));
+    assert_eq!(node.status().refused_views, 1);
+    // Caught up, the woken owner begins a newer term, and its views are executed.
+    assert!(matches!(
+        node.handle(views_under(first, 3, 30))[0],
+        EdgeAction::Execute { .. }
+    ));
+    assert_eq!(execute_and_announce(&mut node, 4), (30, first.to_owned()));
+    let terms: Vec<(&str, u64, u32)> = node
+        .status()
+        .owner_terms
+        .iter()
+        .map(|t| (t.planner_id.as_str(), t.owner_epoch, t.views_executed))
+        .collect();
+    assert_eq!(terms, vec![(first, 10, 1), (second, 20, 1), (first, 30, 1)]);
+    assert_eq!(node.status().owner_epoch, 30);
+}
+
+#[test]
+fn views_without_an_epoch_are_taken_until_an_epoch_is_seen() {
+    // A planner without fencing (or the experiments' in-process loop) sends epoch 0.
+    let mut node = waiting(settings());
+    assert!(matches!(
+        node.handle(views_for(1, &[0.9]))[0],
+        EdgeAction::Execute { .. }
+    ));
+    assert_eq!(execute_and_announce(&mut node, 2), (0, "p1".to_owned()));
+    assert_eq!(node.status().stale_views, 0);
+    assert_eq!(node.status().owner_terms.len(), 1);
+}
+
+#[test]
+fn the_status_keeps_the_last_terms() {
+    let mut node = waiting(settings());
+    for (i, epoch) in (1..=OWNER_TERMS as u64 + 3).enumerate() {
+        let seq = i as u64 + 1;
+        node.handle(views_under("p1", seq, epoch));
+        execute_and_announce(&mut node, seq + 1);
+    }
+    let terms = &node.status().owner_terms;
+    assert_eq!(terms.len(), OWNER_TERMS);
+    assert_eq!(terms.first().map(|t| t.owner_epoch), Some(4));
+    assert_eq!(
+        terms.last().map(|t| t.owner_epoch),
+        Some(OWNER_TERMS as u64 + 3)
+    );
 }
 
 #[test]

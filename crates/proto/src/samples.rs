@@ -16,6 +16,10 @@ fn region() -> Aabb {
 /// The boot epoch of the samples' publisher (2026-01-01T00:00:00Z).
 pub const SAMPLE_EPOCH_NS: u64 = 1_767_225_600_000_000_000;
 
+/// The ownership epoch of the samples' planner: its term began a second after the publisher's
+/// boot.
+pub const SAMPLE_OWNER_EPOCH: u64 = SAMPLE_EPOCH_NS + 1_000_000_000;
+
 /// A header for trolley `t1`.
 pub fn header(seq: u64) -> Header {
     Header {
@@ -91,6 +95,8 @@ pub fn trolley_info() -> TrolleyInfo {
         robot: Some(Box::new(glasshouse_arm::Robot::row(
             glasshouse_arm::Interval::new(0.0, 20.0),
         ))),
+        owner_epoch: SAMPLE_OWNER_EPOCH,
+        owner_id: "p1".into(),
     }
 }
 
@@ -136,6 +142,7 @@ pub fn ranked_views() -> RankedViews {
         based_on_epoch_ns: SAMPLE_EPOCH_NS,
         planning_time_ms: 12.5,
         planner_id: "p1".into(),
+        owner_epoch: SAMPLE_OWNER_EPOCH,
     }
 }
 
@@ -145,6 +152,7 @@ pub fn fruit_estimates() -> FruitEstimates {
         fruits: vec![sample_fruit()],
         based_on_seq: 42,
         planner_id: "p1".into(),
+        owner_epoch: SAMPLE_OWNER_EPOCH,
     }
 }
 
@@ -171,6 +179,7 @@ pub fn map_update() -> MapUpdate {
         ],
         planner_id: "p1".into(),
         registration: Some(frame_registration()),
+        owner_epoch: SAMPLE_OWNER_EPOCH,
     }
 }
 
@@ -225,6 +234,8 @@ pub fn planner_status() -> PlannerStatus {
             rejected: 1,
             skipped: 1,
         },
+        stale_epoch: 2,
+        stepped_down: 1,
     }
 }
 
@@ -240,6 +251,20 @@ pub fn trolley_status() -> TrolleyStatus {
         last_views_seq: 4,
         message: "moving".into(),
         refused_views: 3,
+        stale_views: 1,
+        owner_epoch: SAMPLE_OWNER_EPOCH,
+        owner_terms: vec![
+            OwnerTerm {
+                planner_id: "p2".into(),
+                owner_epoch: SAMPLE_OWNER_EPOCH - 1_000,
+                views_executed: 1,
+            },
+            OwnerTerm {
+                planner_id: "p1".into(),
+                owner_epoch: SAMPLE_OWNER_EPOCH,
+                views_executed: 3,
+            },
+        ],
     }
 }
 
@@ -266,6 +291,7 @@ pub fn map_snapshot() -> MapSnapshot {
             centre_in_world: Point3::new(0.1, 0.2, 0.9),
         }],
         next_fruit_id: 4,
+        owner_epoch: SAMPLE_OWNER_EPOCH,
     }
 }
 

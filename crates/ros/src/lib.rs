@@ -53,6 +53,9 @@ pub fn trolley_info(trolley: &RosTrolley, intrinsics: Option<CameraIntrinsics>) 
             cy: 0.0,
         }),
         robot: trolley.robot.clone().map(Box::new),
+        // The edge fills in the ownership term it obeys.
+        owner_epoch: 0,
+        owner_id: String::new(),
     }
 }
 

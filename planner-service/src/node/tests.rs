@@ -1115,3 +1115,238 @@ fn without_registration_every_cloud_reports_it_skipped() {
     let status = status_of(&p1.handle(status_tick(NOW_NS)));
     assert_eq!(status.registrations.skipped, 2);
 }
+
+// Fencing: ownership epochs.
+
+/// The ownership epoch of every output published in `actions`.
+fn epochs_of(actions: &[PlannerAction]) -> Vec<u64> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::Publish { output, .. } => Some(match output {
+                TrolleyOutput::Views(v) => v.owner_epoch,
+                TrolleyOutput::Fruits(f) => f.owner_epoch,
+                TrolleyOutput::Map(m) => m.owner_epoch,
+            }),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Feeds the fruits published in `actions` to `to`, as the bus would.
+fn hear_fruits(to: &mut PlannerNode, actions: &[PlannerAction]) -> Vec<PlannerAction> {
+    let mut out = Vec::new();
+    for action in actions {
+        if let PlannerAction::Publish {
+            header,
+            output: TrolleyOutput::Fruits(fruits),
+            ..
+        } = action
+        {
+            out.extend(to.handle(PlannerEvent::Fruits {
+                header: header.clone(),
+                fruits: fruits.clone(),
+            }));
+        }
+    }
+    out
+}
+
+/// Trolley t1's info as its edge sends it, naming the newest ownership epoch it took views
+/// under and whose views they were.
+fn info_under(info: &TrolleyInfo, owner_epoch: u64, owner_id: &str) -> PlannerEvent {
+    PlannerEvent::Info {
+        header: header("t1", 0),
+        info: TrolleyInfo {
+            owner_epoch,
+            owner_id: owner_id.into(),
+            ..info.clone()
+        },
+    }
+}
+
+/// `from`'s answer to a snapshot query for t1.
+fn snapshot_from(from: &mut PlannerNode) -> Box<MapSnapshot> {
+    let reply = from.handle(PlannerEvent::SnapshotAsked {
+        query_id: 1,
+        tid: "t1".into(),
+    });
+    match reply.into_iter().last() {
+        Some(PlannerAction::ReplySnapshot {
+            answer: Ok((_, snapshot)),
+            ..
+        }) => snapshot,
+        other => panic!("no snapshot: {other:?}"),
+    }
+}
+
+#[test]
+fn a_paused_owner_that_wakes_up_steps_down_catches_up_and_begins_a_newer_term() {
+    let (info, clouds) = trolley_clouds(4);
+    let (mut a, mut b) = informed_owner_and_replica(&info);
+    let a_id = a.pid.clone();
+    // Frame 1: the owner plans under its term, and every output carries it; the replica hears
+    // its fruits.
+    let published = a.handle(cloud_event(&clouds[0]));
+    let term_a = a.term("t1").expect("the owner's term began");
+    assert_eq!(epochs_of(&published), vec![term_a; 3]);
+    b.handle(cloud_event(&clouds[0]));
+    hear_fruits(&mut b, &published);
+    assert_eq!((b.term("t1"), b.newest_epoch("t1")), (None, term_a));
+    // The owner is paused: its token goes. The replica takes over under a newer term and plans
+    // frame 1 at once; frames 2 and 3 reach it alone.
+    let taken = b.handle(PlannerEvent::PlannerLeft(a_id.clone()));
+    let term_b = b.term("t1").expect("the new owner's term began");
+    assert!(term_b > term_a, "{term_b} after {term_a}");
+    assert_eq!(views_of(&taken).len(), 1);
+    assert_eq!(epochs_of(&taken), vec![term_b; 3]);
+    for cloud in &clouds[1..3] {
+        assert_eq!(epochs_of(&b.handle(cloud_event(cloud))), vec![term_b; 3]);
+    }
+    // The paused owner wakes up. Its link was closed while it slept, so it saw b's token go
+    // (and come back later); with it alone, it still owned t1.
+    assert!(views_of(&a.handle(PlannerEvent::PlannerLeft(b.pid.clone()))).is_empty());
+    assert_eq!(a.role("t1"), Some(Role::Owner));
+    // Its token is back: it ranks first again and the other planner stands by.
+    b.handle(PlannerEvent::PlannerJoined(a_id));
+    assert_eq!((b.role("t1"), b.term("t1")), (Some(Role::Replica), None));
+    // It never saw itself lose the trolley, but the edge's info names b's term: it steps down
+    // and asks b, whose token it has not seen again yet.
+    let stepped = a.handle(info_under(&info, term_b, &b.pid));
+    assert_eq!(
+        asks(&stepped),
+        vec![("t1".to_string(), vec![b.pid.clone()])]
+    );
+    assert!(a.is_loading("t1"));
+    assert_eq!((a.term("t1"), a.stats().stepped_down), (None, 1));
+    // Frame 4 comes meanwhile: kept, nothing planned or published on the stale map.
+    assert!(a.handle(cloud_event(&clouds[3])).is_empty());
+    b.handle(cloud_event(&clouds[3]));
+    // b's copy (frames 1..=4, under b's term) loads; a begins a newer term and plans frame 4.
+    let snapshot = snapshot_from(&mut b);
+    assert_eq!(snapshot.owner_epoch, term_b);
+    let resumed = a.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot),
+    });
+    let term_a2 = a.term("t1").expect("a new term began");
+    assert!(term_a2 > term_b, "{term_a2} after {term_b}");
+    let views = views_of(&resumed);
+    assert_eq!((views.len(), views[0].based_on_seq), (1, 4));
+    assert!(epochs_of(&resumed).iter().all(|&e| e == term_a2));
+    assert!(same_map(&a, &b, "t1"), "a plans on b's map, not on its own");
+    let status = status_of(&a.handle(status_tick(NOW_NS)));
+    assert_eq!((status.stepped_down, status.stale_epoch), (1, 0));
+}
+
+#[test]
+fn an_owner_alone_that_steps_down_keeps_its_copy_and_begins_a_newer_term() {
+    let (info, clouds) = trolley_clouds(2);
+    let mut p1 = alone_with(&info, &clouds[..1]);
+    let term = p1.term("t1").expect("a term");
+    // Someone else owned t1 meanwhile and is gone: it is asked, and does not answer.
+    let stepped = p1.handle(info_under(&info, term + 10, "p9"));
+    assert_eq!(
+        asks(&stepped),
+        vec![("t1".to_string(), vec!["p9".to_string()])]
+    );
+    let resumed = p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    assert!(p1.term("t1").expect("a new term") > term + 10);
+    // It plans on the last cloud it had, on its own copy.
+    assert_eq!(views_of(&resumed)[0].based_on_seq, 1);
+    assert_eq!(p1.planner("t1").unwrap().map().scans_inserted(), 1);
+}
+
+#[test]
+fn every_ownership_change_begins_a_later_term() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut a, mut b) = informed_owner_and_replica(&info);
+    let a_id = a.pid.clone();
+    let mut terms = vec![a.term("t1").unwrap()];
+    // The owner leaves and comes back over and over; each time the other one takes over. The
+    // planners hear each other's fruits, and their clocks move on by a second.
+    for (round, cloud) in clouds.iter().enumerate() {
+        let now_ns = NOW_NS + (round as u64 + 1) * 1_000_000_000;
+        for n in [&mut a, &mut b] {
+            n.handle(status_tick(now_ns));
+        }
+        let published = a.handle(cloud_event(cloud));
+        hear_fruits(&mut b, &published);
+        b.handle(cloud_event(cloud));
+        let published = b.handle(PlannerEvent::PlannerLeft(a_id.clone()));
+        terms.push(b.term("t1").unwrap());
+        hear_fruits(&mut a, &published);
+        b.handle(PlannerEvent::PlannerJoined(a_id.clone()));
+        // a kept believing it owns t1: b's fruits replace it, and it catches up from b.
+        assert_eq!(a.term("t1"), None, "round {round}");
+        let snapshot = snapshot_from(&mut b);
+        a.handle(PlannerEvent::SnapshotLoaded {
+            tid: "t1".into(),
+            snapshot: Some(snapshot),
+        });
+        terms.push(a.term("t1").unwrap());
+    }
+    assert!(terms.windows(2).all(|w| w[0] < w[1]), "{terms:?}");
+    assert_eq!(a.stats().stepped_down, 3);
+}
+
+#[test]
+fn a_standby_replica_refuses_the_snapshot_of_a_replaced_owner() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut owner, mut replica) = roles(pair_with_refresh(2));
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&info));
+    }
+    // The replica has heard of a newer term than the owner's (another planner owned t1 while
+    // the owner was paused), before the owner did.
+    let term = owner.term("t1").unwrap();
+    replica.handle(info_under(&info, term + 5, "p9"));
+    assert_eq!(
+        replica.stats().stepped_down,
+        0,
+        "a replica has no term to give up"
+    );
+    // Two clouds: the replica asks its owner for a snapshot, which answers under its old term.
+    let mut asked = 0;
+    for cloud in &clouds {
+        owner.handle(cloud_event(cloud));
+        let actions = replica.handle(cloud_event(cloud));
+        asked += answer_refreshes(&mut owner, &mut replica, actions);
+    }
+    assert_eq!(asked, 1);
+    // Refused and counted: the replica integrated the clouds it kept instead.
+    assert_eq!(replica.stats().stale_epoch, 1);
+    assert_eq!(replica.pending_clouds("t1"), 0);
+    assert_eq!(replica.stats().clouds_integrated, 2);
+    assert!(same_map(&replica, &owner, "t1"));
+    let status = status_of(&replica.handle(status_tick(NOW_NS)));
+    assert_eq!(status.stale_epoch, 1);
+}
+
+#[test]
+fn fruits_under_an_older_epoch_are_dropped_and_counted() {
+    let (owner, replica) = roles(pair());
+    let (owner_id, replica_id) = (owner.pid.clone(), replica.pid.clone());
+    let mut fleet = node(&replica_id);
+    fleet.handle(PlannerEvent::PlannerJoined(owner_id.clone()));
+    fleet.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    let from_owner = |owner_epoch| PlannerEvent::Fruits {
+        header: Header {
+            source_id: owner_id.clone(),
+            ..header("t1", 1)
+        },
+        fruits: FruitEstimates {
+            owner_epoch,
+            ..glasshouse_proto::samples::fruit_estimates()
+        },
+    };
+    fleet.handle(from_owner(20));
+    assert_eq!(fleet.latest_fruits["t1"].owner_epoch, 20);
+    fleet.handle(from_owner(10));
+    assert_eq!(fleet.latest_fruits["t1"].owner_epoch, 20);
+    assert_eq!(fleet.stats().stale_epoch, 1);
+    assert_eq!(fleet.newest_epoch("t1"), 20);
+}

@@ -3259,6 +3259,8 @@ impl<'a> TrolleyInfo<'a> {
   pub const VT_SCENE_SEED: ::flatbuffers::VOffsetT = 28;
   pub const VT_INTRINSICS: ::flatbuffers::VOffsetT = 30;
   pub const VT_ROBOT_JSON: ::flatbuffers::VOffsetT = 32;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 34;
+  pub const VT_OWNER_ID: ::flatbuffers::VOffsetT = 36;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3270,7 +3272,9 @@ impl<'a> TrolleyInfo<'a> {
     args: &'args TrolleyInfoArgs<'args>
   ) -> ::flatbuffers::WIPOffset<TrolleyInfo<'bldr>> {
     let mut builder = TrolleyInfoBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
     builder.add_scene_seed(args.scene_seed);
+    if let Some(x) = args.owner_id { builder.add_owner_id(x); }
     if let Some(x) = args.robot_json { builder.add_robot_json(x); }
     if let Some(x) = args.intrinsics { builder.add_intrinsics(x); }
     if let Some(x) = args.scenario { builder.add_scenario(x); }
@@ -3330,6 +3334,24 @@ impl<'a> TrolleyInfo<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(TrolleyInfo::VT_ROBOT_JSON, None)}
   }
+  /// The newest ownership epoch the edge has taken views under (0: none yet): a planner that
+  /// owns the trolley under an older one was replaced meanwhile and steps down.
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(TrolleyInfo::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
+  /// The planner whose views the edge took under owner_epoch (empty: none yet): the one a
+  /// replaced owner catches up from.
+  #[inline]
+  pub fn owner_id(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(TrolleyInfo::VT_OWNER_ID, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
@@ -3345,6 +3367,8 @@ impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
      .visit_field::<u64>("scene_seed", Self::VT_SCENE_SEED, false)?
      .visit_field::<Intrinsics>("intrinsics", Self::VT_INTRINSICS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("robot_json", Self::VT_ROBOT_JSON, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("owner_id", Self::VT_OWNER_ID, false)?
      .finish();
     Ok(())
   }
@@ -3357,6 +3381,8 @@ pub struct TrolleyInfoArgs<'a> {
     pub scene_seed: u64,
     pub intrinsics: Option<&'a Intrinsics>,
     pub robot_json: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub owner_epoch: u64,
+    pub owner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
 }
 impl<'a> Default for TrolleyInfoArgs<'a> {
   #[inline]
@@ -3369,6 +3395,8 @@ impl<'a> Default for TrolleyInfoArgs<'a> {
       scene_seed: 0,
       intrinsics: None,
       robot_json: None,
+      owner_epoch: 0,
+      owner_id: None,
     }
   }
 }
@@ -3407,6 +3435,14 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyInfoBuilder<'a, 'b, A>
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyInfo::VT_ROBOT_JSON, robot_json);
   }
   #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(TrolleyInfo::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
+  pub fn add_owner_id(&mut self, owner_id: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyInfo::VT_OWNER_ID, owner_id);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> TrolleyInfoBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     TrolleyInfoBuilder {
@@ -3431,6 +3467,8 @@ impl ::core::fmt::Debug for TrolleyInfo<'_> {
       ds.field("scene_seed", &self.scene_seed());
       ds.field("intrinsics", &self.intrinsics());
       ds.field("robot_json", &self.robot_json());
+      ds.field("owner_epoch", &self.owner_epoch());
+      ds.field("owner_id", &self.owner_id());
       ds.finish()
   }
 }
@@ -3694,6 +3732,7 @@ impl<'a> RankedViews<'a> {
   pub const VT_PLANNING_TIME_MS: ::flatbuffers::VOffsetT = 8;
   pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 10;
   pub const VT_BASED_ON_EPOCH_NS: ::flatbuffers::VOffsetT = 12;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 14;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3705,6 +3744,7 @@ impl<'a> RankedViews<'a> {
     args: &'args RankedViewsArgs<'args>
   ) -> ::flatbuffers::WIPOffset<RankedViews<'bldr>> {
     let mut builder = RankedViewsBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_epoch_ns(args.based_on_epoch_ns);
     builder.add_based_on_seq(args.based_on_seq);
     if let Some(x) = args.planner_id { builder.add_planner_id(x); }
@@ -3750,6 +3790,15 @@ impl<'a> RankedViews<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(RankedViews::VT_BASED_ON_EPOCH_NS, Some(0)).unwrap()}
   }
+  /// The ownership epoch (fencing token) of the planner's term as the trolley's owner; 0: a
+  /// planner without fencing. The edge refuses views of an older epoch than the newest it took.
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(RankedViews::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for RankedViews<'_> {
@@ -3763,6 +3812,7 @@ impl ::flatbuffers::Verifiable for RankedViews<'_> {
      .visit_field::<f32>("planning_time_ms", Self::VT_PLANNING_TIME_MS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
      .visit_field::<u64>("based_on_epoch_ns", Self::VT_BASED_ON_EPOCH_NS, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
      .finish();
     Ok(())
   }
@@ -3773,6 +3823,7 @@ pub struct RankedViewsArgs<'a> {
     pub planning_time_ms: f32,
     pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub based_on_epoch_ns: u64,
+    pub owner_epoch: u64,
 }
 impl<'a> Default for RankedViewsArgs<'a> {
   #[inline]
@@ -3783,6 +3834,7 @@ impl<'a> Default for RankedViewsArgs<'a> {
       planning_time_ms: 0.0,
       planner_id: None,
       based_on_epoch_ns: 0,
+      owner_epoch: 0,
     }
   }
 }
@@ -3813,6 +3865,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> RankedViewsBuilder<'a, 'b, A>
     self.fbb_.push_slot::<u64>(RankedViews::VT_BASED_ON_EPOCH_NS, based_on_epoch_ns, 0);
   }
   #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(RankedViews::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> RankedViewsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     RankedViewsBuilder {
@@ -3835,6 +3891,7 @@ impl ::core::fmt::Debug for RankedViews<'_> {
       ds.field("planning_time_ms", &self.planning_time_ms());
       ds.field("planner_id", &self.planner_id());
       ds.field("based_on_epoch_ns", &self.based_on_epoch_ns());
+      ds.field("owner_epoch", &self.owner_epoch());
       ds.finish()
   }
 }
@@ -4391,6 +4448,7 @@ impl<'a> FruitEstimates<'a> {
   pub const VT_FRUITS: ::flatbuffers::VOffsetT = 4;
   pub const VT_BASED_ON_SEQ: ::flatbuffers::VOffsetT = 6;
   pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 8;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 10;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4402,6 +4460,7 @@ impl<'a> FruitEstimates<'a> {
     args: &'args FruitEstimatesArgs<'args>
   ) -> ::flatbuffers::WIPOffset<FruitEstimates<'bldr>> {
     let mut builder = FruitEstimatesBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_seq(args.based_on_seq);
     if let Some(x) = args.planner_id { builder.add_planner_id(x); }
     if let Some(x) = args.fruits { builder.add_fruits(x); }
@@ -4430,6 +4489,15 @@ impl<'a> FruitEstimates<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(FruitEstimates::VT_PLANNER_ID, None)}
   }
+  /// The ownership epoch of the owner that estimated them (see RankedViews); 0: none (the
+  /// simulator's truth, a planner without fencing).
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(FruitEstimates::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for FruitEstimates<'_> {
@@ -4441,6 +4509,7 @@ impl ::flatbuffers::Verifiable for FruitEstimates<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<Fruit>>>>("fruits", Self::VT_FRUITS, false)?
      .visit_field::<u64>("based_on_seq", Self::VT_BASED_ON_SEQ, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
      .finish();
     Ok(())
   }
@@ -4449,6 +4518,7 @@ pub struct FruitEstimatesArgs<'a> {
     pub fruits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<Fruit<'a>>>>>,
     pub based_on_seq: u64,
     pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub owner_epoch: u64,
 }
 impl<'a> Default for FruitEstimatesArgs<'a> {
   #[inline]
@@ -4457,6 +4527,7 @@ impl<'a> Default for FruitEstimatesArgs<'a> {
       fruits: None,
       based_on_seq: 0,
       planner_id: None,
+      owner_epoch: 0,
     }
   }
 }
@@ -4479,6 +4550,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitEstimatesBuilder<'a, 'b,
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitEstimates::VT_PLANNER_ID, planner_id);
   }
   #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(FruitEstimates::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitEstimatesBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FruitEstimatesBuilder {
@@ -4499,6 +4574,7 @@ impl ::core::fmt::Debug for FruitEstimates<'_> {
       ds.field("fruits", &self.fruits());
       ds.field("based_on_seq", &self.based_on_seq());
       ds.field("planner_id", &self.planner_id());
+      ds.field("owner_epoch", &self.owner_epoch());
       ds.finish()
   }
 }
@@ -4911,6 +4987,7 @@ impl<'a> MapUpdate<'a> {
   pub const VT_VOXELS: ::flatbuffers::VOffsetT = 12;
   pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 14;
   pub const VT_REGISTRATION: ::flatbuffers::VOffsetT = 16;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 18;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4922,6 +4999,7 @@ impl<'a> MapUpdate<'a> {
     args: &'args MapUpdateArgs<'args>
   ) -> ::flatbuffers::WIPOffset<MapUpdate<'bldr>> {
     let mut builder = MapUpdateBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_seq(args.based_on_seq);
     builder.add_map_seq(args.map_seq);
     if let Some(x) = args.registration { builder.add_registration(x); }
@@ -4985,6 +5063,14 @@ impl<'a> MapUpdate<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<FrameRegistration>>(MapUpdate::VT_REGISTRATION, None)}
   }
+  /// The ownership epoch of the owner that changed the map (see RankedViews).
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(MapUpdate::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for MapUpdate<'_> {
@@ -5000,6 +5086,7 @@ impl ::flatbuffers::Verifiable for MapUpdate<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, VoxelChange>>>("voxels", Self::VT_VOXELS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<FrameRegistration>>("registration", Self::VT_REGISTRATION, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
      .finish();
     Ok(())
   }
@@ -5012,6 +5099,7 @@ pub struct MapUpdateArgs<'a> {
     pub voxels: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, VoxelChange>>>,
     pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub registration: Option<::flatbuffers::WIPOffset<FrameRegistration<'a>>>,
+    pub owner_epoch: u64,
 }
 impl<'a> Default for MapUpdateArgs<'a> {
   #[inline]
@@ -5024,6 +5112,7 @@ impl<'a> Default for MapUpdateArgs<'a> {
       voxels: None,
       planner_id: None,
       registration: None,
+      owner_epoch: 0,
     }
   }
 }
@@ -5062,6 +5151,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapUpdateBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<FrameRegistration>>(MapUpdate::VT_REGISTRATION, registration);
   }
   #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(MapUpdate::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapUpdateBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     MapUpdateBuilder {
@@ -5086,6 +5179,7 @@ impl ::core::fmt::Debug for MapUpdate<'_> {
       ds.field("voxels", &self.voxels());
       ds.field("planner_id", &self.planner_id());
       ds.field("registration", &self.registration());
+      ds.field("owner_epoch", &self.owner_epoch());
       ds.finish()
   }
 }
@@ -5121,6 +5215,8 @@ impl<'a> PlannerStatus<'a> {
   pub const VT_REGISTRATION_KEPT_AS_SENT: ::flatbuffers::VOffsetT = 30;
   pub const VT_REGISTRATION_REJECTED: ::flatbuffers::VOffsetT = 32;
   pub const VT_REGISTRATION_SKIPPED: ::flatbuffers::VOffsetT = 34;
+  pub const VT_STALE_EPOCH: ::flatbuffers::VOffsetT = 36;
+  pub const VT_STEPPED_DOWN: ::flatbuffers::VOffsetT = 38;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5132,6 +5228,8 @@ impl<'a> PlannerStatus<'a> {
     args: &'args PlannerStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<PlannerStatus<'bldr>> {
     let mut builder = PlannerStatusBuilder::new(_fbb);
+    builder.add_stepped_down(args.stepped_down);
+    builder.add_stale_epoch(args.stale_epoch);
     builder.add_registration_skipped(args.registration_skipped);
     builder.add_registration_rejected(args.registration_rejected);
     builder.add_registration_kept_as_sent(args.registration_kept_as_sent);
@@ -5269,6 +5367,24 @@ impl<'a> PlannerStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(PlannerStatus::VT_REGISTRATION_SKIPPED, Some(0)).unwrap()}
   }
+  /// Messages dropped because they came under an older ownership epoch than the newest this
+  /// planner had seen for their trolley (fruit estimates, map snapshots).
+  #[inline]
+  pub fn stale_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_STALE_EPOCH, Some(0)).unwrap()}
+  }
+  /// Times it stopped owning a trolley on seeing a newer ownership epoch than its own term
+  /// (another planner took the trolley over meanwhile) and caught up from a snapshot.
+  #[inline]
+  pub fn stepped_down(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_STEPPED_DOWN, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
@@ -5293,6 +5409,8 @@ impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
      .visit_field::<u64>("registration_kept_as_sent", Self::VT_REGISTRATION_KEPT_AS_SENT, false)?
      .visit_field::<u64>("registration_rejected", Self::VT_REGISTRATION_REJECTED, false)?
      .visit_field::<u64>("registration_skipped", Self::VT_REGISTRATION_SKIPPED, false)?
+     .visit_field::<u64>("stale_epoch", Self::VT_STALE_EPOCH, false)?
+     .visit_field::<u64>("stepped_down", Self::VT_STEPPED_DOWN, false)?
      .finish();
     Ok(())
   }
@@ -5314,6 +5432,8 @@ pub struct PlannerStatusArgs<'a> {
     pub registration_kept_as_sent: u64,
     pub registration_rejected: u64,
     pub registration_skipped: u64,
+    pub stale_epoch: u64,
+    pub stepped_down: u64,
 }
 impl<'a> Default for PlannerStatusArgs<'a> {
   #[inline]
@@ -5335,6 +5455,8 @@ impl<'a> Default for PlannerStatusArgs<'a> {
       registration_kept_as_sent: 0,
       registration_rejected: 0,
       registration_skipped: 0,
+      stale_epoch: 0,
+      stepped_down: 0,
     }
   }
 }
@@ -5409,6 +5531,14 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> PlannerStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(PlannerStatus::VT_REGISTRATION_SKIPPED, registration_skipped, 0);
   }
   #[inline]
+  pub fn add_stale_epoch(&mut self, stale_epoch: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_STALE_EPOCH, stale_epoch, 0);
+  }
+  #[inline]
+  pub fn add_stepped_down(&mut self, stepped_down: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_STEPPED_DOWN, stepped_down, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> PlannerStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     PlannerStatusBuilder {
@@ -5442,6 +5572,8 @@ impl ::core::fmt::Debug for PlannerStatus<'_> {
       ds.field("registration_kept_as_sent", &self.registration_kept_as_sent());
       ds.field("registration_rejected", &self.registration_rejected());
       ds.field("registration_skipped", &self.registration_skipped());
+      ds.field("stale_epoch", &self.stale_epoch());
+      ds.field("stepped_down", &self.stepped_down());
       ds.finish()
   }
 }
@@ -5470,6 +5602,9 @@ impl<'a> TrolleyStatus<'a> {
   pub const VT_LAST_VIEWS_SEQ: ::flatbuffers::VOffsetT = 16;
   pub const VT_MESSAGE: ::flatbuffers::VOffsetT = 18;
   pub const VT_REFUSED_VIEWS: ::flatbuffers::VOffsetT = 20;
+  pub const VT_STALE_VIEWS: ::flatbuffers::VOffsetT = 22;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 24;
+  pub const VT_OWNER_TERMS: ::flatbuffers::VOffsetT = 26;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5481,10 +5616,13 @@ impl<'a> TrolleyStatus<'a> {
     args: &'args TrolleyStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<TrolleyStatus<'bldr>> {
     let mut builder = TrolleyStatusBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
+    builder.add_stale_views(args.stale_views);
     builder.add_refused_views(args.refused_views);
     builder.add_last_views_seq(args.last_views_seq);
     builder.add_dropped_messages(args.dropped_messages);
     builder.add_frames_published(args.frames_published);
+    if let Some(x) = args.owner_terms { builder.add_owner_terms(x); }
     if let Some(x) = args.message { builder.add_message(x); }
     builder.add_reannounces(args.reannounces);
     builder.add_unreachable_views(args.unreachable_views);
@@ -5558,6 +5696,30 @@ impl<'a> TrolleyStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(TrolleyStatus::VT_REFUSED_VIEWS, Some(0)).unwrap()}
   }
+  /// RankedViews refused because their ownership epoch was older than the newest taken.
+  #[inline]
+  pub fn stale_views(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(TrolleyStatus::VT_STALE_VIEWS, Some(0)).unwrap()}
+  }
+  /// The newest ownership epoch views were taken under (0: none yet).
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(TrolleyStatus::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
+  /// Views executed per ownership term, oldest first (the last 16 terms).
+  #[inline]
+  pub fn owner_terms(&self) -> Option<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<OwnerTerm<'a>>>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<OwnerTerm>>>>(TrolleyStatus::VT_OWNER_TERMS, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for TrolleyStatus<'_> {
@@ -5575,6 +5737,9 @@ impl ::flatbuffers::Verifiable for TrolleyStatus<'_> {
      .visit_field::<u64>("last_views_seq", Self::VT_LAST_VIEWS_SEQ, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("message", Self::VT_MESSAGE, false)?
      .visit_field::<u64>("refused_views", Self::VT_REFUSED_VIEWS, false)?
+     .visit_field::<u64>("stale_views", Self::VT_STALE_VIEWS, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<OwnerTerm>>>>("owner_terms", Self::VT_OWNER_TERMS, false)?
      .finish();
     Ok(())
   }
@@ -5589,6 +5754,9 @@ pub struct TrolleyStatusArgs<'a> {
     pub last_views_seq: u64,
     pub message: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub refused_views: u64,
+    pub stale_views: u64,
+    pub owner_epoch: u64,
+    pub owner_terms: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<OwnerTerm<'a>>>>>,
 }
 impl<'a> Default for TrolleyStatusArgs<'a> {
   #[inline]
@@ -5603,6 +5771,9 @@ impl<'a> Default for TrolleyStatusArgs<'a> {
       last_views_seq: 0,
       message: None,
       refused_views: 0,
+      stale_views: 0,
+      owner_epoch: 0,
+      owner_terms: None,
     }
   }
 }
@@ -5649,6 +5820,18 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(TrolleyStatus::VT_REFUSED_VIEWS, refused_views, 0);
   }
   #[inline]
+  pub fn add_stale_views(&mut self, stale_views: u64) {
+    self.fbb_.push_slot::<u64>(TrolleyStatus::VT_STALE_VIEWS, stale_views, 0);
+  }
+  #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(TrolleyStatus::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
+  pub fn add_owner_terms(&mut self, owner_terms: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , ::flatbuffers::ForwardsUOffset<OwnerTerm<'b >>>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyStatus::VT_OWNER_TERMS, owner_terms);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> TrolleyStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     TrolleyStatusBuilder {
@@ -5675,6 +5858,140 @@ impl ::core::fmt::Debug for TrolleyStatus<'_> {
       ds.field("last_views_seq", &self.last_views_seq());
       ds.field("message", &self.message());
       ds.field("refused_views", &self.refused_views());
+      ds.field("stale_views", &self.stale_views());
+      ds.field("owner_epoch", &self.owner_epoch());
+      ds.field("owner_terms", &self.owner_terms());
+      ds.finish()
+  }
+}
+pub enum OwnerTermOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// Views a trolley executed during one ownership term: planner and epoch.
+pub struct OwnerTerm<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for OwnerTerm<'a> {
+  type Inner = OwnerTerm<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> OwnerTerm<'a> {
+  pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 4;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 6;
+  pub const VT_VIEWS_EXECUTED: ::flatbuffers::VOffsetT = 8;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    OwnerTerm { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args OwnerTermArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<OwnerTerm<'bldr>> {
+    let mut builder = OwnerTermBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
+    builder.add_views_executed(args.views_executed);
+    if let Some(x) = args.planner_id { builder.add_planner_id(x); }
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn planner_id(&self) -> Option<&'a str> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(OwnerTerm::VT_PLANNER_ID, None)}
+  }
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(OwnerTerm::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn views_executed(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(OwnerTerm::VT_VIEWS_EXECUTED, Some(0)).unwrap()}
+  }
+}
+
+impl ::flatbuffers::Verifiable for OwnerTerm<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
+     .visit_field::<u32>("views_executed", Self::VT_VIEWS_EXECUTED, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct OwnerTermArgs<'a> {
+    pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub owner_epoch: u64,
+    pub views_executed: u32,
+}
+impl<'a> Default for OwnerTermArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    OwnerTermArgs {
+      planner_id: None,
+      owner_epoch: 0,
+      views_executed: 0,
+    }
+  }
+}
+
+pub struct OwnerTermBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> OwnerTermBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_planner_id(&mut self, planner_id: ::flatbuffers::WIPOffset<&'b  str>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(OwnerTerm::VT_PLANNER_ID, planner_id);
+  }
+  #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(OwnerTerm::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
+  pub fn add_views_executed(&mut self, views_executed: u32) {
+    self.fbb_.push_slot::<u32>(OwnerTerm::VT_VIEWS_EXECUTED, views_executed, 0);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> OwnerTermBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    OwnerTermBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<OwnerTerm<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for OwnerTerm<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("OwnerTerm");
+      ds.field("planner_id", &self.planner_id());
+      ds.field("owner_epoch", &self.owner_epoch());
+      ds.field("views_executed", &self.views_executed());
       ds.finish()
   }
 }
@@ -5851,6 +6168,7 @@ impl<'a> MapSnapshot<'a> {
   pub const VT_TRACKED_FRUITS: ::flatbuffers::VOffsetT = 12;
   pub const VT_NEXT_FRUIT_ID: ::flatbuffers::VOffsetT = 14;
   pub const VT_BASED_ON_EPOCH_NS: ::flatbuffers::VOffsetT = 16;
+  pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 18;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5862,6 +6180,7 @@ impl<'a> MapSnapshot<'a> {
     args: &'args MapSnapshotArgs<'args>
   ) -> ::flatbuffers::WIPOffset<MapSnapshot<'bldr>> {
     let mut builder = MapSnapshotBuilder::new(_fbb);
+    builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_epoch_ns(args.based_on_epoch_ns);
     builder.add_based_on_seq(args.based_on_seq);
     builder.add_next_fruit_id(args.next_fruit_id);
@@ -5925,6 +6244,15 @@ impl<'a> MapSnapshot<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(MapSnapshot::VT_BASED_ON_EPOCH_NS, Some(0)).unwrap()}
   }
+  /// The newest ownership epoch the answering planner knows for the trolley (its own term when
+  /// it owns it): a receiver that has seen a newer one refuses the snapshot as stale.
+  #[inline]
+  pub fn owner_epoch(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(MapSnapshot::VT_OWNER_EPOCH, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
@@ -5940,6 +6268,7 @@ impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, TrackedFruit>>>("tracked_fruits", Self::VT_TRACKED_FRUITS, false)?
      .visit_field::<u32>("next_fruit_id", Self::VT_NEXT_FRUIT_ID, false)?
      .visit_field::<u64>("based_on_epoch_ns", Self::VT_BASED_ON_EPOCH_NS, false)?
+     .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
      .finish();
     Ok(())
   }
@@ -5952,6 +6281,7 @@ pub struct MapSnapshotArgs<'a> {
     pub tracked_fruits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, TrackedFruit>>>,
     pub next_fruit_id: u32,
     pub based_on_epoch_ns: u64,
+    pub owner_epoch: u64,
 }
 impl<'a> Default for MapSnapshotArgs<'a> {
   #[inline]
@@ -5964,6 +6294,7 @@ impl<'a> Default for MapSnapshotArgs<'a> {
       tracked_fruits: None,
       next_fruit_id: 0,
       based_on_epoch_ns: 0,
+      owner_epoch: 0,
     }
   }
 }
@@ -6002,6 +6333,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapSnapshotBuilder<'a, 'b, A>
     self.fbb_.push_slot::<u64>(MapSnapshot::VT_BASED_ON_EPOCH_NS, based_on_epoch_ns, 0);
   }
   #[inline]
+  pub fn add_owner_epoch(&mut self, owner_epoch: u64) {
+    self.fbb_.push_slot::<u64>(MapSnapshot::VT_OWNER_EPOCH, owner_epoch, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapSnapshotBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     MapSnapshotBuilder {
@@ -6026,6 +6361,7 @@ impl ::core::fmt::Debug for MapSnapshot<'_> {
       ds.field("tracked_fruits", &self.tracked_fruits());
       ds.field("next_fruit_id", &self.next_fruit_id());
       ds.field("based_on_epoch_ns", &self.based_on_epoch_ns());
+      ds.field("owner_epoch", &self.owner_epoch());
       ds.finish()
   }
 }

@@ -14,6 +14,9 @@ pub struct FruitEstimates {
     pub fruits: Vec<FruitEstimate>,
     pub based_on_seq: u64,
     pub planner_id: String,
+    /// The ownership epoch of the owner that estimated them (0: none, e.g. the simulator's
+    /// truth).
+    pub owner_epoch: u64,
 }
 
 impl Wire for FruitEstimates {
@@ -29,6 +32,7 @@ impl Wire for FruitEstimates {
                 fruits: Some(fruits),
                 based_on_seq: self.based_on_seq,
                 planner_id: Some(planner),
+                owner_epoch: self.owner_epoch,
             },
         )
         .as_union_value()
@@ -49,6 +53,7 @@ impl Wire for FruitEstimates {
             fruits,
             based_on_seq: m.based_on_seq(),
             planner_id: string_or_empty(m.planner_id()),
+            owner_epoch: m.owner_epoch(),
         })
     }
 }

@@ -26,6 +26,9 @@ pub struct MapSnapshot {
     pub map: Vec<u8>,
     pub tracked_fruits: Vec<TrackedFruit>,
     pub next_fruit_id: u32,
+    /// The newest ownership epoch the answering planner knows for the trolley (its own term
+    /// when it owns it); a receiver that has seen a newer one refuses the snapshot as stale.
+    pub owner_epoch: u64,
 }
 
 impl Wire for MapSnapshot {
@@ -51,6 +54,7 @@ impl Wire for MapSnapshot {
                 tracked_fruits: Some(tracked),
                 next_fruit_id: self.next_fruit_id,
                 based_on_epoch_ns: self.based_on_epoch_ns,
+                owner_epoch: self.owner_epoch,
             },
         )
         .as_union_value()
@@ -73,6 +77,7 @@ impl Wire for MapSnapshot {
                 .map(|fs| fs.iter().map(tracked).collect())
                 .unwrap_or_default(),
             next_fruit_id: m.next_fruit_id(),
+            owner_epoch: m.owner_epoch(),
         })
     }
 }

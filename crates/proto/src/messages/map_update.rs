@@ -34,6 +34,8 @@ pub struct MapUpdate {
     /// did not register it (a frame it does not insert again: a re-announce, a stale frame). A
     /// rejected cloud changes no voxel: its update carries only this.
     pub registration: Option<FrameRegistration>,
+    /// The ownership epoch of the owner that changed the map (0: none).
+    pub owner_epoch: u64,
 }
 
 fn voxel_state_to_fb(state: VoxelState) -> fb::VoxelState {
@@ -94,6 +96,7 @@ impl Wire for MapUpdate {
                 voxels: Some(voxels),
                 planner_id: Some(planner),
                 registration,
+                owner_epoch: self.owner_epoch,
             },
         )
         .as_union_value()
@@ -124,6 +127,7 @@ impl Wire for MapUpdate {
                 .registration()
                 .map(|r| FrameRegistration::read(&r))
                 .transpose()?,
+            owner_epoch: m.owner_epoch(),
         })
     }
 }
@@ -191,6 +195,8 @@ mod tests {
     fn an_update_from_a_sender_without_registration_reads_as_none() {
         let mut sample = samples::map_update();
         sample.registration = None;
+        // Nor an ownership epoch, which came later.
+        sample.owner_epoch = 0;
         let old = encode(&samples::header(3), &OldSender(sample.clone()));
         let (_, read) = decode_typed::<MapUpdate>(&old).expect("an old sender's update decodes");
         assert_eq!(read, sample);

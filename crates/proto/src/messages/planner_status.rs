@@ -26,6 +26,12 @@ pub struct PlannerStatus {
     /// Registrations of the clouds of the trolleys it owns now (made as their owner, or as
     /// their replica before), by verdict.
     pub registrations: RegistrationTotals,
+    /// Messages dropped because they came under an older ownership epoch than the newest this
+    /// planner had seen for their trolley (fruit estimates, map snapshots).
+    pub stale_epoch: u64,
+    /// Times it stopped owning a trolley on seeing a newer ownership epoch than its own term,
+    /// and caught up from a snapshot before planning again.
+    pub stepped_down: u64,
 }
 
 /// Clouds registered to their maps, by verdict (see [`crate::RegistrationVerdict`]).
@@ -135,6 +141,8 @@ impl Wire for PlannerStatus {
                 registration_kept_as_sent: self.registrations.kept_as_sent,
                 registration_rejected: self.registrations.rejected,
                 registration_skipped: self.registrations.skipped,
+                stale_epoch: self.stale_epoch,
+                stepped_down: self.stepped_down,
             },
         )
         .as_union_value()
@@ -164,6 +172,8 @@ impl Wire for PlannerStatus {
                 rejected: m.registration_rejected(),
                 skipped: m.registration_skipped(),
             },
+            stale_epoch: m.stale_epoch(),
+            stepped_down: m.stepped_down(),
         })
     }
 }
@@ -227,7 +237,12 @@ mod tests {
 
     #[test]
     fn a_status_from_a_sender_without_registration_totals_reads_zero() {
-        let sample = samples::planner_status();
+        // Nor the fencing counts, which came later.
+        let sample = PlannerStatus {
+            stale_epoch: 0,
+            stepped_down: 0,
+            ..samples::planner_status()
+        };
         let old = encode(&samples::header(2), &OldSender(sample.clone()));
         let (_, read) =
             decode_typed::<PlannerStatus>(&old).expect("an old sender's status decodes");

@@ -31,6 +31,9 @@ pub struct RankedViews {
     pub based_on_epoch_ns: u64,
     pub planning_time_ms: f32,
     pub planner_id: String,
+    /// The ownership epoch of the planner's term as the trolley's owner (0: none): the edge
+    /// refuses views of an older epoch than the newest it has taken.
+    pub owner_epoch: u64,
 }
 
 fn view_kind_to_fb(kind: ViewKind) -> fb::ViewKind {
@@ -96,6 +99,7 @@ impl Wire for RankedViews {
                 planning_time_ms: self.planning_time_ms,
                 planner_id: Some(planner),
                 based_on_epoch_ns: self.based_on_epoch_ns,
+                owner_epoch: self.owner_epoch,
             },
         )
         .as_union_value()
@@ -114,6 +118,54 @@ impl Wire for RankedViews {
             based_on_epoch_ns: m.based_on_epoch_ns(),
             planning_time_ms: m.planning_time_ms(),
             planner_id: string_or_empty(m.planner_id()),
+            owner_epoch: m.owner_epoch(),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{decode_typed, encode, samples, Message};
+
+    /// RankedViews as a planner from before ownership epochs writes them.
+    #[derive(Clone, Debug)]
+    struct OldSender(RankedViews);
+
+    impl From<OldSender> for Message {
+        fn from(old: OldSender) -> Self {
+            Message::RankedViews(old.0)
+        }
+    }
+
+    impl Wire for OldSender {
+        const KIND: MessageKind = MessageKind::RankedViews;
+
+        fn write_payload(&self, fbb: &mut FlatBufferBuilder<'_>) -> WIPOffset<UnionWIPOffset> {
+            let m = &self.0;
+            let planner = fbb.create_string(&m.planner_id);
+            let mut table = fb::RankedViewsBuilder::new(fbb);
+            table.add_based_on_epoch_ns(m.based_on_epoch_ns);
+            table.add_based_on_seq(m.based_on_seq);
+            table.add_planner_id(planner);
+            table.add_planning_time_ms(m.planning_time_ms);
+            table.finish().as_union_value()
+        }
+
+        fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self> {
+            RankedViews::read_payload(envelope).map(OldSender)
+        }
+    }
+
+    #[test]
+    fn the_ownership_epoch_round_trips_and_an_older_sender_reads_epoch_zero() {
+        let sample = samples::ranked_views();
+        assert_ne!(sample.owner_epoch, 0);
+        let bytes = encode(&samples::header(4), &sample);
+        assert_eq!(decode_typed::<RankedViews>(&bytes).expect("decodes").1, sample);
+        let old = encode(&samples::header(4), &OldSender(sample.clone()));
+        let (_, read) = decode_typed::<RankedViews>(&old).expect("an old sender's views decode");
+        assert_eq!(read.owner_epoch, 0);
+        assert_eq!(read.based_on(), sample.based_on());
     }
 }

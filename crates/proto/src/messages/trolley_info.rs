@@ -26,6 +26,12 @@ pub struct TrolleyInfo {
     /// The arm and its mount with all their ranges, so that planners propose only views the arm
     /// can reach; None when unknown (every view is proposed, the edge still checks each).
     pub robot: Option<Box<Robot>>,
+    /// The newest ownership epoch the edge has taken views under (0: none yet; a source leaves
+    /// it 0, the edge fills it in): a planner owning the trolley under an older one steps down.
+    pub owner_epoch: u64,
+    /// The planner whose views the edge took under `owner_epoch` (empty: none yet): the one a
+    /// replaced owner catches up from.
+    pub owner_id: String,
 }
 
 /// The robot travels as JSON in `robot_json` (one typed value on each side; the schema's older
@@ -53,6 +59,7 @@ impl Wire for TrolleyInfo {
             None => String::new(),
         };
         let robot_json = fbb.create_string(&robot_json);
+        let owner_id = fbb.create_string(&self.owner_id);
         let base = pose_to_fb(&self.world_from_base);
         let workspace = box_to_fb(&self.camera_workspace);
         let region = box_to_fb(&self.sampling_region);
@@ -67,6 +74,8 @@ impl Wire for TrolleyInfo {
                 scene_seed: self.scene_seed,
                 intrinsics: Some(&intrinsics),
                 robot_json: Some(robot_json),
+                owner_epoch: self.owner_epoch,
+                owner_id: Some(owner_id),
             },
         )
         .as_union_value()
@@ -83,6 +92,8 @@ impl Wire for TrolleyInfo {
             scene_seed: m.scene_seed(),
             intrinsics: intrinsics_from_fb(kind, m.intrinsics())?,
             robot: robot_from_json(m.robot_json().unwrap_or_default())?,
+            owner_epoch: m.owner_epoch(),
+            owner_id: string_or_empty(m.owner_id()),
         })
     }
 }

@@ -26,6 +26,23 @@ pub struct TrolleyStatus {
     pub message: String,
     /// RankedViews refused because they did not come from the planner owning the trolley.
     pub refused_views: u64,
+    /// RankedViews refused because their ownership epoch was older than the newest taken.
+    pub stale_views: u64,
+    /// The newest ownership epoch views were taken under (0: none yet).
+    pub owner_epoch: u64,
+    /// Views executed per ownership term, oldest first (the last [`OWNER_TERMS`] terms).
+    pub owner_terms: Vec<OwnerTerm>,
+}
+
+/// Ownership terms a [`TrolleyStatus`] lists at most (the newest).
+pub const OWNER_TERMS: usize = 16;
+
+/// Views a trolley executed during one ownership term.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct OwnerTerm {
+    pub planner_id: String,
+    pub owner_epoch: u64,
+    pub views_executed: u32,
 }
 
 fn state_to_fb(state: TrolleyState) -> fb::TrolleyState {
@@ -54,6 +71,22 @@ impl Wire for TrolleyStatus {
 
     fn write_payload(&self, fbb: &mut FlatBufferBuilder<'_>) -> WIPOffset<UnionWIPOffset> {
         let message = fbb.create_string(&self.message);
+        let terms: Vec<_> = self
+            .owner_terms
+            .iter()
+            .map(|t| {
+                let planner_id = fbb.create_string(&t.planner_id);
+                fb::OwnerTerm::create(
+                    fbb,
+                    &fb::OwnerTermArgs {
+                        planner_id: Some(planner_id),
+                        owner_epoch: t.owner_epoch,
+                        views_executed: t.views_executed,
+                    },
+                )
+            })
+            .collect();
+        let terms = fbb.create_vector(&terms);
         fb::TrolleyStatus::create(
             fbb,
             &fb::TrolleyStatusArgs {
@@ -66,6 +99,9 @@ impl Wire for TrolleyStatus {
                 last_views_seq: self.last_views_seq,
                 message: Some(message),
                 refused_views: self.refused_views,
+                stale_views: self.stale_views,
+                owner_epoch: self.owner_epoch,
+                owner_terms: Some(terms),
             },
         )
         .as_union_value()
@@ -83,6 +119,20 @@ impl Wire for TrolleyStatus {
             last_views_seq: m.last_views_seq(),
             message: string_or_empty(m.message()),
             refused_views: m.refused_views(),
+            stale_views: m.stale_views(),
+            owner_epoch: m.owner_epoch(),
+            owner_terms: m
+                .owner_terms()
+                .map(|ts| {
+                    ts.iter()
+                        .map(|t| OwnerTerm {
+                            planner_id: string_or_empty(t.planner_id()),
+                            owner_epoch: t.owner_epoch(),
+                            views_executed: t.views_executed(),
+                        })
+                        .collect()
+                })
+                .unwrap_or_default(),
         })
     }
 }

@@ -69,8 +69,17 @@ class FruitEstimates(object):
             return self._tab.String(o + self._tab.Pos)
         return None
 
+    # The ownership epoch of the owner that estimated them (see RankedViews); 0: none (the
+    # simulator's truth, a planner without fencing).
+    # FruitEstimates
+    def OwnerEpoch(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def FruitEstimatesStart(builder: flatbuffers.Builder):
-    builder.StartObject(3)
+    builder.StartObject(4)
 
 def Start(builder: flatbuffers.Builder):
     FruitEstimatesStart(builder)
@@ -98,6 +107,12 @@ def FruitEstimatesAddPlannerId(builder: flatbuffers.Builder, plannerId: int):
 
 def AddPlannerId(builder: flatbuffers.Builder, plannerId: int):
     FruitEstimatesAddPlannerId(builder, plannerId)
+
+def FruitEstimatesAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    builder.PrependUint64Slot(3, ownerEpoch, 0)
+
+def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    FruitEstimatesAddOwnerEpoch(builder, ownerEpoch)
 
 def FruitEstimatesEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -122,8 +122,17 @@ class MapSnapshot(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # The newest ownership epoch the answering planner knows for the trolley (its own term when
+    # it owns it): a receiver that has seen a newer one refuses the snapshot as stale.
+    # MapSnapshot
+    def OwnerEpoch(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def MapSnapshotStart(builder: flatbuffers.Builder):
-    builder.StartObject(7)
+    builder.StartObject(8)
 
 def Start(builder: flatbuffers.Builder):
     MapSnapshotStart(builder)
@@ -181,6 +190,12 @@ def MapSnapshotAddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: i
 
 def AddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: int):
     MapSnapshotAddBasedOnEpochNs(builder, basedOnEpochNs)
+
+def MapSnapshotAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    builder.PrependUint64Slot(7, ownerEpoch, 0)
+
+def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    MapSnapshotAddOwnerEpoch(builder, ownerEpoch)
 
 def MapSnapshotEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

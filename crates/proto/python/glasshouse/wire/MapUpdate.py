@@ -105,8 +105,16 @@ class MapUpdate(object):
             return obj
         return None
 
+    # The ownership epoch of the owner that changed the map (see RankedViews).
+    # MapUpdate
+    def OwnerEpoch(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def MapUpdateStart(builder: flatbuffers.Builder):
-    builder.StartObject(7)
+    builder.StartObject(8)
 
 def Start(builder: flatbuffers.Builder):
     MapUpdateStart(builder)
@@ -158,6 +166,12 @@ def MapUpdateAddRegistration(builder: flatbuffers.Builder, registration: int):
 
 def AddRegistration(builder: flatbuffers.Builder, registration: int):
     MapUpdateAddRegistration(builder, registration)
+
+def MapUpdateAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    builder.PrependUint64Slot(7, ownerEpoch, 0)
+
+def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    MapUpdateAddOwnerEpoch(builder, ownerEpoch)
 
 def MapUpdateEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

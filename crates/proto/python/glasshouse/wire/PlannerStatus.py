@@ -177,8 +177,26 @@ class PlannerStatus(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # Messages dropped because they came under an older ownership epoch than the newest this
+    # planner had seen for their trolley (fruit estimates, map snapshots).
+    # PlannerStatus
+    def StaleEpoch(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(36))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # Times it stopped owning a trolley on seeing a newer ownership epoch than its own term
+    # (another planner took the trolley over meanwhile) and caught up from a snapshot.
+    # PlannerStatus
+    def SteppedDown(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(38))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def PlannerStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(16)
+    builder.StartObject(18)
 
 def Start(builder: flatbuffers.Builder):
     PlannerStatusStart(builder)
@@ -290,6 +308,18 @@ def PlannerStatusAddRegistrationSkipped(builder: flatbuffers.Builder, registrati
 
 def AddRegistrationSkipped(builder: flatbuffers.Builder, registrationSkipped: int):
     PlannerStatusAddRegistrationSkipped(builder, registrationSkipped)
+
+def PlannerStatusAddStaleEpoch(builder: flatbuffers.Builder, staleEpoch: int):
+    builder.PrependUint64Slot(16, staleEpoch, 0)
+
+def AddStaleEpoch(builder: flatbuffers.Builder, staleEpoch: int):
+    PlannerStatusAddStaleEpoch(builder, staleEpoch)
+
+def PlannerStatusAddSteppedDown(builder: flatbuffers.Builder, steppedDown: int):
+    builder.PrependUint64Slot(17, steppedDown, 0)
+
+def AddSteppedDown(builder: flatbuffers.Builder, steppedDown: int):
+    PlannerStatusAddSteppedDown(builder, steppedDown)
 
 def PlannerStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -84,8 +84,17 @@ class RankedViews(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # The ownership epoch (fencing token) of the planner's term as the trolley's owner; 0: a
+    # planner without fencing. The edge refuses views of an older epoch than the newest it took.
+    # RankedViews
+    def OwnerEpoch(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def RankedViewsStart(builder: flatbuffers.Builder):
-    builder.StartObject(5)
+    builder.StartObject(6)
 
 def Start(builder: flatbuffers.Builder):
     RankedViewsStart(builder)
@@ -125,6 +134,12 @@ def RankedViewsAddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: i
 
 def AddBasedOnEpochNs(builder: flatbuffers.Builder, basedOnEpochNs: int):
     RankedViewsAddBasedOnEpochNs(builder, basedOnEpochNs)
+
+def RankedViewsAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    builder.PrependUint64Slot(5, ownerEpoch, 0)
+
+def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    RankedViewsAddOwnerEpoch(builder, ownerEpoch)
 
 def RankedViewsEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

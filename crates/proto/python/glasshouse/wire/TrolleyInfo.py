@@ -94,8 +94,26 @@ class TrolleyInfo(object):
             return self._tab.String(o + self._tab.Pos)
         return None
 
+    # The newest ownership epoch the edge has taken views under (0: none yet): a planner that
+    # owns the trolley under an older one was replaced meanwhile and steps down.
+    # TrolleyInfo
+    def OwnerEpoch(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(34))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # The planner whose views the edge took under owner_epoch (empty: none yet): the one a
+    # replaced owner catches up from.
+    # TrolleyInfo
+    def OwnerId(self) -> Optional[str]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(36))
+        if o != 0:
+            return self._tab.String(o + self._tab.Pos)
+        return None
+
 def TrolleyInfoStart(builder: flatbuffers.Builder):
-    builder.StartObject(15)
+    builder.StartObject(17)
 
 def Start(builder: flatbuffers.Builder):
     TrolleyInfoStart(builder)
@@ -141,6 +159,18 @@ def TrolleyInfoAddRobotJson(builder: flatbuffers.Builder, robotJson: int):
 
 def AddRobotJson(builder: flatbuffers.Builder, robotJson: int):
     TrolleyInfoAddRobotJson(builder, robotJson)
+
+def TrolleyInfoAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    builder.PrependUint64Slot(15, ownerEpoch, 0)
+
+def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    TrolleyInfoAddOwnerEpoch(builder, ownerEpoch)
+
+def TrolleyInfoAddOwnerId(builder: flatbuffers.Builder, ownerId: int):
+    builder.PrependUOffsetTRelativeSlot(16, flatbuffers.number_types.UOffsetTFlags.py_type(ownerId), 0)
+
+def AddOwnerId(builder: flatbuffers.Builder, ownerId: int):
+    TrolleyInfoAddOwnerId(builder, ownerId)
 
 def TrolleyInfoEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

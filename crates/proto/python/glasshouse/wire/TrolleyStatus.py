@@ -5,6 +5,7 @@
 import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
+from glasshouse.wire.OwnerTerm import OwnerTerm
 from typing import Optional
 np = import_numpy()
 
@@ -94,8 +95,49 @@ class TrolleyStatus(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # RankedViews refused because their ownership epoch was older than the newest taken.
+    # TrolleyStatus
+    def StaleViews(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # The newest ownership epoch views were taken under (0: none yet).
+    # TrolleyStatus
+    def OwnerEpoch(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # Views executed per ownership term, oldest first (the last 16 terms).
+    # TrolleyStatus
+    def OwnerTerms(self, j: int) -> Optional[OwnerTerm]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 4
+            x = self._tab.Indirect(x)
+            obj = OwnerTerm()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # TrolleyStatus
+    def OwnerTermsLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # TrolleyStatus
+    def OwnerTermsIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        return o == 0
+
 def TrolleyStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(9)
+    builder.StartObject(12)
 
 def Start(builder: flatbuffers.Builder):
     TrolleyStatusStart(builder)
@@ -153,6 +195,30 @@ def TrolleyStatusAddRefusedViews(builder: flatbuffers.Builder, refusedViews: int
 
 def AddRefusedViews(builder: flatbuffers.Builder, refusedViews: int):
     TrolleyStatusAddRefusedViews(builder, refusedViews)
+
+def TrolleyStatusAddStaleViews(builder: flatbuffers.Builder, staleViews: int):
+    builder.PrependUint64Slot(9, staleViews, 0)
+
+def AddStaleViews(builder: flatbuffers.Builder, staleViews: int):
+    TrolleyStatusAddStaleViews(builder, staleViews)
+
+def TrolleyStatusAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    builder.PrependUint64Slot(10, ownerEpoch, 0)
+
+def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
+    TrolleyStatusAddOwnerEpoch(builder, ownerEpoch)
+
+def TrolleyStatusAddOwnerTerms(builder: flatbuffers.Builder, ownerTerms: int):
+    builder.PrependUOffsetTRelativeSlot(11, flatbuffers.number_types.UOffsetTFlags.py_type(ownerTerms), 0)
+
+def AddOwnerTerms(builder: flatbuffers.Builder, ownerTerms: int):
+    TrolleyStatusAddOwnerTerms(builder, ownerTerms)
+
+def TrolleyStatusStartOwnerTermsVector(builder, numElems: int) -> int:
+    return builder.StartVector(4, numElems, 4)
+
+def StartOwnerTermsVector(builder, numElems: int) -> int:
+    return TrolleyStatusStartOwnerTermsVector(builder, numElems)
 
 def TrolleyStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -186,6 +186,73 @@ fn owner_epoch(key: &ParsedKey, message: &Message) -> Option<u64> {
     }
 }
 
+impl TrolleyView {
+    /// Folds one message on the trolley's key `topic`, received at `now`, into its row.
+    fn apply(&mut self, topic: TrolleyTopic, header: &Header, message: &Message, now: Instant) {
+        match (topic, message) {
+            (TrolleyTopic::Rgbd, Message::RgbdFrame(_)) => self.note_frame(header, now),
+            (TrolleyTopic::Info, Message::TrolleyInfo(info)) => self.info = Some(info.clone()),
+            (TrolleyTopic::Arm, Message::ArmState(a)) => {
+                self.camera_position_m = Some(a.world_from_camera.translation.vector.into());
+            }
+            (TrolleyTopic::Status, Message::TrolleyStatus(s)) => self.status = Some(s.clone()),
+            (TrolleyTopic::Roi, Message::RoiCloud(_)) => self.clouds += 1,
+            (TrolleyTopic::Views, Message::RankedViews(v)) => self.note_views(v, now),
+            (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => {
+                self.fruits = f.fruits.clone();
+                self.fruits_based_on_seq = f.based_on_seq;
+                self.covered_volume = covered_volume(&self.fruits, &self.truth);
+            }
+            (TrolleyTopic::Truth, Message::FruitEstimates(f)) if self.truth != f.fruits => {
+                self.truth = f.fruits.clone();
+                self.covered_volume = covered_volume(&self.fruits, &self.truth);
+            }
+            (TrolleyTopic::Map, Message::MapUpdate(m)) => {
+                self.map_updates += 1;
+                self.map_voxels_changed += m.voxels.len() as u64;
+                // A re-announced frame's update carries none: the last one stays.
+                if let Some(r) = &m.registration {
+                    self.last_registration = Some(r.clone());
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// A frame arrived at `now`; a re-announced frame keeps its first arrival time.
+    fn note_frame(&mut self, header: &Header, now: Instant) {
+        self.frames += 1;
+        self.last_frame_at = Some(now);
+        let frame = header.frame();
+        if !self.pending_frames.iter().any(|(f, _)| *f == frame) {
+            if self.pending_frames.len() >= PENDING_FRAMES {
+                self.pending_frames.pop_front();
+            }
+            self.pending_frames.push_back((frame, now));
+        }
+    }
+
+    /// Views arrived at `now`: the latency from the frame they were planned on.
+    fn note_views(&mut self, views: &RankedViews, now: Instant) {
+        self.views_messages += 1;
+        if let Some(i) = self
+            .pending_frames
+            .iter()
+            .position(|(frame, _)| *frame == views.based_on())
+        {
+            let (_, at) = self.pending_frames[i];
+            self.pending_frames.drain(..=i);
+            if self.latencies_ms.len() >= LATENCY_WINDOW {
+                self.latencies_ms.pop_front();
+            }
+            self.latencies_ms
+                .push_back(now.duration_since(at).as_secs_f64() * 1e3);
+        }
+        self.planner_id = views.planner_id.clone();
+        self.last_views = Some(views.clone());
+    }
+}
+
 impl FleetState {
     /// Folds one received message, received at `now`, into the state; false when it is left out
     /// (an owner's output under an older ownership epoch than the newest seen for its trolley).
@@ -206,62 +273,7 @@ impl FleetState {
         match (key, message) {
             (ParsedKey::Trolley { tid, topic }, message) => {
                 let t = self.trolleys.entry(tid.clone()).or_default();
-                match (topic, message) {
-                    (TrolleyTopic::Rgbd, Message::RgbdFrame(_)) => {
-                        t.frames += 1;
-                        t.last_frame_at = Some(now);
-                        // A re-announced frame keeps its first arrival time.
-                        let frame = header.frame();
-                        if !t.pending_frames.iter().any(|(f, _)| *f == frame) {
-                            if t.pending_frames.len() >= PENDING_FRAMES {
-                                t.pending_frames.pop_front();
-                            }
-                            t.pending_frames.push_back((frame, now));
-                        }
-                    }
-                    (TrolleyTopic::Info, Message::TrolleyInfo(info)) => t.info = Some(info.clone()),
-                    (TrolleyTopic::Arm, Message::ArmState(a)) => {
-                        t.camera_position_m = Some(a.world_from_camera.translation.vector.into());
-                    }
-                    (TrolleyTopic::Status, Message::TrolleyStatus(s)) => t.status = Some(s.clone()),
-                    (TrolleyTopic::Roi, Message::RoiCloud(_)) => t.clouds += 1,
-                    (TrolleyTopic::Views, Message::RankedViews(v)) => {
-                        t.views_messages += 1;
-                        if let Some(i) = t
-                            .pending_frames
-                            .iter()
-                            .position(|(frame, _)| *frame == v.based_on())
-                        {
-                            let (_, at) = t.pending_frames[i];
-                            t.pending_frames.drain(..=i);
-                            if t.latencies_ms.len() >= LATENCY_WINDOW {
-                                t.latencies_ms.pop_front();
-                            }
-                            t.latencies_ms
-                                .push_back(now.duration_since(at).as_secs_f64() * 1e3);
-                        }
-                        t.planner_id = v.planner_id.clone();
-                        t.last_views = Some(v.clone());
-                    }
-                    (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => {
-                        t.fruits = f.fruits.clone();
-                        t.fruits_based_on_seq = f.based_on_seq;
-                        t.covered_volume = covered_volume(&t.fruits, &t.truth);
-                    }
-                    (TrolleyTopic::Truth, Message::FruitEstimates(f)) if t.truth != f.fruits => {
-                        t.truth = f.fruits.clone();
-                        t.covered_volume = covered_volume(&t.fruits, &t.truth);
-                    }
-                    (TrolleyTopic::Map, Message::MapUpdate(m)) => {
-                        t.map_updates += 1;
-                        t.map_voxels_changed += m.voxels.len() as u64;
-                        // A re-announced frame's update carries none: the last one stays.
-                        if let Some(r) = &m.registration {
-                            t.last_registration = Some(r.clone());
-                        }
-                    }
-                    _ => {}
-                }
+                t.apply(*topic, header, message, now);
             }
             (ParsedKey::PlannerStatus { pid }, Message::PlannerStatus(s)) => {
                 self.planners.insert(pid.clone(), s.clone());

@@ -171,59 +171,12 @@ pub fn fleet_doc(
         trolleys: fleet
             .trolleys
             .iter()
-            .map(|(id, t)| TrolleyRow {
-                id: id.clone(),
-                planner: t.planner_id.clone(),
-                state: t
-                    .status
-                    .as_ref()
-                    .map_or("Unknown".to_owned(), |s| format!("{:?}", s.state)),
-                views_done: t.status.as_ref().map_or(0, |s| s.views_done),
-                fruits: t.fruits.len(),
-                frames: t.frames,
-                last_frame_age_s: t
-                    .last_frame_at
-                    .map(|at| now.duration_since(at).as_secs_f64()),
-                latency_p50_ms: t.latency_percentile_ms(50.0),
-                latency_p99_ms: t.latency_percentile_ms(99.0),
-                drops: t.drops(),
-                refused_views: t.status.as_ref().map_or(0, |s| s.refused_views),
-                stale_views: t.status.as_ref().map_or(0, |s| s.stale_views),
-                owner_epoch: t.status.as_ref().map_or(0, |s| s.owner_epoch),
-                covered_volume: t.covered_volume,
-                registration: t.last_registration.as_ref().map(RegistrationDoc::new),
-                camera_xy_m: t.camera_position_m.map(|p| [p[0], p[1]]),
-                region_xy_m: t.info.as_ref().map(|i| {
-                    let r = &i.sampling_region;
-                    [[r.min.x, r.min.y], [r.max.x, r.max.y]]
-                }),
-            })
+            .map(|(id, t)| TrolleyRow::new(id, t, now))
             .collect(),
         planners: fleet
             .planners
             .iter()
-            .map(|(id, p)| PlannerRow {
-                id: id.clone(),
-                owned: p.owned_trolleys.clone(),
-                standby: p.standby_trolleys.clone(),
-                clouds_integrated: p.clouds_integrated,
-                views_published: p.views_published,
-                last_planning_time_ms: p.last_planning_time_ms,
-                mean_planning_time_ms: p.mean_planning_time_ms,
-                map_voxels: p.map_voxels,
-                dropped: p.dropped_messages,
-                refused_clouds: p.refused_clouds,
-                stale_epoch: p.stale_epoch,
-                stepped_down: p.stepped_down,
-                last_status_age_s: fleet
-                    .planner_seen_at
-                    .get(id)
-                    .map(|t| now.saturating_duration_since(*t).as_secs_f64()),
-                registration_applied: p.registrations.applied,
-                registration_kept_as_sent: p.registrations.kept_as_sent,
-                registration_rejected: p.registrations.rejected,
-                registration_skipped: p.registrations.skipped,
-            })
+            .map(|(id, p)| PlannerRow::new(id, p, fleet.planner_seen_at.get(id), now))
             .collect(),
         detectors: fleet
             .detectors
@@ -240,6 +193,69 @@ pub fn fleet_doc(
         rerun_viewer_url: viewer,
         fleet_fruits: fleet.fleet_fruits.as_ref().map_or(0, |f| f.fruits.len()),
         fleet_map_planner: fleet.fleet_fruits.as_ref().map(|f| f.planner_id.clone()),
+    }
+}
+
+impl TrolleyRow {
+    /// The row of trolley `id` as the dashboard sees it at `now`.
+    fn new(id: &str, t: &crate::TrolleyView, now: Instant) -> Self {
+        TrolleyRow {
+            id: id.to_owned(),
+            planner: t.planner_id.clone(),
+            state: t
+                .status
+                .as_ref()
+                .map_or("Unknown".to_owned(), |s| format!("{:?}", s.state)),
+            views_done: t.status.as_ref().map_or(0, |s| s.views_done),
+            fruits: t.fruits.len(),
+            frames: t.frames,
+            last_frame_age_s: t
+                .last_frame_at
+                .map(|at| now.duration_since(at).as_secs_f64()),
+            latency_p50_ms: t.latency_percentile_ms(50.0),
+            latency_p99_ms: t.latency_percentile_ms(99.0),
+            drops: t.drops(),
+            refused_views: t.status.as_ref().map_or(0, |s| s.refused_views),
+            stale_views: t.status.as_ref().map_or(0, |s| s.stale_views),
+            owner_epoch: t.status.as_ref().map_or(0, |s| s.owner_epoch),
+            covered_volume: t.covered_volume,
+            registration: t.last_registration.as_ref().map(RegistrationDoc::new),
+            camera_xy_m: t.camera_position_m.map(|p| [p[0], p[1]]),
+            region_xy_m: t.info.as_ref().map(|i| {
+                let r = &i.sampling_region;
+                [[r.min.x, r.min.y], [r.max.x, r.max.y]]
+            }),
+        }
+    }
+}
+
+impl PlannerRow {
+    /// The row of planner `id` from its latest status, last seen at `seen_at`.
+    fn new(
+        id: &str,
+        p: &glasshouse_proto::PlannerStatus,
+        seen_at: Option<&Instant>,
+        now: Instant,
+    ) -> Self {
+        PlannerRow {
+            id: id.to_owned(),
+            owned: p.owned_trolleys.clone(),
+            standby: p.standby_trolleys.clone(),
+            clouds_integrated: p.clouds_integrated,
+            views_published: p.views_published,
+            last_planning_time_ms: p.last_planning_time_ms,
+            mean_planning_time_ms: p.mean_planning_time_ms,
+            map_voxels: p.map_voxels,
+            dropped: p.dropped_messages,
+            refused_clouds: p.refused_clouds,
+            stale_epoch: p.stale_epoch,
+            stepped_down: p.stepped_down,
+            last_status_age_s: seen_at.map(|t| now.saturating_duration_since(*t).as_secs_f64()),
+            registration_applied: p.registrations.applied,
+            registration_kept_as_sent: p.registrations.kept_as_sent,
+            registration_rejected: p.registrations.rejected,
+            registration_skipped: p.registrations.skipped,
+        }
     }
 }
 

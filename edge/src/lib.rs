@@ -249,6 +249,18 @@ pub struct EdgeCounters {
     pub status: std::sync::Mutex<Option<TrolleyStatus>>,
 }
 
+impl EdgeCounters {
+    /// The loop's refusals so far: views not from the owner, and views of an older epoch (a
+    /// drop of reason `stale_epoch`).
+    fn note_refusals(&self, status: &TrolleyStatus) {
+        self.refused_views
+            .store(status.refused_views, Ordering::Relaxed);
+        self.drops
+            .stale_epoch
+            .store(status.stale_views, Ordering::Relaxed);
+    }
+}
+
 impl glasshouse_bus::metrics::ServiceMetrics for EdgeCounters {
     fn kind() -> &'static str {
         "edge"
@@ -567,6 +579,51 @@ impl Driver {
     }
 }
 
+impl Driver {
+    /// The driver of a trolley with `config` and its opened `source`, publishing on `out`.
+    fn new(
+        config: EdgeConfig,
+        source: Box<dyn TrolleySource>,
+        out: Outputs,
+        drops: Arc<DropCounters>,
+        events: Option<tokio::sync::mpsc::UnboundedSender<EdgeEvent>>,
+        shutdown: Shutdown,
+    ) -> anyhow::Result<Self> {
+        let tid = &config.trolley_id;
+        let truth = source.ground_truth().map(|fruits| FruitEstimates {
+            fruits,
+            based_on_seq: 0,
+            planner_id: format!("truth-{tid}"),
+            // The truth has no owner.
+            owner_epoch: 0,
+        });
+        let recorder = config
+            .record_frames_dir
+            .as_deref()
+            .map(FrameRecorder::create)
+            .transpose()?;
+        Ok(Self {
+            epoch_ns: wall_clock_ns(),
+            logged_refusals: BTreeSet::new(),
+            recorder,
+            source: Some(source),
+            out,
+            drops,
+            truth,
+            announcement: None,
+            views_deadline: None,
+            next_capture: Instant::now(),
+            views_done: 0,
+            events,
+            pacer: config
+                .realtime
+                .then(|| (RealtimePacer::default(), Instant::now())),
+            shutdown,
+            config,
+        })
+    }
+}
+
 /// Runs the trolley until its view budget is spent, its source ends or `shutdown` fires.
 pub async fn run(
     session: Session,
@@ -583,36 +640,7 @@ pub async fn run(
     let planners = MemberWatch::declare(&session, MemberKind::Planner).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
     let source = config.open_source(&session, &drops)?;
-    let truth = source.ground_truth().map(|fruits| FruitEstimates {
-        fruits,
-        based_on_seq: 0,
-        planner_id: format!("truth-{tid}"),
-        // The truth has no owner.
-        owner_epoch: 0,
-    });
-    let recorder = config
-        .record_frames_dir
-        .as_deref()
-        .map(FrameRecorder::create);
-    let mut driver = Driver {
-        epoch_ns: wall_clock_ns(),
-        logged_refusals: BTreeSet::new(),
-        recorder: recorder.transpose()?,
-        source: Some(source),
-        out,
-        drops: drops.clone(),
-        truth,
-        announcement: None,
-        views_deadline: None,
-        next_capture: Instant::now(),
-        views_done: 0,
-        events,
-        pacer: config
-            .realtime
-            .then(|| (RealtimePacer::default(), Instant::now())),
-        shutdown: shutdown.clone(),
-        config,
-    };
+    let mut driver = Driver::new(config, source, out, drops.clone(), events, shutdown.clone())?;
     tracing::info!(trolley = %tid, scenario = %driver.config.scenario, seed = driver.config.seed, "edge started");
     let mut node = EdgeNode::new(driver.config.loop_settings(), driver.epoch_ns);
     let start = node.handle(EdgeInput::Start);
@@ -633,12 +661,7 @@ pub async fn run(
             _ = tokio::time::sleep_until(deadline), if node.is_waiting_for_views() => EdgeInput::ViewsTimedOut,
         };
         let actions = node.handle(input);
-        counters
-            .refused_views
-            .store(node.status().refused_views, Ordering::Relaxed);
-        drops
-            .stale_epoch
-            .store(node.status().stale_views, Ordering::Relaxed);
+        counters.note_refusals(node.status());
         driver.drain(&mut node, actions).await?;
         if let Ok(mut status) = counters.status.lock() {
             *status = Some(node.status().clone());

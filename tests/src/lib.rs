@@ -30,6 +30,23 @@ pub fn free_port() -> u16 {
         .expect("a free loopback port")
 }
 
+/// An observer's subscriber: a deep drop-oldest queue, so phases that do not read it never
+/// push back on the fleet (a test that loses what it needs fails on what it checks).
+pub async fn observe<M: glasshouse_proto::Wire>(
+    observer: &Session,
+    key: &glasshouse_proto::keys::Key<M>,
+) -> glasshouse_bus::Subscriber<M> {
+    let drops = Arc::new(glasshouse_bus::DropCounters::default());
+    glasshouse_bus::Subscriber::declare_with(
+        observer,
+        key,
+        glasshouse_bus::Delivery::Monitor,
+        drops,
+    )
+    .await
+    .expect("subscriber")
+}
+
 /// Awaits `future` or fails the test after `secs` seconds.
 pub async fn within<T>(secs: u64, what: &str, future: impl Future<Output = T>) -> T {
     match tokio::time::timeout(Duration::from_secs(secs), future).await {

@@ -7,23 +7,11 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
-use std::sync::Arc;
-
-use glasshouse_bus::{Delivery, DropCounters, Subscriber};
-use glasshouse_proto::keys::{self, Key};
-use glasshouse_proto::{FrameId, RoiCloud, Wire};
+use glasshouse_proto::keys;
+use glasshouse_proto::{FrameId, RoiCloud};
 use glasshouse_roimap::RoiMap;
 use glasshouse_tests::procs::{build_binaries, Proc};
-use glasshouse_tests::{client, free_port, rebuild, voxels, within};
-
-/// An observer's subscriber: a deep drop-oldest queue, so phases that do not read it never
-/// push back on the fleet (a test that loses what it needs fails on the map comparison).
-async fn observe<M: Wire>(observer: &zenoh::Session, key: &Key<M>) -> Subscriber<M> {
-    let drops = Arc::new(DropCounters::default());
-    Subscriber::declare_with(observer, key, Delivery::Monitor, drops)
-        .await
-        .expect("subscriber")
-}
+use glasshouse_tests::{client, free_port, observe, rebuild, voxels, within};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn killed_owner_is_replaced_without_losing_a_scan() {

@@ -18,22 +18,12 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use glasshouse_bus::{Delivery, DropCounters, Publisher, Subscriber};
-use glasshouse_proto::keys::{self, Key};
-use glasshouse_proto::{
-    FrameId, Header, PlannerStatus, RankedViews, RoiCloud, TrolleyStatus, Wire,
-};
+use glasshouse_bus::{DropCounters, Publisher};
+use glasshouse_proto::keys;
+use glasshouse_proto::{FrameId, Header, PlannerStatus, RankedViews, RoiCloud, TrolleyStatus};
 use glasshouse_roimap::RoiMap;
 use glasshouse_tests::procs::{build_binaries, Proc};
-use glasshouse_tests::{client, free_port, rebuild, voxels, within};
-
-/// An observer's subscriber: a deep drop-oldest queue, so it never pushes back on the fleet.
-async fn observe<M: Wire>(observer: &zenoh::Session, key: &Key<M>) -> Subscriber<M> {
-    let drops = Arc::new(DropCounters::default());
-    Subscriber::declare_with(observer, key, Delivery::Monitor, drops)
-        .await
-        .expect("subscriber")
-}
+use glasshouse_tests::{client, free_port, observe, rebuild, voxels, within};
 
 /// Views the edge executed under `pid`'s term `epoch`, by its status.
 fn executed(status: &TrolleyStatus, pid: &str, epoch: u64) -> u32 {

@@ -7,22 +7,14 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
-use glasshouse_bus::{Delivery, DropCounters, Publisher, Subscriber};
+use glasshouse_bus::{DropCounters, Publisher};
 use glasshouse_dashboard::DashboardSettings;
 use glasshouse_edge::EdgeEvent;
 use glasshouse_planner::PlannerSettings;
-use glasshouse_proto::keys::{self, Key};
-use glasshouse_proto::{samples, FrameId, Header, MapSnapshot, RoiCloud, Wire};
+use glasshouse_proto::keys;
+use glasshouse_proto::{samples, FrameId, Header, MapSnapshot, RoiCloud};
 use glasshouse_roimap::RoiMap;
-use glasshouse_tests::{client, test_edge_config, within, Pipeline};
-
-/// An observer's subscriber: a deep drop-oldest queue that never pushes back on the fleet.
-async fn observe<M: Wire>(observer: &zenoh::Session, key: &Key<M>) -> Subscriber<M> {
-    let drops = Arc::new(DropCounters::default());
-    Subscriber::declare_with(observer, key, Delivery::Monitor, drops)
-        .await
-        .expect("subscriber")
-}
+use glasshouse_tests::{client, observe, test_edge_config, within, Pipeline};
 
 /// Planner p1's copy of t1: its last integrated frame and how many scans went in.
 async fn planner_map(observer: &zenoh::Session) -> (FrameId, u64) {

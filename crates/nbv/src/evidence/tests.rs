@@ -73,6 +73,17 @@ fn a_flat_red_leaf_seen_many_times_is_rejected() {
     assert_eq!(evidence.confidence, 0.0);
 }
 
+/// A 6.4 x 4.8 cm red leaf lying nearly flat (tilted 8°), `offset_m` along its normal from the
+/// scene's centre: where a view with a pose error of that much along the normal sees it.
+fn leaf(offset_m: f64) -> Lobe {
+    let tilt = turn(Vector3::new(1.0, 0.3, 0.0), 8.0);
+    Lobe {
+        centre: centre() + tilt * Vector3::z() * offset_m,
+        world_from_lobe: tilt,
+        semi_axes_m: Vector3::new(0.032, 0.024, 0.0005),
+    }
+}
+
 /// A red leaf lying nearly flat with its red petiole hanging below, seen from above and below by
 /// a camera whose views disagree by 4 mm along the leaf's normal (a 0.5° hand-eye error at 0.4
 /// m), so that the leaf comes out two voxels thick in places: still flat. (Views 7 mm or more
@@ -80,12 +91,6 @@ fn a_flat_red_leaf_seen_many_times_is_rejected() {
 #[test]
 fn a_red_leaf_two_voxels_thick_with_its_petiole_is_rejected() {
     let c = centre();
-    let tilt = turn(Vector3::new(1.0, 0.3, 0.0), 8.0);
-    let leaf = |offset_m: f64| Lobe {
-        centre: c + tilt * Vector3::z() * offset_m,
-        world_from_lobe: tilt,
-        semi_axes_m: Vector3::new(0.032, 0.024, 0.0005),
-    };
     let petiole = Cylinder {
         centre: c - Vector3::z() * 0.02,
         world_from_cylinder: Rotation3::identity(),
@@ -133,12 +138,6 @@ fn a_red_leaf_two_voxels_thick_with_its_petiole_is_rejected() {
 #[test]
 fn a_red_leaf_doubled_by_a_pose_error_hides_nothing() {
     let c = centre();
-    let tilt = turn(Vector3::new(1.0, 0.3, 0.0), 8.0);
-    let leaf = |offset_m: f64| Lobe {
-        centre: c + tilt * Vector3::z() * offset_m,
-        world_from_lobe: tilt,
-        semi_axes_m: Vector3::new(0.032, 0.024, 0.0005),
-    };
     let (above, below) = (leaf(0.0), leaf(0.012));
     let towards_above = [Vector3::new(-0.5, 0.2, 1.0), Vector3::new(0.4, -0.6, 1.0)];
     let towards_below = [Vector3::new(-0.6, 0.1, -1.0), Vector3::new(0.5, 0.5, -1.0)];

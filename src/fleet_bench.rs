@@ -4,15 +4,18 @@
 //! An observer session records, per trolley, when each frame, its ROI cloud and the views planned
 //! on it arrive (the first arrival of each frame sequence), which planner sent the views, and the
 //! drop counters every service reports in its status. Each process's CPU time and peak resident
-//! memory come from `/proc`. Half-way through (`--kill-at-s`) the planner that owns the first
-//! trolley is killed with SIGKILL; the takeover time is the time until that trolley's views come
-//! from another planner.
+//! memory come from `/proc`. Half-way through (`--fault-at-s`) a fault is injected (`--fault`:
+//! the owner of t1 killed, paused or cut off, the router restarted or lost to a second one); for
+//! every trolley it moved the report gives the time until its views came again, whether its arm
+//! moved on a stale owner's views, and whether its map equals one rebuilt from every cloud
+//! (`fault`, `lost`).
 //!
 //! Several trolley counts (`--trolleys 4,8,16,24`) make a capacity sweep: one fleet per count,
 //! one after the other, then a table with a row per count and, with `--plot`, a PNG of frame ->
 //! views latency against trolleys (`sweep`).
 
 mod cost;
+mod fault;
 mod lost;
 mod sweep;
 
@@ -62,9 +65,17 @@ pub struct FleetBenchArgs {
     /// Image width (height 3/4 of it).
     #[arg(long, default_value_t = 640)]
     pub width: u32,
-    /// Seconds into the run at which the owner of t1 is killed (0: never; default: half-way).
+    /// The fault injected during the run: planner faults hit the owner of t1 (kill, stop,
+    /// partition), router faults every trolley (router-restart, router-failover).
+    #[arg(long, value_enum, default_value = "kill")]
+    pub fault: fault::Fault,
+    /// Seconds into the run at which the fault is injected (0: never; default: half-way).
+    #[arg(long, alias = "kill-at-s")]
+    pub fault_at_s: Option<f64>,
+    /// How long a stop, partition or router restart lasts before it is undone (SIGCONT, healed,
+    /// a new router) [default: 10 s for stop and partition, 1 s for router-restart].
     #[arg(long)]
-    pub kill_at_s: Option<f64>,
+    pub fault_for_s: Option<f64>,
     /// Zenoh link lease of every process: how soon a killed planner is noticed.
     #[arg(long, default_value_t = 1000)]
     pub lease_ms: u64,
@@ -178,6 +189,8 @@ struct TrolleyLog {
     views: u64,
     /// (arrival, planner) of every RankedViews.
     views_from: Vec<(Instant, String)>,
+    /// The views its arm executed per ownership term, as its status said, when that changed.
+    terms: Vec<(Instant, Vec<glasshouse_proto::OwnerTerm>)>,
 }
 
 #[derive(Default)]
@@ -193,8 +206,8 @@ struct Observed {
     /// Each planner's latest stage totals and catch-up time (its status).
     stages: BTreeMap<String, StageTimes>,
     catch_up_ms: BTreeMap<String, f64>,
-    /// Every ROI cloud of t1 since the fleet started (for the scans-lost check).
-    t1_clouds: Vec<glasshouse_proto::RoiCloud>,
+    /// Every ROI cloud of every trolley since the fleet started (for the scans-lost check).
+    clouds: BTreeMap<String, Vec<glasshouse_proto::RoiCloud>>,
 }
 
 fn percentile(values: &[f64], p: f64) -> Option<f64> {
@@ -238,15 +251,8 @@ struct Report {
     frame_to_views_ms_p99: Option<f64>,
     messages_dropped: u64,
     observer_corrupt: u64,
-    killed_planner: Option<String>,
-    /// t1's takeover: seconds from the kill to its first views from another planner.
-    takeover_s: Option<f64>,
-    /// Every trolley the killed planner owned, the same way (None: no views from another
-    /// planner before the run ended); t1 is the first caught up by construction, the others
-    /// wait their turn.
-    takeovers_s: BTreeMap<String, Option<f64>>,
-    /// The slowest of them (None when one was never taken over).
-    takeover_max_s: Option<f64>,
+    /// The fault injected, every trolley it moved and their maps (`fault`).
+    fault: Option<fault::FaultReport>,
     /// Mean RGB-D frame payload on the wire.
     bytes_per_frame: Option<f64>,
     /// Share of the arms' time spent waiting for the views on their frames (the sum of frame ->
@@ -262,9 +268,6 @@ struct Report {
     planner_stage_ms_per_frame: BTreeMap<String, f64>,
     /// Time the planners spent catching up trolleys taken over.
     planner_catch_up_ms: f64,
-    /// After the run: t1's map at its owner (the survivor of the kill) against the offline
-    /// rebuild from every cloud of t1.
-    t1_scans: Option<lost::LostReport>,
     /// Resident memory of all planners divided by the trolleys, one minute in and at the end.
     planner_rss_mib_per_trolley_minute1: Option<f64>,
     planner_rss_mib_per_trolley_end: Option<f64>,
@@ -331,24 +334,29 @@ pub async fn run(mut args: FleetBenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// When the fault comes (none with `--fault-at-s 0`, or a planner fault with one planner).
+fn fault_plan(args: &FleetBenchArgs, measured: Duration) -> Option<FaultPlan> {
+    let at_s = args.fault_at_s.unwrap_or(measured.as_secs_f64() / 2.0);
+    let enabled = at_s > 0.0 && (args.fault.hits_router() || args.planners >= 2);
+    enabled.then(|| FaultPlan {
+        fault: args.fault,
+        at: Duration::from_secs_f64(at_s),
+        undo_after: fault::undo_after(args.fault, args.fault_for_s),
+    })
+}
+
 /// One fleet of `args.trolleys` trolleys: started, warmed up, measured, stopped.
 async fn run_fleet(args: &FleetBenchArgs) -> anyhow::Result<Report> {
     let measured = Duration::from_secs_f64(args.minutes * 60.0);
-    let kill_at = Duration::from_secs_f64(
-        args.kill_at_s
-            .unwrap_or(measured.as_secs_f64() / 2.0)
-            .max(0.0),
-    );
-    let kill_enabled = args.kill_at_s != Some(0.0) && args.planners >= 2;
-
+    let plan = fault_plan(args, measured);
     let mut fleet = Fleet::new(args)?;
-    fleet.spawn_router()?;
+    fleet.spawn_routers()?;
     let observer = glasshouse_bus::open(&fleet.session_of(BENCH_OBSERVER)).await?;
     let observed = Arc::new(Mutex::new(Observed::default()));
     let subscriber = subscribe_observer(&observer, observed.clone()).await?;
     fleet.spawn_services(args).await?;
     warm_up(&observed, args, &fleet.logs).await?;
-    let measurement = measure(&mut fleet.procs, &observed, measured, kill_enabled, kill_at).await;
+    let measurement = measure(&mut fleet, &observed, measured, plan).await?;
     let per_kind = per_kind_usage(&fleet.procs, &measurement);
     let mut report = {
         let o = observed
@@ -356,14 +364,12 @@ async fn run_fleet(args: &FleetBenchArgs) -> anyhow::Result<Report> {
             .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
         build_report(args, &o, &measurement, per_kind)
     };
-    if kill_enabled {
-        report.t1_scans = match lost::check_t1(&observer, &observed, &mut fleet.procs).await {
-            Ok(check) => Some(check),
-            Err(e) => {
-                eprintln!("fleet-bench: scans lost not measured: {e:#}");
-                None
-            }
-        };
+    if let Some(fault) = report.fault.as_mut() {
+        let moved: Vec<String> = fault.moved.keys().cloned().collect();
+        let mut maps = lost::check(&observer, &observed, &mut fleet.procs, &moved).await;
+        for (tid, trolley) in fault.moved.iter_mut() {
+            trolley.map = maps.remove(tid);
+        }
     }
     drop(subscriber);
     let _ = observer.close().await;
@@ -420,6 +426,14 @@ fn validate(args: &FleetBenchArgs) -> anyhow::Result<()> {
         (16..=1280).contains(&args.width),
         "--width must be within 16..=1280"
     );
+    ensure!(
+        args.fault_for_s.is_none_or(|s| s.is_finite() && s > 0.0),
+        "--fault-for-s must be positive"
+    );
+    ensure!(
+        !(args.secure && args.fault == fault::Fault::RouterFailover),
+        "--fault router-failover runs without --secure (the roster has one router identity)"
+    );
     ["1", "2", "row"]
         .contains(&args.scenario.as_str())
         .then_some(())
@@ -433,7 +447,10 @@ const BENCH_OBSERVER: &str = "dashboard-bench";
 /// The fleet's processes, the router they all reach and the folder of their logs.
 struct Fleet {
     procs: Vec<Proc>,
-    endpoint: String,
+    /// Where the routers listen (two with `--fault router-failover`); clients know them all.
+    endpoints: Vec<String>,
+    /// A planner's own endpoint where it connects through a relay (`--fault partition`).
+    relays: BTreeMap<String, String>,
     /// A secured fleet's PKI (`--secure`): every process connects with its own config.
     pki: Option<glasshouse_trust::Layout>,
     lease: String,
@@ -457,9 +474,14 @@ impl Fleet {
         } else {
             (format!("tcp/127.0.0.1:{port}"), None)
         };
+        let mut endpoints = vec![endpoint];
+        if args.fault == fault::Fault::RouterFailover {
+            endpoints.push(format!("tcp/127.0.0.1:{}", free_port()?));
+        }
         Ok(Fleet {
             procs: Vec::new(),
-            endpoint,
+            endpoints,
+            relays: BTreeMap::new(),
             pki,
             lease: args.lease_ms.to_string(),
             logs,
@@ -474,7 +496,11 @@ impl Fleet {
                 zenoh_config: Some(pki.config(name)),
                 ..BusArgs::default()
             },
-            None => BusArgs::client(&self.endpoint),
+            None => BusArgs {
+                connect: self.endpoints.clone(),
+                mode: Some(glasshouse_bus::Mode::Client),
+                ..BusArgs::default()
+            },
         }
     }
 
@@ -488,20 +514,50 @@ impl Fleet {
         })
     }
 
-    fn spawn_router(&mut self) -> anyhow::Result<()> {
+    /// Starts router `index` (`router`, `router2`: the second one connects to the first).
+    fn spawn_router(&mut self, index: usize) -> anyhow::Result<()> {
         let mut args = vec!["router".into()];
         args.extend(self.config_flags(glasshouse_trust::ROUTER));
         // Loopback only, whatever the config file's listener says.
-        args.extend(["-l".into(), self.endpoint.clone()]);
+        args.extend(["-l".into(), self.endpoints[index].clone()]);
+        if index > 0 {
+            args.extend(["-e".into(), self.endpoints[0].clone()]);
+        }
         args.extend(["--lease-ms".into(), self.lease.clone()]);
-        let router = spawn(
-            "router",
-            "router".into(),
+        let name = match index {
+            0 => "router".to_string(),
+            i => format!("router{}", i + 1),
+        };
+        let router = spawn("router", name, &sibling("glasshouse")?, &args, &self.logs)?;
+        self.procs.push(router);
+        Ok(())
+    }
+
+    fn spawn_routers(&mut self) -> anyhow::Result<()> {
+        (0..self.endpoints.len()).try_for_each(|i| self.spawn_router(i))
+    }
+
+    /// A relay between planner `name` and the first router, which `--fault partition` cuts.
+    fn spawn_relay(&mut self, name: &str) -> anyhow::Result<()> {
+        let router = self.endpoints[0].clone();
+        let (proto, _) = router.split_once('/').unwrap_or(("tcp", ""));
+        let own = format!("{proto}/127.0.0.1:{}", free_port()?);
+        let args = [
+            "relay".into(),
+            "--listen".into(),
+            own.clone(),
+            "--to".into(),
+            router,
+        ];
+        let relay = spawn(
+            "relay",
+            format!("relay-{name}"),
             &sibling("glasshouse")?,
             &args,
             &self.logs,
         )?;
-        self.procs.push(router);
+        self.procs.push(relay);
+        self.relays.insert(name.to_owned(), own);
         Ok(())
     }
 
@@ -518,18 +574,14 @@ impl Fleet {
             ("glasshouse", Some((command, rest))) => (vec![command.clone()], rest),
             _ => (Vec::new(), extra),
         };
-        a.extend(
-            [
-                "-e",
-                &self.endpoint,
-                "--mode",
-                "client",
-                "--lease-ms",
-                &self.lease,
-            ]
-            .iter()
-            .map(|s| s.to_string()),
-        );
+        let connect = match self.relays.get(&name) {
+            Some(relay) => vec![relay.clone()],
+            None => self.endpoints.clone(),
+        };
+        for endpoint in connect {
+            a.extend(["-e".into(), endpoint]);
+        }
+        a.extend(["--mode", "client", "--lease-ms", &self.lease].map(String::from));
         // The edge process is a trolley's identity.
         let role = if kind == "edge" { "trolley" } else { kind };
         a.extend(self.config_flags(&format!("{role}-{name}")));
@@ -546,6 +598,9 @@ impl Fleet {
             self.spawn_client("detector", format!("d{i}"), "detector-service", &extra)?;
         }
         for i in 1..=args.planners {
+            if args.fault == fault::Fault::Partition {
+                self.spawn_relay(&format!("p{i}"))?;
+            }
             let mut extra = vec!["--planner-id".into(), format!("p{i}")];
             if let Some(n) = args.replica_refresh_clouds {
                 extra.extend(["--replica-refresh-clouds".into(), n.to_string()]);
@@ -716,9 +771,10 @@ impl Observed {
                 t.frame_at.entry(header.seq).or_insert(now);
             }
             (TrolleyTopic::Roi, Message::RoiCloud(c)) => {
-                if tid == "t1" {
-                    self.t1_clouds.push(c.clone());
-                }
+                self.clouds
+                    .entry(tid.to_owned())
+                    .or_default()
+                    .push(c.clone());
                 let seq = c.source_frame_seq;
                 if let std::collections::hash_map::Entry::Vacant(e) = t.cloud_at.entry(seq) {
                     e.insert(now);
@@ -740,6 +796,9 @@ impl Observed {
             (TrolleyTopic::Status, Message::TrolleyStatus(s)) => {
                 self.drops
                     .insert(format!("trolley/{tid}"), s.dropped_messages);
+                if t.terms.last().map(|(_, terms)| terms) != Some(&s.owner_terms) {
+                    t.terms.push((now, s.owner_terms));
+                }
             }
             _ => {}
         }
@@ -775,10 +834,8 @@ async fn warm_up(
 struct Measurement {
     elapsed_s: f64,
     drops_at_start: BTreeMap<String, u64>,
-    /// The planner killed and when.
-    killed: Option<(String, Instant)>,
-    /// The trolleys it owned then: every one of them is taken over, and each takeover is timed.
-    killed_owned: Vec<String>,
+    /// The fault injected, if it was.
+    fault: Option<fault::Injected>,
     /// CPU seconds of each killed process at its kill.
     cpu_at_kill: HashMap<String, f64>,
     /// Resident memory of the live planners together, one minute in and at the end.
@@ -857,90 +914,114 @@ fn track_peak_rss(procs: &mut [Proc]) {
     }
 }
 
-/// The measured run: resets the observer's logs, samples memory, kills t1's owner at `kill_at`.
+/// When the fault comes during the measured run, and when it is undone.
+#[derive(Clone, Copy)]
+struct FaultPlan {
+    fault: fault::Fault,
+    at: Duration,
+    undo_after: Option<Duration>,
+}
+
+/// The measured run: resets the observer's logs, samples memory, injects the fault and undoes it.
 async fn measure(
-    procs: &mut [Proc],
+    fleet: &mut Fleet,
     observed: &Mutex<Observed>,
     measured: Duration,
-    kill_enabled: bool,
-    kill_at: Duration,
-) -> Measurement {
+    plan: Option<FaultPlan>,
+) -> anyhow::Result<Measurement> {
     let (drops_at_start, stages_at_start, catch_up_ms_at_start) = reset_observer(observed);
     let mut planner_cpu = cost::CpuSamples::default();
-    for p in procs.iter_mut() {
+    for p in fleet.procs.iter_mut() {
         p.cpu_at_start_s = cpu_seconds(p.child.id()).unwrap_or(0.0);
     }
     let started = Instant::now();
     let bar = progress_bar(measured);
-    let mut killed: Option<(String, Instant)> = None;
-    let mut killed_owned = Vec::new();
+    let mut injected: Option<fault::Injected> = None;
     let mut cpu_at_kill: HashMap<String, f64> = HashMap::new();
     let mut planner_rss_kib_minute1 = None;
     let mut next_cpu_sample = Duration::ZERO;
     while started.elapsed() < measured {
         tokio::time::sleep(Duration::from_millis(250)).await;
         if started.elapsed() >= next_cpu_sample {
-            planner_cpu.push(started.elapsed(), planners_cpu_s(procs, &cpu_at_kill));
+            let cpu = planners_cpu_s(&fleet.procs, &cpu_at_kill);
+            planner_cpu.push(started.elapsed(), cpu);
             next_cpu_sample += Duration::from_secs(5);
         }
-        track_peak_rss(procs);
-        if kill_enabled && killed.is_none() && started.elapsed() >= kill_at {
-            if let Some((pid, at, owned)) = kill_owner_of_t1(procs, observed, &mut cpu_at_kill) {
-                bar.println(format!(
-                    "killed {pid}, the owner of {}, at {:.1} s",
-                    owned.join(", "),
-                    started.elapsed().as_secs_f64()
-                ));
-                killed = Some((pid, at));
-                killed_owned = owned;
-            }
+        track_peak_rss(&mut fleet.procs);
+        if let Some(plan) = plan {
+            step_fault(
+                fleet,
+                observed,
+                plan,
+                started,
+                &mut injected,
+                &mut cpu_at_kill,
+                &bar,
+            )?;
         }
         if planner_rss_kib_minute1.is_none() && started.elapsed() >= Duration::from_secs(60) {
-            planner_rss_kib_minute1 = planner_rss_kib(procs);
+            planner_rss_kib_minute1 = planner_rss_kib(&fleet.procs);
         }
         bar.set_position(started.elapsed().as_secs().min(measured.as_secs()));
     }
     bar.finish_and_clear();
-    planner_cpu.push(started.elapsed(), planners_cpu_s(procs, &cpu_at_kill));
-    Measurement {
+    // A fault still under way ends with the run: a stopped planner must hear SIGTERM.
+    if let Some(injected) = injected.as_mut() {
+        fault::undo(injected, fleet)?;
+    }
+    planner_cpu.push(
+        started.elapsed(),
+        planners_cpu_s(&fleet.procs, &cpu_at_kill),
+    );
+    Ok(Measurement {
         started,
         planner_cpu,
         stages_at_start,
         catch_up_ms_at_start,
         elapsed_s: started.elapsed().as_secs_f64(),
         drops_at_start,
-        killed,
-        killed_owned,
+        fault: injected,
         cpu_at_kill,
         planner_rss_kib_minute1,
-        planner_rss_kib_end: planner_rss_kib(procs),
-    }
+        planner_rss_kib_end: planner_rss_kib(&fleet.procs),
+    })
 }
 
-/// Kills the planner that owns t1 with SIGKILL, noting its CPU time: who, when, and the trolleys
-/// it owned then; `None` if no planner owns t1.
-fn kill_owner_of_t1(
-    procs: &mut [Proc],
+/// Injects the fault when its time comes, and undoes it when its time is up.
+fn step_fault(
+    fleet: &mut Fleet,
     observed: &Mutex<Observed>,
+    plan: FaultPlan,
+    started: Instant,
+    injected: &mut Option<fault::Injected>,
     cpu_at_kill: &mut HashMap<String, f64>,
-) -> Option<(String, Instant, Vec<String>)> {
-    let (pid, owned) = observed.lock().ok().and_then(|o| {
-        o.owned
-            .iter()
-            .find(|(_, trolleys)| trolleys.iter().any(|t| t == "t1"))
-            .map(|(pid, owned)| (pid.clone(), owned.clone()))
-    })?;
-    let p = procs
-        .iter_mut()
-        .find(|p| p.kind == "planner" && p.name == pid)?;
-    cpu_at_kill.insert(
-        pid.clone(),
-        cpu_seconds(p.child.id()).unwrap_or(p.cpu_at_start_s),
-    );
-    let _ = p.child.kill();
-    let _ = p.child.wait();
-    p.killed = true;
-    Some((pid, Instant::now(), owned))
+    bar: &ProgressBar,
+) -> anyhow::Result<()> {
+    let elapsed = started.elapsed();
+    match injected {
+        None if elapsed >= plan.at => {
+            *injected = fault::inject(plan.fault, fleet, observed, cpu_at_kill)?;
+            if let Some(i) = injected {
+                bar.println(format!(
+                    "{:?}: {} (moves {}) at {:.1} s",
+                    i.fault,
+                    i.target,
+                    i.moved.join(", "),
+                    elapsed.as_secs_f64()
+                ));
+            }
+        }
+        Some(i) if plan.undo_after.is_some_and(|d| i.at.elapsed() >= d) && i.ended.is_none() => {
+            fault::undo(i, fleet)?;
+            bar.println(format!(
+                "{:?} undone at {:.1} s",
+                i.fault,
+                elapsed.as_secs_f64()
+            ));
+        }
+        _ => {}
+    }
+    Ok(())
 }
 
 /// CPU and peak memory per process kind over the measured run.
@@ -973,33 +1054,6 @@ fn per_kind_usage(procs: &[Proc], m: &Measurement) -> BTreeMap<String, KindRepor
             )
         })
         .collect()
-}
-
-/// Seconds from the kill of its owner to `tid`'s first views from another planner.
-fn takeover_s(o: &Observed, m: &Measurement, tid: &str) -> Option<f64> {
-    let (pid, at) = m.killed.as_ref()?;
-    let trolley = o.trolleys.get(tid)?;
-    trolley
-        .views_from
-        .iter()
-        .find(|(when, from)| when > at && from != pid)
-        .map(|(when, _)| when.duration_since(*at).as_secs_f64())
-}
-
-/// Every trolley the killed planner owned, timed; and the slowest.
-fn takeovers(o: &Observed, m: &Measurement) -> (BTreeMap<String, Option<f64>>, Option<f64>) {
-    let each: BTreeMap<String, Option<f64>> = m
-        .killed_owned
-        .iter()
-        .map(|tid| (tid.clone(), takeover_s(o, m, tid)))
-        .collect();
-    let slowest = each
-        .values()
-        .try_fold(None::<f64>, |max, t| {
-            t.map(|t| Some(max.map_or(t, |m| m.max(t))))
-        })
-        .flatten();
-    (each, slowest)
 }
 
 /// The planners' cost along the run and by stage (see `cost`).
@@ -1051,8 +1105,6 @@ fn build_report(
         .collect();
     let frames: usize = o.trolleys.values().map(|t| t.cloud_at.len()).sum();
     let views: u64 = o.trolleys.values().map(|t| t.views).sum();
-    let takeover_s = takeover_s(o, m, "t1");
-    let (takeovers_s, takeover_max_s) = takeovers(o, m);
     let dropped: u64 = o
         .drops
         .iter()
@@ -1071,7 +1123,6 @@ fn build_report(
         planner_cpu_ms_per_frame_last_minute: cost.cpu_ms_per_frame_last_minute,
         planner_stage_ms_per_frame: cost.stage_ms_per_frame,
         planner_catch_up_ms: cost.catch_up_ms,
-        t1_scans: None,
         trolleys: args.trolleys,
         planners: args.planners,
         detectors: args.detectors,
@@ -1090,10 +1141,7 @@ fn build_report(
         frame_to_views_ms_p99: percentile(&all_views, 99.0),
         messages_dropped: dropped,
         observer_corrupt: o.corrupt,
-        killed_planner: m.killed.as_ref().map(|(p, _)| p.clone()),
-        takeover_s,
-        takeovers_s,
-        takeover_max_s,
+        fault: m.fault.as_ref().map(|f| fault::report(o, f, m.started)),
         bytes_per_frame: (o.rgbd_frames > 0).then(|| o.rgbd_bytes as f64 / o.rgbd_frames as f64),
         arm_wait_share: all_views.iter().sum::<f64>() / 1e3 / (elapsed_s * n),
         planner_cpu_ms_per_frame: (frames > 0).then(|| planner_cpu_s * 1e3 / frames as f64),
@@ -1113,7 +1161,7 @@ fn mib(v: Option<f64>) -> String {
 
 fn print_report(r: &Report) {
     print_throughput(r);
-    print_takeover(r);
+    fault::print(r.fault.as_ref());
     print_resources(r);
 }
 
@@ -1170,36 +1218,6 @@ fn print_throughput(r: &Report) {
         mib(r.planner_rss_mib_per_trolley_minute1),
         mib(r.planner_rss_mib_per_trolley_end)
     );
-}
-
-/// The takeover of every trolley the killed planner owned, and t1's scans.
-fn print_takeover(r: &Report) {
-    match &r.killed_planner {
-        Some(p) => {
-            let each: Vec<String> = r
-                .takeovers_s
-                .iter()
-                .map(|(tid, t)| match t {
-                    Some(t) => format!("{tid} {t:.2} s"),
-                    None => format!("{tid} NEVER"),
-                })
-                .collect();
-            let slowest = r
-                .takeover_max_s
-                .map_or("not all taken over".to_string(), |t| format!("{t:.2} s"));
-            println!(
-                "  takeover: {p} killed (owner of t1); first views from another planner: {} (slowest: {slowest})",
-                each.join(", ")
-            )
-        }
-        None => println!("  takeover: no planner killed"),
-    }
-    if let Some(t) = &r.t1_scans {
-        println!(
-            "  scans lost: {} (t1's map at {}: {} scans, rebuilt offline from {} clouds: {} scans; equal voxel for voxel: {})",
-            t.scans_lost, t.survivor, t.scans_in_survivor_map, t.clouds_observed, t.scans_rebuilt, t.maps_equal
-        );
-    }
 }
 
 /// The recorder and each kind of process.

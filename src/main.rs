@@ -9,6 +9,7 @@ mod eval;
 mod fleet_bench;
 mod probe;
 mod record;
+mod relay;
 mod render;
 mod secure;
 
@@ -67,6 +68,9 @@ enum Command {
         #[command(flatten)]
         bus: BusArgs,
     },
+    /// A TCP relay that cuts a link without closing it (SIGUSR1) and heals it (SIGUSR2): point a
+    /// process at it instead of the router to rehearse a network partition on one machine.
+    Relay(relay::RelayArgs),
 }
 
 /// Where a router listens when neither its config file nor a flag says.
@@ -89,6 +93,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Secure(args) => secure::run(args).await,
         Command::Record(args) => record::record(args).await,
         Command::Replay(args) => record::replay(args).await,
+        Command::Relay(args) => relay::run(args).await,
         Command::Router { bus } => {
             let config = glasshouse_bus::router_config(&bus, DEFAULT_ROUTER_LISTEN)?;
             let listen = config.get_json("listen/endpoints").unwrap_or_default();

@@ -1,8 +1,9 @@
-//! Scans lost in the takeover: after the measured run, t1's map at the planner that owns it
-//! then (the survivor of the kill) is compared voxel for voxel with the map rebuilt offline from
-//! every ROI cloud of t1 the observer saw, through the same planning steps
+//! Scans lost to the fault: after the measured run, the map of every trolley the fault moved, at
+//! the planner that owns it then, is compared voxel for voxel with the map rebuilt offline from
+//! every ROI cloud of that trolley the observer saw, through the same planning steps
 //! (`TrolleyPlanner::insert`).
 
+use std::collections::BTreeMap;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -13,12 +14,12 @@ use serde::Serialize;
 
 use super::{Observed, Proc};
 
-/// How long the survivor has to reach the last cloud observed once t1's edge is stopped.
+/// How long the owners have to reach the last cloud observed once the edges are stopped.
 const SETTLE: Duration = Duration::from_secs(30);
 
 #[derive(Debug, Serialize)]
 pub(super) struct LostReport {
-    /// The planner holding t1 at the end.
+    /// The planner holding the trolley at the end.
     pub survivor: String,
     pub clouds_observed: usize,
     pub scans_in_survivor_map: u64,
@@ -29,40 +30,65 @@ pub(super) struct LostReport {
     pub maps_equal: bool,
 }
 
-/// Stops t1's edge, waits until t1's owner answers with a snapshot at the last cloud observed,
-/// and compares its map with the offline rebuild.
-pub(super) async fn check_t1(
+/// Stops the edges of `tids`, waits until each trolley's owner answers with a snapshot at the
+/// last cloud observed, and compares its map with the offline rebuild; a trolley whose check
+/// failed is reported on stderr and left out.
+pub(super) async fn check(
     observer: &glasshouse_bus::zenoh::Session,
     observed: &Mutex<Observed>,
     procs: &mut [Proc],
-) -> anyhow::Result<LostReport> {
-    if let Some(edge) = procs
+    tids: &[String],
+) -> BTreeMap<String, LostReport> {
+    for edge in procs
         .iter_mut()
-        .find(|p| p.kind == "edge" && p.name == "t1")
+        .filter(|p| p.kind == "edge" && tids.contains(&p.name))
     {
         let _ = edge.child.kill();
         let _ = edge.child.wait();
         edge.killed = true;
     }
     let deadline = Instant::now() + SETTLE;
+    let mut reports = BTreeMap::new();
+    for tid in tids {
+        match check_one(observer, observed, tid, deadline).await {
+            Ok(report) => {
+                reports.insert(tid.clone(), report);
+            }
+            Err(e) => eprintln!("fleet-bench: scans lost of {tid} not measured: {e:#}"),
+        }
+    }
+    reports
+}
+
+/// Every planner whose latest status lists `tid` (a replaced owner's last status may still), and
+/// the clouds of `tid` observed.
+fn owners_and_clouds(
+    observed: &Mutex<Observed>,
+    tid: &str,
+) -> anyhow::Result<(Vec<String>, Vec<RoiCloud>)> {
+    let o = observed
+        .lock()
+        .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
+    let owners = o
+        .owned
+        .iter()
+        .filter(|(_, t)| t.iter().any(|t| t == tid))
+        .map(|(pid, _)| pid.clone())
+        .collect();
+    Ok((owners, o.clouds.get(tid).cloned().unwrap_or_default()))
+}
+
+async fn check_one(
+    observer: &glasshouse_bus::zenoh::Session,
+    observed: &Mutex<Observed>,
+    tid: &str,
+    deadline: Instant,
+) -> anyhow::Result<LostReport> {
     loop {
-        // Every planner whose latest status lists t1: the killed owner's last status may still
-        // list it.
-        let (clouds, owners) = {
-            let o = observed
-                .lock()
-                .map_err(|_| anyhow::anyhow!("observer state poisoned"))?;
-            let owners: Vec<String> = o
-                .owned
-                .iter()
-                .filter(|(_, t)| t.iter().any(|t| t == "t1"))
-                .map(|(pid, _)| pid.clone())
-                .collect();
-            (o.t1_clouds.clone(), owners)
-        };
+        let (owners, clouds) = owners_and_clouds(observed, tid)?;
         let last = clouds.iter().map(RoiCloud::source_frame).max();
         for owner in owners {
-            let key = keys::planner_snapshot(&owner, "t1")?;
+            let key = keys::planner_snapshot(&owner, tid)?;
             if let Ok((_, s)) = glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
                 if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last {
                     let survivor = RoiMap::read_snapshot(s.map.as_slice())?;
@@ -72,7 +98,7 @@ pub(super) async fn check_t1(
         }
         anyhow::ensure!(
             Instant::now() < deadline,
-            "t1's owner did not reach the last cloud observed within {} s",
+            "{tid}'s owner did not reach the last cloud observed within {} s",
             SETTLE.as_secs()
         );
         tokio::time::sleep(Duration::from_millis(200)).await;

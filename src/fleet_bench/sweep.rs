@@ -8,12 +8,27 @@ use super::{mib, ms, Report};
 /// The p99 frame -> views the fleet should hold (the capacity goal), drawn on the plot.
 const GOAL_P99_MS: f64 = 250.0;
 
+fn secs(s: Option<f64>) -> String {
+    s.map_or("–".into(), |s| format!("{s:.2} s"))
+}
+
+/// Scans lost over every moved trolley, and whether every map equals its rebuild.
+fn scans_lost(f: &super::fault::FaultReport) -> String {
+    let maps: Vec<_> = f.moved.values().filter_map(|m| m.map.as_ref()).collect();
+    let lost: u64 = maps.iter().map(|m| m.scans_lost).sum();
+    let equal = maps.len() == f.moved.len() && maps.iter().all(|m| m.maps_equal);
+    match equal {
+        true => format!("{lost} (maps equal)"),
+        false => format!("{lost} (maps differ or unchecked)"),
+    }
+}
+
 /// One line per count: latency, waiting arms, planner cost and memory, wire size, drops, takeover.
 pub(super) fn print_table(reports: &[Report]) {
     println!();
     println!("capacity sweep ({} runs)", reports.len());
     println!(
-        "| trolleys | frames/s per trolley | frame -> views p50 / p99 | arms waiting | planner CPU per frame: run / minute 1 / last minute | planner RSS per trolley, minute 1 / end | bytes per frame | drops | takeover t1 / slowest | scans lost |"
+        "| trolleys | frames/s per trolley | frame -> views p50 / p99 | arms waiting | planner CPU per frame: run / minute 1 / last minute | planner RSS per trolley, minute 1 / end | bytes per frame | drops | back on views after the fault: t1 / last | scans lost (moved trolleys) |"
     );
     println!("|---:|---:|---|---:|---:|---|---:|---:|---:|---:|");
     for r in reports {
@@ -32,18 +47,13 @@ pub(super) fn print_table(reports: &[Report]) {
             r.bytes_per_frame
                 .map_or("–".into(), |b| format!("{:.0} kB", b / 1e3)),
             r.messages_dropped,
-            r.takeover_s.map_or("–".into(), |s| format!("{s:.2} s")),
-            r.takeover_max_s.map_or("–".into(), |s| format!("{s:.2} s")),
-            r.t1_scans
-                .as_ref()
-                .map_or("–".into(), |t| match t.maps_equal {
-                    true => format!("{} (maps equal)", t.scans_lost),
-                    false => format!("{} (maps differ)", t.scans_lost),
-                }),
+            secs(r.fault.as_ref().and_then(|f| f.t1_s)),
+            secs(r.fault.as_ref().and_then(|f| f.last_s)),
+            r.fault.as_ref().map_or("–".into(), scans_lost),
         );
     }
     println!();
-    println!("planner time per frame by stage (the planners' own count, ms), and catch-ups after the kill");
+    println!("planner time per frame by stage (the planners' own count, ms), and catch-ups after the fault");
     println!(
         "| trolleys | integrate | cluster | track | fit | plan | publish | catch-ups (s, all) |"
     );

@@ -17,6 +17,9 @@ pub fn project_defaults() -> Value {
             // Containers start in any order: clients keep retrying instead of exiting.
             "timeout_ms": { "router": -1, "peer": -1, "client": -1 },
             "exit_on_failure": { "router": false, "peer": false, "client": false },
+            // A client that lost its router tries again within a second (Zenoh's default backs
+            // off to 4 s): a restarted router, or the second one, has the fleet back sooner.
+            "retry": { "period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2 },
         },
         "transport": { "link": { "tx": { "queue": { "congestion_control": { "block": {
             // A busy consumer must slow a reliable producer down, not get its link closed.

@@ -116,6 +116,17 @@ impl Proc {
         self.signal("-CONT");
     }
 
+    /// A relay (`glasshouse relay`) cuts its link (SIGUSR1): no byte passes, nothing closes, as
+    /// behind a dead switch; peers notice only when their lease expires.
+    pub fn cut(&self) {
+        self.signal("-USR1");
+    }
+
+    /// A relay heals its link (SIGUSR2).
+    pub fn heal(&self) {
+        self.signal("-USR2");
+    }
+
     fn signal(&self, signal: &str) {
         let pid = self.child.id().to_string();
         let status = Command::new("kill").args([signal, &pid]).status();

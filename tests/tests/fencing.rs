@@ -1,9 +1,10 @@
-//! Fencing under a hung owner, with the real binaries: router, two planners, a detector and one
-//! edge, on a 1 s lease. The trolley's owner is paused (SIGSTOP) with its links left open; once
-//! its lease expires the other planner takes over under a newer ownership epoch and the trolley
-//! is served again. Then the paused owner resumes (SIGCONT): it still believes it owns the
-//! trolley, ranks first again as soon as its token is back, and holds a map without the scans
-//! integrated meanwhile.
+//! Fencing under a hung or cut-off owner, with the real binaries: router, two planners (each
+//! behind its own `glasshouse relay`), a detector and one edge, on a 1 s lease. The trolley's
+//! owner is paused (SIGSTOP) or cut off from the router (its relay stops passing bytes: a network
+//! partition), with its links left open either way; once its lease expires the other planner
+//! takes over under a newer ownership epoch and the trolley is served again. Then the owner comes
+//! back (SIGCONT, or the link heals): it still believes it owns the trolley, ranks first again as
+//! soon as its token is back, and holds a map without the scans integrated meanwhile.
 //!
 //! What must hold, read off the edge's own counters (its TrolleyStatus: views executed per
 //! ownership term, stale views refused) and the planners' statuses: no view of the paused
@@ -44,10 +45,54 @@ fn term_after(status: &TrolleyStatus, pid: &str, after: u64, views: u32) -> Opti
     Some(term.owner_epoch)
 }
 
+/// How the owner is lost for a while.
+#[derive(Clone, Copy, Debug)]
+enum OwnerFault {
+    /// SIGSTOP, then SIGCONT.
+    Pause,
+    /// Its relay to the router cut, then healed.
+    Partition,
+}
+
+/// A planner process and the relay it reaches the router through.
+struct Planner {
+    pid: &'static str,
+    process: Proc,
+    relay: Proc,
+}
+
+impl Planner {
+    fn lose(&self, fault: OwnerFault) {
+        match fault {
+            OwnerFault::Pause => self.process.pause(),
+            OwnerFault::Partition => self.relay.cut(),
+        }
+    }
+
+    fn restore(&self, fault: OwnerFault) {
+        match fault {
+            OwnerFault::Pause => self.process.resume(),
+            OwnerFault::Partition => self.relay.heal(),
+        }
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_paused_owner_that_wakes_up_moves_no_arm() {
+    owner_lost_and_back_moves_no_arm(OwnerFault::Pause).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_owner_cut_off_and_healed_moves_no_arm() {
+    owner_lost_and_back_moves_no_arm(OwnerFault::Partition).await;
+}
+
+async fn owner_lost_and_back_moves_no_arm(fault: OwnerFault) {
     build_binaries();
-    let logs = std::env::temp_dir().join(format!("glasshouse-fencing-{}", std::process::id()));
+    let logs = std::env::temp_dir().join(format!(
+        "glasshouse-fencing-{fault:?}-{}",
+        std::process::id()
+    ));
     std::fs::create_dir_all(&logs).expect("log dir");
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     // A short lease: a hung process is dropped after 1 s instead of Zenoh's 10 s.
@@ -70,11 +115,33 @@ async fn a_paused_owner_that_wakes_up_moves_no_arm() {
     let planner_sub = observe(&observer, &keys::all_planner_status()).await;
     let clouds_sub = observe(&observer, &keys::roi("t1").expect("key")).await;
     let _detector = start("detector", "detector-service", &[]);
-    let planner = |pid: &'static str, name: &'static str| {
-        let args = ["--planner-id", pid, "--replica-refresh-clouds", "2"];
-        (pid, start(name, "planner-service", &args))
+    let planner = |pid: &'static str, name: &'static str, relay_name: &'static str| {
+        let relayed = format!("tcp/127.0.0.1:{}", free_port());
+        let relay_args = ["relay", "--listen", &relayed, "--to", &endpoint];
+        let relay = Proc::start(relay_name, "glasshouse", &relay_args, &logs);
+        let args = [
+            "-e",
+            &relayed,
+            "--mode",
+            "client",
+            "--lease-ms",
+            "1000",
+            "--planner-id",
+            pid,
+            "--replica-refresh-clouds",
+            "2",
+        ];
+        let process = Proc::start(name, "planner-service", &args, &logs);
+        Planner {
+            pid,
+            process,
+            relay,
+        }
     };
-    let planners = [planner("p1", "planner-p1"), planner("p2", "planner-p2")];
+    let planners = [
+        planner("p1", "planner-p1", "relay-p1"),
+        planner("p2", "planner-p2", "relay-p2"),
+    ];
     within(60, "both planners report", async {
         let mut seen = std::collections::BTreeSet::new();
         while seen.len() < 2 {
@@ -127,13 +194,13 @@ async fn a_paused_owner_that_wakes_up_moves_no_arm() {
         })
         .await;
     assert_ne!(old_epoch, 0, "the owner's views carry its term");
-    let (_, paused) = planners
+    let lost = planners
         .iter()
-        .find(|(pid, _)| *pid == owner)
+        .find(|p| p.pid == owner)
         .expect("the owner is one of ours");
     let other = if owner == "p1" { "p2" } else { "p1" };
-    eprintln!("owner {owner} under epoch {old_epoch}: pausing it");
-    paused.pause();
+    eprintln!("owner {owner} under epoch {old_epoch}: {fault:?}");
+    lost.lose(fault);
 
     // 2. The other planner takes over under a newer term; the trolley is served again.
     let (new_epoch, takeover) = within(
@@ -199,8 +266,8 @@ async fn a_paused_owner_that_wakes_up_moves_no_arm() {
 
     // 4. The paused owner resumes. It ranks first again once its token is back: it must step
     // down, catch up from the other planner and serve the trolley under a newer term.
-    eprintln!("resuming {owner}");
-    paused.resume();
+    eprintln!("{owner} back from {fault:?}");
+    lost.restore(fault);
     let (resumed_epoch, last) = within(
         180,
         "views executed under the woken owner's new term",

@@ -36,8 +36,10 @@ enum Command {
     /// Measure whether the dashboard keeps up with a fleet of synthetic trolleys, and its memory.
     DashboardBench(dashboard_bench::DashboardBenchArgs),
     /// Run the fleet as real processes over loopback Zenoh (router, detectors, planners, simulated
-    /// trolleys), kill the owner of a trolley half-way, and report views per minute, frame → views
-    /// latency, drops, takeover time, and CPU and memory per process kind.
+    /// trolleys), inject a fault half-way (a planner killed, paused or cut off; the router
+    /// restarted or lost to a second one), and report views per minute, frame → views latency,
+    /// drops, CPU and memory per process kind, and for every trolley the fault moved: the time
+    /// until it was back on views, arm motions on stale views, and whether its map lost a scan.
     FleetBench(fleet_bench::FleetBenchArgs),
     /// Time the ROI map's scan insertion (OctoMap semantics) on your own PLY clouds.
     BenchMap(bench_map::BenchMapArgs),

@@ -66,9 +66,9 @@ async fn a_paused_owner_that_wakes_up_moves_no_arm() {
     let _router = Proc::start("router", "glasshouse", &["router", "-l", &endpoint], &logs);
     let observer = client(&endpoint).await;
     let status_sub = observe(&observer, &keys::status("t1").expect("key")).await;
-    let views_sub = observe(&observer, &keys::views("t1").expect("key")).await;
+    let views_sub = observe(&observer, &keys::views_from_any("t1").expect("key")).await;
     let planner_sub = observe(&observer, &keys::all_planner_status()).await;
-    let clouds_sub = observe(&observer, &keys::roi("t1").expect("key")).await;
+    let clouds_sub = observe(&observer, &keys::roi_from_any("t1").expect("key")).await;
     let _detector = start("detector", "detector-service", &[]);
     let planner = |pid: &'static str, name: &'static str| {
         let args = ["--planner-id", pid, "--replica-refresh-clouds", "2"];
@@ -175,7 +175,7 @@ async fn a_paused_owner_that_wakes_up_moves_no_arm() {
     };
     let delayed = Publisher::declare(
         &observer,
-        &keys::views("t1").expect("key"),
+        &keys::views("t1", &header.source_id).expect("key"),
         Arc::new(DropCounters::default()),
     )
     .await

@@ -200,7 +200,7 @@ pub(super) async fn detector_attempts(
     let header = cloud_header(tid, &serving);
     control_clouds.send(&header, &probe_cloud(control)).await?;
     let wait = Instant::now() + setup.timeout + Duration::from_secs(5);
-    let seen = judge_clouds(&watch, (&owner, refusals_before + 2), control, wait).await?;
+    let seen = judge_clouds(&watch, (&owner, refusals_before, 2), control, wait).await?;
     drop((rogue_clouds, control_clouds));
     let _ = rogue_session.close().await;
     let _ = control_session.close().await;
@@ -253,16 +253,18 @@ async fn owner_refusals(
     }
 }
 
-/// Waits until the control frame shows in the victim's map or views and the owner has counted
-/// `refusals` refused clouds; returns the probe frames seen.
+/// Waits until the control frame shows in the victim's map or views and every forged cloud
+/// either shows there too (taken) or was counted by the owner (refused clouds over `before`);
+/// returns the probe frames seen.
 async fn judge_clouds(
     watch: &Victim,
-    (owner, refusals): (&str, u64),
+    (owner, before, forged): (&str, u64, u64),
     control: u64,
     deadline: Instant,
 ) -> Result<Vec<u64>, ProbeError> {
-    let (mut seen, mut counted) = (Vec::new(), false);
-    while !(seen.contains(&control) && counted) {
+    let (mut seen, mut refused) = (Vec::new(), 0);
+    let forged_seen = |seen: &Vec<u64>| seen.iter().filter(|&&f| f != control).count() as u64;
+    while !(seen.contains(&control) && refused + forged_seen(&seen) >= forged) {
         let frame = tokio::select! {
             m = next(&watch.maps, deadline, "the control cloud in the map and the refusals counted") => m?.message.based_on_seq,
             v = next(&watch.views, deadline, "the control cloud in the views and the refusals counted") => {
@@ -272,7 +274,9 @@ async fn judge_clouds(
             }
             s = next(&watch.planners, deadline, "the owner's status") => {
                 let s = s?.message;
-                counted |= s.planner_id == owner && s.refused_clouds + s.unassigned_clouds >= refusals;
+                if s.planner_id == owner {
+                    refused = (s.refused_clouds + s.unassigned_clouds).saturating_sub(before);
+                }
                 continue;
             }
         };
@@ -321,7 +325,9 @@ pub(super) async fn planner_attempts(
         let views = aimed(&template, &frame, mark(10));
         owner_views.send(&views_header(tid, &owner), &views).await?;
     }
-    while edge.refused < edge.refused_before + 2 {
+    // Each forged set was either executed or counted as refused.
+    let taken = |edge: &EdgeSeen| (0..2).filter(|&n| edge.executed(&mark(n))).count() as u64;
+    while edge.refused + taken(&edge) < edge.refused_before + 2 {
         edge.next_status(&watch, wait).await?;
     }
     drop((rogue_views, owner_views));

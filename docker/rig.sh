@@ -50,8 +50,10 @@ RIG_UID=10001
 # The roster: compose.yaml's services, plus the rogue container's observer (read-only).
 ROSTER_ARGS=(--trolleys t1,t2,t3,t4 --planners p1,p2,p3 --detectors d1,d2 --dashboards web1,probe
     --router-hosts router,localhost --router-endpoint tls/router:7447)
-# The rogue container: a valid trolley identity (t2) acting on t1's keys, watched by dashboard-probe.
-ROGUE_IDENTITIES=(trolley-t2 dashboard-probe)
+# The rogue container: a valid trolley identity (t2) acting on t1's keys, watched by dashboard-probe;
+# and the detectors' and planners' identities, each stolen: the one not serving t1 sends it clouds
+# and views, the one serving it shows that the same messages from it are taken.
+ROGUE_IDENTITIES=(trolley-t2 dashboard-probe detector-d1 detector-d2 planner-p1 planner-p2 planner-p3)
 BINS=(glasshouse edge detector-service planner-service dashboard)
 SLIM_IMAGE=debian:bookworm-slim
 CACHED_BASE=glasshouse-base:bookworm
@@ -368,8 +370,9 @@ owner_of() {
 
 # ---------------------------------------------------------------------------------------------
 # run_rogue TID...: `glasshouse secure probe` in a container of its own on the rig's network, as
-# trolley-t2 acting on t1's keys (and without a certificate, and with another CA's), watched by
-# dashboard-probe. Fails unless every attempt is refused and every trolley still gets views.
+# trolley-t2 acting on t1's keys (and without a certificate, and with another CA's), and as a
+# compromised detector and planner sending t1 clouds and views, watched by dashboard-probe. Fails
+# unless every attempt is refused and every trolley still gets views.
 ROGUE_LINE=""
 run_rogue() {
     local tids=("$@") network out t0=$SECONDS tid
@@ -383,7 +386,10 @@ run_rogue() {
     if ! out="$(docker run --rm --network "$network" --init \
         -v "$GH_IDENTITIES/rogue:$PKI_IN_CONTAINER:ro" "$RIG_IMAGE" \
         glasshouse secure probe --rogue "$PKI_IN_CONTAINER/trolley-t2.json5" \
-        --observer "$PKI_IN_CONTAINER/dashboard-probe.json5" --victim t1 --planners p1,p2,p3 2>&1)"; then
+        --observer "$PKI_IN_CONTAINER/dashboard-probe.json5" --victim t1 --planners p1,p2,p3 \
+        --detector-identity "$PKI_IN_CONTAINER/detector-d1.json5,$PKI_IN_CONTAINER/detector-d2.json5" \
+        --planner-identity "$PKI_IN_CONTAINER/planner-p1.json5,$PKI_IN_CONTAINER/planner-p2.json5,$PKI_IN_CONTAINER/planner-p3.json5" \
+        2>&1)"; then
         printf '%s\n' "$out" >&2
         fail "the rogue container was not refused everything (or could not judge)" router
     fi

@@ -188,6 +188,7 @@ impl Pair {
 
 fn cloud_event(seq: usize, cloud: &RoiCloud) -> PlannerEvent {
     PlannerEvent::Cloud {
+        sender: DETECTOR.into(),
         header: Header {
             seq: seq as u64 + 1,
             trolley_id: TROLLEY.into(),

@@ -126,8 +126,8 @@ impl TrolleyPublishers {
         Ok(Self {
             rgbd: Publisher::declare(session, &keys::rgbd(tid)?, drops.clone()).await?,
             arm: Publisher::declare(session, &keys::arm(tid)?, drops.clone()).await?,
-            roi: Publisher::declare(session, &keys::roi(tid)?, drops.clone()).await?,
-            views: Publisher::declare(session, &keys::views(tid)?, drops.clone()).await?,
+            roi: Publisher::declare(session, &keys::roi(tid, "d1")?, drops.clone()).await?,
+            views: Publisher::declare(session, &keys::views(tid, "p1")?, drops.clone()).await?,
             fruits: Publisher::declare(session, &keys::fruits(tid)?, drops.clone()).await?,
             map: Publisher::declare(session, &keys::map(tid)?, drops.clone()).await?,
             status: Publisher::declare(session, &keys::status(tid)?, drops).await?,

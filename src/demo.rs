@@ -482,6 +482,11 @@ impl Progress {
             EdgeEvent::ViewsRefused { source_id, .. } => {
                 println!("views from {source_id} refused: not the trolley's owner");
             }
+            EdgeEvent::MisattributedViewsRefused {
+                sender, claimed, ..
+            } => {
+                println!("views from {sender} refused: their header claims {claimed}");
+            }
             EdgeEvent::StaleViewsRefused {
                 source_id,
                 owner_epoch,

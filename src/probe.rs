@@ -32,6 +32,16 @@ pub struct ProbeArgs {
     /// the rogue's unanswered one is a refusal (needs a live planner holding the victim's map).
     #[arg(long, value_name = "FILE")]
     snapshot_control: Option<PathBuf>,
+    /// Client configs of detector identities (`detector-<id>.json5`, comma-separated or
+    /// repeated), at least two: the one serving the victim shows that its clouds are taken,
+    /// another tries the victim's clouds as a compromised detector.
+    #[arg(long, value_name = "FILES", value_delimiter = ',')]
+    detector_identity: Vec<PathBuf>,
+    /// Client configs of planner identities (`planner-<id>.json5`), at least two: the victim's
+    /// owner shows that its views are executed (moving the victim's arm once, to a view it
+    /// planned), another tries views for the victim as a compromised planner.
+    #[arg(long, value_name = "FILES", value_delimiter = ',')]
+    planner_identity: Vec<PathBuf>,
     /// Seconds to wait for a session, a control message or an answer.
     #[arg(long, value_name = "S", default_value_t = 10)]
     timeout_s: u64,
@@ -47,8 +57,25 @@ pub struct ProbeArgs {
 
 /// The trolley id in a `trolley-<id>.json5` file name.
 fn trolley_of(path: &std::path::Path) -> Option<String> {
+    id_of(path, Kind::Trolley)
+}
+
+/// The id in a `<kind>-<id>.json5` file name.
+fn id_of(path: &std::path::Path, kind: Kind) -> Option<String> {
     let stem = path.file_stem()?.to_str()?;
-    stem.strip_prefix("trolley-").map(str::to_owned)
+    let prefix = format!("{}-", kind.as_str());
+    stem.strip_prefix(&prefix).map(str::to_owned)
+}
+
+/// Each config with the id its file name gives.
+fn identities(paths: &[PathBuf], kind: Kind) -> anyhow::Result<Vec<(String, PathBuf)>> {
+    let named = |path: &PathBuf| {
+        let id = id_of(path, kind).with_context(|| {
+            format!("{}: not named {}-<id>.json5", path.display(), kind.as_str())
+        })?;
+        Ok((id, path.clone()))
+    };
+    paths.iter().map(named).collect()
 }
 
 pub async fn run(args: ProbeArgs) -> anyhow::Result<()> {
@@ -81,6 +108,8 @@ pub async fn run(args: ProbeArgs) -> anyhow::Result<()> {
         observer: args.observer.clone(),
         planners: args.planners.clone(),
         snapshot_control: args.snapshot_control.clone(),
+        detectors: identities(&args.detector_identity, Kind::Detector)?,
+        planner_identities: identities(&args.planner_identity, Kind::Planner)?,
         foreign_key: foreign.key(&victim.common_name()),
         foreign_cert: foreign.cert(&victim.common_name()),
         scratch: scratch.clone(),

@@ -2,15 +2,17 @@
 //!
 //! Stateless: it runs the detection of [`glasshouse_detect`] (the paper's HSI rule after 1 cm
 //! down-sampling, back-projected with the frame's intrinsics and pose) on trolley frames and
-//! publishes a RoiCloud on the trolley's `roi` key. Frames are a stream, so a busy detector skips
-//! stale frames.
+//! publishes a RoiCloud on the trolley's `roi` key under its own id (`gh/trolley/{tid}/roi/{did}`:
+//! in a secured deployment the router lets no other identity put there). Frames are a stream, so
+//! a busy detector skips stale frames.
 //!
 //! Any number of detectors share the fleet by splitting the keys: from the liveliness tokens of
 //! detectors and trolleys each detector computes the rendezvous ranking of the live detectors per
-//! trolley ([`glasshouse_fleet::rank_planners`]) and subscribes only to the frames of the trolleys
+//! trolley ([`glasshouse_fleet::first_ranked`]) and subscribes only to the frames of the trolleys
 //! it ranks first for. Every frame is thus processed once, by one detector, and frames of other
 //! detectors' trolleys never reach it. When a detector leaves, its trolleys move to the next
-//! ranked one within the liveliness lease.
+//! ranked one within the liveliness lease. The planners rank the same way and take a trolley's
+//! clouds only from the detector ranked first for it.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::Ordering;
@@ -134,10 +136,11 @@ pub fn served_trolleys<'a>(
     detectors: &BTreeSet<String>,
     trolleys: &'a BTreeSet<String>,
 ) -> BTreeSet<&'a str> {
-    let detectors: Vec<String> = detectors.iter().cloned().collect();
+    let ranked =
+        |tid: &str| glasshouse_fleet::first_ranked(tid, detectors.iter().map(String::as_str));
     trolleys
         .iter()
-        .filter(|tid| glasshouse_fleet::rank_planners(tid, &detectors).first() == Some(&did))
+        .filter(|tid| ranked(tid) == Some(did))
         .map(String::as_str)
         .collect()
 }
@@ -300,7 +303,7 @@ impl Detector {
             std::collections::hash_map::Entry::Vacant(e) => e.insert(
                 Publisher::declare(
                     &self.session,
-                    &keys::roi(&tid)?,
+                    &keys::roi(&tid, &self.did)?,
                     self.counters.drops.clone(),
                 )
                 .await?,

@@ -478,6 +478,14 @@ impl Driver {
                 tracing::warn!(trolley = %tid, source = %source_id, owner = owner.as_deref().unwrap_or("none"), refused,
                     "views refused: not from the trolley's owner (logged once per source)");
             }
+            EdgeEvent::MisattributedViewsRefused {
+                sender,
+                claimed,
+                refused,
+            } if self.logged_refusals.insert(format!("key {sender}")) => {
+                tracing::warn!(trolley = %tid, %sender, %claimed, refused,
+                    "views refused: their header names another planner than their key (logged once per sender)");
+            }
             EdgeEvent::StaleViewsRefused {
                 source_id,
                 owner_epoch,
@@ -636,7 +644,7 @@ pub async fn run(
     let tid = config.trolley_id.clone();
     let drops = counters.drops.clone();
     let out = Outputs::declare(&session, &tid, &drops).await?;
-    let views = Subscriber::declare(&session, &keys::views(&tid)?, drops.clone()).await?;
+    let views = Subscriber::declare(&session, &keys::views_from_any(&tid)?, drops.clone()).await?;
     let planners = MemberWatch::declare(&session, MemberKind::Planner).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
     let source = config.open_source(&session, &drops)?;
@@ -650,7 +658,11 @@ pub async fn run(
         let input = tokio::select! {
             _ = shutdown.wait() => break,
             received = views.recv() => match received {
-                Some(Received { header, message, .. }) => EdgeInput::Views { header, views: message },
+                Some(Received { key, header, message, .. }) => EdgeInput::Views {
+                    sender: keys::sender(&key).unwrap_or_default().to_owned(),
+                    header,
+                    views: message,
+                },
                 None => break,
             },
             member = planners.recv() => match member {

@@ -45,7 +45,7 @@ use glasshouse_proto::{
     FleetFruit, FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus,
     RankedViews, RoiCloud, TrolleyInfo,
 };
-use node::{PlannerAction, PlannerEvent, PlannerNode, TrolleyOutput};
+use node::{KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, TrolleyOutput};
 use serde::Deserialize;
 use zenoh::Session;
 
@@ -193,12 +193,11 @@ impl Inputs {
                     PlannerEvent::Info { header, info: message }
                 }
                 r = self.clouds.recv() => {
-                    let Received { header, message, .. } = r?;
                     // Clouds that queued up while the node was busy go in as one batch: each is
                     // integrated, each trolley planned once, on its latest.
-                    let mut clouds = vec![(header, message)];
-                    while let Some(Received { header, message, .. }) = self.clouds.try_recv() {
-                        clouds.push((header, message));
+                    let mut clouds = vec![keyed(r?)];
+                    while let Some(received) = self.clouds.try_recv() {
+                        clouds.push(keyed(received));
                     }
                     PlannerEvent::Clouds {
                         clouds,
@@ -208,6 +207,15 @@ impl Inputs {
             };
             return Some(event);
         }
+    }
+}
+
+/// A received cloud with the detector its key names (empty when the key names none: refused).
+fn keyed(received: Received<RoiCloud>) -> KeyedCloud {
+    KeyedCloud {
+        sender: keys::sender(&received.key).unwrap_or_default().to_owned(),
+        header: received.header,
+        cloud: received.message,
     }
 }
 
@@ -287,8 +295,10 @@ impl Outputs {
     async fn trolley(&mut self, tid: &str) -> anyhow::Result<&TrolleyPublishers> {
         if !self.trolleys.contains_key(tid) {
             let (session, drops) = (&self.session, &self.drops);
+            // Views under this planner's own id: the router lets no other identity put there.
+            let views = keys::views(tid, &self.pid)?;
             let publishers = TrolleyPublishers {
-                views: Publisher::declare(session, &keys::views(tid)?, drops.clone()).await?,
+                views: Publisher::declare(session, &views, drops.clone()).await?,
                 fruits: Publisher::declare(session, &keys::fruits(tid)?, drops.clone()).await?,
                 map: Publisher::declare(session, &keys::map(tid)?, drops.clone()).await?,
             };

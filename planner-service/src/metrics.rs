@@ -150,6 +150,12 @@ fn from_status(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings 
             "Ownership terms given up on seeing a newer epoch for the trolley",
             &[],
             s(|st| st.stepped_down as f64),
+        )
+        .counter(
+            "clouds_unassigned",
+            "ROI clouds refused: not from the detector serving the trolley",
+            &[],
+            s(|st| st.unassigned_clouds as f64),
         );
     verdicts.into_iter().fold(readings, |r, (verdict, read)| {
         r.counter(

@@ -5,11 +5,19 @@
 //! a trolley, when to ask for a snapshot, what to do with clouds that arrive meanwhile, when to
 //! plan) is made here and tested by feeding events; the driver in `lib.rs` only moves messages.
 //!
-//! Clouds are taken only from live detectors (their liveliness tokens): a cloud whose header
-//! names another source waits up to [`UNKNOWN_SOURCE_WAIT_NS`] for that source's token (a
-//! detector's token and its first cloud may arrive in either order), then is refused and
-//! counted. Which frames a map takes is [`glasshouse_pipeline::FrameOrder`]'s rule; the frames
-//! it refuses are counted too (`PlannerStatus::refused_clouds`).
+//! A trolley's clouds are taken only from the detector that serves it: the live detector (by
+//! liveliness token) ranked first for the trolley ([`glasshouse_fleet::first_ranked`], the
+//! ranking the detectors split the trolleys by). The sender is the id its cloud's key ends in
+//! (`gh/trolley/{tid}/roi/{did}`: in a secured deployment the router lets only detector `did`
+//! put there), which the header's `source_id` must repeat, else the cloud is refused at once
+//! (`PlannerStatus::unassigned_clouds`). One stolen detector key thus reaches only the trolleys
+//! that detector serves. A cloud from a sender without a token, or from a live detector that
+//! does not serve the trolley, waits up to [`UNKNOWN_SOURCE_WAIT_NS`] for the membership to
+//! change (a detector's token and its first cloud may arrive in either order; detectors and
+//! planners hear of a detector leaving at different times), then is refused and counted
+//! (`refused_clouds`, `unassigned_clouds`). Which frames a map takes is
+//! [`glasshouse_pipeline::FrameOrder`]'s rule; the frames it refuses are counted too
+//! (`PlannerStatus::refused_clouds`).
 //!
 //! Each cloud the owner registers to its map (`planning.registration`) reports how on the wire:
 //! the MapUpdate the cloud produces carries its [`glasshouse_proto::FrameRegistration`] (a
@@ -47,12 +55,20 @@ use crate::registration::{frame_registration, registration_totals};
 /// Key whose rendezvous winner among the live planners publishes the fleet fruit map.
 pub const FLEET_MAP_KEY: &str = "fleet";
 
-/// How long a cloud from a source without a detector token waits for that token (receiver's
-/// clock) before it is refused.
+/// How long a cloud from a source that does not serve its trolley (no detector token yet, or
+/// another detector ranked first) waits for the membership to change (receiver's clock) before
+/// it is refused.
 pub const UNKNOWN_SOURCE_WAIT_NS: u64 = 2_000_000_000;
-/// Clouds from sources without a detector token kept at most, over all sources; the oldest is
-/// refused first.
+/// Such clouds kept at most, over all sources; the oldest is refused first.
 pub const UNKNOWN_SOURCE_CLOUDS: usize = 8;
+
+/// A cloud as it arrived: `sender` is the detector id its key ends in (see [`keys::sender`]).
+#[derive(Clone, Debug)]
+pub struct KeyedCloud {
+    pub sender: String,
+    pub header: Header,
+    pub cloud: RoiCloud,
+}
 
 /// What reaches the planner.
 #[derive(Clone, Debug)]
@@ -63,9 +79,10 @@ pub enum PlannerEvent {
     TrolleyLeft(String),
     DetectorJoined(String),
     DetectorLeft(String),
-    /// A ROI cloud of a trolley, received when this process's wall clock read `received_ns`
-    /// (Unix ns).
+    /// A ROI cloud of a trolley from detector `sender` (the id its key ends in), received when
+    /// this process's wall clock read `received_ns` (Unix ns).
     Cloud {
+        sender: String,
         header: Header,
         cloud: RoiCloud,
         received_ns: u64,
@@ -74,7 +91,7 @@ pub enum PlannerEvent {
     /// `received_ns`: each is integrated, and the owner plans once per trolley, on the trolley's
     /// last cloud of the batch.
     Clouds {
-        clouds: Vec<(Header, RoiCloud)>,
+        clouds: Vec<KeyedCloud>,
         received_ns: u64,
     },
     /// A trolley's workspace and arm.
@@ -165,6 +182,9 @@ pub struct PlannerStats {
     /// Clouds refused: not from a live detector, or a frame [`glasshouse_pipeline::FrameOrder`]
     /// refuses.
     pub clouds_refused: u64,
+    /// Clouds refused: from a live detector that does not serve their trolley, or whose header
+    /// names another source than their key.
+    pub clouds_unassigned: u64,
     /// Clouds of frames older than the map's last one (not integrated).
     pub clouds_stale: u64,
     pub views_published: u64,
@@ -280,6 +300,17 @@ fn based_on(snapshot: &MapSnapshot) -> Option<FrameId> {
     (frame != FrameId::default()).then_some(frame)
 }
 
+/// Whether a cloud's source may send its trolley's clouds (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Sender {
+    /// No live detector.
+    NotLive,
+    /// A live detector, but another one is ranked first for the trolley.
+    NotServing,
+    /// The live detector ranked first for the trolley.
+    Serving,
+}
+
 /// The planner (see the module docs).
 pub struct PlannerNode {
     pid: String,
@@ -287,9 +318,9 @@ pub struct PlannerNode {
     epoch_ns: u64,
     planning: PlanningSettings,
     membership: Membership,
-    /// Live detectors: the only sources clouds are taken from.
+    /// Live detectors: a trolley's clouds are taken from the one ranked first for it.
     detectors: BTreeSet<String>,
-    /// Clouds from sources without a detector token yet, oldest first.
+    /// Clouds from sources that do not serve their trolley yet, oldest first.
     unknown_source: VecDeque<ReceivedCloud>,
     /// Sources and trolleys whose refused clouds were logged (once each).
     logged_refusals: BTreeSet<String>,
@@ -436,18 +467,27 @@ impl PlannerNode {
                 tracing::info!(planner = %self.pid, trolley = %id, "trolley left; its map is kept");
                 Vec::new()
             }
-            PlannerEvent::DetectorJoined(id) => self.on_detector_joined(id),
+            PlannerEvent::DetectorJoined(id) => {
+                self.detectors.insert(id);
+                self.retry_held_clouds()
+            }
             PlannerEvent::DetectorLeft(id) => {
                 self.detectors.remove(&id);
-                Vec::new()
+                self.retry_held_clouds()
             }
             PlannerEvent::Cloud {
+                sender,
                 header,
                 cloud,
                 received_ns,
             } => {
                 self.clock_ns = self.clock_ns.max(received_ns);
-                self.on_clouds(vec![(header, cloud)], received_ns)
+                let cloud = KeyedCloud {
+                    sender,
+                    header,
+                    cloud,
+                };
+                self.on_clouds(vec![cloud], received_ns)
             }
             PlannerEvent::Clouds {
                 clouds,
@@ -618,7 +658,7 @@ impl PlannerNode {
             tracing::warn!(trolley = %tid, "cloud with an invalid trolley id dropped");
             return Vec::new();
         }
-        if !self.detectors.contains(&received.header.source_id) {
+        if self.sender_of(&received.header) != Sender::Serving {
             self.hold_unknown_source(received);
             return Vec::new();
         }
@@ -734,20 +774,20 @@ impl PlannerNode {
 
     /// Handles a batch of clouds one by one, so that a trolley's clouds queued behind a later
     /// one are integrated without fits or planning (the edge waits only on its latest frame).
-    fn on_clouds(
-        &mut self,
-        clouds: Vec<(Header, RoiCloud)>,
-        received_ns: u64,
-    ) -> Vec<PlannerAction> {
+    fn on_clouds(&mut self, clouds: Vec<KeyedCloud>, received_ns: u64) -> Vec<PlannerAction> {
         self.expire_unknown_sources(received_ns);
-        for (header, _) in &clouds {
+        let clouds: Vec<KeyedCloud> = clouds
+            .into_iter()
+            .filter(|c| self.sent_by_its_key(c))
+            .collect();
+        for c in &clouds {
             *self
                 .queued_clouds
-                .entry(header.trolley_id.clone())
+                .entry(c.header.trolley_id.clone())
                 .or_default() += 1;
         }
         let mut actions = Vec::new();
-        for (header, cloud) in clouds {
+        for KeyedCloud { header, cloud, .. } in clouds {
             if let Some(n) = self.queued_clouds.get_mut(&header.trolley_id) {
                 *n -= 1;
             }
@@ -761,14 +801,39 @@ impl PlannerNode {
         actions
     }
 
-    /// A detector's token: the clouds it sent before it, if any wait, are taken in order.
-    fn on_detector_joined(&mut self, id: String) -> Vec<PlannerAction> {
-        self.detectors.insert(id.clone());
+    /// Whether a cloud's header names the detector its key does; one that names another is
+    /// refused and counted: the header is what the sender wrote, the key what the router let
+    /// it put on.
+    fn sent_by_its_key(&mut self, c: &KeyedCloud) -> bool {
+        if c.sender == c.header.source_id {
+            return true;
+        }
+        self.stats.clouds_unassigned += 1;
+        if self.logged_refusals.insert(format!("key {}", c.sender)) {
+            tracing::warn!(planner = %self.pid, trolley = %c.header.trolley_id, sender = %c.sender, claimed = %c.header.source_id,
+                "cloud refused: its header names another source than its key (logged once per sender)");
+        }
+        false
+    }
+
+    /// Whether `header`'s source may send its trolley's clouds now.
+    fn sender_of(&self, header: &Header) -> Sender {
+        let (tid, source) = (&header.trolley_id, header.source_id.as_str());
+        if !self.detectors.contains(source) {
+            return Sender::NotLive;
+        }
+        let live = self.detectors.iter().map(String::as_str);
+        match glasshouse_fleet::first_ranked(tid, live) == Some(source) {
+            true => Sender::Serving,
+            false => Sender::NotServing,
+        }
+    }
+
+    /// The detector membership changed: the held clouds whose sender now serves their trolley
+    /// are taken in order; the others wait on.
+    fn retry_held_clouds(&mut self) -> Vec<PlannerAction> {
         let held = std::mem::take(&mut self.unknown_source);
-        let (waited, others): (Vec<ReceivedCloud>, Vec<ReceivedCloud>) =
-            held.into_iter().partition(|c| c.header.source_id == id);
-        self.unknown_source = others.into();
-        waited.into_iter().flat_map(|c| self.on_cloud(c)).collect()
+        held.into_iter().flat_map(|c| self.on_cloud(c)).collect()
     }
 
     /// Keeps a cloud from a source without a detector token for a while (its token may follow).
@@ -794,11 +859,18 @@ impl PlannerNode {
     }
 
     fn refuse_unknown_source(&mut self, refused: &ReceivedCloud) {
-        self.stats.clouds_refused += 1;
-        let source = &refused.header.source_id;
-        if self.logged_refusals.insert(format!("source {source}")) {
-            tracing::warn!(planner = %self.pid, trolley = %refused.header.trolley_id, %source,
-                "cloud refused: its source is no live detector (logged once per source)");
+        let (tid, source) = (&refused.header.trolley_id, &refused.header.source_id);
+        let (why, counter) = match self.sender_of(&refused.header) {
+            Sender::NotServing => (
+                "a live detector that does not serve the trolley",
+                &mut self.stats.clouds_unassigned,
+            ),
+            _ => ("no live detector", &mut self.stats.clouds_refused),
+        };
+        *counter += 1;
+        if self.logged_refusals.insert(format!("{why} {source}")) {
+            tracing::warn!(planner = %self.pid, trolley = %tid, %source,
+                "cloud refused: its source is {why} (logged once per source and reason)");
         }
     }
 
@@ -1144,6 +1216,7 @@ impl PlannerNode {
             ),
             stale_epoch: s.stale_epoch,
             stepped_down: s.stepped_down,
+            unassigned_clouds: s.clouds_unassigned,
         };
         let header = Header {
             seq: self.status_seq,

@@ -41,7 +41,12 @@ async fn bad_payloads_on_every_key_are_dropped_and_the_loop_goes_on() {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
     let mut targets: Vec<(String, MessageKind)> = TrolleyTopic::ALL
         .iter()
-        .map(|t| (keys::trolley("t1", *t).expect("key"), t.message_kind()))
+        .map(|t| {
+            (
+                keys::trolley_from("t1", *t, "x9").expect("key"),
+                t.message_kind(),
+            )
+        })
         .collect();
     targets.push((
         keys::planner_status("p9").expect("key").to_string(),

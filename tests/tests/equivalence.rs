@@ -31,7 +31,7 @@ async fn run_services() -> (BTreeMap<u64, RankedViews>, FruitEstimates) {
     let drops = Arc::new(DropCounters::default());
     let views = Subscriber::<RankedViews>::declare_with(
         &observer,
-        &keys::views("t1").expect("key"),
+        &keys::views_from_any("t1").expect("key"),
         Delivery::Monitor,
         drops.clone(),
     )

@@ -41,8 +41,8 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     };
     let _router = Proc::start("router", "glasshouse", &["router", "-l", &endpoint], &logs);
     let observer = client(&endpoint).await;
-    let clouds_sub = observe(&observer, &keys::roi("t1").expect("key")).await;
-    let views_sub = observe(&observer, &keys::views("t1").expect("key")).await;
+    let clouds_sub = observe(&observer, &keys::roi_from_any("t1").expect("key")).await;
+    let views_sub = observe(&observer, &keys::views_from_any("t1").expect("key")).await;
     let status_sub = observe(&observer, &keys::all_planner_status()).await;
     let _detector = start("detector", "detector-service", &[]);
     let mut planners: Vec<(String, Proc)> = ["p1", "p2", "p3"]

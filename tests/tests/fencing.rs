@@ -111,9 +111,9 @@ async fn owner_lost_and_back_moves_no_arm(fault: OwnerFault) {
     let _router = Proc::start("router", "glasshouse", &["router", "-l", &endpoint], &logs);
     let observer = client(&endpoint).await;
     let status_sub = observe(&observer, &keys::status("t1").expect("key")).await;
-    let views_sub = observe(&observer, &keys::views("t1").expect("key")).await;
+    let views_sub = observe(&observer, &keys::views_from_any("t1").expect("key")).await;
     let planner_sub = observe(&observer, &keys::all_planner_status()).await;
-    let clouds_sub = observe(&observer, &keys::roi("t1").expect("key")).await;
+    let clouds_sub = observe(&observer, &keys::roi_from_any("t1").expect("key")).await;
     let _detector = start("detector", "detector-service", &[]);
     let planner = |pid: &'static str, name: &'static str, relay_name: &'static str| {
         let relayed = format!("tcp/127.0.0.1:{}", free_port());
@@ -242,7 +242,7 @@ async fn owner_lost_and_back_moves_no_arm(fault: OwnerFault) {
     };
     let delayed = Publisher::declare(
         &observer,
-        &keys::views("t1").expect("key"),
+        &keys::views("t1", &header.source_id).expect("key"),
         Arc::new(DropCounters::default()),
     )
     .await

@@ -25,7 +25,7 @@ async fn first_green_cloud(did: &str, fruit_model: Option<PathBuf>) -> RoiCloud 
     let observer = client(&endpoint).await;
     let clouds = Subscriber::<RoiCloud>::declare(
         &observer,
-        &keys::roi("t1").expect("key"),
+        &keys::roi_from_any("t1").expect("key"),
         Arc::new(DropCounters::default()),
     )
     .await

@@ -1,21 +1,25 @@
 //! A deployment secured by `glasshouse secure`: the fleet runs over mutual TLS through a router
 //! with the generated ACL, while a rogue tries what its certificate does not allow
 //! (`glasshouse_bus::probe`, the same attempts `glasshouse secure probe` and the compose rig's
-//! rogue container make). A second test shows the probe reports what a router without the ACL
-//! lets through.
+//! rogue container make), and a compromised detector and planner send clouds and views for a
+//! trolley they do not serve, which the planner and the edge refuse. A second test shows the
+//! probe reports what a router without the ACL lets through.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
 use glasshouse_bus::probe::{probe, Attempt, ProbeSetup};
-use glasshouse_bus::BusArgs;
+use glasshouse_bus::{declare_alive, BusArgs};
 use glasshouse_dashboard::DashboardSettings;
+use glasshouse_detector::served_trolleys;
 use glasshouse_edge::EdgeEvent;
 use glasshouse_planner::PlannerSettings;
+use glasshouse_proto::keys::MemberKind;
 use glasshouse_tests::procs::{bin_dir, build_binaries};
 use glasshouse_tests::{free_port, open, test_edge_config, within, FleetSessions, Pipeline};
 use serde_json::Value;
+use std::sync::atomic::Ordering;
 
 fn glasshouse(args: &[&str]) {
     let out = Command::new(bin_dir().join("glasshouse"))
@@ -59,7 +63,8 @@ fn make_pkis(dir: &Path, endpoint: &str) -> (PathBuf, PathBuf) {
                 "--planners",
                 "p1,p2",
             ],
-            &["--detectors", "d1", "--dashboards", "web1"][..],
+            // d1 serves t1 beside d3 (d3 ranks below it for t1), p1 owns t1 alone.
+            &["--detectors", "d1,d3", "--dashboards", "web1"][..],
             &common[..],
         ]
         .concat(),
@@ -89,6 +94,12 @@ fn probe_setup(
         observer: config_of(pki, "dashboard-web1"),
         planners: vec!["p1".into()],
         snapshot_control,
+        detectors: ["d1", "d3"]
+            .map(|d| (d.to_owned(), config_of(pki, &format!("detector-{d}"))))
+            .to_vec(),
+        planner_identities: ["p1", "p2"]
+            .map(|p| (p.to_owned(), config_of(pki, &format!("planner-{p}"))))
+            .to_vec(),
         foreign_key: other.join("trolley-t1.key"),
         foreign_cert: other.join("trolley-t1.pem"),
         scratch: dir.join("probe"),
@@ -120,25 +131,52 @@ async fn only_the_roster_may_do_its_part() {
         PlannerSettings::new("p1"),
     )
     .await;
-    pipeline.start_edge(test_edge_config(4)).await;
+    // The edge runs until stopped: the compromised planner's views need frames to aim at.
+    pipeline.start_edge(test_edge_config(0)).await;
+    // A second live detector, d3, which serves other trolleys than t1.
+    let live = ["d1", "d3"].map(String::from).into();
+    let trolleys = ["t1".to_owned()].into();
+    assert!(served_trolleys("d1", &live, &trolleys).contains(&"t1"));
+    let d3 = open(&identity(&pki, "detector-d3")).await;
+    let _d3_alive = declare_alive(&d3, MemberKind::Detector, "d3")
+        .await
+        .expect("token");
 
     let setup = probe_setup(&dir, &pki, &other, Some(config_of(&pki, "planner-p2")));
     let attempts = within(300, "the probe", probe(&setup))
         .await
         .expect("the probe judges every attempt");
-    assert!(attempts.len() >= 14, "too few attempts: {attempts:?}");
+    assert!(attempts.len() >= 18, "too few attempts: {attempts:?}");
+    let compromised = attempts.iter().filter(|a| a.what.contains("claiming"));
+    assert_eq!(compromised.count(), 4, "{attempts:?}");
     let holes: Vec<&Attempt> = attempts.iter().filter(|a| a.accepted).collect();
     assert!(
         holes.is_empty(),
         "the deployment let these through: {holes:?}"
     );
+    // The forged clouds were counted as not from t1's detector, the forged views as refused.
+    let status = pipeline
+        .planner_counters
+        .status
+        .lock()
+        .expect("status")
+        .clone();
+    let unassigned = status.map_or(0, |s| s.unassigned_clouds);
+    assert!(unassigned >= 2, "{unassigned} clouds counted unassigned");
+    let refused = pipeline.edge_counters.refused_views.load(Ordering::Relaxed);
+    assert!(refused >= 2, "{refused} views refused");
 
-    let events = pipeline.run_to_end(240).await;
-    let views = events
-        .iter()
-        .filter(|e| matches!(e, EdgeEvent::ViewDone { .. }))
-        .count();
-    assert!(views >= 3, "only {views} views executed: {events:?}");
+    let views = within(240, "three views after the probe", async {
+        let mut views = 0;
+        while views < 3 {
+            if let Some(EdgeEvent::ViewDone { .. }) = pipeline.events.recv().await {
+                views += 1;
+            }
+        }
+        views
+    })
+    .await;
+    assert!(views >= 3);
     let fleet = pipeline.fleet.lock().expect("fleet state").clone();
     let trolley = fleet
         .trolleys
@@ -146,6 +184,7 @@ async fn only_the_roster_may_do_its_part() {
         .expect("the dashboard saw trolley t1");
     assert!(!trolley.fruits.is_empty(), "no fruit found");
     assert!(!fleet.trolleys.contains_key("t2") || fleet.trolleys["t2"].views_messages == 0);
+    let _ = d3.close().await;
     pipeline.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -168,13 +207,15 @@ async fn the_probe_reports_what_a_router_without_the_acl_lets_through() {
         ..BusArgs::default()
     })
     .await;
-    let attempts = within(
-        300,
-        "the probe",
-        probe(&probe_setup(&dir, &pki, &other, None)),
-    )
-    .await
-    .expect("the probe judges every attempt");
+    // No fleet runs here: no compromised services to play.
+    let setup = ProbeSetup {
+        detectors: Vec::new(),
+        planner_identities: Vec::new(),
+        ..probe_setup(&dir, &pki, &other, None)
+    };
+    let attempts = within(300, "the probe", probe(&setup))
+        .await
+        .expect("the probe judges every attempt");
     for attempt in &attempts {
         // TLS still checks certificates, and no planner answers snapshot queries here.
         let refused_anyway =

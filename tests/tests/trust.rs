@@ -86,15 +86,21 @@ async fn rogue_clouds_and_views_are_refused_and_the_loop_goes_on() {
     let mut pipeline =
         Pipeline::start_services(DashboardSettings::default(), PlannerSettings::default()).await;
     let observer = client(&pipeline.endpoint).await;
-    let clouds = observe(&observer, &keys::roi("t1").expect("key")).await;
+    let clouds = observe(&observer, &keys::roi_from_any("t1").expect("key")).await;
     let statuses = observe(&observer, &keys::planner_status("p1").expect("key")).await;
     pipeline.start_edge(test_edge_config(6)).await;
     let attacker = client(&pipeline.endpoint).await;
     let drops = Arc::new(DropCounters::default());
-    let roi = Publisher::declare(&attacker, &keys::roi("t1").expect("key"), drops.clone())
-        .await
-        .expect("publisher");
-    let views = Publisher::declare(&attacker, &keys::views("t1").expect("key"), drops)
+    // An unsecured bus: the attacker may put on any key, its own or the real detector's.
+    let mut roi = Vec::new();
+    for source in ["rogue", "d1"] {
+        let key = keys::roi("t1", source).expect("key");
+        let publisher = Publisher::declare(&attacker, &key, drops.clone())
+            .await
+            .expect("publisher");
+        roi.push((source, publisher));
+    }
+    let views = Publisher::declare(&attacker, &keys::views("t1", "p9").expect("key"), drops)
         .await
         .expect("publisher");
     // The loop went round once: every service has subscribed. The edge's epoch comes with
@@ -119,9 +125,12 @@ async fn rogue_clouds_and_views_are_refused_and_the_loop_goes_on() {
         ..samples::roi_cloud()
     };
     // From a source that is no detector, then impersonating the real one.
-    for source in ["rogue", "d1"] {
+    for (source, publisher) in &roi {
         let header = rogue_header(source, far);
-        roi.publish(&header, &rogue_cloud).await.expect("queued");
+        publisher
+            .publish(&header, &rogue_cloud)
+            .await
+            .expect("queued");
     }
     let mut rogue_views = samples::ranked_views();
     rogue_views.based_on_epoch_ns = epoch_ns;
@@ -182,7 +191,9 @@ async fn rogue_clouds_and_views_are_refused_and_the_loop_goes_on() {
             .load(Ordering::Relaxed),
         2
     );
-    roi.close().await;
+    for (_, publisher) in roi {
+        publisher.close().await;
+    }
     views.close().await;
     let _ = attacker.close().await;
     let _ = observer.close().await;

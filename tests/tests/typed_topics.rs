@@ -15,13 +15,19 @@ async fn a_roi_subscriber_receives_clouds_and_drops_other_kinds() {
         .await
         .expect("router");
     let (sender, receiver) = (client(&endpoint).await, client(&endpoint).await);
-    let key = keys::roi("t1").expect("key");
+    let key = keys::roi("t1", "d1").expect("key");
     let typed_drops = Arc::new(DropCounters::default());
     let any_drops = Arc::new(DropCounters::default());
     // Drop-oldest queues: the flood below must never block the receiving session.
-    let typed = Subscriber::declare_with(&receiver, &key, Delivery::Monitor, typed_drops.clone())
-        .await
-        .expect("subscriber");
+    let every_detector = keys::roi_from_any("t1").expect("key");
+    let typed = Subscriber::declare_with(
+        &receiver,
+        &every_detector,
+        Delivery::Monitor,
+        typed_drops.clone(),
+    )
+    .await
+    .expect("subscriber");
     let any = AnySubscriber::declare(
         &receiver,
         keys::EVERYTHING,

@@ -9,6 +9,12 @@
 //! (a put on its own trolley's status) on the same link, so had the router let the first through,
 //! the observer (a dashboard identity: it reads every topic and watches every token) would have
 //! received it before the control. A snapshot query is refused when nothing answers it.
+//!
+//! Given detector and planner identities, it also plays a compromised detector and a compromised
+//! planner ([`compromised`]): messages the router lets through, which the planners and the edge
+//! must refuse.
+
+mod compromised;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -44,6 +50,12 @@ pub struct ProbeSetup {
     pub scratch: PathBuf,
     /// How long to wait for a session, a control or an answer.
     pub timeout: Duration,
+    /// Detector identities of the roster, (id, client config): the one serving the victim sends
+    /// the control clouds, another the forged ones. Empty: no compromised detector.
+    pub detectors: Vec<(String, PathBuf)>,
+    /// Planner identities likewise: the victim's owner sends the control views, another the
+    /// forged ones. Empty: no compromised planner.
+    pub planner_identities: Vec<(String, PathBuf)>,
     /// How long to wait for the first control: until the router has told the rogue of the
     /// observer's subscriptions. On a loaded machine (a rig just started, images being built)
     /// links take far longer to come up than one message takes to pass them; this is a wait on
@@ -76,6 +88,10 @@ pub enum ProbeError {
     },
     #[error("a planner identity's snapshot query got no answer within {0:?}: the control failed")]
     SnapshotControl(Duration),
+    #[error("{0}")]
+    Identities(String),
+    #[error("no sign of {0} in time: the probe cannot judge")]
+    NoSign(String),
 }
 
 fn zenoh_error(e: impl std::fmt::Display) -> ProbeError {
@@ -109,6 +125,8 @@ pub async fn probe(setup: &ProbeSetup) -> Result<Vec<Attempt>, ProbeError> {
         attempts.push(Attempt { what, accepted });
     }
     attempts.push(snapshot_attempt(setup, rogue.session).await?);
+    attempts.extend(compromised::detector_attempts(setup, &observer).await?);
+    attempts.extend(compromised::planner_attempts(setup, &observer).await?);
     let _ = observer.close().await;
     let _ = rogue.session.close().await;
     Ok(attempts)
@@ -139,9 +157,16 @@ fn forbidden_puts(setup: &ProbeSetup) -> Result<Vec<(String, String)>, ProbeErro
         ),
         (victim, TrolleyTopic::Map, format!("{victim}'s map update")),
     ];
+    // Clouds and views on the keys of the services that send them (impersonating them).
+    let planner = setup.planners.first().map_or("p1", String::as_str);
+    let detector = setup.detectors.first().map_or("d1", |(id, _)| id.as_str());
     let mut puts = Vec::new();
     for (tid, topic, what) in cases {
-        let key = own_key(tid, topic)?;
+        let sender = match topic {
+            TrolleyTopic::Roi => detector,
+            _ => planner,
+        };
+        let key = keys::trolley_from(tid, topic, sender).map_err(zenoh_error)?;
         puts.push((format!("put {what} on {key}"), key));
     }
     puts.push((

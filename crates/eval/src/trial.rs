@@ -408,7 +408,11 @@ impl<S: TrolleySource> Trial<S> {
                             source_id: EVAL_ID.into(),
                             ..Header::default()
                         };
-                        self.feed(EdgeInput::Views { header, views });
+                        self.feed(EdgeInput::Views {
+                            sender: EVAL_ID.into(),
+                            header,
+                            views,
+                        });
                         return Ok(true);
                     }
                     None => None,

@@ -35,7 +35,7 @@ pub mod rendezvous;
 pub use epoch::{next_epoch, EpochFence, EpochVerdict, NO_EPOCH};
 pub use membership::{Assignment, Membership, MembershipEvent, OwnershipChange, Role};
 pub use merge::{merge_fruits, FleetFruit, MergeResult, TrolleyFruit, MERGE_DISTANCE_M};
-pub use rendezvous::{rank_planners, top_two, weight};
+pub use rendezvous::{first_ranked, rank_planners, top_two, weight};
 
 #[cfg(test)]
 mod tests;

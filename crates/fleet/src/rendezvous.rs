@@ -71,6 +71,15 @@ pub(crate) fn rank_iter<'a>(
     ranked.into_iter().map(|(_, p)| p).collect()
 }
 
+/// The member ranked first for `trolley_id`: among planners its owner, among detectors the one
+/// that serves it (takes its frames and alone may send its clouds). `None` without members.
+pub fn first_ranked<'a>(
+    trolley_id: &str,
+    members: impl IntoIterator<Item = &'a str>,
+) -> Option<&'a str> {
+    top_two(trolley_id, members).0
+}
+
 /// The first two of [`rank_planners`] (owner, replica) in one pass without allocating.
 ///
 /// `(None, None)` without planners; the replica is `None` with a single distinct planner.

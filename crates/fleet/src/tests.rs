@@ -5,7 +5,7 @@ use glasshouse_geom::FruitEstimate;
 use nalgebra::{Point3, Vector3};
 
 use crate::merge::{merge_fruits, TrolleyFruit, MERGE_DISTANCE_M};
-use crate::rendezvous::{fnv1a64, mix64, rank_planners, top_two, weight};
+use crate::rendezvous::{first_ranked, fnv1a64, mix64, rank_planners, top_two, weight};
 
 fn ids(prefix: &str, n: usize) -> Vec<String> {
     (0..n).map(|i| format!("{prefix}-{i}")).collect()
@@ -109,6 +109,8 @@ fn top_two_agrees_with_rank() {
                 top_two(&trolley, planners.iter().map(String::as_str)),
                 expected
             );
+            let first = first_ranked(&trolley, planners.iter().map(String::as_str));
+            assert_eq!(first, expected.0);
         }
     }
 }

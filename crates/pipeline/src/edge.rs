@@ -9,7 +9,11 @@
 //! The edge executes views only from the planner its own membership view ranks owner of its
 //! trolley (the live planners' tokens, ranked with the planners' own rendezvous hash), and only
 //! views planned on its latest frame (boot epoch and seq): views from anyone else are refused and
-//! counted (`TrolleyStatus::refused_views`). Views also carry their owner's ownership epoch
+//! counted (`TrolleyStatus::refused_views`). Who sent views is the planner id their key ends in
+//! (`gh/trolley/{tid}/views/{pid}`: in a secured deployment the router lets only planner `pid`
+//! put there); views whose header names another planner are refused and counted the same way,
+//! before anything else is read from them, so a stolen planner key moves only the arms of the
+//! trolleys that planner owns. Views also carry their owner's ownership epoch
 //! ([`glasshouse_fleet::epoch`]): views under an older epoch than the newest the edge has taken
 //! come from a replaced owner (paused, cut off) and are refused and counted
 //! (`TrolleyStatus::stale_views`), whoever sent them. The newest epoch goes out with every frame
@@ -69,6 +73,13 @@ pub enum EdgeEvent {
         owner: Option<String>,
         refused: u64,
     },
+    /// Views put on planner `sender`'s key whose header claims planner `claimed` were refused;
+    /// `refused` counts every refusal so far (these and [`EdgeEvent::ViewsRefused`]).
+    MisattributedViewsRefused {
+        sender: String,
+        claimed: String,
+        refused: u64,
+    },
     /// Views from `source_id` under ownership epoch `owner_epoch`, older than the `newest` the
     /// edge has taken views under, were refused (a replaced owner's); `stale` counts every such
     /// refusal so far.
@@ -89,8 +100,13 @@ pub enum EdgeInput {
     Captured { frame: bool },
     /// No views arrived within the driver's timeout since the last `AwaitViews`.
     ViewsTimedOut,
-    /// Views arrived on the trolley's views key; the header names the trolley and the planner.
-    Views { header: Header, views: RankedViews },
+    /// Views arrived on the trolley's views key of planner `sender` (the id the key ends in);
+    /// the header names the trolley and, again, the planner.
+    Views {
+        sender: String,
+        header: Header,
+        views: RankedViews,
+    },
     /// A planner's liveliness token appeared.
     PlannerJoined(String),
     /// A planner's liveliness token went away.
@@ -251,7 +267,11 @@ impl EdgeNode {
                 self.planners.remove(&id);
                 return Vec::new();
             }
-            EdgeInput::Views { header, views }
+            // The key says who sent them; a header claiming another planner is not read further.
+            EdgeInput::Views { sender, header, .. } if sender != header.source_id => {
+                return self.refuse_misattributed(sender, header.source_id);
+            }
+            EdgeInput::Views { header, views, .. }
                 if EpochVerdict::of(views.owner_epoch, self.status.owner_epoch).is_stale() =>
             {
                 return self.refuse_stale(header.source_id, views.owner_epoch);
@@ -259,11 +279,19 @@ impl EdgeNode {
             EdgeInput::Views { header, .. } if self.owner() != Some(&header.source_id) => {
                 return self.refuse(header.source_id);
             }
-            EdgeInput::Views { header, views } => {
+            EdgeInput::Views {
+                sender,
+                header,
+                views,
+            } => {
                 // From the owner, under the newest epoch or a newer one: the owner's term.
                 self.status.owner_epoch = views.owner_epoch;
                 self.owner_id.clone_from(&header.source_id);
-                EdgeInput::Views { header, views }
+                EdgeInput::Views {
+                    sender,
+                    header,
+                    views,
+                }
             }
             input => input,
         };
@@ -272,7 +300,7 @@ impl EdgeNode {
             (Phase::Capturing, EdgeInput::Captured { frame: true }) => self.announce(),
             (Phase::Capturing, EdgeInput::Captured { frame: false }) => self.finish(),
             (Phase::WaitingForViews, EdgeInput::ViewsTimedOut) => self.reannounce(),
-            (Phase::WaitingForViews, EdgeInput::Views { header, views }) => {
+            (Phase::WaitingForViews, EdgeInput::Views { header, views, .. }) => {
                 self.on_views(&header.trolley_id, views)
             }
             (Phase::Executing(views), EdgeInput::Executed(executed)) => {
@@ -315,6 +343,17 @@ impl EdgeNode {
         vec![EdgeAction::Report(EdgeEvent::ViewsRefused {
             source_id,
             owner: self.owner().map(str::to_owned),
+            refused: self.status.refused_views,
+        })]
+    }
+
+    /// Views whose header names another planner than their key: counted, reported, never
+    /// executed.
+    fn refuse_misattributed(&mut self, sender: String, claimed: String) -> Vec<EdgeAction> {
+        self.status.refused_views += 1;
+        vec![EdgeAction::Report(EdgeEvent::MisattributedViewsRefused {
+            sender,
+            claimed,
             refused: self.status.refused_views,
         })]
     }

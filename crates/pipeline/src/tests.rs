@@ -52,6 +52,7 @@ fn views_header(tid: &str, pid: &str) -> Header {
 /// Views on frame `seq` of this epoch from the owner of t1.
 fn views_for(seq: u64, utilities: &[f32]) -> EdgeInput {
     EdgeInput::Views {
+        sender: String::from("p1"),
         header: views_header("t1", "p1"),
         views: views(seq, utilities),
     }
@@ -141,6 +142,7 @@ fn views_on_another_frame_or_trolley_are_ignored() {
     let mut node = waiting(settings());
     assert!(node.handle(views_for(7, &[0.9])).is_empty());
     let other = EdgeInput::Views {
+        sender: String::from("p1"),
         header: views_header("t2", "p1"),
         views: views(1, &[0.9]),
     };
@@ -149,6 +151,7 @@ fn views_on_another_frame_or_trolley_are_ignored() {
     let mut earlier = views(1, &[0.9]);
     earlier.based_on_epoch_ns = EPOCH_NS - 1;
     let earlier = EdgeInput::Views {
+        sender: String::from("p1"),
         header: views_header("t1", "p1"),
         views: earlier,
     };
@@ -170,6 +173,7 @@ fn views_from_a_planner_that_does_not_own_the_trolley_are_refused() {
     let other = if owner == "p1" { "p2" } else { "p1" };
     for (n, source) in [(1, "p9"), (2, other)] {
         let rogue = EdgeInput::Views {
+            sender: String::from(source),
             header: views_header("t1", source),
             views: views(1, &[0.9]),
         };
@@ -187,6 +191,7 @@ fn views_from_a_planner_that_does_not_own_the_trolley_are_refused() {
     assert_eq!(node.status().refused_views, 2);
     // The owner's views on the frame are executed.
     let from_owner = EdgeInput::Views {
+        sender: String::from(&owner),
         header: views_header("t1", &owner),
         views: views(1, &[0.9]),
     };
@@ -204,9 +209,53 @@ fn views_from_a_planner_that_does_not_own_the_trolley_are_refused() {
     assert_eq!(node.status().refused_views, 3);
 }
 
+#[test]
+fn views_whose_header_names_another_planner_than_their_key_are_refused() {
+    let mut node = waiting(settings());
+    node.handle(EdgeInput::PlannerJoined("p2".into()));
+    let owner = node.owner().unwrap().to_owned();
+    let other = if owner == "p1" { "p2" } else { "p1" };
+    // A live planner that does not own t1, on its own key, claiming to be the owner under the
+    // newest term there can be; then views on a key that names no planner.
+    let claiming_owner = RankedViews {
+        planner_id: owner.clone(),
+        owner_epoch: u64::MAX,
+        ..views(1, &[0.9])
+    };
+    let forged = [(other, claiming_owner), ("", views(1, &[0.9]))];
+    for (n, (sender, views)) in (1..).zip(forged) {
+        let input = EdgeInput::Views {
+            sender: sender.into(),
+            header: views_header("t1", &owner),
+            views,
+        };
+        let refused = EdgeEvent::MisattributedViewsRefused {
+            sender: sender.into(),
+            claimed: owner.clone(),
+            refused: n,
+        };
+        assert_eq!(node.handle(input), vec![EdgeAction::Report(refused)]);
+    }
+    assert_eq!(node.status().refused_views, 2);
+    // Nothing was taken from them: no term, still waiting.
+    assert_eq!(node.owner_epoch(), 0);
+    assert!(node.is_waiting_for_views());
+    // The same views on the owner's own key move the arm.
+    let from_owner = EdgeInput::Views {
+        sender: owner.clone(),
+        header: views_header("t1", &owner),
+        views: views(1, &[0.9]),
+    };
+    assert!(matches!(
+        node.handle(from_owner)[0],
+        EdgeAction::Execute { .. }
+    ));
+}
+
 /// Views on frame `seq` of this epoch from `pid`, under its ownership epoch `owner_epoch`.
 fn views_under(pid: &str, seq: u64, owner_epoch: u64) -> EdgeInput {
     EdgeInput::Views {
+        sender: String::from(pid),
         header: views_header("t1", pid),
         views: RankedViews {
             planner_id: pid.into(),

@@ -1,8 +1,11 @@
 //! Every Zenoh key expression of Glasshouse is built here, one function per key.
 //!
 //! Tree (ids are single chunks of `[A-Za-z0-9_-]`):
-//! - `gh/trolley/{tid}/{rgbd|arm|info|roi|views|fruits|map|status|truth}`: one trolley's data and
-//!   results (`truth`: the simulator's ground truth);
+//! - `gh/trolley/{tid}/{rgbd|arm|info|fruits|map|status|truth}`: one trolley's data and results
+//!   (`truth`: the simulator's ground truth);
+//! - `gh/trolley/{tid}/roi/{did}`, `gh/trolley/{tid}/views/{pid}`: the clouds and views of one
+//!   trolley, keyed by their sender (detector `did`, planner `pid`), so that the router's ACL
+//!   binds the sender's id to its certificate ([`TrolleyTopic::keyed_by_sender`], [`sender`]);
 //! - `gh/planner/{pid}/status`, `gh/detector/{did}/status`: service health;
 //! - `gh/planner/{pid}/snapshot/{tid}`: the queryable through which planner `pid` hands out its
 //!   copy of trolley `tid`'s map (MapSnapshot replies);
@@ -189,6 +192,13 @@ impl TrolleyTopic {
         }
     }
 
+    /// Whether the topic's keys end in their sender's id (`gh/trolley/{tid}/roi/{did}`,
+    /// `gh/trolley/{tid}/views/{pid}`): only the identity named there may put on them, so a
+    /// receiver knows who sent a cloud or views from the key, not from what the sender wrote.
+    pub fn keyed_by_sender(self) -> bool {
+        matches!(self, TrolleyTopic::Roi | TrolleyTopic::Views)
+    }
+
     fn parse(s: &str) -> Option<Self> {
         Self::ALL.into_iter().find(|t| t.as_str() == s)
     }
@@ -197,6 +207,15 @@ impl TrolleyTopic {
 fn trolley_key<M: Wire>(tid: &str, topic: TrolleyTopic) -> Result<Key<M>, KeyError> {
     debug_assert_eq!(M::KIND, topic.message_kind());
     Ok(Key::new(trolley(tid, topic)?, topic.qos()))
+}
+
+fn trolley_key_from<M: Wire>(
+    tid: &str,
+    topic: TrolleyTopic,
+    sender: &str,
+) -> Result<Key<M>, KeyError> {
+    debug_assert_eq!(M::KIND, topic.message_kind());
+    Ok(Key::new(trolley_from(tid, topic, sender)?, topic.qos()))
 }
 
 fn all_trolleys_key<M: Wire>(topic: TrolleyTopic) -> Key<M> {
@@ -229,10 +248,6 @@ trolley_keys! {
     arm, all_arm: Arm => ArmState;
     /// TrolleyInfo, edge → planners, dashboard (reliable, periodic).
     info, all_info: Info => TrolleyInfo;
-    /// RoiCloud, detector → planners, dashboard (reliable).
-    roi, all_roi: Roi => RoiCloud;
-    /// RankedViews, owning planner → edge, dashboard (reliable).
-    views, all_views: Views => RankedViews;
     /// FruitEstimates, owning planner → dashboard (reliable).
     fruits, all_fruits: Fruits => FruitEstimates;
     /// MapUpdate, owning planner → dashboard, replicas (reliable).
@@ -243,16 +258,97 @@ trolley_keys! {
     truth, all_truth: Truth => FruitEstimates;
 }
 
-/// `gh/trolley/{tid}/{topic}` untyped, for observers of many topics; publishers and subscribers
-/// of one message type use the typed constructors ([`roi`], [`views`], ...).
-pub fn trolley(tid: &str, topic: TrolleyTopic) -> Result<String, KeyError> {
-    validate_id(tid)?;
-    Ok(format!("{ROOT}/trolley/{tid}/{}", topic.as_str()))
+/// `gh/trolley/{tid}/roi/{did}`: detector `did`'s RoiClouds of trolley `tid`, detector →
+/// planners, dashboard (reliable).
+pub fn roi(tid: &str, did: &str) -> Result<Key<RoiCloud>, KeyError> {
+    trolley_key_from(tid, TrolleyTopic::Roi, did)
 }
 
-/// `gh/trolley/*/{topic}` untyped: one topic of every trolley (typed: [`all_roi`], ...).
+/// `gh/trolley/{tid}/roi/*`: [`roi`] of trolley `tid` from every detector.
+pub fn roi_from_any(tid: &str) -> Result<Key<RoiCloud>, KeyError> {
+    trolley_key(tid, TrolleyTopic::Roi)
+}
+
+/// `gh/trolley/*/roi/*`: [`roi`] of every trolley from every detector.
+pub fn all_roi() -> Key<RoiCloud> {
+    all_trolleys_key(TrolleyTopic::Roi)
+}
+
+/// `gh/trolley/{tid}/views/{pid}`: planner `pid`'s RankedViews for trolley `tid`, owning
+/// planner → edge, dashboard (reliable).
+pub fn views(tid: &str, pid: &str) -> Result<Key<RankedViews>, KeyError> {
+    trolley_key_from(tid, TrolleyTopic::Views, pid)
+}
+
+/// `gh/trolley/{tid}/views/*`: [`views`] for trolley `tid` from every planner.
+pub fn views_from_any(tid: &str) -> Result<Key<RankedViews>, KeyError> {
+    trolley_key(tid, TrolleyTopic::Views)
+}
+
+/// `gh/trolley/*/views/*`: [`views`] for every trolley from every planner.
+pub fn all_views() -> Key<RankedViews> {
+    all_trolleys_key(TrolleyTopic::Views)
+}
+
+/// Every key of trolley `tid`'s topic, untyped, for observers of many topics:
+/// `gh/trolley/{tid}/{topic}`, and `gh/trolley/{tid}/{topic}/*` (any sender) for a topic
+/// [keyed by its sender](TrolleyTopic::keyed_by_sender). Publishers use [`trolley_from`];
+/// publishers and subscribers of one message type use the typed constructors ([`roi`], ...).
+pub fn trolley(tid: &str, topic: TrolleyTopic) -> Result<String, KeyError> {
+    validate_id(tid)?;
+    Ok(with_any_sender(
+        format!("{ROOT}/trolley/{tid}/{}", topic.as_str()),
+        topic,
+    ))
+}
+
+/// The key `sender` puts trolley `tid`'s topic on: `gh/trolley/{tid}/{topic}/{sender}` for a
+/// topic keyed by its sender, else `gh/trolley/{tid}/{topic}` (`sender` not used).
+pub fn trolley_from(tid: &str, topic: TrolleyTopic, sender: &str) -> Result<String, KeyError> {
+    validate_id(tid)?;
+    let key = format!("{ROOT}/trolley/{tid}/{}", topic.as_str());
+    if !topic.keyed_by_sender() {
+        return Ok(key);
+    }
+    validate_id(sender)?;
+    Ok(format!("{key}/{sender}"))
+}
+
+/// `gh/trolley/*/{topic}` untyped (`gh/trolley/*/{topic}/*` for a topic keyed by its sender):
+/// one topic of every trolley (typed: [`all_roi`], ...).
 pub fn all_trolleys(topic: TrolleyTopic) -> String {
-    format!("{ROOT}/trolley/*/{}", topic.as_str())
+    with_any_sender(format!("{ROOT}/trolley/*/{}", topic.as_str()), topic)
+}
+
+/// `gh/trolley/*/{topic}/{sender}`: every key `sender` may put a topic keyed by its sender on
+/// (what the router's ACL grants it); [`all_trolleys`] for other topics.
+pub fn all_trolleys_from(topic: TrolleyTopic, sender: &str) -> Result<String, KeyError> {
+    let all = format!("{ROOT}/trolley/*/{}", topic.as_str());
+    if !topic.keyed_by_sender() {
+        return Ok(all);
+    }
+    validate_id(sender)?;
+    Ok(format!("{all}/{sender}"))
+}
+
+fn with_any_sender(key: String, topic: TrolleyTopic) -> String {
+    match topic.keyed_by_sender() {
+        true => format!("{key}/*"),
+        false => key,
+    }
+}
+
+/// The sender's id in a concrete key of a topic [keyed by its sender](TrolleyTopic::keyed_by_sender)
+/// (`d1` in `gh/trolley/t1/roi/d1`); `None` for any other key, or a sender chunk that is no
+/// valid id (a wildcard).
+pub fn sender(key: &str) -> Option<&str> {
+    let rest = key.strip_prefix(ROOT)?.strip_prefix("/trolley/")?;
+    let parts: Vec<&str> = rest.split('/').collect();
+    let &[tid, topic, sender] = parts.as_slice() else {
+        return None;
+    };
+    let keyed = TrolleyTopic::parse(topic).is_some_and(TrolleyTopic::keyed_by_sender);
+    (keyed && validate_id(tid).is_ok() && validate_id(sender).is_ok()).then_some(sender)
 }
 
 /// `gh/planner/{pid}/status`: PlannerStatus (reliable).
@@ -367,10 +463,19 @@ pub fn parse(key: &str) -> Option<ParsedKey> {
     let parts: Vec<&str> = rest.split('/').collect();
     let valid = |id: &str| validate_id(id).is_ok();
     match parts.as_slice() {
-        ["trolley", tid, topic] if valid(tid) => Some(ParsedKey::Trolley {
-            tid: (*tid).to_owned(),
-            topic: TrolleyTopic::parse(topic)?,
-        }),
+        ["trolley", tid, topic, rest @ ..] if valid(tid) => {
+            let topic = TrolleyTopic::parse(topic)?;
+            // Roi and views keys end in their sender's id (see [`sender`]).
+            let complete = match (topic.keyed_by_sender(), rest) {
+                (true, [sender]) => valid(sender),
+                (false, []) => true,
+                _ => false,
+            };
+            complete.then(|| ParsedKey::Trolley {
+                tid: (*tid).to_owned(),
+                topic,
+            })
+        }
         ["planner", pid, "status"] if valid(pid) => Some(ParsedKey::PlannerStatus {
             pid: (*pid).to_owned(),
         }),
@@ -408,7 +513,7 @@ mod tests {
     #[test]
     fn keys_round_trip_through_parse() {
         for topic in TrolleyTopic::ALL {
-            let key = trolley("t-1", topic).expect("valid id");
+            let key = trolley_from("t-1", topic, "d_2").expect("valid id");
             assert_eq!(
                 parse(&key),
                 Some(ParsedKey::Trolley {
@@ -442,6 +547,50 @@ mod tests {
     }
 
     #[test]
+    fn clouds_and_views_are_keyed_by_their_sender() {
+        let cloud = roi("t1", "d1").expect("valid");
+        assert_eq!(cloud.as_str(), "gh/trolley/t1/roi/d1");
+        assert_eq!(sender(cloud.as_str()), Some("d1"));
+        assert_eq!(
+            sender(views("t1", "p2").expect("valid").as_str()),
+            Some("p2")
+        );
+        assert_eq!(
+            roi_from_any("t1").expect("valid").as_str(),
+            "gh/trolley/t1/roi/*"
+        );
+        assert_eq!(all_views().as_str(), "gh/trolley/*/views/*");
+        assert_eq!(
+            trolley("t1", TrolleyTopic::Views).expect("valid"),
+            "gh/trolley/t1/views/*"
+        );
+        assert_eq!(
+            trolley("t1", TrolleyTopic::Map).expect("valid"),
+            "gh/trolley/t1/map"
+        );
+        assert_eq!(
+            trolley_from("t1", TrolleyTopic::Map, "p1").expect("valid"),
+            "gh/trolley/t1/map"
+        );
+        assert_eq!(
+            all_trolleys_from(TrolleyTopic::Roi, "d1").expect("valid"),
+            "gh/trolley/*/roi/d1"
+        );
+        assert!(roi("t1", "*").is_err() && views("t1", "a/b").is_err());
+        // No sender, a wildcard or an extra chunk: not a key of the tree, no sender.
+        for bad in [
+            "gh/trolley/t1/roi",
+            "gh/trolley/t1/roi/*",
+            "gh/trolley/t1/views/**",
+            "gh/trolley/t1/views/p1/x",
+            "gh/trolley/t1/map/p1",
+        ] {
+            assert_eq!((parse(bad), sender(bad)), (None, None), "{bad}");
+        }
+        assert_eq!(sender("gh/trolley/t1/map"), None);
+    }
+
+    #[test]
     fn ids_must_be_single_chunks() {
         for bad in ["", "a/b", "*", "a b", "t$", &"x".repeat(65)] {
             assert!(
@@ -471,11 +620,11 @@ mod tests {
             Some(MessageKind::TrolleyInfo)
         );
         assert_eq!(
-            parsed_kind(&roi("t1").expect("valid")),
+            parsed_kind(&roi("t1", "d1").expect("valid")),
             Some(MessageKind::RoiCloud)
         );
         assert_eq!(
-            parsed_kind(&views("t1").expect("valid")),
+            parsed_kind(&views("t1", "p1").expect("valid")),
             Some(MessageKind::RankedViews)
         );
         assert_eq!(
@@ -500,14 +649,14 @@ mod tests {
         );
         assert_eq!(parsed_kind(&fleet_fruits()), Some(MessageKind::FleetFruits));
         assert_eq!(rgbd("t1").expect("valid").qos(), Qos::Stream);
-        assert_eq!(roi("t1").expect("valid").qos(), Qos::Reliable);
-        assert_eq!(all_roi().as_str(), "gh/trolley/*/roi");
+        assert_eq!(roi("t1", "d1").expect("valid").qos(), Qos::Reliable);
+        assert_eq!(all_roi().as_str(), "gh/trolley/*/roi/*");
         assert_eq!(all_planner_status().as_str(), "gh/planner/*/status");
         assert_eq!(all_detector_status().as_str(), "gh/detector/*/status");
         assert_eq!(
             planner_snapshots("p1").expect("valid").as_str(),
             "gh/planner/p1/snapshot/*"
         );
-        assert!(roi("a/b").is_err());
+        assert!(roi("a/b", "d1").is_err());
     }
 }

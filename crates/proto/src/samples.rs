@@ -236,6 +236,7 @@ pub fn planner_status() -> PlannerStatus {
         },
         stale_epoch: 2,
         stepped_down: 1,
+        unassigned_clouds: 3,
     }
 }
 

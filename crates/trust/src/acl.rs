@@ -7,6 +7,13 @@
 //! of the subscribers on its keys (egress `declare_subscriber`: Zenoh clients send only where a
 //! subscriber is known), a watcher of liveliness receives the tokens (egress `liveliness_token`),
 //! and a snapshot's answer travels back as a `reply`.
+//!
+//! Clouds and views are keyed by their sender (`gh/trolley/{tid}/roi/{did}`,
+//! `gh/trolley/{tid}/views/{pid}`) and an identity may put them only under its own id, so a
+//! receiver reads the sender from the key, proven by the sender's certificate. Which trolleys a
+//! detector serves or a planner owns changes with the membership, so that is checked by the
+//! receivers (the planners take a trolley's clouds only from the detector ranked first for it,
+//! the edge views only from the planner ranked first), not here.
 
 use glasshouse_proto::keys::{self, MemberKind, TrolleyTopic, FLEET_FRUITS, ROOT};
 use serde_json::{json, Value};
@@ -123,6 +130,15 @@ fn every(topics: &[TrolleyTopic]) -> Vec<String> {
     topics.iter().map(|&t| keys::all_trolleys(t)).collect()
 }
 
+/// `topics` of every trolley as `sender` may put them: clouds and views only on keys that end
+/// in its own id, which is how receivers know who sent them.
+fn every_from(topics: &[TrolleyTopic], sender: &str) -> Vec<String> {
+    topics
+        .iter()
+        .filter_map(|&t| keys::all_trolleys_from(t, sender).ok())
+        .collect()
+}
+
 /// What an edge publishes about its own trolley.
 const TROLLEY_WRITES: [TrolleyTopic; 5] = [
     TrolleyTopic::Rgbd,
@@ -154,7 +170,7 @@ fn trolley_grants(tid: &str) -> Vec<Grant> {
 
 fn detector_grants(did: &str) -> Vec<Grant> {
     let status = keys::detector_status(did).map(|k| k.as_str().to_owned());
-    let mut writes = every(&[TrolleyTopic::Roi]);
+    let mut writes = every_from(&[TrolleyTopic::Roi], did);
     writes.extend(status);
     let mut all = every(&[TrolleyTopic::Roi]);
     all.push(keys::all_detector_status().as_str().to_owned());
@@ -166,7 +182,7 @@ fn detector_grants(did: &str) -> Vec<Grant> {
 }
 
 fn planner_grants(pid: &str) -> Vec<Grant> {
-    let mut writes = every(&PLANNER_WRITES);
+    let mut writes = every_from(&PLANNER_WRITES, pid);
     writes.extend(keys::planner_status(pid).map(|k| k.as_str().to_owned()));
     writes.push(FLEET_FRUITS.to_owned());
     let mut all = every(&PLANNER_WRITES);
@@ -266,11 +282,13 @@ mod tests {
     use AclMessage::*;
     use Flow::*;
 
-    /// Key expression inclusion for the forms used here (`*` is one chunk).
+    /// Key expression inclusion for the forms used here (`*` is one chunk, which `**` is not),
+    /// as Zenoh's ACL matches a message's key expression against a rule's.
     fn includes(pattern: &str, key: &str) -> bool {
         let (p, k): (Vec<&str>, Vec<&str>) =
             (pattern.split('/').collect(), key.split('/').collect());
-        p.len() == k.len() && p.iter().zip(&k).all(|(p, k)| *p == "*" || p == k)
+        let chunk = |p: &str, k: &str| (p == "*" && k != "**") || p == k;
+        p.len() == k.len() && p.iter().zip(&k).all(|(p, k)| chunk(p, k))
     }
 
     fn may(kind: Kind, id: &str, flow: Flow, message: AclMessage, key: &str) -> bool {
@@ -319,16 +337,21 @@ mod tests {
         let own = ["rgbd", "arm", "info", "status", "truth"];
         puts("+", (T, "t1"), "t1", &own);
         puts("-", (T, "t1"), "t2", &own);
-        puts("-", (T, "t1"), "t1", &["roi", "views", "fruits", "map"]);
+        puts(
+            "-",
+            (T, "t1"),
+            "t1",
+            &["roi/t1", "views/t1", "fruits", "map"],
+        );
         check(
             T,
             "t1",
             "
-            + in declare_subscriber gh/trolley/t1/views
-            + out put gh/trolley/t1/views
-            - in declare_subscriber gh/trolley/*/views
-            - out put gh/trolley/t2/views
-            - in declare_subscriber gh/trolley/t1/roi
+            + in declare_subscriber gh/trolley/t1/views/*
+            + out put gh/trolley/t1/views/p1
+            - in declare_subscriber gh/trolley/*/views/*
+            - out put gh/trolley/t2/views/p1
+            - in declare_subscriber gh/trolley/t1/roi/*
             + in declare_liveliness_subscriber gh/alive/planner/*
             + out liveliness_token gh/alive/planner/p1
             - in declare_liveliness_subscriber gh/alive/detector/*
@@ -344,8 +367,7 @@ mod tests {
 
     #[test]
     fn a_detector_writes_only_clouds_and_its_status() {
-        puts("+", (D, "d1"), "t7", &["roi"]);
-        puts("-", (D, "d1"), "t1", &["rgbd", "views", "fruits", "map"]);
+        puts("-", (D, "d1"), "t1", &["rgbd", "views/d1", "fruits", "map"]);
         check(
             D,
             "d1",
@@ -354,7 +376,7 @@ mod tests {
             - in put gh/detector/d2/status
             + in declare_subscriber gh/trolley/t1/rgbd
             + out put gh/trolley/t1/rgbd
-            - out put gh/trolley/t1/views
+            - out put gh/trolley/t1/views/p1
             + in liveliness_token gh/alive/detector/d1
             - in liveliness_token gh/alive/planner/d1
             + in declare_liveliness_subscriber gh/alive/trolley/*
@@ -365,13 +387,34 @@ mod tests {
     }
 
     #[test]
+    fn a_detector_puts_clouds_only_under_its_own_id() {
+        puts("+", (D, "d1"), "t7", &["roi/d1"]);
+        // Another detector's key, a planner's, no sender, or a wildcard standing for any.
+        for roi in ["roi/d2", "roi/p1", "roi", "roi/*", "roi/**"] {
+            puts("-", (D, "d1"), "t7", &[roi]);
+        }
+        // Told of the planners' and dashboards' subscriptions to every detector's clouds.
+        check(D, "d1", "+ out declare_subscriber gh/trolley/*/roi/*");
+    }
+
+    #[test]
+    fn a_planner_puts_views_only_under_its_own_id() {
+        puts("+", (P, "p1"), "t3", &["views/p1"]);
+        for views in ["views/p2", "views/t3", "views", "views/*"] {
+            puts("-", (P, "p1"), "t3", &[views]);
+        }
+        // Told of the edge's subscription to its trolley's views from every planner.
+        check(P, "p1", "+ out declare_subscriber gh/trolley/t3/views/*");
+    }
+
+    #[test]
     fn a_planner_writes_results_and_only_planners_query_snapshots() {
-        puts("+", (P, "p1"), "t3", &["views", "fruits", "map"]);
+        puts("+", (P, "p1"), "t3", &["views/p1", "fruits", "map"]);
         puts(
             "-",
             (P, "p1"),
             "t3",
-            &["rgbd", "arm", "info", "roi", "status"],
+            &["rgbd", "arm", "info", "roi/p1", "status"],
         );
         let snapshot = "gh/planner/p1/snapshot/t1";
         check(
@@ -387,7 +430,8 @@ mod tests {
             - out query gh/planner/p2/snapshot/t1
             + in reply gh/planner/p1/snapshot/t1
             - in reply gh/planner/p2/snapshot/t1
-            + out put gh/trolley/t3/roi
+            + out put gh/trolley/t3/roi/d1
+            - in declare_subscriber gh/trolley/t3/roi
             + out put gh/trolley/t3/info
             + out put gh/trolley/t3/fruits
             - out put gh/trolley/t3/rgbd
@@ -407,7 +451,7 @@ mod tests {
     fn a_dashboard_only_reads() {
         let every_key = [
             "gh/trolley/t1/rgbd",
-            "gh/trolley/t1/views",
+            "gh/trolley/t1/views/p1",
             "gh/trolley/t1/map",
             "gh/planner/p1/status",
             "gh/detector/d1/status",

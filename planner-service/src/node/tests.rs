@@ -43,8 +43,18 @@ fn cloud_event(cloud: &RoiCloud) -> PlannerEvent {
     cloud_from("d1", cloud, NOW_NS)
 }
 
+/// A cloud as it arrives on `header.source_id`'s key.
+fn keyed(header: Header, cloud: RoiCloud) -> KeyedCloud {
+    KeyedCloud {
+        sender: header.source_id.clone(),
+        header,
+        cloud,
+    }
+}
+
 fn cloud_from(source: &str, cloud: &RoiCloud, received_ns: u64) -> PlannerEvent {
     PlannerEvent::Cloud {
+        sender: source.into(),
         header: Header {
             source_id: source.into(),
             ..header("t1", cloud.source_frame_seq)
@@ -402,7 +412,7 @@ fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
     let batch = || {
         let queued = clouds
             .iter()
-            .map(|c| (header("t1", c.source_frame_seq), c.clone()));
+            .map(|c| keyed(header("t1", c.source_frame_seq), c.clone()));
         PlannerEvent::Clouds {
             clouds: queued.collect(),
             received_ns: NOW_NS,
@@ -448,7 +458,8 @@ fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
             info: info.clone(),
         });
     }
-    let of = |tid: &str, i: usize| (header(tid, clouds[i].source_frame_seq), clouds[i].clone());
+    let of =
+        |tid: &str, i: usize| keyed(header(tid, clouds[i].source_frame_seq), clouds[i].clone());
     let batch = vec![
         of("t1", 0),
         of("t2", 0),
@@ -563,6 +574,74 @@ fn clouds_from_a_source_that_is_no_detector_are_refused() {
     );
 }
 
+/// Scans in `node`'s map of t1.
+fn scans(node: &PlannerNode) -> u64 {
+    node.planner("t1").unwrap().map().scans_inserted()
+}
+
+#[test]
+fn clouds_are_taken_only_from_the_detector_serving_the_trolley() {
+    let (info, clouds) = trolley_clouds(3);
+    let mut owner = owner_with_first_cloud(&info, &clouds[0]);
+    // d2 joins and ranks first for t1 (the ranking the detectors split the trolleys by): d1,
+    // still live, serves other trolleys now.
+    owner.handle(PlannerEvent::DetectorJoined("d2".into()));
+    let live = ["d1", "d2"];
+    assert_eq!(glasshouse_fleet::first_ranked("t1", live), Some("d2"));
+    // d1's cloud waits for the membership to change, then is refused as unassigned.
+    assert!(owner
+        .handle(cloud_from("d1", &clouds[1], NOW_NS))
+        .is_empty());
+    owner.handle(status_tick(NOW_NS + UNKNOWN_SOURCE_WAIT_NS + 1));
+    assert_eq!(owner.stats().clouds_unassigned, 1);
+    assert_eq!(scans(&owner), 1);
+    // The same cloud from the serving detector is taken and planned on.
+    assert_eq!(
+        views_of(&owner.handle(cloud_from("d2", &clouds[1], NOW_NS))).len(),
+        1
+    );
+    assert_eq!(scans(&owner), 2);
+    // d2 leaves: d1 serves t1 again, and its cloud that waited is taken.
+    assert!(owner
+        .handle(cloud_from("d1", &clouds[2], NOW_NS))
+        .is_empty());
+    let actions = owner.handle(PlannerEvent::DetectorLeft("d2".into()));
+    assert_eq!(views_of(&actions).len(), 1);
+    assert_eq!(scans(&owner), 3);
+    let PlannerAction::PublishStatus { status, .. } = &owner.handle(status_tick(NOW_NS))[0] else {
+        panic!("no status")
+    };
+    assert_eq!((status.unassigned_clouds, status.refused_clouds), (1, 0));
+}
+
+#[test]
+fn a_cloud_whose_header_names_another_detector_than_its_key_is_refused_at_once() {
+    let (info, clouds) = trolley_clouds(2);
+    let mut owner = owner_with_first_cloud(&info, &clouds[0]);
+    owner.handle(PlannerEvent::DetectorJoined("d3".into()));
+    // d1 serves t1 beside d3. d3, on its own key, claims to be d1.
+    assert_eq!(
+        glasshouse_fleet::first_ranked("t1", ["d1", "d3"]),
+        Some("d1")
+    );
+    let claiming = |sender: &str| PlannerEvent::Cloud {
+        sender: sender.into(),
+        header: header("t1", 2),
+        cloud: clouds[1].clone(),
+        received_ns: NOW_NS,
+    };
+    assert!(owner.handle(claiming("d3")).is_empty());
+    // A key that named no detector (the driver passes an empty sender) is refused too.
+    assert!(owner.handle(claiming("")).is_empty());
+    assert_eq!(owner.stats().clouds_unassigned, 2);
+    assert_eq!(scans(&owner), 1);
+    // Nothing waits: no refusal comes later, and the serving detector's cloud is taken.
+    owner.handle(status_tick(NOW_NS + 2 * UNKNOWN_SOURCE_WAIT_NS));
+    assert_eq!(owner.stats().clouds_unassigned, 2);
+    assert_eq!(views_of(&owner.handle(claiming("d1"))).len(), 1);
+    assert_eq!(scans(&owner), 2);
+}
+
 #[test]
 fn a_cloud_that_arrives_before_its_detector_token_is_taken_with_the_token() {
     let (info, clouds) = trolley_clouds(1);
@@ -571,6 +650,7 @@ fn a_cloud_that_arrives_before_its_detector_token_is_taken_with_the_token() {
     assert!(owner
         .handle(cloud_from("d2", &clouds[0], NOW_NS))
         .is_empty());
+    // d2 ranks first for t1 among d1 and d2: it serves t1 once its token is known.
     let actions = owner.handle(PlannerEvent::DetectorJoined("d2".into()));
     assert_eq!(views_of(&actions).len(), 1);
     assert_eq!(owner.stats().clouds_refused, 0);
@@ -831,6 +911,7 @@ fn a_refresh_answered_after_the_takeover_is_ignored() {
 
 fn cloud_for(tid: &str, cloud: &RoiCloud) -> PlannerEvent {
     PlannerEvent::Cloud {
+        sender: "d1".into(),
         header: header(tid, cloud.source_frame_seq),
         cloud: cloud.clone(),
         received_ns: NOW_NS,

@@ -5217,6 +5217,7 @@ impl<'a> PlannerStatus<'a> {
   pub const VT_REGISTRATION_SKIPPED: ::flatbuffers::VOffsetT = 34;
   pub const VT_STALE_EPOCH: ::flatbuffers::VOffsetT = 36;
   pub const VT_STEPPED_DOWN: ::flatbuffers::VOffsetT = 38;
+  pub const VT_UNASSIGNED_CLOUDS: ::flatbuffers::VOffsetT = 40;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5228,6 +5229,7 @@ impl<'a> PlannerStatus<'a> {
     args: &'args PlannerStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<PlannerStatus<'bldr>> {
     let mut builder = PlannerStatusBuilder::new(_fbb);
+    builder.add_unassigned_clouds(args.unassigned_clouds);
     builder.add_stepped_down(args.stepped_down);
     builder.add_stale_epoch(args.stale_epoch);
     builder.add_registration_skipped(args.registration_skipped);
@@ -5385,6 +5387,15 @@ impl<'a> PlannerStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(PlannerStatus::VT_STEPPED_DOWN, Some(0)).unwrap()}
   }
+  /// RoiClouds refused because the detector that sent them (the id its key ends in) does not
+  /// serve their trolley by the detectors' ranking, or their header names another source.
+  #[inline]
+  pub fn unassigned_clouds(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_UNASSIGNED_CLOUDS, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
@@ -5411,6 +5422,7 @@ impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
      .visit_field::<u64>("registration_skipped", Self::VT_REGISTRATION_SKIPPED, false)?
      .visit_field::<u64>("stale_epoch", Self::VT_STALE_EPOCH, false)?
      .visit_field::<u64>("stepped_down", Self::VT_STEPPED_DOWN, false)?
+     .visit_field::<u64>("unassigned_clouds", Self::VT_UNASSIGNED_CLOUDS, false)?
      .finish();
     Ok(())
   }
@@ -5434,6 +5446,7 @@ pub struct PlannerStatusArgs<'a> {
     pub registration_skipped: u64,
     pub stale_epoch: u64,
     pub stepped_down: u64,
+    pub unassigned_clouds: u64,
 }
 impl<'a> Default for PlannerStatusArgs<'a> {
   #[inline]
@@ -5457,6 +5470,7 @@ impl<'a> Default for PlannerStatusArgs<'a> {
       registration_skipped: 0,
       stale_epoch: 0,
       stepped_down: 0,
+      unassigned_clouds: 0,
     }
   }
 }
@@ -5539,6 +5553,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> PlannerStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(PlannerStatus::VT_STEPPED_DOWN, stepped_down, 0);
   }
   #[inline]
+  pub fn add_unassigned_clouds(&mut self, unassigned_clouds: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_UNASSIGNED_CLOUDS, unassigned_clouds, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> PlannerStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     PlannerStatusBuilder {
@@ -5574,6 +5592,7 @@ impl ::core::fmt::Debug for PlannerStatus<'_> {
       ds.field("registration_skipped", &self.registration_skipped());
       ds.field("stale_epoch", &self.stale_epoch());
       ds.field("stepped_down", &self.stepped_down());
+      ds.field("unassigned_clouds", &self.unassigned_clouds());
       ds.finish()
   }
 }

@@ -32,6 +32,9 @@ pub struct PlannerStatus {
     /// Times it stopped owning a trolley on seeing a newer ownership epoch than its own term,
     /// and caught up from a snapshot before planning again.
     pub stepped_down: u64,
+    /// RoiClouds refused because the detector that sent them (the id its key ends in) does not
+    /// serve their trolley by the detectors' ranking, or their header names another source.
+    pub unassigned_clouds: u64,
 }
 
 /// Clouds registered to their maps, by verdict (see [`crate::RegistrationVerdict`]).
@@ -143,6 +146,7 @@ impl Wire for PlannerStatus {
                 registration_skipped: self.registrations.skipped,
                 stale_epoch: self.stale_epoch,
                 stepped_down: self.stepped_down,
+                unassigned_clouds: self.unassigned_clouds,
             },
         )
         .as_union_value()
@@ -174,6 +178,7 @@ impl Wire for PlannerStatus {
             },
             stale_epoch: m.stale_epoch(),
             stepped_down: m.stepped_down(),
+            unassigned_clouds: m.unassigned_clouds(),
         })
     }
 }
@@ -237,10 +242,11 @@ mod tests {
 
     #[test]
     fn a_status_from_a_sender_without_registration_totals_reads_zero() {
-        // Nor the fencing counts, which came later.
+        // Nor the fencing counts and the unassigned clouds, which came later.
         let sample = PlannerStatus {
             stale_epoch: 0,
             stepped_down: 0,
+            unassigned_clouds: 0,
             ..samples::planner_status()
         };
         let old = encode(&samples::header(2), &OldSender(sample.clone()));

@@ -195,8 +195,17 @@ class PlannerStatus(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # RoiClouds refused because the detector that sent them (the id its key ends in) does not
+    # serve their trolley by the detectors' ranking, or their header names another source.
+    # PlannerStatus
+    def UnassignedClouds(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(40))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def PlannerStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(18)
+    builder.StartObject(19)
 
 def Start(builder: flatbuffers.Builder):
     PlannerStatusStart(builder)
@@ -320,6 +329,12 @@ def PlannerStatusAddSteppedDown(builder: flatbuffers.Builder, steppedDown: int):
 
 def AddSteppedDown(builder: flatbuffers.Builder, steppedDown: int):
     PlannerStatusAddSteppedDown(builder, steppedDown)
+
+def PlannerStatusAddUnassignedClouds(builder: flatbuffers.Builder, unassignedClouds: int):
+    builder.PrependUint64Slot(18, unassignedClouds, 0)
+
+def AddUnassignedClouds(builder: flatbuffers.Builder, unassignedClouds: int):
+    PlannerStatusAddUnassignedClouds(builder, unassignedClouds)
 
 def PlannerStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -92,7 +92,7 @@ async fn router_lost_and_back(fault: RouterFault) {
     })
     .await;
     let status_sub = observe(&observer, &keys::status("t1").expect("key")).await;
-    let clouds_sub = observe(&observer, &keys::roi("t1").expect("key")).await;
+    let clouds_sub = observe(&observer, &keys::roi_from_any("t1").expect("key")).await;
     let _detector = start("detector", "detector-service", &[]);
     let _p1 = start("planner-p1", "planner-service", &["--planner-id", "p1"]);
     let _p2 = start("planner-p2", "planner-service", &["--planner-id", "p2"]);

@@ -144,9 +144,20 @@ async fn router_lost_and_back(fault: RouterFault) {
         assert_eq!(executed_up_to(&last, term_at_fault), switched);
     }
 
-    // 3. The owner's map holds every scan.
+    // 3. The owner's map holds every scan: the owner the edge took its last views from (a
+    // standby that missed a cloud while its link moved is not asked).
     edge.terminate();
-    let (owner, map, clouds) = owner_map_at_last_cloud(&observer, &clouds_sub).await;
+    let mut last = after;
+    while let Some(received) = status_sub.try_recv() {
+        last = received.message;
+    }
+    let owner = last
+        .owner_terms
+        .iter()
+        .max_by_key(|t| t.owner_epoch)
+        .map(|t| t.planner_id.clone())
+        .expect("an owner");
+    let (map, clouds) = owner_map_at_last_cloud(&observer, &clouds_sub, &owner).await;
     let expected = rebuild(&clouds);
     eprintln!(
         "{} clouds; {owner}'s map {} voxels after {} scans",
@@ -163,37 +174,35 @@ async fn router_lost_and_back(fault: RouterFault) {
     let _ = std::fs::remove_dir_all(&logs);
 }
 
-/// The snapshot of the planner (p1 or p2) whose map is at the last cloud observed, and every
-/// cloud observed.
+/// The owner's snapshot once it is at the last cloud observed, and every cloud observed.
 async fn owner_map_at_last_cloud(
     observer: &glasshouse_bus::zenoh::Session,
     clouds_sub: &glasshouse_bus::Subscriber<RoiCloud>,
-) -> (&'static str, RoiMap, Vec<RoiCloud>) {
+    owner: &str,
+) -> (RoiMap, Vec<RoiCloud>) {
     let mut clouds = Vec::new();
+    let key = keys::planner_snapshot(owner, "t1").expect("key");
     within(
         60,
-        "a planner's snapshot at the last observed cloud",
+        "the owner's snapshot at the last observed cloud",
         async {
             loop {
                 while let Some(received) = clouds_sub.try_recv() {
                     clouds.push(received.message);
                 }
                 let last = clouds.iter().map(RoiCloud::source_frame).max();
-                for pid in ["p1", "p2"] {
-                    let key = keys::planner_snapshot(pid, "t1").expect("key");
-                    match glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
-                        Ok((_, s))
-                            if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last =>
-                        {
-                            let map =
-                                RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
-                            return (pid, map, std::mem::take(&mut clouds));
-                        }
-                        Ok((_, s)) => {
-                            eprintln!("{pid} at seq {}, last cloud {last:?}", s.based_on_seq)
-                        }
-                        Err(e) => eprintln!("no snapshot of {pid}: {e}"),
+                match glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
+                    Ok((_, s))
+                        if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last =>
+                    {
+                        let map =
+                            RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
+                        return (map, std::mem::take(&mut clouds));
                     }
+                    Ok((_, s)) => {
+                        eprintln!("{owner} at seq {}, last cloud {last:?}", s.based_on_seq)
+                    }
+                    Err(e) => eprintln!("no snapshot yet: {e}"),
                 }
                 tokio::time::sleep(Duration::from_millis(200)).await;
             }

@@ -187,8 +187,9 @@ struct TrolleyLog {
     frame_to_cloud_ms: Vec<f64>,
     frame_to_views_ms: Vec<f64>,
     views: u64,
-    /// (arrival, planner) of every RankedViews.
-    views_from: Vec<(Instant, String)>,
+    /// Every RankedViews: its arrival, its planner, and when the frame it answers arrived (for
+    /// the first views on a frame).
+    views_from: Vec<(Instant, String, Option<Instant>)>,
     /// The views its arm executed per ownership term, as its status said, when that changed.
     terms: Vec<(Instant, Vec<glasshouse_proto::OwnerTerm>)>,
 }
@@ -786,12 +787,13 @@ impl Observed {
             }
             (TrolleyTopic::Views, Message::RankedViews(v)) => {
                 t.views += 1;
-                t.views_from.push((now, header.source_id.clone()));
                 // The first views on a frame: the loop's latency.
-                if let Some(f) = t.frame_at.remove(&v.based_on_seq) {
+                let frame = t.frame_at.remove(&v.based_on_seq);
+                if let Some(f) = frame {
                     t.frame_to_views_ms
                         .push(now.duration_since(f).as_secs_f64() * 1e3);
                 }
+                t.views_from.push((now, header.source_id.clone(), frame));
             }
             (TrolleyTopic::Status, Message::TrolleyStatus(s)) => {
                 self.drops

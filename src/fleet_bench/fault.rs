@@ -69,6 +69,10 @@ pub(super) struct MovedTrolley {
     /// Seconds from the fault to its first views from a planner other than the one hit (from any
     /// planner after a router fault); None: none before the run ended.
     pub back_on_views_s: Option<f64>,
+    /// Of that, the time its arm waited: from the fault or from the frame those views answer,
+    /// whichever came later (an arm still moving when the fault came sends its next frame only
+    /// once it is there, and waits only from then on).
+    pub waited_s: Option<f64>,
     pub served_by: Option<String>,
     /// Views its arm executed under the ownership term current at the fault (or an older one)
     /// after it had taken views under a newer term: motions on a stale owner's word.
@@ -91,17 +95,31 @@ pub(super) struct FaultReport {
     pub p99_s: Option<f64>,
     /// None when a moved trolley never got views again.
     pub last_s: Option<f64>,
+    /// The longest an arm waited for those views (see `MovedTrolley::waited_s`).
+    pub longest_wait_s: Option<f64>,
     pub stale_motions: u64,
 }
 
-/// Seconds from the fault to `log`'s first views after it not from `hit` (a planner fault) or
-/// from anyone (a router fault), and who sent them.
-fn back_on_views(log: &TrolleyLog, fault: &Injected) -> Option<(f64, String)> {
+/// `log`'s first views after the fault not from `hit` (a planner fault) or from anyone (a
+/// router fault).
+struct BackOnViews {
+    after_fault_s: f64,
+    waited_s: f64,
+    from: String,
+}
+
+fn back_on_views(log: &TrolleyLog, fault: &Injected) -> Option<BackOnViews> {
     let from_other = |from: &String| fault.fault.hits_router() || *from != fault.target;
-    log.views_from
+    let (when, from, frame) = log
+        .views_from
         .iter()
-        .find(|(when, from)| *when > fault.at && from_other(from))
-        .map(|(when, from)| (when.duration_since(fault.at).as_secs_f64(), from.clone()))
+        .find(|(when, from, _)| *when > fault.at && from_other(from))?;
+    let waiting_since = frame.map_or(fault.at, |f| f.max(fault.at));
+    Some(BackOnViews {
+        after_fault_s: when.duration_since(fault.at).as_secs_f64(),
+        waited_s: when.duration_since(waiting_since).as_secs_f64(),
+        from: from.clone(),
+    })
 }
 
 /// Views executed under terms up to `epoch`.
@@ -143,8 +161,9 @@ pub(super) fn report(o: &Observed, fault: &Injected, started: Instant) -> FaultR
             let back = log.and_then(|l| back_on_views(l, fault));
             let stale = log.map_or(0, |l| stale_motions(&l.terms, fault.at));
             let trolley = MovedTrolley {
-                back_on_views_s: back.as_ref().map(|(s, _)| *s),
-                served_by: back.map(|(_, pid)| pid),
+                back_on_views_s: back.as_ref().map(|b| b.after_fault_s),
+                waited_s: back.as_ref().map(|b| b.waited_s),
+                served_by: back.map(|b| b.from),
                 stale_motions: stale,
                 map: None,
             };
@@ -152,6 +171,7 @@ pub(super) fn report(o: &Observed, fault: &Injected, started: Instant) -> FaultR
         })
         .collect();
     let times: Vec<f64> = moved.values().filter_map(|m| m.back_on_views_s).collect();
+    let waits: Vec<f64> = moved.values().filter_map(|m| m.waited_s).collect();
     let all_back = times.len() == moved.len();
     FaultReport {
         fault: fault.fault,
@@ -163,6 +183,7 @@ pub(super) fn report(o: &Observed, fault: &Injected, started: Instant) -> FaultR
         t1_s: moved.get("t1").and_then(|m| m.back_on_views_s),
         p99_s: percentile(&times, 99.0).filter(|_| all_back),
         last_s: times.iter().copied().reduce(f64::max).filter(|_| all_back),
+        longest_wait_s: waits.iter().copied().reduce(f64::max).filter(|_| all_back),
         stale_motions: moved.values().map(|m| m.stale_motions).sum(),
         moved,
     }
@@ -179,7 +200,7 @@ pub(super) fn print(report: Option<&FaultReport>) {
         .map_or(String::new(), |s| format!(", undone after {s:.1} s"));
     let secs = |s: Option<f64>| s.map_or("NEVER".to_string(), |s| format!("{s:.2} s"));
     println!(
-        "  fault: {:?} of {} at {:.1} s{lasted}; {} trolleys moved, back on views: t1 {}, p99 {}, last {}; stale arm motions {}",
+        "  fault: {:?} of {} at {:.1} s{lasted}; {} trolleys moved, back on views: t1 {}, p99 {}, last {} (longest an arm waited {}); stale arm motions {}",
         r.fault,
         r.target,
         r.at_s,
@@ -187,6 +208,7 @@ pub(super) fn print(report: Option<&FaultReport>) {
         secs(r.t1_s),
         secs(r.p99_s),
         secs(r.last_s),
+        secs(r.longest_wait_s),
         r.stale_motions
     );
     for (tid, m) in &r.moved {
@@ -197,8 +219,9 @@ pub(super) fn print(report: Option<&FaultReport>) {
             )
         });
         println!(
-            "    {tid}: back on views {} from {}; {map}",
+            "    {tid}: back on views {} (waited {}) from {}; {map}",
             secs(m.back_on_views_s),
+            secs(m.waited_s),
             m.served_by.as_deref().unwrap_or("nobody")
         );
     }

@@ -71,7 +71,7 @@ pub(super) struct MovedTrolley {
     pub back_on_views_s: Option<f64>,
     /// Of that, the time its arm waited: from the fault or from the frame those views answer,
     /// whichever came later (an arm still moving when the fault came sends its next frame only
-    /// once it is there, and waits only from then on).
+    /// once it is there, and waits only from then on); from the fault after a router fault.
     pub waited_s: Option<f64>,
     pub served_by: Option<String>,
     /// Views its arm executed under the ownership term current at the fault (or an older one)
@@ -114,7 +114,12 @@ fn back_on_views(log: &TrolleyLog, fault: &Injected) -> Option<BackOnViews> {
         .views_from
         .iter()
         .find(|(when, from, _)| *when > fault.at && from_other(from))?;
-    let waiting_since = frame.map_or(fault.at, |f| f.max(fault.at));
+    // Frames sent while the router is gone reach no one, the observer included: after a router
+    // fault the arm is taken to have waited from the fault on.
+    let waiting_since = match (fault.fault.hits_router(), frame) {
+        (false, Some(f)) => (*f).max(fault.at),
+        _ => fault.at,
+    };
     Some(BackOnViews {
         after_fault_s: when.duration_since(fault.at).as_secs_f64(),
         waited_s: when.duration_since(waiting_since).as_secs_f64(),

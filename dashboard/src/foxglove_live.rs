@@ -6,7 +6,10 @@
 //!
 //! Conversion runs on its own thread behind a bounded queue (a full queue is a counted drop),
 //! and only for channels a client subscribes to: with nobody watching, the server costs the
-//! dashboard a channel lookup per message.
+//! dashboard a channel lookup per message. A channel's latest message that found no subscriber
+//! is kept and sent once one subscribes (a channel is advertised with its first message, so a
+//! client subscribes only after that one went by: without this a trolley's fruits, sent once per
+//! plan, could be missed until the next).
 
 use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
@@ -55,6 +58,7 @@ pub struct FoxgloveLiveSummary {
     pub dropped: u64,
 }
 
+#[derive(Clone)]
 struct Entry {
     key: String,
     payload: Vec<u8>,
@@ -158,6 +162,8 @@ struct Channels {
     by_topic: HashMap<String, Arc<RawChannel>>,
     /// The Foxglove topics each key's messages convert to.
     json_topics: HashMap<String, Vec<String>>,
+    /// Per key, its latest entry that reached no subscriber.
+    unsent: HashMap<String, Entry>,
     summary: FoxgloveLiveSummary,
 }
 
@@ -167,13 +173,18 @@ impl Channels {
             context,
             by_topic: HashMap::new(),
             json_topics: HashMap::new(),
+            unsent: HashMap::new(),
             summary: FoxgloveLiveSummary::default(),
         }
     }
 
     fn run(mut self, rx: Receiver<Entry>) -> FoxgloveLiveSummary {
         for entry in rx {
-            self.send(&entry);
+            self.send_unsent();
+            match self.send(&entry) {
+                true => self.unsent.remove(&entry.key),
+                false => self.unsent.insert(entry.key.clone(), entry),
+            };
         }
         self.summary
     }
@@ -201,17 +212,47 @@ impl Channels {
         }
     }
 
-    fn log(&mut self, channel: &RawChannel, bytes: &[u8], log_time_ns: u64) {
-        if channel.has_sinks() {
-            channel.log_with_meta(bytes, PartialMetadata::with_log_time(log_time_ns));
-            self.summary.sent += 1;
+    /// Sends to the channel's subscribers; false when it has none.
+    fn log(&mut self, channel: &RawChannel, bytes: &[u8], log_time_ns: u64) -> bool {
+        if !channel.has_sinks() {
+            return false;
+        }
+        channel.log_with_meta(bytes, PartialMetadata::with_log_time(log_time_ns));
+        self.summary.sent += 1;
+        true
+    }
+
+    /// Whether any of the channels `key`'s messages go to has a subscriber.
+    fn watched(&self, key: &str) -> bool {
+        let subscribed = |topic: &str| self.by_topic.get(topic).is_some_and(|c| c.has_sinks());
+        subscribed(key)
+            || self
+                .json_topics
+                .get(key)
+                .is_some_and(|topics| topics.iter().any(|t| subscribed(t)))
+    }
+
+    /// Sends the kept entries whose channels have a subscriber now.
+    fn send_unsent(&mut self) {
+        let ready: Vec<String> = self
+            .unsent
+            .keys()
+            .filter(|key| self.watched(key))
+            .cloned()
+            .collect();
+        for key in ready {
+            if let Some(entry) = self.unsent.remove(&key) {
+                self.send(&entry);
+            }
         }
     }
 
-    fn send(&mut self, entry: &Entry) {
+    /// Converts and sends `entry`; false when it reached no subscriber.
+    fn send(&mut self, entry: &Entry) -> bool {
         let flat = Schema::new(SCHEMA_ROOT_NAME, "flatbuffer", SCHEMA_BFBS);
+        let mut sent = false;
         if let Some(channel) = self.channel(&entry.key, "flatbuffer", flat) {
-            self.log(&channel, &entry.payload, entry.log_time_ns);
+            sent |= self.log(&channel, &entry.payload, entry.log_time_ns);
         }
         // Converting costs (images become base64 JSON): only for a first advertisement or a
         // subscribed channel.
@@ -222,7 +263,7 @@ impl Channels {
                 .any(|t| self.by_topic.get(t).is_some_and(|c| c.has_sinks())),
         };
         if !wanted {
-            return;
+            return sent;
         }
         let messages = foxglove_messages(&entry.key, &entry.payload);
         let topics = messages.iter().map(|m| m.topic.clone()).collect();
@@ -230,8 +271,9 @@ impl Channels {
         for m in messages {
             let schema = Schema::new(m.schema, "jsonschema", json_schema(m.schema));
             if let Some(channel) = self.channel(&m.topic, "json", schema) {
-                self.log(&channel, &m.json, entry.log_time_ns);
+                sent |= self.log(&channel, &m.json, entry.log_time_ns);
             }
         }
+        sent
     }
 }

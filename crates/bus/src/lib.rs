@@ -530,13 +530,9 @@ pub enum MemberEvent {
 /// Follows the liveliness tokens of one kind of member: the ones alive when it starts come first
 /// as [`MemberEvent::Joined`], then every change.
 pub struct MemberWatch {
-    session: Session,
     subscriber:
         zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
 }
-
-/// How long a leave is checked against the live tokens before it is believed.
-const LEAVE_CHECK: std::time::Duration = std::time::Duration::from_millis(300);
 
 impl MemberWatch {
     pub async fn declare(session: &Session, kind: keys::MemberKind) -> Result<Self> {
@@ -551,10 +547,7 @@ impl MemberWatch {
                 key,
                 reason: e.to_string(),
             })?;
-        Ok(Self {
-            session: session.clone(),
-            subscriber,
-        })
+        Ok(Self { subscriber })
     }
 
     /// The next join or leave; `None` once the session is closed.
@@ -565,35 +558,11 @@ impl MemberWatch {
             else {
                 continue;
             };
-            match sample.kind() {
-                zenoh::sample::SampleKind::Put => return Some(MemberEvent::Joined(id)),
-                zenoh::sample::SampleKind::Delete if self.still_alive(sample.key_expr()).await => {
-                    tracing::debug!(member = %id, "leave of a member whose token is still live ignored");
-                }
-                zenoh::sample::SampleKind::Delete => return Some(MemberEvent::Left(id)),
-            }
+            return Some(match sample.kind() {
+                zenoh::sample::SampleKind::Put => MemberEvent::Joined(id),
+                zenoh::sample::SampleKind::Delete => MemberEvent::Left(id),
+            });
         }
-    }
-
-    /// Whether the token on `key` is still live. A leave can arrive after the member's token came
-    /// back by another path (a client moved to a second router, or reconnected, before the old
-    /// link's tokens were dropped): believed blindly, the member would stay gone.
-    async fn still_alive(&self, key: &zenoh::key_expr::KeyExpr<'_>) -> bool {
-        let Ok(replies) = self
-            .session
-            .liveliness()
-            .get(key.clone().into_owned())
-            .timeout(LEAVE_CHECK)
-            .await
-        else {
-            return false;
-        };
-        while let Ok(reply) = replies.recv_async().await {
-            if reply.result().is_ok() {
-                return true;
-            }
-        }
-        false
     }
 }
 

@@ -199,7 +199,11 @@ pub(super) async fn detector_attempts(
     let control = PROBE_SEQ + 10;
     let header = cloud_header(tid, &serving);
     control_clouds.send(&header, &probe_cloud(control)).await?;
-    let wait = Instant::now() + setup.timeout + Duration::from_secs(5);
+    // A loaded machine can take long to plan and publish: as long as the links may take.
+    let wait = Instant::now()
+        + setup
+            .link_timeout
+            .max(setup.timeout + Duration::from_secs(5));
     let seen = judge_clouds(&watch, (&owner, refusals_before, 2), control, wait).await?;
     drop((rogue_clouds, control_clouds));
     let _ = rogue_session.close().await;
@@ -304,7 +308,12 @@ pub(super) async fn planner_attempts(
         pick(&setup.planner_identities, &owner, "planner")?;
     let rogue_session = open_as(rogue_config, "compromised planner", setup.timeout).await?;
     let owner_session = open_as(owner_config, "owning planner", setup.timeout).await?;
-    let wait = Instant::now() + setup.timeout + Duration::from_secs(20);
+    // The edge executes the control only when its views beat its planner's on a frame: on a
+    // loaded machine that takes some frames, so the wait is as long as the links may take.
+    let wait = Instant::now()
+        + setup
+            .link_timeout
+            .max(setup.timeout + Duration::from_secs(20));
     let mut edge = EdgeSeen::default();
     let key = keys::views(tid, rogue).map_err(zenoh_error)?;
     let rogue_views = Sender::ready(&rogue_session, &key, setup.timeout).await?;

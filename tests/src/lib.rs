@@ -340,3 +340,70 @@ pub fn voxels(map: &RoiMap) -> Vec<([i32; 3], u32, u32)> {
     v.sort_unstable();
     v
 }
+
+/// A planner's map once its snapshot is at the last cloud observed, and every cloud observed.
+pub struct SnapshotAtLastCloud {
+    pub map: RoiMap,
+    /// The newest ownership epoch the answering planner knew.
+    pub owner_epoch: u64,
+    pub clouds: Vec<RoiCloud>,
+}
+
+/// Asks `pid` for `tid`'s snapshot until it is at the last cloud `clouds_sub` has seen (the
+/// detector may still publish a cloud of the edge's last frame after the edge is gone, and the
+/// observer may get it after the planner), at most 60 s.
+pub async fn snapshot_at_last_cloud(
+    observer: &Session,
+    clouds_sub: &glasshouse_bus::Subscriber<RoiCloud>,
+    pid: &str,
+    tid: &str,
+) -> SnapshotAtLastCloud {
+    let key = glasshouse_proto::keys::planner_snapshot(pid, tid).expect("key");
+    let mut clouds = Vec::new();
+    within(
+        60,
+        "the planner's snapshot at the last observed cloud",
+        async {
+            loop {
+                while let Some(received) = clouds_sub.try_recv() {
+                    clouds.push(received.message);
+                }
+                let last = clouds.iter().map(RoiCloud::source_frame).max();
+                match glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
+                    Ok((_, s)) => {
+                        let at =
+                            glasshouse_proto::FrameId::new(s.based_on_epoch_ns, s.based_on_seq);
+                        if Some(at) == last {
+                            return SnapshotAtLastCloud {
+                                map: RoiMap::read_snapshot(s.map.as_slice())
+                                    .expect("snapshot decodes"),
+                                owner_epoch: s.owner_epoch,
+                                clouds: std::mem::take(&mut clouds),
+                            };
+                        }
+                        eprintln!("{pid} at {at:?}, last cloud observed {last:?}");
+                    }
+                    Err(e) => eprintln!("no snapshot of {pid} yet: {e}"),
+                }
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        },
+    )
+    .await
+}
+
+/// `map` holds every scan of `clouds`: equal, voxel for voxel, to the map rebuilt from them.
+pub fn assert_holds_every_cloud(map: &RoiMap, clouds: &[RoiCloud], whose: &str) {
+    let expected = rebuild(clouds);
+    eprintln!(
+        "{} clouds; {whose} map {} voxels after {} scans",
+        clouds.len(),
+        map.len(),
+        map.scans_inserted()
+    );
+    assert_eq!(map.scans_inserted(), expected.scans_inserted());
+    assert!(
+        voxels(map) == voxels(&expected),
+        "{whose} map differs from the map of every published cloud"
+    );
+}

@@ -5,13 +5,13 @@
 //! go over the bus before the kill and clouds are still pending at it.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use glasshouse_proto::keys;
-use glasshouse_proto::{FrameId, RoiCloud};
-use glasshouse_roimap::RoiMap;
 use glasshouse_tests::procs::{build_binaries, Proc};
-use glasshouse_tests::{client, free_port, observe, rebuild, voxels, within};
+use glasshouse_tests::{
+    assert_holds_every_cloud, client, free_port, observe, snapshot_at_last_cloud, within,
+};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn killed_owner_is_replaced_without_losing_a_scan() {
@@ -160,53 +160,15 @@ async fn killed_owner_is_replaced_without_losing_a_scan() {
     );
 
     edge.terminate();
-    // The detector may still publish a cloud of the edge's last frame after the edge is gone,
-    // and the observer may get it after the survivor: compare the survivor's snapshot with the
-    // clouds observed once both are at the same last frame.
-    let mut clouds = Vec::new();
-    let key = keys::planner_snapshot(&replica, "t1").expect("key");
-    let survivor = within(
-        60,
-        "the survivor's snapshot at the last observed cloud",
-        async {
-            loop {
-                while let Some(received) = clouds_sub.try_recv() {
-                    clouds.push(received.message);
-                }
-                let last = clouds.iter().map(RoiCloud::source_frame).max();
-                match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
-                    Ok((_, s)) => {
-                        let at = FrameId::new(s.based_on_epoch_ns, s.based_on_seq);
-                        if Some(at) == last {
-                            return RoiMap::read_snapshot(s.map.as_slice())
-                                .expect("snapshot decodes");
-                        }
-                        eprintln!("survivor at {at:?}, last cloud observed {last:?}");
-                    }
-                    Err(e) => eprintln!("no snapshot yet: {e}"),
-                }
-                tokio::time::sleep(Duration::from_millis(200)).await;
-            }
-        },
-    )
-    .await;
-    let last_seq = clouds
+    let at_last = snapshot_at_last_cloud(&observer, &clouds_sub, &replica, "t1").await;
+    let last_seq = at_last
+        .clouds
         .iter()
         .map(|c| c.source_frame().seq)
         .max()
         .expect("clouds");
-    let expected = rebuild(&clouds);
-    eprintln!(
-        "{} clouds (last seq {last_seq}), survivor map {} voxels",
-        clouds.len(),
-        survivor.len()
-    );
     assert!(last_seq >= 5, "only {} frames", last_seq);
-    assert_eq!(survivor.scans_inserted(), expected.scans_inserted());
-    assert!(
-        voxels(&survivor) == voxels(&expected),
-        "the survivor's map differs from the map of every published cloud"
-    );
+    assert_holds_every_cloud(&at_last.map, &at_last.clouds, "the survivor's");
     let _ = observer.close().await;
     for (_, p) in planners {
         drop(p);

@@ -17,14 +17,14 @@
 //! stale map. The trolley keeps getting views throughout.
 
 use std::sync::Arc;
-use std::time::Duration;
 
 use glasshouse_bus::{DropCounters, Publisher};
 use glasshouse_proto::keys;
-use glasshouse_proto::{FrameId, Header, PlannerStatus, RankedViews, RoiCloud, TrolleyStatus};
-use glasshouse_roimap::RoiMap;
+use glasshouse_proto::{Header, PlannerStatus, RankedViews, TrolleyStatus};
 use glasshouse_tests::procs::{build_binaries, Proc};
-use glasshouse_tests::{client, free_port, observe, rebuild, voxels, within};
+use glasshouse_tests::{
+    assert_holds_every_cloud, client, free_port, observe, snapshot_at_last_cloud, within,
+};
 
 /// Views the edge executed under `pid`'s term `epoch`, by its status.
 fn executed(status: &TrolleyStatus, pid: &str, epoch: u64) -> u32 {
@@ -308,46 +308,9 @@ async fn owner_lost_and_back_moves_no_arm(fault: OwnerFault) {
     // since. Compared once it is at the last cloud observed (the detector may still publish the
     // edge's last frame after the edge is gone).
     edge.terminate();
-    let mut clouds = Vec::new();
-    let key = keys::planner_snapshot(&owner, "t1").expect("key");
-    let map = within(
-        60,
-        "the woken owner's snapshot at the last observed cloud",
-        async {
-            loop {
-                while let Some(received) = clouds_sub.try_recv() {
-                    clouds.push(received.message);
-                }
-                let last = clouds.iter().map(RoiCloud::source_frame).max();
-                match glasshouse_bus::ask(&observer, &key, Duration::from_secs(5)).await {
-                    Ok((_, s))
-                        if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last =>
-                    {
-                        assert!(s.owner_epoch >= resumed_epoch);
-                        return RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
-                    }
-                    Ok((_, s)) => {
-                        eprintln!("{owner} at seq {}, last cloud {last:?}", s.based_on_seq)
-                    }
-                    Err(e) => eprintln!("no snapshot yet: {e}"),
-                }
-                tokio::time::sleep(Duration::from_millis(200)).await;
-            }
-        },
-    )
-    .await;
-    let expected = rebuild(&clouds);
-    eprintln!(
-        "{} clouds, {owner}'s map {} voxels after {} scans",
-        clouds.len(),
-        map.len(),
-        map.scans_inserted()
-    );
-    assert_eq!(map.scans_inserted(), expected.scans_inserted());
-    assert!(
-        voxels(&map) == voxels(&expected),
-        "the woken owner's map differs from the map of every published cloud"
-    );
+    let at_last = snapshot_at_last_cloud(&observer, &clouds_sub, &owner, "t1").await;
+    assert!(at_last.owner_epoch >= resumed_epoch);
+    assert_holds_every_cloud(&at_last.map, &at_last.clouds, "the woken owner's");
     let _ = observer.close().await;
     drop(planners);
     let _ = std::fs::remove_dir_all(&logs);

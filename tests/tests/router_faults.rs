@@ -6,13 +6,12 @@
 //! than one it has taken views under, and its owner's map at the end equals, voxel for voxel, the
 //! map rebuilt from every cloud the detector published.
 
-use std::time::Duration;
-
 use glasshouse_bus::BusArgs;
-use glasshouse_proto::{keys, FrameId, RoiCloud, TrolleyStatus};
-use glasshouse_roimap::RoiMap;
+use glasshouse_proto::{keys, TrolleyStatus};
 use glasshouse_tests::procs::{build_binaries, Proc};
-use glasshouse_tests::{free_port, observe, open, rebuild, voxels, within};
+use glasshouse_tests::{
+    assert_holds_every_cloud, free_port, observe, open, snapshot_at_last_cloud, within,
+};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum RouterFault {
@@ -157,56 +156,8 @@ async fn router_lost_and_back(fault: RouterFault) {
         .max_by_key(|t| t.owner_epoch)
         .map(|t| t.planner_id.clone())
         .expect("an owner");
-    let (map, clouds) = owner_map_at_last_cloud(&observer, &clouds_sub, &owner).await;
-    let expected = rebuild(&clouds);
-    eprintln!(
-        "{} clouds; {owner}'s map {} voxels after {} scans",
-        clouds.len(),
-        map.len(),
-        map.scans_inserted()
-    );
-    assert_eq!(map.scans_inserted(), expected.scans_inserted());
-    assert!(
-        voxels(&map) == voxels(&expected),
-        "the owner's map differs from the map of every published cloud"
-    );
+    let at_last = snapshot_at_last_cloud(&observer, &clouds_sub, &owner, "t1").await;
+    assert_holds_every_cloud(&at_last.map, &at_last.clouds, &format!("{owner}'s"));
     let _ = observer.close().await;
     let _ = std::fs::remove_dir_all(&logs);
-}
-
-/// The owner's snapshot once it is at the last cloud observed, and every cloud observed.
-async fn owner_map_at_last_cloud(
-    observer: &glasshouse_bus::zenoh::Session,
-    clouds_sub: &glasshouse_bus::Subscriber<RoiCloud>,
-    owner: &str,
-) -> (RoiMap, Vec<RoiCloud>) {
-    let mut clouds = Vec::new();
-    let key = keys::planner_snapshot(owner, "t1").expect("key");
-    within(
-        60,
-        "the owner's snapshot at the last observed cloud",
-        async {
-            loop {
-                while let Some(received) = clouds_sub.try_recv() {
-                    clouds.push(received.message);
-                }
-                let last = clouds.iter().map(RoiCloud::source_frame).max();
-                match glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
-                    Ok((_, s))
-                        if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last =>
-                    {
-                        let map =
-                            RoiMap::read_snapshot(s.map.as_slice()).expect("snapshot decodes");
-                        return (map, std::mem::take(&mut clouds));
-                    }
-                    Ok((_, s)) => {
-                        eprintln!("{owner} at seq {}, last cloud {last:?}", s.based_on_seq)
-                    }
-                    Err(e) => eprintln!("no snapshot yet: {e}"),
-                }
-                tokio::time::sleep(Duration::from_millis(200)).await;
-            }
-        },
-    )
-    .await
 }

@@ -6,15 +6,14 @@
 //! in a secured deployment the router lets no other identity put there). Frames are a stream, so
 //! a busy detector skips stale frames.
 //!
-//! Any number of detectors share the fleet by splitting the keys: from the liveliness tokens of
-//! detectors and trolleys each detector computes the rendezvous ranking of the live detectors per
-//! trolley ([`glasshouse_fleet::first_ranked`]) and subscribes only to the frames of the trolleys
-//! it ranks first for. Every frame is thus processed once, by one detector, and frames of other
-//! detectors' trolleys never reach it. When a detector leaves, its trolleys move to the next
-//! ranked one within the liveliness lease. The planners rank the same way and take a trolley's
-//! clouds only from the detector ranked first for it.
+//! Any number of detectors share the fleet by splitting the trolleys (see
+//! [`glasshouse_pipeline::DetectorNode`], the state machine this process drives): each detector
+//! subscribes only to the frames of the trolleys it ranks first for, so every frame is processed
+//! once and frames of other detectors' trolleys never reach it. This file is the driver: it turns
+//! liveliness events, frames and the status clock into the node's inputs and performs its actions
+//! on the bus (subscriptions, publishers) and on a blocking thread (the detection).
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -27,7 +26,9 @@ use glasshouse_bus::{
 use std::path::{Path, PathBuf};
 
 use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
-use glasshouse_pipeline::detect_frame_with;
+use glasshouse_pipeline::{
+    detect_frame_with, DetectorAction, DetectorCounts, DetectorInput, DetectorNode, DetectorReport,
+};
 use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{DetectorStatus, Header, RgbdFrame, RoiCloud};
 use glasshouse_segment::OnnxFruitModel;
@@ -130,30 +131,19 @@ impl glasshouse_bus::metrics::ServiceMetrics for DetectorCounters {
     }
 }
 
-/// The trolleys `did` serves: those for which it ranks first among the live detectors.
-pub fn served_trolleys<'a>(
-    did: &str,
-    detectors: &BTreeSet<String>,
-    trolleys: &'a BTreeSet<String>,
-) -> BTreeSet<&'a str> {
-    let ranked =
-        |tid: &str| glasshouse_fleet::first_ranked(tid, detectors.iter().map(String::as_str));
-    trolleys
-        .iter()
-        .filter(|tid| ranked(tid) == Some(did))
-        .map(String::as_str)
-        .collect()
-}
-
 /// Frames waiting for detection, over all served trolleys.
 const FRAME_QUEUE: usize = 4;
 
-/// What wakes the detector up.
-enum DetectorEvent {
-    Detector(MemberEvent),
-    Trolley(MemberEvent),
-    StatusTick,
-    Frame(Box<Received<RgbdFrame>>),
+impl DetectorCounters {
+    /// Shows the node's counts to the metrics.
+    fn mirror(&self, counts: DetectorCounts) {
+        self.frames_processed
+            .store(counts.frames_processed, Ordering::Relaxed);
+        self.frames_rejected
+            .store(counts.frames_rejected, Ordering::Relaxed);
+        self.trolleys_served
+            .store(counts.trolleys_served, Ordering::Relaxed);
+    }
 }
 
 /// The bus side the detector listens to: who is alive, the status clock and the served frames.
@@ -162,117 +152,118 @@ struct Inputs {
     trolley_watch: MemberWatch,
     status_tick: tokio::time::Interval,
     frames: tokio::sync::mpsc::Receiver<Received<RgbdFrame>>,
+    drops: Arc<DropCounters>,
 }
 
 impl Inputs {
-    /// The next event; `None` once `shutdown` fires or a membership watch ends.
-    async fn next(&mut self, shutdown: &mut Shutdown) -> Option<DetectorEvent> {
+    /// The next input for the node; `None` once `shutdown` fires or a membership watch ends.
+    async fn next(&mut self, shutdown: &mut Shutdown) -> Option<DetectorInput> {
         loop {
-            let event = tokio::select! {
+            let input = tokio::select! {
                 _ = shutdown.wait() => return None,
-                event = self.detector_watch.recv() => DetectorEvent::Detector(event?),
-                event = self.trolley_watch.recv() => DetectorEvent::Trolley(event?),
-                _ = self.status_tick.tick() => DetectorEvent::StatusTick,
+                event = self.detector_watch.recv() => match event? {
+                    MemberEvent::Joined(id) => DetectorInput::DetectorJoined(id),
+                    MemberEvent::Left(id) => DetectorInput::DetectorLeft(id),
+                },
+                event = self.trolley_watch.recv() => match event? {
+                    MemberEvent::Joined(id) => DetectorInput::TrolleyJoined(id),
+                    MemberEvent::Left(id) => DetectorInput::TrolleyLeft(id),
+                },
+                _ = self.status_tick.tick() => DetectorInput::StatusTick {
+                    dropped_messages: self.drops.total(),
+                },
                 received = self.frames.recv() => match received {
-                    Some(received) => DetectorEvent::Frame(Box::new(received)),
+                    Some(r) => DetectorInput::Frame { header: r.header, frame: Box::new(r.message) },
                     None => continue,
                 },
             };
-            return Some(event);
+            return Some(input);
         }
     }
 }
 
-/// A running detector: the live members, the served trolleys' frame forwarders, the publishers.
-struct Detector {
+/// What performs the node's actions: the session, the served trolleys' frame forwarders, the
+/// publishers and the fruit detector.
+struct Driver {
     did: String,
-    /// This process's boot epoch: every header carries it.
-    epoch_ns: u64,
     session: Session,
     config: Arc<DetectorConfig>,
     fruit_detector: Arc<dyn FruitDetector>,
-    counters: Arc<DetectorCounters>,
+    drops: Arc<DropCounters>,
     /// Where the forwarders put the served trolleys' frames.
     frame_tx: tokio::sync::mpsc::Sender<Received<RgbdFrame>>,
     /// One subscriber (and forwarding task) per served trolley.
     frame_tasks: HashMap<String, tokio::task::JoinHandle<()>>,
-    live_detectors: BTreeSet<String>,
-    live_trolleys: BTreeSet<String>,
     status_pub: Publisher<DetectorStatus>,
     clouds: HashMap<String, Publisher<RoiCloud>>,
-    total_ms: f64,
-    status_seq: u64,
 }
 
-impl Detector {
-    /// Takes in one event; true when the live members changed.
-    async fn handle(&mut self, event: DetectorEvent) -> anyhow::Result<bool> {
-        let changed = match event {
-            DetectorEvent::Detector(MemberEvent::Joined(id)) => self.live_detectors.insert(id),
-            DetectorEvent::Detector(MemberEvent::Left(id)) if id != self.did => {
-                self.live_detectors.remove(&id)
+impl Driver {
+    /// Performs one action; returns what it brings back to the node (a detection's outcome).
+    async fn perform(&mut self, action: DetectorAction) -> anyhow::Result<Option<DetectorInput>> {
+        match action {
+            DetectorAction::Serve(tid) => self.serve(tid).await?,
+            DetectorAction::Unserve(tid) => {
+                if let Some(task) = self.frame_tasks.remove(&tid) {
+                    task.abort();
+                }
+                tracing::info!(detector = %self.did, trolley = %tid, "trolley handed to another detector");
             }
-            DetectorEvent::Detector(MemberEvent::Left(_)) => false,
-            DetectorEvent::Trolley(MemberEvent::Joined(id)) => self.live_trolleys.insert(id),
-            DetectorEvent::Trolley(MemberEvent::Left(id)) => self.live_trolleys.remove(&id),
-            DetectorEvent::StatusTick => {
-                self.publish_status().await?;
-                false
+            DetectorAction::Detect { header, frame } => {
+                return Ok(Some(self.detect(header, frame).await?));
             }
-            DetectorEvent::Frame(received) => {
-                self.detect(received).await?;
-                false
+            DetectorAction::PublishCloud { header, cloud } => {
+                tracing::debug!(
+                    seq = header.seq,
+                    points = cloud.points_in_world.len(),
+                    "cloud published"
+                );
+                self.cloud_publisher(&header.trolley_id)
+                    .await?
+                    .publish(&header, &cloud)
+                    .await?;
             }
-        };
-        Ok(changed)
+            DetectorAction::PublishStatus { header, status } => {
+                self.status_pub.publish(&header, &status).await?;
+            }
+            DetectorAction::Report(DetectorReport::FrameRejected {
+                trolley_id,
+                seq,
+                reason,
+            }) => {
+                tracing::warn!(trolley = %trolley_id, seq, error = %reason, "frame rejected");
+            }
+        }
+        Ok(None)
     }
 
-    async fn publish_status(&mut self) -> anyhow::Result<()> {
-        self.status_seq += 1;
-        let counters = &self.counters;
-        let processed = counters.frames_processed.load(Ordering::Relaxed);
-        let status = DetectorStatus {
-            detector_id: self.did.clone(),
-            frames_processed: processed,
-            dropped_messages: counters.drops.total()
-                + counters.frames_rejected.load(Ordering::Relaxed),
-            mean_detect_time_ms: if processed > 0 {
-                (self.total_ms / processed as f64) as f32
-            } else {
-                0.0
-            },
-        };
-        let header = Header {
-            seq: self.status_seq,
-            epoch_ns: self.epoch_ns,
-            source_id: self.did.clone(),
-            frame_id: "world".into(),
-            ..Header::default()
-        };
-        self.status_pub.publish(&header, &status).await?;
+    /// Subscribes to `tid`'s frames and forwards them to the detection queue.
+    async fn serve(&mut self, tid: String) -> anyhow::Result<()> {
+        let drops = self.drops.clone();
+        let frames = Subscriber::declare(&self.session, &keys::rgbd(&tid)?, drops.clone()).await?;
+        let tx = self.frame_tx.clone();
+        let task = tokio::spawn(async move {
+            while let Some(received) = frames.recv().await {
+                // A full queue means this detector is behind: the frame is stale anyway.
+                if tx.try_send(received).is_err() {
+                    drops.overflow.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        });
+        tracing::info!(detector = %self.did, trolley = %tid, "serving trolley");
+        if let Some(old) = self.frame_tasks.insert(tid, task) {
+            old.abort();
+        }
         Ok(())
     }
 
-    /// Detects the ROI in one frame and publishes its cloud; a bad frame is counted and dropped.
-    async fn detect(&mut self, received: Box<Received<RgbdFrame>>) -> anyhow::Result<()> {
-        let Received {
-            header,
-            message: frame,
-            ..
-        } = *received;
-        let tid = header.trolley_id.clone();
-        if keys::validate_id(&tid).is_err() {
-            self.counters
-                .frames_rejected
-                .fetch_add(1, Ordering::Relaxed);
-            tracing::warn!(trolley = %tid, "frame with an invalid trolley id dropped");
-            return Ok(());
-        }
+    /// Runs the detection on a blocking thread; the outcome as the node's input.
+    async fn detect(&self, header: Header, frame: Box<RgbdFrame>) -> anyhow::Result<DetectorInput> {
         let started = Instant::now();
         let cfg = self.config.clone();
         let fruit_detector = self.fruit_detector.clone();
         let detector_id = self.did.clone();
-        let (seq, frame_id) = (header.seq, header.frame());
+        let frame_id = header.frame();
         let result = tokio::task::spawn_blocking(move || {
             detect_frame_with(
                 &frame,
@@ -284,80 +275,21 @@ impl Detector {
         })
         .await
         .context("detection task failed")?;
-        let cloud = match result {
-            Ok(cloud) => cloud,
-            Err(e) => {
-                self.counters
-                    .frames_rejected
-                    .fetch_add(1, Ordering::Relaxed);
-                tracing::warn!(trolley = %tid, seq, error = %e, "frame rejected");
-                return Ok(());
-            }
-        };
-        self.total_ms += started.elapsed().as_secs_f64() * 1e3;
-        self.counters
-            .frames_processed
-            .fetch_add(1, Ordering::Relaxed);
-        let publisher = match self.clouds.entry(tid.clone()) {
-            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::hash_map::Entry::Vacant(e) => e.insert(
-                Publisher::declare(
-                    &self.session,
-                    &keys::roi(&tid, &self.did)?,
-                    self.counters.drops.clone(),
-                )
-                .await?,
-            ),
-        };
-        let out = Header {
-            seq,
-            epoch_ns: self.epoch_ns,
-            stamp_ns: header.stamp_ns,
-            trolley_id: tid,
-            source_id: self.did.clone(),
-            frame_id: "world".into(),
-        };
-        tracing::debug!(seq, points = cloud.points_in_world.len(), "cloud published");
-        publisher.publish(&out, &cloud).await?;
-        Ok(())
+        Ok(DetectorInput::Detected {
+            header,
+            result: result.map_err(|e| e.to_string()),
+            detect_ms: started.elapsed().as_secs_f64() * 1e3,
+        })
     }
 
-    /// Follows the served trolleys after a membership change: drops the frames of trolleys handed
-    /// to another detector, subscribes to those newly served.
-    async fn update_served(&mut self) -> anyhow::Result<()> {
-        let did = &self.did;
-        let served = served_trolleys(did, &self.live_detectors, &self.live_trolleys);
-        self.frame_tasks.retain(|tid, task| {
-            let keep = served.contains(tid.as_str());
-            if !keep {
-                task.abort();
-                tracing::info!(detector = %did, trolley = %tid, "trolley handed to another detector");
-            }
-            keep
-        });
-        for tid in served {
-            if self.frame_tasks.contains_key(tid) {
-                continue;
-            }
-            let drops = self.counters.drops.clone();
-            let frames =
-                Subscriber::declare(&self.session, &keys::rgbd(tid)?, drops.clone()).await?;
-            let tx = self.frame_tx.clone();
-            let task = tokio::spawn(async move {
-                while let Some(received) = frames.recv().await {
-                    // A full queue means this detector is behind: the frame is stale anyway.
-                    if tx.try_send(received).is_err() {
-                        drops.overflow.fetch_add(1, Ordering::Relaxed);
-                    }
-                }
-            });
-            tracing::info!(detector = %did, trolley = %tid, "serving trolley");
-            self.frame_tasks.insert(tid.to_owned(), task);
+    /// The publisher of `tid`'s clouds under this detector's id, declared on first use.
+    async fn cloud_publisher(&mut self, tid: &str) -> anyhow::Result<&Publisher<RoiCloud>> {
+        if !self.clouds.contains_key(tid) {
+            let key = keys::roi(tid, &self.did)?;
+            let publisher = Publisher::declare(&self.session, &key, self.drops.clone()).await?;
+            self.clouds.insert(tid.to_owned(), publisher);
         }
-        self.counters
-            .trolleys_served
-            .store(self.frame_tasks.len() as u64, Ordering::Relaxed);
-        Ok(())
+        Ok(&self.clouds[tid])
     }
 
     async fn close(mut self) {
@@ -389,6 +321,7 @@ pub async fn run(
             settings.status_period_ms.max(50),
         )),
         frames: frame_rx,
+        drops: counters.drops.clone(),
     };
     let status_pub = Publisher::declare(
         &session,
@@ -397,32 +330,32 @@ pub async fn run(
     )
     .await?;
     let _alive = declare_alive(&session, MemberKind::Detector, &did).await?;
-    let mut detector = Detector {
+    let mut driver = Driver {
         did: did.clone(),
-        epoch_ns: wall_clock_ns(),
         session: session.clone(),
         config: Arc::new(DetectorConfig {
             voxel_size_m: settings.voxel_size_m,
             ..DetectorConfig::default()
         }),
         fruit_detector,
-        counters: counters.clone(),
+        drops: counters.drops.clone(),
         frame_tx,
         frame_tasks: HashMap::new(),
-        live_detectors: BTreeSet::from([did.clone()]),
-        live_trolleys: BTreeSet::new(),
         status_pub,
         clouds: HashMap::new(),
-        total_ms: 0.0,
-        status_seq: 0,
     };
-    tracing::info!(detector = %did, fruit_detector = detector.fruit_detector.name(), "detector started");
-    while let Some(event) = inputs.next(&mut shutdown).await {
-        if detector.handle(event).await? {
-            detector.update_served().await?;
+    let mut node = DetectorNode::new(&did, wall_clock_ns());
+    tracing::info!(detector = %did, fruit_detector = driver.fruit_detector.name(), "detector started");
+    while let Some(input) = inputs.next(&mut shutdown).await {
+        let mut actions: VecDeque<DetectorAction> = node.handle(input).into();
+        while let Some(action) = actions.pop_front() {
+            if let Some(outcome) = driver.perform(action).await? {
+                actions.extend(node.handle(outcome));
+            }
         }
+        counters.mirror(node.counts());
     }
-    detector.close().await;
+    driver.close().await;
     tracing::info!(detector = %did, frames = counters.frames_processed.load(Ordering::Relaxed), dropped = counters.drops.total(), "detector stopped");
     Ok(())
 }

@@ -27,6 +27,7 @@
 pub mod metrics;
 pub mod node;
 mod registration;
+mod slot;
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -51,6 +51,7 @@ use glasshouse_proto::{
 
 use crate::fleet_fruits;
 use crate::registration::{frame_registration, registration_totals};
+use crate::slot::{ReceivedCloud, Slot, Stage};
 
 /// Key whose rendezvous winner among the live planners publishes the fleet fruit map.
 pub const FLEET_MAP_KEY: &str = "fleet";
@@ -219,87 +220,6 @@ impl Laps {
     }
 }
 
-/// How far this planner's copy of a trolley is.
-enum SyncState {
-    /// Up to date with the trolley's cloud stream.
-    Live,
-    /// Waiting for a snapshot; the trolley's clouds are kept until it is loaded.
-    Loading { buffered: Vec<ReceivedCloud> },
-}
-
-/// A cloud with the receiver's wall clock at its arrival.
-#[derive(Clone)]
-struct ReceivedCloud {
-    header: Header,
-    cloud: RoiCloud,
-    received_ns: u64,
-}
-
-/// A trolley this planner owns or replicates.
-struct Slot {
-    planner: Box<TrolleyPlanner>,
-    role: Role,
-    sync: SyncState,
-    /// The latest cloud: a planner that takes over plans on it at once.
-    last_cloud: Option<ReceivedCloud>,
-    /// A standby replica's copy: the owner's latest snapshot, kept encoded (a tenth of the
-    /// decoded map's memory, no decoding work until it is needed) and decoded when the replica
-    /// catches up. While it is held, `planner` holds no map.
-    held: Option<Box<MapSnapshot>>,
-    /// A standby replica's clouds newer than its copy, in arrival order: integrated when it
-    /// catches up, dropped once a snapshot of the owner's map holds them.
-    pending: Vec<ReceivedCloud>,
-    /// A standby replica asked its owner for a snapshot and waits for the answer.
-    refresh_asked: bool,
-    /// Taken over, not yet caught up and planned on.
-    takeover_pending: bool,
-    /// The epoch of this planner's ownership term, which its outputs carry; 0 while it is no
-    /// owner, or an owner whose copy is still loading (the term begins once it is loaded).
-    term: u64,
-}
-
-impl Slot {
-    /// Whether the copy is behind what this planner received (an owner catches up first).
-    fn behind(&self) -> bool {
-        self.held.is_some() || !self.pending.is_empty() || self.takeover_pending
-    }
-
-    /// Keeps `snapshot` encoded as the copy when it is whole and not older than the copy, and
-    /// drops the pending clouds it holds; returns whether it was kept.
-    fn hold(&mut self, snapshot: Box<MapSnapshot>, pid: &str, tid: &str) -> bool {
-        let snapshot_frame = based_on(&snapshot);
-        let mark = self.copy_mark();
-        if mark.is_some_and(|m| snapshot_frame.is_none_or(|b| b < m)) {
-            return false;
-        }
-        if let Err(e) = TrolleyPlanner::check_snapshot(&snapshot) {
-            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "snapshot damaged");
-            return false;
-        }
-        self.pending
-            .retain(|c| snapshot_frame.is_none_or(|b| c.cloud.source_frame() > b));
-        self.held = Some(snapshot);
-        if let Err(e) = self.planner.clear() {
-            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "copy not cleared");
-        }
-        true
-    }
-
-    /// The last frame the copy holds: the held snapshot's, else the map's.
-    fn copy_mark(&self) -> Option<FrameId> {
-        match &self.held {
-            Some(snapshot) => based_on(snapshot),
-            None => self.planner.last_frame(),
-        }
-    }
-}
-
-/// The last frame a snapshot holds; None for a map without frames.
-fn based_on(snapshot: &MapSnapshot) -> Option<FrameId> {
-    let frame = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
-    (frame != FrameId::default()).then_some(frame)
-}
-
 /// Whether a cloud's source may send its trolley's clouds (see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Sender {
@@ -319,7 +239,7 @@ pub struct PlannerNode {
     planning: PlanningSettings,
     membership: Membership,
     /// Live detectors: a trolley's clouds are taken from the one ranked first for it.
-    detectors: BTreeSet<String>,
+    detectors: Membership,
     /// Clouds from sources that do not serve their trolley yet, oldest first.
     unknown_source: VecDeque<ReceivedCloud>,
     /// Sources and trolleys whose refused clouds were logged (once each).
@@ -372,13 +292,13 @@ impl PlannerNode {
     /// `planning` must be valid.
     pub fn new(pid: &str, planning: PlanningSettings, epoch_ns: u64) -> Self {
         let mut membership = Membership::new();
-        membership.planner_joined(pid);
+        membership.server_joined(pid);
         Self {
             pid: pid.to_owned(),
             epoch_ns,
             planning,
             membership,
-            detectors: BTreeSet::new(),
+            detectors: Membership::new(),
             unknown_source: VecDeque::new(),
             logged_refusals: BTreeSet::new(),
             slots: BTreeMap::new(),
@@ -412,20 +332,17 @@ impl PlannerNode {
 
     /// This planner's role for `tid`, if it holds the trolley.
     pub fn role(&self, tid: &str) -> Option<Role> {
-        self.slots.get(tid).map(|s| s.role)
+        self.slots.get(tid).map(Slot::role)
     }
 
     /// Clouds a standby copy of `tid` keeps, not yet integrated.
     pub fn pending_clouds(&self, tid: &str) -> usize {
-        self.slots.get(tid).map_or(0, |s| s.pending.len())
+        self.slots.get(tid).map_or(0, Slot::pending_len)
     }
 
     /// Whether the copy of `tid` waits for a snapshot.
     pub fn is_loading(&self, tid: &str) -> bool {
-        matches!(
-            self.slots.get(tid).map(|s| &s.sync),
-            Some(SyncState::Loading { .. })
-        )
+        self.slots.get(tid).is_some_and(Slot::is_loading)
     }
 
     /// This planner's copy of `tid`.
@@ -436,7 +353,7 @@ impl PlannerNode {
     /// The epoch of this planner's ownership term of `tid`; None when it does not own the
     /// trolley or its term has not begun (its copy is loading).
     pub fn term(&self, tid: &str) -> Option<u64> {
-        self.slots.get(tid).map(|s| s.term).filter(|&t| t != 0)
+        self.slots.get(tid).map(Slot::term).filter(|&t| t != 0)
     }
 
     /// The newest ownership epoch this planner has seen for `tid` (0: none).
@@ -448,13 +365,13 @@ impl PlannerNode {
     pub fn handle(&mut self, event: PlannerEvent) -> Vec<PlannerAction> {
         match event {
             PlannerEvent::PlannerJoined(id) => {
-                let changes = self.membership.planner_joined(&id);
+                let changes = self.membership.server_joined(&id);
                 self.apply(&changes)
             }
             // Our own token is ours for as long as we run.
             PlannerEvent::PlannerLeft(id) if id == self.pid => Vec::new(),
             PlannerEvent::PlannerLeft(id) => {
-                let changes = self.membership.planner_left(&id);
+                let changes = self.membership.server_left(&id);
                 self.apply(&changes)
             }
             PlannerEvent::TrolleyJoined(id) => {
@@ -468,11 +385,11 @@ impl PlannerNode {
                 Vec::new()
             }
             PlannerEvent::DetectorJoined(id) => {
-                self.detectors.insert(id);
+                self.detectors.server_joined(id);
                 self.retry_held_clouds()
             }
             PlannerEvent::DetectorLeft(id) => {
-                self.detectors.remove(&id);
+                self.detectors.server_left(id);
                 self.retry_held_clouds()
             }
             PlannerEvent::Cloud {
@@ -499,7 +416,15 @@ impl PlannerNode {
             PlannerEvent::Info { header, info } => self.on_info(&header.trolley_id, info),
             PlannerEvent::Fruits { header, fruits } => self.on_fruits(header, fruits),
             PlannerEvent::SnapshotLoaded { tid, snapshot } => {
-                let refreshing = self.slots.get(&tid).is_some_and(|s| s.refresh_asked);
+                let refreshing = self.slots.get(&tid).is_some_and(|s| {
+                    matches!(
+                        s.stage,
+                        Stage::Standby {
+                            refresh_asked: true,
+                            ..
+                        }
+                    )
+                });
                 match refreshing {
                     true => self.on_refresh(&tid, snapshot),
                     false => self.on_snapshot(&tid, snapshot),
@@ -530,9 +455,10 @@ impl PlannerNode {
 
     /// A deferred takeover: caught up unless a cloud already did it.
     fn on_catch_up(&mut self, tid: &str) -> Vec<PlannerAction> {
-        let due = self.slots.get(tid).is_some_and(|s| {
-            s.role == Role::Owner && s.behind() && matches!(s.sync, SyncState::Live)
-        });
+        let due = self
+            .slots
+            .get(tid)
+            .is_some_and(|s| matches!(s.stage, Stage::TakingOver { .. }));
         match due {
             true => self.catch_up(tid, true),
             false => Vec::new(),
@@ -605,7 +531,7 @@ impl PlannerNode {
             return Vec::new();
         }
         match self.slots.get(tid) {
-            Some(slot) if slot.role == Role::Owner && slot.term != 0 && epoch > slot.term => {
+            Some(slot) if slot.term() != 0 && epoch > slot.term() => {
                 self.step_down(tid, epoch, holder)
             }
             _ => Vec::new(),
@@ -630,21 +556,10 @@ impl PlannerNode {
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
-        tracing::warn!(planner = %pid, trolley = %tid, term = slot.term, newer, ?sources,
+        let term = slot.step_down(&pid, tid);
+        tracing::warn!(planner = %pid, trolley = %tid, term, newer, ?sources,
             "stepping down: another planner owned the trolley under a newer epoch; catching up from a snapshot");
         self.stats.stepped_down += 1;
-        slot.term = 0;
-        slot.takeover_pending = false;
-        slot.refresh_asked = false;
-        // The copy falls back to what this planner holds, decoded; the clouds it kept wait for
-        // the snapshot with the ones to come.
-        if let Some(held) = slot.held.take() {
-            if let Err(e) = slot.planner.restore(&held) {
-                tracing::warn!(planner = %pid, trolley = %tid, error = %e, "held snapshot not restored");
-            }
-        }
-        let buffered = std::mem::take(&mut slot.pending);
-        slot.sync = SyncState::Loading { buffered };
         vec![PlannerAction::AskSnapshot {
             tid: tid.to_owned(),
             sources,
@@ -667,21 +582,18 @@ impl PlannerNode {
         let Some(slot) = self.slots.get_mut(&tid) else {
             return actions;
         };
-        if let SyncState::Loading { buffered } = &mut slot.sync {
-            buffered.push(received);
-            return actions;
+        match &mut slot.stage {
+            Stage::Loading { buffered, .. } => buffered.push(received),
+            Stage::Standby { .. } if self.replica_refresh_clouds > 0 => {
+                actions.extend(self.stand_by(&tid, received));
+            }
+            Stage::Standby { .. } => actions.extend(self.integrate(&tid, received, false)),
+            Stage::TakingOver { pending, .. } => {
+                pending.push(received);
+                actions.extend(self.catch_up(&tid, latest));
+            }
+            Stage::Owning { .. } => actions.extend(self.integrate(&tid, received, latest)),
         }
-        if slot.role == Role::Replica && self.replica_refresh_clouds > 0 {
-            actions.extend(self.stand_by(&tid, received));
-            return actions;
-        }
-        if slot.role == Role::Owner && slot.behind() {
-            slot.pending.push(received);
-            actions.extend(self.catch_up(&tid, latest));
-            return actions;
-        }
-        let plan = slot.role == Role::Owner && latest;
-        actions.extend(self.integrate(&tid, received, plan));
         actions
     }
 
@@ -695,14 +607,20 @@ impl PlannerNode {
         let mark = slot.copy_mark();
         let held = mark.is_some_and(|m| received.cloud.source_frame() <= m);
         slot.last_cloud = Some(received.clone());
+        let Stage::Standby {
+            pending,
+            refresh_asked,
+            ..
+        } = &mut slot.stage
+        else {
+            return Vec::new();
+        };
         if !held {
-            slot.pending.push(received);
+            pending.push(received);
         }
         match owner {
-            Some(owner)
-                if !slot.refresh_asked && slot.pending.len() >= self.replica_refresh_clouds =>
-            {
-                slot.refresh_asked = true;
+            Some(owner) if !*refresh_asked && pending.len() >= self.replica_refresh_clouds => {
+                *refresh_asked = true;
                 vec![PlannerAction::AskSnapshot {
                     tid: tid.to_owned(),
                     sources: vec![owner],
@@ -719,18 +637,16 @@ impl PlannerNode {
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
-        slot.takeover_pending = false;
+        let Some((held, pending)) = slot.take_backlog() else {
+            return Vec::new();
+        };
         let started = Instant::now();
-        let decoded = slot
-            .held
-            .take()
-            .map(|snapshot| slot.planner.restore(&snapshot));
+        let decoded = held.map(|snapshot| slot.planner.restore(&snapshot));
         if let Some(Err(e)) = &decoded {
             tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
                 "the owner's snapshot does not load: the kept clouds go on the copy as it is");
         }
         let decode_ms = started.elapsed().as_secs_f64() * 1e3;
-        let pending = std::mem::take(&mut slot.pending);
         let last = slot.last_cloud.clone();
         let n = pending.len();
         let mut actions = Vec::new();
@@ -757,10 +673,10 @@ impl PlannerNode {
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
-        slot.refresh_asked = false;
-        if slot.role != Role::Replica {
+        let Stage::Standby { refresh_asked, .. } = &mut slot.stage else {
             return Vec::new();
-        }
+        };
+        *refresh_asked = false;
         // A replaced owner's copy is not kept: the replica integrates its clouds instead.
         let snapshot = self.fresh(tid, snapshot);
         let Some(slot) = self.slots.get_mut(tid) else {
@@ -819,11 +735,10 @@ impl PlannerNode {
     /// Whether `header`'s source may send its trolley's clouds now.
     fn sender_of(&self, header: &Header) -> Sender {
         let (tid, source) = (&header.trolley_id, header.source_id.as_str());
-        if !self.detectors.contains(source) {
+        if !self.detectors.is_server_live(source) {
             return Sender::NotLive;
         }
-        let live = self.detectors.iter().map(String::as_str);
-        match glasshouse_fleet::first_ranked(tid, live) == Some(source) {
+        match self.detectors.first_ranked(tid) == Some(source) {
             true => Sender::Serving,
             false => Sender::NotServing,
         }
@@ -893,27 +808,21 @@ impl PlannerNode {
                     actions.push(PlannerAction::Release { tid });
                 }
                 (None, None) => {}
-                (Some(role), Some(slot)) => {
-                    let took_over = role == Role::Owner && before != Some(Role::Owner);
-                    slot.role = role;
-                    if role != Role::Owner {
-                        slot.term = 0;
-                        actions.push(PlannerAction::Release { tid: tid.clone() });
-                    }
-                    let live = matches!(slot.sync, SyncState::Live);
+                (Some(Role::Replica), Some(slot)) => {
+                    slot.become_replica();
+                    actions.push(PlannerAction::Release { tid });
+                }
+                (Some(Role::Owner), Some(_)) if before == Some(Role::Owner) => {}
+                (Some(Role::Owner), Some(slot)) => {
                     // A copy still loading begins its term once it is loaded.
-                    if took_over && live {
-                        slot.term = self.fence.begin_term(&tid, self.clock_ns);
-                    }
-                    if took_over {
-                        tracing::info!(planner = %pid, trolley = %tid, term = slot.term, "took over as owner");
-                    }
+                    let (fence, clock_ns) = (&mut self.fence, self.clock_ns);
+                    let term = slot.take_over(|| fence.begin_term(&tid, clock_ns));
+                    tracing::info!(planner = %pid, trolley = %tid, term = term.unwrap_or(0), "took over as owner");
                     // The first trolley taken over catches up at once, the others one event each.
-                    if took_over && live && !caught_up {
+                    if term.is_some() && !caught_up {
                         caught_up = true;
                         actions.extend(self.catch_up(&tid, true));
-                    } else if took_over && live {
-                        slot.takeover_pending = true;
+                    } else if term.is_some() {
                         actions.push(PlannerAction::CatchUp { tid });
                     }
                 }
@@ -930,20 +839,7 @@ impl PlannerNode {
             return Vec::new();
         };
         let tid = change.trolley.clone();
-        let slot = Slot {
-            planner: Box::new(planner),
-            role,
-            sync: SyncState::Loading {
-                buffered: Vec::new(),
-            },
-            last_cloud: None,
-            held: None,
-            pending: Vec::new(),
-            refresh_asked: false,
-            takeover_pending: false,
-            term: 0,
-        };
-        self.slots.insert(tid.clone(), slot);
+        self.slots.insert(tid.clone(), Slot::loading(planner, role));
         let sources = snapshot_sources(change, &self.pid);
         vec![PlannerAction::AskSnapshot { tid, sources }]
     }
@@ -973,16 +869,11 @@ impl PlannerNode {
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
-        let SyncState::Loading { buffered } = std::mem::replace(&mut slot.sync, SyncState::Live)
-        else {
-            return Vec::new();
-        };
+        let role = slot.role();
         // A standby replica keeps the snapshot encoded and the buffered clouds pending.
-        if standby && slot.role == Role::Replica {
-            slot.pending = buffered;
-            slot.last_cloud = slot.pending.last().cloned();
-            if let Some(snapshot) = snapshot {
-                slot.hold(snapshot, &pid, tid);
+        if standby && role == Role::Replica {
+            if let Some(buffered) = slot.end_loading(Stage::standby()) {
+                slot.stand_by_loaded(buffered, snapshot, (&pid, tid));
             }
             return Vec::new();
         }
@@ -1004,11 +895,18 @@ impl PlannerNode {
                 }
             }
         }
-        let plan_last = slot.role == Role::Owner;
-        if plan_last {
-            slot.term = self.fence.begin_term(tid, self.clock_ns);
-            tracing::info!(planner = %pid, trolley = %tid, term = slot.term, from_snapshot, "ownership term begins");
-        }
+        let plan_last = role == Role::Owner;
+        let next = match plan_last {
+            true => {
+                let term = self.fence.begin_term(tid, self.clock_ns);
+                tracing::info!(planner = %pid, trolley = %tid, term, from_snapshot, "ownership term begins");
+                Stage::Owning { term }
+            }
+            false => Stage::standby(),
+        };
+        let Some(buffered) = slot.end_loading(next) else {
+            return Vec::new();
+        };
         // Nothing came while loading: the owner plans on the last cloud it had (a planner that
         // stepped down; the edge may wait on it).
         if let (true, true, Some(last)) = (plan_last, buffered.is_empty(), slot.last_cloud.clone())
@@ -1033,11 +931,7 @@ impl PlannerNode {
 
     fn snapshot_of(&self, tid: &str) -> Result<(Header, Box<MapSnapshot>), String> {
         let planner = match self.slots.get(tid) {
-            Some(Slot {
-                planner,
-                sync: SyncState::Live,
-                ..
-            }) => planner,
+            Some(slot) if !slot.is_loading() => &slot.planner,
             _ => {
                 return Err(format!(
                     "planner {} holds no up-to-date map of {tid}",
@@ -1094,7 +988,7 @@ impl PlannerNode {
         slot.planner.track();
         self.stats.stages.track_ms += laps.lap_ms();
         self.stats.clouds_integrated += 1;
-        let term = slot.term;
+        let term = slot.term();
         let map = MapUpdate {
             registration,
             owner_epoch: term,
@@ -1106,7 +1000,7 @@ impl PlannerNode {
         slot.last_cloud = Some(received);
         let seq = frame.seq;
         if !plan {
-            let actions = match slot.role {
+            let actions = match slot.role() {
                 Role::Owner => self.publish(tid, &header, None, None, map),
                 Role::Replica => Vec::new(),
             };
@@ -1183,7 +1077,7 @@ impl PlannerNode {
         self.status_seq += 1;
         let s = self.stats;
         let of_role = |role| {
-            let slots = self.slots.iter().filter(move |(_, s)| s.role == role);
+            let slots = self.slots.iter().filter(move |(_, s)| s.role() == role);
             slots.map(|(t, _)| t.clone()).collect()
         };
         let status = PlannerStatus {
@@ -1207,13 +1101,14 @@ impl PlannerNode {
                 .values()
                 .map(|s| s.planner.map().len() as u64)
                 .sum(),
-            registrations: self.slots.values().filter(|s| s.role == Role::Owner).fold(
-                RegistrationTotals::default(),
-                |mut sum, s| {
+            registrations: self
+                .slots
+                .values()
+                .filter(|s| s.role() == Role::Owner)
+                .fold(RegistrationTotals::default(), |mut sum, s| {
                     sum += registration_totals(s.planner.alignment_counts());
                     sum
-                },
-            ),
+                }),
             stale_epoch: s.stale_epoch,
             stepped_down: s.stepped_down,
             unassigned_clouds: s.clouds_unassigned,
@@ -1229,9 +1124,7 @@ impl PlannerNode {
             header: header.clone(),
             status,
         }];
-        let live: Vec<String> = self.membership.planners().map(str::to_owned).collect();
-        let first = glasshouse_fleet::rank_planners(FLEET_MAP_KEY, &live).first()
-            == Some(&self.pid.as_str());
+        let first = self.membership.first_ranked(FLEET_MAP_KEY) == Some(self.pid.as_str());
         if first && !self.latest_fruits.is_empty() {
             let fruits = fleet_fruits(&self.latest_fruits, &self.pid);
             actions.push(PlannerAction::PublishFleet { header, fruits });

@@ -12,7 +12,6 @@ use std::time::Duration;
 use glasshouse_bus::probe::{probe, Attempt, ProbeSetup};
 use glasshouse_bus::{declare_alive, BusArgs};
 use glasshouse_dashboard::DashboardSettings;
-use glasshouse_detector::served_trolleys;
 use glasshouse_edge::EdgeEvent;
 use glasshouse_planner::PlannerSettings;
 use glasshouse_proto::keys::MemberKind;
@@ -134,9 +133,10 @@ async fn only_the_roster_may_do_its_part() {
     // The edge runs until stopped: the compromised planner's views need frames to aim at.
     pipeline.start_edge(test_edge_config(0)).await;
     // A second live detector, d3, which serves other trolleys than t1.
-    let live = ["d1", "d3"].map(String::from).into();
-    let trolleys = ["t1".to_owned()].into();
-    assert!(served_trolleys("d1", &live, &trolleys).contains(&"t1"));
+    assert_eq!(
+        glasshouse_fleet::first_ranked("t1", ["d1", "d3"]),
+        Some("d1")
+    );
     let d3 = open(&identity(&pki, "detector-d3")).await;
     let _d3_alive = declare_alive(&d3, MemberKind::Detector, "d3")
         .await

@@ -220,7 +220,7 @@ fn trolley_without_planners_has_no_assignment_until_one_joins() {
     let mut m = Membership::new();
     assert!(m.trolley_joined("t1").is_empty());
     assert_eq!(m.assignment("t1"), None);
-    let changes = m.planner_joined("p1");
+    let changes = m.server_joined("p1");
     assert_eq!(
         changes,
         vec![OwnershipChange {
@@ -239,8 +239,8 @@ fn trolley_without_planners_has_no_assignment_until_one_joins() {
 #[test]
 fn membership_change_events_follow_joins_and_leaves() {
     let mut m = Membership::new();
-    m.planner_joined("p1");
-    m.planner_joined("p2");
+    m.server_joined("p1");
+    m.server_joined("p2");
     let trolleys = ["t1", "t2", "t3", "t4", "t5", "t6"];
 
     // A trolley joining: one change, from nothing to its ranked assignment.
@@ -257,12 +257,12 @@ fn membership_change_events_follow_joins_and_leaves() {
     }
     // Idempotent.
     assert!(m.trolley_joined("t1").is_empty());
-    assert!(m.planner_joined("p1").is_empty());
-    assert!(m.planner_left("p9").is_empty());
+    assert!(m.server_joined("p1").is_empty());
+    assert!(m.server_left("p9").is_empty());
     assert!(m.trolley_left("t9").is_empty());
 
     // A third planner joins: exactly the trolleys where it ranks first or second change.
-    let changes = m.apply(MembershipEvent::PlannerJoined("p3".into()));
+    let changes = m.apply(MembershipEvent::ServerJoined("p3".into()));
     let expected: Vec<OwnershipChange> = trolleys
         .iter()
         .filter_map(|t| {
@@ -292,7 +292,7 @@ fn membership_change_events_follow_joins_and_leaves() {
         .iter()
         .filter_map(|t| m.assignment(t).map(|a| (t.to_string(), a)))
         .collect();
-    let changes = m.planner_left(leaving.clone());
+    let changes = m.server_left(leaving.clone());
     let rest: Vec<&str> = ["p1", "p2", "p3"]
         .into_iter()
         .filter(|p| *p != leaving)
@@ -335,9 +335,9 @@ fn membership_change_events_follow_joins_and_leaves() {
 
     // All planners leave: the last leave takes every trolley to nothing.
     for p in &rest[..1] {
-        m.planner_left(*p);
+        m.server_left(*p);
     }
-    let last = m.planner_left(rest[1]);
+    let last = m.server_left(rest[1]);
     assert_eq!(last.len(), 5);
     assert!(last.iter().all(|c| c.after.is_none() && c.before.is_some()));
 }
@@ -346,7 +346,7 @@ fn membership_change_events_follow_joins_and_leaves() {
 fn roles_of_partitions_the_fleet() {
     let mut m = Membership::new();
     for p in ["p1", "p2", "p3", "p4"] {
-        m.planner_joined(p);
+        m.server_joined(p);
     }
     for t in ids("t", 40) {
         m.trolley_joined(t);
@@ -374,7 +374,7 @@ fn membership_does_not_depend_on_event_order() {
     let trolleys = ids("t", 30);
     let mut events: Vec<MembershipEvent> = planners
         .iter()
-        .map(|p| MembershipEvent::PlannerJoined(p.clone()))
+        .map(|p| MembershipEvent::ServerJoined(p.clone()))
         .chain(
             trolleys
                 .iter()

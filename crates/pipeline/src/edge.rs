@@ -25,8 +25,6 @@
 //! (`crate::TrolleySource`); the experiments perform them in-process. Both feed the outcomes
 //! back as events.
 
-use std::collections::BTreeSet;
-
 use glasshouse_fleet::EpochVerdict;
 use glasshouse_proto::{
     FrameId, Header, OwnerTerm, RankedView, RankedViews, TrolleyState, TrolleyStatus, OWNER_TERMS,
@@ -172,7 +170,7 @@ pub struct EdgeNode {
     /// This process's boot epoch: its frames are (epoch_ns, frame_seq).
     epoch_ns: u64,
     /// The live planners, as their liveliness tokens say.
-    planners: BTreeSet<String>,
+    planners: glasshouse_fleet::Membership,
     /// The planner whose views were taken under the newest ownership epoch.
     owner_id: String,
     /// The frame announced again at once because the owner sent stale views on it (once each).
@@ -190,7 +188,7 @@ impl EdgeNode {
         Self {
             settings,
             epoch_ns,
-            planners: BTreeSet::new(),
+            planners: glasshouse_fleet::Membership::new(),
             owner_id: String::new(),
             told_stale_owner: 0,
             frame_seq: 0,
@@ -231,10 +229,7 @@ impl EdgeNode {
 
     /// The planner this node takes views from: the live planner ranked first for its trolley.
     pub fn owner(&self) -> Option<&str> {
-        let live: Vec<String> = self.planners.iter().cloned().collect();
-        let ranked = glasshouse_fleet::rank_planners(&self.settings.trolley_id, &live);
-        let owner = ranked.first()?;
-        self.planners.get(*owner).map(String::as_str)
+        self.planners.first_ranked(&self.settings.trolley_id)
     }
 
     pub fn status(&self) -> &TrolleyStatus {
@@ -260,11 +255,11 @@ impl EdgeNode {
     pub fn handle(&mut self, input: EdgeInput) -> Vec<EdgeAction> {
         let input = match input {
             EdgeInput::PlannerJoined(id) => {
-                self.planners.insert(id);
+                self.planners.server_joined(id);
                 return Vec::new();
             }
             EdgeInput::PlannerLeft(id) => {
-                self.planners.remove(&id);
+                self.planners.server_left(id);
                 return Vec::new();
             }
             // The key says who sent them; a header claiming another planner is not read further.

@@ -8,7 +8,7 @@
 //! ```
 //!
 //! The services call these steps across the bus (the edge drives [`EdgeNode`] and a
-//! [`TrolleySource`], the detector calls [`detect_frame`], the planner keeps a [`TrolleyPlanner`]
+//! [`TrolleySource`], the detector drives a [`DetectorNode`] and calls [`detect_frame`], the planner keeps a [`TrolleyPlanner`]
 //! per trolley); the experiments (`glasshouse-eval`) call the very same steps in one thread with
 //! a simulated clock. The plan seed ([`plan_seed`]), the depth packing and the planner's defaults
 //! ([`PlanningSettings::default`]) exist only here. No I/O: time and seeds are passed in. The
@@ -16,6 +16,7 @@
 //! [`TrolleySource`] among others, and nothing a real trolley runs links it.
 
 mod detection;
+mod detector;
 mod edge;
 pub mod fits;
 mod order;
@@ -25,6 +26,7 @@ mod reach;
 mod source;
 
 pub use detection::{detect_frame, detect_frame_with};
+pub use detector::{DetectorAction, DetectorCounts, DetectorInput, DetectorNode, DetectorReport};
 pub use edge::{EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings, RealtimePacer};
 pub use glasshouse_register::{Alignment, AlignmentCounts};
 pub use order::{
@@ -37,5 +39,7 @@ pub use planning::{
 pub use reach::ReachFilter;
 pub use source::{Executed, TrolleySource, DEPTH_SCALE_M};
 
+#[cfg(test)]
+mod detector_tests;
 #[cfg(test)]
 mod tests;

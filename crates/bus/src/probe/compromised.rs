@@ -32,6 +32,9 @@ const PROBE_EPOCH_NS: u64 = 1;
 /// The probe's frame seqs and view marks start here (no trolley gets this far).
 const PROBE_SEQ: u64 = 0x7e57_0000_0000;
 
+/// The start of the probe's marks on its views.
+const PROBE_MARK: &str = "glasshouse-probe-";
+
 /// A role's identity: its id and client config.
 type Identity = (String, PathBuf);
 
@@ -303,7 +306,7 @@ pub(super) async fn planner_attempts(
     let tid = setup.victim.as_str();
     let watch = Victim::watch(observer, tid).await?;
     let deadline = Instant::now() + setup.link_timeout;
-    let (owner, template) = owner_views(&watch, deadline).await?;
+    let (owner, mut template) = owner_views(&watch, deadline).await?;
     let ((_, owner_config), (rogue, rogue_config)) =
         pick(&setup.planner_identities, &owner, "planner")?;
     let rogue_session = open_as(rogue_config, "compromised planner", setup.timeout).await?;
@@ -328,11 +331,14 @@ pub(super) async fn planner_attempts(
             .await?;
     }
     // The owner's own views on a new frame, until the edge executed one (its planner's views
-    // for the frame may come first).
+    // for the frame may come first). Each time the owner's newest views: the trolley moves on
+    // along its row meanwhile, and views planned at an earlier segment may be out of reach.
     while !edge.executed(&mark(10)) {
         let frame = edge.next_frame(&watch, wait).await?;
+        newest_views_of(&watch, &owner, &mut template);
         let views = aimed(&template, &frame, mark(10));
         owner_views.send(&views_header(tid, &owner), &views).await?;
+        edge.controls_sent += 1;
     }
     // Each forged set was either executed or counted as refused.
     let taken = |edge: &EdgeSeen| (0..2).filter(|&n| edge.executed(&mark(n))).count() as u64;
@@ -354,7 +360,7 @@ pub(super) async fn planner_attempts(
 /// The probe's mark on its views (their `planner_id`): the edge's status names it among its
 /// ownership terms once it executed them.
 fn mark(n: u64) -> String {
-    format!("glasshouse-probe-{}", PROBE_SEQ + n)
+    format!("{PROBE_MARK}{}", PROBE_SEQ + n)
 }
 
 fn views_header(tid: &str, source: &str) -> Header {
@@ -389,6 +395,18 @@ async fn owner_views(
     }
 }
 
+/// Replaces `template` by the newest non-empty views `owner` sent that the observer has queued
+/// (not the probe's own, which are marked).
+fn newest_views_of(watch: &Victim, owner: &str, template: &mut RankedViews) {
+    while let Some(v) = watch.views.try_recv() {
+        let from_owner = keys::sender(&v.key) == Some(owner);
+        let probe = v.message.planner_id.starts_with(PROBE_MARK);
+        if from_owner && !probe && !v.message.views.is_empty() {
+            *template = v.message;
+        }
+    }
+}
+
 /// `template`'s views, aimed at the edge's frame under its newest ownership epoch, marked.
 fn aimed(template: &RankedViews, frame: &(Header, TrolleyStatus), mark: String) -> RankedViews {
     RankedViews {
@@ -407,6 +425,12 @@ struct EdgeSeen {
     refused: u64,
     started: bool,
     executed: Vec<String>,
+    /// Control views sent, and how many views the edge found out of reach since the first
+    /// status (for the message when the probe cannot judge).
+    controls_sent: u32,
+    unreachable_before: u32,
+    unreachable: u32,
+    state: Option<TrolleyState>,
 }
 
 impl EdgeSeen {
@@ -419,20 +443,37 @@ impl EdgeSeen {
         watch: &Victim,
         deadline: Instant,
     ) -> Result<(Header, TrolleyStatus), ProbeError> {
-        let what = "the victim's edge counting the views refused and executing the control";
-        let status = next(&watch.status, deadline, what).await?;
+        let status = match next(&watch.status, deadline, "").await {
+            Ok(status) => status,
+            Err(_) => return Err(ProbeError::NoSign(self.progress())),
+        };
         let s = &status.message;
         if !self.started {
-            (self.started, self.refused_before) = (true, s.refused_views);
+            self.started = true;
+            (self.refused_before, self.unreachable_before) = (s.refused_views, s.unreachable_views);
         }
-        self.refused = s.refused_views;
+        (self.refused, self.unreachable) = (s.refused_views, s.unreachable_views);
+        self.state = Some(s.state);
         for term in &s.owner_terms {
-            if term.planner_id.starts_with("glasshouse-probe-") && !self.executed(&term.planner_id)
-            {
+            if term.planner_id.starts_with(PROBE_MARK) && !self.executed(&term.planner_id) {
                 self.executed.push(term.planner_id.clone());
             }
         }
         Ok((status.header, status.message))
+    }
+
+    /// What the edge showed so far, for the probe's verdict that it cannot judge.
+    fn progress(&self) -> String {
+        format!(
+            "the victim's edge counting the views refused and executing the control (it counted \
+             {} refused views of 2 forged, executed {:?}, {} control views sent, {} views out of \
+             reach meanwhile, last state {:?})",
+            self.refused.saturating_sub(self.refused_before),
+            self.executed,
+            self.controls_sent,
+            self.unreachable.saturating_sub(self.unreachable_before),
+            self.state,
+        )
     }
 
     /// The next frame the edge announced and waits for views on (its status header names it).

@@ -1,0 +1,374 @@
+//! One trolley as a planner holds it ([`Slot`]): its copy of the map, and where the copy stands
+//! ([`Stage`]): one enum whose variants are the legal states, changed only by the transition
+//! methods below. The node decides when a transition happens; the slot keeps what each state
+//! holds consistent (a term only while owning, a held snapshot only while standing by or taking
+//! over, clouds buffered only while loading).
+
+use glasshouse_fleet::Role;
+use glasshouse_pipeline::TrolleyPlanner;
+use glasshouse_proto::{FrameId, Header, MapSnapshot, RoiCloud};
+
+/// A cloud with the receiver's wall clock at its arrival.
+#[derive(Clone)]
+pub(crate) struct ReceivedCloud {
+    pub header: Header,
+    pub cloud: RoiCloud,
+    pub received_ns: u64,
+}
+
+/// Where a planner's copy of a trolley stands.
+pub(crate) enum Stage {
+    /// Waiting for a snapshot (the trolley is new to this planner, or it stepped down from it):
+    /// the trolley's clouds are kept until it is loaded. An owner's term begins once loaded.
+    Loading {
+        role: Role,
+        buffered: Vec<ReceivedCloud>,
+    },
+    /// A replica's copy: the owner's latest snapshot kept encoded (a tenth of the decoded map's
+    /// memory, no decoding work until it is needed) and the clouds newer than it, in arrival
+    /// order, integrated when it catches up; `refresh_asked` while it waits for a snapshot it
+    /// asked of the owner. A hot replica integrates every cloud at once and holds nothing.
+    Standby {
+        held: Option<Box<MapSnapshot>>,
+        pending: Vec<ReceivedCloud>,
+        refresh_asked: bool,
+    },
+    /// An owner whose term began when it took over a standby copy: it catches up on what the
+    /// copy holds (and plans on the last cloud) before anything else.
+    TakingOver {
+        term: u64,
+        held: Option<Box<MapSnapshot>>,
+        pending: Vec<ReceivedCloud>,
+    },
+    /// An owner with an up-to-date copy, planning under its term.
+    Owning { term: u64 },
+}
+
+impl Stage {
+    /// A standby copy holding nothing beyond its map.
+    pub fn standby() -> Stage {
+        Stage::Standby {
+            held: None,
+            pending: Vec::new(),
+            refresh_asked: false,
+        }
+    }
+}
+
+/// A trolley this planner owns or replicates.
+pub(crate) struct Slot {
+    pub planner: Box<TrolleyPlanner>,
+    /// The latest cloud: a planner that takes over plans on it at once.
+    pub last_cloud: Option<ReceivedCloud>,
+    pub stage: Stage,
+}
+
+impl Slot {
+    /// A copy new to this planner, in `role`: empty, loading.
+    pub fn loading(planner: TrolleyPlanner, role: Role) -> Self {
+        Self {
+            planner: Box::new(planner),
+            last_cloud: None,
+            stage: Stage::Loading {
+                role,
+                buffered: Vec::new(),
+            },
+        }
+    }
+
+    pub fn role(&self) -> Role {
+        match &self.stage {
+            Stage::Loading { role, .. } => *role,
+            Stage::Standby { .. } => Role::Replica,
+            Stage::TakingOver { .. } | Stage::Owning { .. } => Role::Owner,
+        }
+    }
+
+    /// The epoch of the ownership term the copy's outputs carry; 0 while it is no owner, or an
+    /// owner whose copy is still loading.
+    pub fn term(&self) -> u64 {
+        match &self.stage {
+            Stage::TakingOver { term, .. } | Stage::Owning { term } => *term,
+            Stage::Loading { .. } | Stage::Standby { .. } => 0,
+        }
+    }
+
+    pub fn is_loading(&self) -> bool {
+        matches!(self.stage, Stage::Loading { .. })
+    }
+
+    /// Clouds the copy keeps beyond its map, not yet integrated (a standby copy's, or a taking
+    /// over owner's).
+    pub fn pending_len(&self) -> usize {
+        match &self.stage {
+            Stage::Standby { pending, .. } | Stage::TakingOver { pending, .. } => pending.len(),
+            Stage::Loading { .. } | Stage::Owning { .. } => 0,
+        }
+    }
+
+    /// Another planner owns the trolley now: what an owner's copy held stays held as a
+    /// standby's; a loading copy goes on loading as a replica's.
+    pub fn become_replica(&mut self) {
+        self.stage = match std::mem::replace(&mut self.stage, Stage::standby()) {
+            Stage::Loading { buffered, .. } => Stage::Loading {
+                role: Role::Replica,
+                buffered,
+            },
+            Stage::TakingOver { held, pending, .. } => Stage::Standby {
+                held,
+                pending,
+                refresh_asked: false,
+            },
+            Stage::Owning { .. } => Stage::standby(),
+            standing_by @ Stage::Standby { .. } => standing_by,
+        };
+    }
+
+    /// This planner owns the trolley now. A standby copy takes over under the term `begin_term`
+    /// gives (returned); a loading copy goes on loading as the owner's and begins its term once
+    /// loaded (None); an owner stays as it is (None).
+    pub fn take_over(&mut self, begin_term: impl FnOnce() -> u64) -> Option<u64> {
+        match std::mem::replace(&mut self.stage, Stage::standby()) {
+            Stage::Standby { held, pending, .. } => {
+                let term = begin_term();
+                self.stage = Stage::TakingOver {
+                    term,
+                    held,
+                    pending,
+                };
+                Some(term)
+            }
+            Stage::Loading { buffered, .. } => {
+                self.stage = Stage::Loading {
+                    role: Role::Owner,
+                    buffered,
+                };
+                None
+            }
+            owner => {
+                self.stage = owner;
+                None
+            }
+        }
+    }
+
+    /// The owner's term is over (a newer one began elsewhere): the copy falls back to what this
+    /// planner holds, decoded, and loads again, its kept clouds waiting for the snapshot with
+    /// the ones to come. Returns the term given up (0 for no owner: nothing changes then).
+    pub fn step_down(&mut self, pid: &str, tid: &str) -> u64 {
+        let term = self.term();
+        let (held, pending) = match std::mem::replace(&mut self.stage, Stage::standby()) {
+            Stage::TakingOver { held, pending, .. } => (held, pending),
+            Stage::Owning { .. } => (None, Vec::new()),
+            other => {
+                self.stage = other;
+                return 0;
+            }
+        };
+        if let Some(held) = held {
+            if let Err(e) = self.planner.restore(&held) {
+                tracing::warn!(planner = %pid, trolley = %tid, error = %e, "held snapshot not restored");
+            }
+        }
+        self.stage = Stage::Loading {
+            role: Role::Owner,
+            buffered: pending,
+        };
+        term
+    }
+
+    /// The copy is loaded: it goes on as `next` (an owner's term, a standby copy); returns the
+    /// clouds buffered meanwhile. Nothing when it was not loading.
+    pub fn end_loading(&mut self, next: Stage) -> Option<Vec<ReceivedCloud>> {
+        if !self.is_loading() {
+            return None;
+        }
+        match std::mem::replace(&mut self.stage, next) {
+            Stage::Loading { buffered, .. } => Some(buffered),
+            _ => None,
+        }
+    }
+
+    /// Loaded as a standby copy: `buffered` kept pending, `snapshot` held when it is whole and
+    /// not older than the copy.
+    pub fn stand_by_loaded(
+        &mut self,
+        buffered: Vec<ReceivedCloud>,
+        snapshot: Option<Box<MapSnapshot>>,
+        (pid, tid): (&str, &str),
+    ) {
+        self.last_cloud = buffered.last().cloned();
+        self.stage = Stage::Standby {
+            held: None,
+            pending: buffered,
+            refresh_asked: false,
+        };
+        if let Some(snapshot) = snapshot {
+            self.hold(snapshot, pid, tid);
+        }
+    }
+
+    /// What the copy holds beyond its map, taken out to be integrated (the held snapshot, the
+    /// pending clouds): an owner taking over owns from now on, a standby copy holds nothing more.
+    /// None while loading.
+    pub fn take_backlog(&mut self) -> Option<(Option<Box<MapSnapshot>>, Vec<ReceivedCloud>)> {
+        match &mut self.stage {
+            Stage::Loading { .. } => None,
+            Stage::Owning { .. } => Some((None, Vec::new())),
+            Stage::Standby { held, pending, .. } => Some((held.take(), std::mem::take(pending))),
+            Stage::TakingOver {
+                term,
+                held,
+                pending,
+            } => {
+                let backlog = (held.take(), std::mem::take(pending));
+                self.stage = Stage::Owning { term: *term };
+                Some(backlog)
+            }
+        }
+    }
+
+    /// A standby copy keeps `snapshot` encoded when it is whole and not older than the copy, and
+    /// drops the pending clouds it holds; returns whether it was kept.
+    pub fn hold(&mut self, snapshot: Box<MapSnapshot>, pid: &str, tid: &str) -> bool {
+        let snapshot_frame = based_on(&snapshot);
+        let mark = self.copy_mark();
+        if mark.is_some_and(|m| snapshot_frame.is_none_or(|b| b < m)) {
+            return false;
+        }
+        if let Err(e) = TrolleyPlanner::check_snapshot(&snapshot) {
+            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "snapshot damaged");
+            return false;
+        }
+        let Stage::Standby { held, pending, .. } = &mut self.stage else {
+            return false;
+        };
+        pending.retain(|c| snapshot_frame.is_none_or(|b| c.cloud.source_frame() > b));
+        *held = Some(snapshot);
+        if let Err(e) = self.planner.clear() {
+            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "copy not cleared");
+        }
+        true
+    }
+
+    /// The last frame the copy holds: the held snapshot's, else the map's.
+    pub fn copy_mark(&self) -> Option<FrameId> {
+        match &self.stage {
+            Stage::Standby {
+                held: Some(snapshot),
+                ..
+            }
+            | Stage::TakingOver {
+                held: Some(snapshot),
+                ..
+            } => based_on(snapshot),
+            _ => self.planner.last_frame(),
+        }
+    }
+}
+
+/// The last frame a snapshot holds; None for a map without frames.
+fn based_on(snapshot: &MapSnapshot) -> Option<FrameId> {
+    let frame = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
+    (frame != FrameId::default()).then_some(frame)
+}
+
+#[cfg(test)]
+mod tests {
+    use glasshouse_pipeline::PlanningSettings;
+    use glasshouse_proto::samples;
+
+    use super::*;
+
+    fn slot(role: Role) -> Slot {
+        let planner = TrolleyPlanner::new(PlanningSettings::default()).expect("planner");
+        Slot::loading(planner, role)
+    }
+
+    fn cloud(seq: u64) -> ReceivedCloud {
+        ReceivedCloud {
+            header: Header::default(),
+            cloud: RoiCloud {
+                source_frame_seq: seq,
+                ..samples::roi_cloud()
+            },
+            received_ns: seq,
+        }
+    }
+
+    fn seqs(clouds: &[ReceivedCloud]) -> Vec<u64> {
+        clouds.iter().map(|c| c.cloud.source_frame_seq).collect()
+    }
+
+    #[test]
+    fn a_loading_copy_that_takes_over_begins_its_term_only_once_loaded() {
+        let mut s = slot(Role::Replica);
+        if let Stage::Loading { buffered, .. } = &mut s.stage {
+            buffered.push(cloud(1));
+        }
+        assert_eq!(s.take_over(|| panic!("no term while loading")), None);
+        assert_eq!((s.role(), s.term()), (Role::Owner, 0));
+        let buffered = s
+            .end_loading(Stage::Owning { term: 5 })
+            .expect("was loading");
+        assert_eq!(seqs(&buffered), [1]);
+        assert_eq!((s.role(), s.term()), (Role::Owner, 5));
+        assert!(s.end_loading(Stage::standby()).is_none(), "loaded once");
+    }
+
+    #[test]
+    fn a_standby_copy_takes_over_under_a_new_term_and_owns_once_caught_up() {
+        let mut s = slot(Role::Replica);
+        s.end_loading(Stage::standby());
+        if let Stage::Standby { pending, .. } = &mut s.stage {
+            pending.extend([cloud(1), cloud(2)]);
+        }
+        assert_eq!(s.take_over(|| 9), Some(9));
+        assert!(matches!(s.stage, Stage::TakingOver { term: 9, .. }));
+        assert_eq!(s.pending_len(), 2);
+        let (held, pending) = s.take_backlog().expect("not loading");
+        assert!(held.is_none());
+        assert_eq!(seqs(&pending), [1, 2]);
+        assert!(matches!(s.stage, Stage::Owning { term: 9 }));
+        // Already owner: no second term.
+        assert_eq!(s.take_over(|| 10), None);
+        assert_eq!(s.term(), 9);
+    }
+
+    #[test]
+    fn an_owner_handed_over_keeps_what_it_held_as_a_standby_copy() {
+        let mut s = slot(Role::Replica);
+        s.end_loading(Stage::standby());
+        s.take_over(|| 3);
+        if let Stage::TakingOver { pending, .. } = &mut s.stage {
+            pending.push(cloud(4));
+        }
+        s.become_replica();
+        assert!(matches!(
+            s.stage,
+            Stage::Standby {
+                refresh_asked: false,
+                ..
+            }
+        ));
+        assert_eq!((s.role(), s.term(), s.pending_len()), (Role::Replica, 0, 1));
+    }
+
+    #[test]
+    fn an_owner_steps_down_to_loading_with_its_kept_clouds_and_a_replica_cannot() {
+        let mut s = slot(Role::Owner);
+        s.end_loading(Stage::standby());
+        assert_eq!(s.step_down("p1", "t1"), 0, "a replica has no term");
+        assert_eq!(s.role(), Role::Replica);
+        s.take_over(|| 7);
+        if let Stage::TakingOver { pending, .. } = &mut s.stage {
+            pending.push(cloud(8));
+        }
+        assert_eq!(s.step_down("p1", "t1"), 7);
+        let Stage::Loading { role, buffered } = &s.stage else {
+            panic!("stepped down to loading");
+        };
+        assert_eq!((*role, seqs(buffered)), (Role::Owner, vec![8]));
+        assert_eq!(s.term(), 0);
+    }
+}

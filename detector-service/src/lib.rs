@@ -26,6 +26,7 @@ use glasshouse_bus::{
 use std::path::{Path, PathBuf};
 
 use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
+use glasshouse_fleet::MembershipEvent;
 use glasshouse_pipeline::{
     detect_frame_with, DetectorAction, DetectorCounts, DetectorInput, DetectorNode, DetectorReport,
 };
@@ -161,14 +162,14 @@ impl Inputs {
         loop {
             let input = tokio::select! {
                 _ = shutdown.wait() => return None,
-                event = self.detector_watch.recv() => match event? {
-                    MemberEvent::Joined(id) => DetectorInput::DetectorJoined(id),
-                    MemberEvent::Left(id) => DetectorInput::DetectorLeft(id),
-                },
-                event = self.trolley_watch.recv() => match event? {
-                    MemberEvent::Joined(id) => DetectorInput::TrolleyJoined(id),
-                    MemberEvent::Left(id) => DetectorInput::TrolleyLeft(id),
-                },
+                event = self.detector_watch.recv() => DetectorInput::Member(match event? {
+                    MemberEvent::Joined(id) => MembershipEvent::ServerJoined(id),
+                    MemberEvent::Left(id) => MembershipEvent::ServerLeft(id),
+                }),
+                event = self.trolley_watch.recv() => DetectorInput::Member(match event? {
+                    MemberEvent::Joined(id) => MembershipEvent::TrolleyJoined(id),
+                    MemberEvent::Left(id) => MembershipEvent::TrolleyLeft(id),
+                }),
                 _ = self.status_tick.tick() => DetectorInput::StatusTick {
                     dropped_messages: self.drops.total(),
                 },

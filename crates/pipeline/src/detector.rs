@@ -15,16 +15,14 @@
 
 use std::collections::BTreeSet;
 
-use glasshouse_fleet::Membership;
+use glasshouse_fleet::{Membership, MembershipEvent};
 use glasshouse_proto::{DetectorStatus, Header, RgbdFrame, RoiCloud};
 
 /// What reaches the detector.
 #[derive(Clone, Debug)]
 pub enum DetectorInput {
-    DetectorJoined(String),
-    DetectorLeft(String),
-    TrolleyJoined(String),
-    TrolleyLeft(String),
+    /// A detector's or trolley's liveliness token appeared or went (detectors are the servers).
+    Member(MembershipEvent),
     /// A frame of a served trolley.
     Frame {
         header: Header,
@@ -38,9 +36,7 @@ pub enum DetectorInput {
         detect_ms: f64,
     },
     /// Time to publish the status; `dropped_messages` are the driver's bus drops so far.
-    StatusTick {
-        dropped_messages: u64,
-    },
+    StatusTick { dropped_messages: u64 },
 }
 
 /// What the driver does for the detector.
@@ -128,22 +124,10 @@ impl DetectorNode {
     /// Feeds one event; returns what to do.
     pub fn handle(&mut self, input: DetectorInput) -> Vec<DetectorAction> {
         match input {
-            DetectorInput::DetectorJoined(id) => {
-                self.membership.server_joined(id);
-                self.update_served()
-            }
             // Its own token is its own: a leave of it is stale news.
-            DetectorInput::DetectorLeft(id) if id == self.did => Vec::new(),
-            DetectorInput::DetectorLeft(id) => {
-                self.membership.server_left(id);
-                self.update_served()
-            }
-            DetectorInput::TrolleyJoined(id) => {
-                self.membership.trolley_joined(id);
-                self.update_served()
-            }
-            DetectorInput::TrolleyLeft(id) => {
-                self.membership.trolley_left(id);
+            DetectorInput::Member(MembershipEvent::ServerLeft(id)) if id == self.did => Vec::new(),
+            DetectorInput::Member(event) => {
+                self.membership.apply(event);
                 self.update_served()
             }
             DetectorInput::Frame { header, frame } => self.on_frame(header, frame),

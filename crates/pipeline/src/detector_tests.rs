@@ -1,6 +1,6 @@
 #![allow(clippy::unwrap_used)]
 
-use glasshouse_fleet::first_ranked;
+use glasshouse_fleet::{first_ranked, MembershipEvent};
 use glasshouse_proto::{samples, Header};
 
 use super::*;
@@ -40,13 +40,19 @@ fn frame_header(tid: &str, seq: u64) -> Header {
 fn a_lone_detector_serves_every_trolley_once_until_it_leaves() {
     let mut node = DetectorNode::new("d1", EPOCH_NS);
     for tid in trolleys(3) {
-        let actions = node.handle(DetectorInput::TrolleyJoined(tid.clone()));
+        let actions = node.handle(DetectorInput::Member(MembershipEvent::TrolleyJoined(
+            tid.clone(),
+        )));
         assert_eq!(actions, vec![DetectorAction::Serve(tid.clone())]);
         // A second join of the same token changes nothing.
-        assert!(node.handle(DetectorInput::TrolleyJoined(tid)).is_empty());
+        assert!(node
+            .handle(DetectorInput::Member(MembershipEvent::TrolleyJoined(tid)))
+            .is_empty());
     }
     assert_eq!(node.counts().trolleys_served, 3);
-    let actions = node.handle(DetectorInput::TrolleyLeft("t2".into()));
+    let actions = node.handle(DetectorInput::Member(MembershipEvent::TrolleyLeft(
+        "t2".into(),
+    )));
     assert_eq!(actions, vec![DetectorAction::Unserve("t2".into())]);
     assert_eq!(node.served().len(), 2);
 }
@@ -57,11 +63,17 @@ fn two_detectors_split_the_trolleys_as_the_ranking_says_and_the_survivor_takes_a
     let mut d2 = DetectorNode::new("d2", EPOCH_NS);
     for node in [&mut d1, &mut d2] {
         for tid in trolleys(12) {
-            node.handle(DetectorInput::TrolleyJoined(tid));
+            node.handle(DetectorInput::Member(MembershipEvent::TrolleyJoined(tid)));
         }
     }
-    let (_, unserve) = serves(&d1.handle(DetectorInput::DetectorJoined("d2".into())));
-    d2.handle(DetectorInput::DetectorJoined("d1".into()));
+    let (_, unserve) = serves(
+        &d1.handle(DetectorInput::Member(MembershipEvent::ServerJoined(
+            "d2".into(),
+        ))),
+    );
+    d2.handle(DetectorInput::Member(MembershipEvent::ServerJoined(
+        "d1".into(),
+    )));
     // Every trolley served by exactly the detector ranked first for it.
     for tid in trolleys(12) {
         let first = first_ranked(&tid, ["d1", "d2"]).unwrap();
@@ -71,7 +83,11 @@ fn two_detectors_split_the_trolleys_as_the_ranking_says_and_the_survivor_takes_a
     }
     assert!(!d1.served().is_empty() && !d2.served().is_empty());
     // d2 leaves: d1 serves its trolleys again, and only those are new.
-    let (serve, unserve) = serves(&d1.handle(DetectorInput::DetectorLeft("d2".into())));
+    let (serve, unserve) = serves(
+        &d1.handle(DetectorInput::Member(MembershipEvent::ServerLeft(
+            "d2".into(),
+        ))),
+    );
     assert!(unserve.is_empty());
     assert_eq!(serve, d2.served().iter().cloned().collect::<Vec<_>>());
     assert_eq!(d1.served().len(), 12);
@@ -80,9 +96,13 @@ fn two_detectors_split_the_trolleys_as_the_ranking_says_and_the_survivor_takes_a
 #[test]
 fn a_detector_never_believes_its_own_leave() {
     let mut node = DetectorNode::new("d1", EPOCH_NS);
-    node.handle(DetectorInput::TrolleyJoined("t1".into()));
+    node.handle(DetectorInput::Member(MembershipEvent::TrolleyJoined(
+        "t1".into(),
+    )));
     assert!(node
-        .handle(DetectorInput::DetectorLeft("d1".into()))
+        .handle(DetectorInput::Member(MembershipEvent::ServerLeft(
+            "d1".into()
+        )))
         .is_empty());
     assert!(node.served().contains("t1"));
 }

@@ -7,6 +7,9 @@
 //! - `trials/<method>-<trial>.csv`: the metrics at every simulated second;
 //! - `trials/<method>-<trial>-fruits.csv`: the final estimates against the true fruits, a row
 //!   per true fruit and per false fruit (fitted and box centre distance and volume accuracy);
+//! - `trials/<method>-<trial>-clusters.csv`: every ROI cluster at the end, reported as a fruit
+//!   or not and why (the fruit evidence's verdict, its shape, what its fitted solid hides), with
+//!   the nearest true fruit;
 //! - `table.md`: Table I (mean ± std at the end of the budget) and the Mann-Whitney p-values;
 //! - `summary.json`: `{"<method>": {"<metric>": {"mean", "std", "n"}}, "fruits_total", "p_values",
 //!   "settings"}`;
@@ -184,6 +187,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             write(&path, report::trial_csv(result))?;
             let path = trials_dir.join(format!("{}-{t}-fruits.csv", run.method));
             write(&path, report::fruits_csv(result))?;
+            let path = trials_dir.join(format!("{}-{t}-clusters.csv", run.method));
+            write(&path, report::clusters_csv(result))?;
             let path = trials_dir.join(format!("{}-{t}-registration.json", run.method));
             write(&path, serde_json::to_string_pretty(&result.registration)?)?;
         }

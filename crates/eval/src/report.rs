@@ -279,6 +279,41 @@ fitted_x_m,fitted_y_m,fitted_z_m,semi_x_m,semi_y_m,semi_z_m,\
 fitted_distance_cm,fitted_volume_accuracy,box_distance_cm,box_volume_accuracy,\
 truth_body_volume_m3,fitted_volume_m3";
 
+const CLUSTERS_CSV_HEADER: &str = "x_m,y_m,z_m,voxels,length_m,width_m,depth_m,bulge,verdict,\
+fragment,reported,unknown_inside,free_inside,occupied_inside,nearest_truth_id,nearest_truth_cm";
+
+/// Every ROI cluster at the end of one trial, reported as a fruit or not, with why (the fruit
+/// evidence's verdict, a fragment) and the nearest true fruit: where recall and precision are
+/// lost ([`glasshouse_nbv::evidence`]).
+pub fn clusters_csv(result: &TrialResult) -> String {
+    let mut out = String::from(CLUSTERS_CSV_HEADER);
+    out.push('\n');
+    for cluster in &result.clusters {
+        let nearest = result
+            .truths
+            .iter()
+            .map(|t| (t.id, (t.centre - cluster.centre).norm()))
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        let inside = cluster.interior;
+        let count = |n: Option<u32>| n.map(|n| n.to_string()).unwrap_or_default();
+        let mut cells: Vec<String> = cluster.centre.iter().map(|v| csv_num(*v)).collect();
+        cells.push(cluster.voxels.to_string());
+        cells.extend(cluster.shape.extents_m.iter().map(|v| csv_num(*v)));
+        cells.push(csv_num(cluster.shape.bulge));
+        cells.push(format!("{:?}", cluster.verdict).to_lowercase());
+        cells.push(cluster.fragment.to_string());
+        cells.push(cluster.is_reported().to_string());
+        cells.push(count(inside.map(|i| i.unknown)));
+        cells.push(count(inside.map(|i| i.free)));
+        cells.push(count(inside.map(|i| i.occupied)));
+        cells.push(nearest.map(|n| n.0.to_string()).unwrap_or_default());
+        cells.push(nearest.map(|n| csv_num(100.0 * n.1)).unwrap_or_default());
+        out.push_str(&cells.join(","));
+        out.push('\n');
+    }
+    out
+}
+
 /// The final estimates of one trial against the true fruits, one row per true fruit (estimate
 /// columns empty when missed) and one per false fruit (truth columns empty). The pairs are the
 /// fitted estimates' matching, so a row says why a trial's fitted figures are what they are:
@@ -696,6 +731,7 @@ mod tests {
             frames_without_reachable_view: 0,
             compute_time_s: 0.002,
             fruits: Vec::new(),
+            clusters: Vec::new(),
             truths: Vec::new(),
             registration: Default::default(),
             plans: Vec::new(),

@@ -21,8 +21,9 @@ use glasshouse_detect::{DetectorConfig, FruitDetector, HsiVotes};
 use glasshouse_geom::FruitEstimate;
 use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
-    detect_frame_with, ranked_views, EdgeAction, EdgeEvent, EdgeInput, EdgeNode, EdgeSettings,
-    PlanningError, PlanningSettings, RoiEvidence, RoiTargets, TrolleyPlanner, TrolleySource,
+    detect_frame_with, ranked_views, ClusterOutcome, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
+    EdgeSettings, PlanningError, PlanningSettings, RoiEvidence, RoiTargets, TrolleyPlanner,
+    TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame, RoiCloud, TrolleyInfo};
 use glasshouse_sim::{FruitTruth, ScenarioKind, Scene, WorldSettings};
@@ -200,6 +201,9 @@ pub struct TrialResult {
     pub compute_time_s: f64,
     /// The estimates at the end of the budget.
     pub fruits: Vec<FruitEstimate>,
+    /// What became of every ROI cluster at the end of the budget (reported, or why not).
+    #[serde(skip)]
+    pub clusters: Vec<ClusterOutcome>,
     /// The scene's true fruits.
     pub truths: Vec<FruitTruth>,
     /// How the registration of every cloud ended (aligned, kept, skipped, rejected by reason).
@@ -539,6 +543,7 @@ impl<S: TrolleySource> Trial<S> {
             frames_without_reachable_view: self.frames_without_reachable_view,
             compute_time_s: self.compute_time_s,
             fruits: self.published.fruits,
+            clusters: self.planner.cluster_outcomes(),
             truths: self.scene.fruits().to_vec(),
             registration: *self.planner.alignment_counts(),
             plans: self.plans,

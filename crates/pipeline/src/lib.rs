@@ -33,8 +33,8 @@ pub use order::{
     FrameOrder, FrameVerdict, Refusal, MAX_EPOCH_LEAD_NS, MAX_SEQ_STEP, RESYNC_FRAMES,
 };
 pub use planning::{
-    plan_seed, ranked_views, roi_evidence_logodds, PlanningError, PlanningSettings, RoiEvidence,
-    RoiTargets, TrolleyPlanner, ROI_EVIDENCE_LOGODDS,
+    plan_seed, ranked_views, roi_evidence_logodds, ClusterOutcome, PlanningError, PlanningSettings,
+    RoiEvidence, RoiTargets, TrolleyPlanner, ROI_EVIDENCE_LOGODDS,
 };
 pub use reach::ReachFilter;
 pub use source::{Executed, TrolleySource, DEPTH_SCALE_M};

@@ -4,7 +4,7 @@
 use std::borrow::Cow;
 
 use glasshouse_arm::Robot;
-use glasshouse_nbv::evidence::interior_holds;
+use glasshouse_nbv::evidence::{interior_holds, ClusterShape, Interior, Verdict};
 use glasshouse_nbv::fit::{FitConfig, FruitSolid};
 use glasshouse_nbv::split::fragments;
 use glasshouse_nbv::{
@@ -481,17 +481,42 @@ impl TrolleyPlanner {
     }
 
     /// Every fruit of the latest clusters with its fitted solid and, as its confidence, the
-    /// evidence's that it is a fruit, leaving out clusters whose shape says they are not ([`glasshouse_nbv::evidence`]:
-    /// flat, thin, too small or too large; these are not fitted at all), clusters whose fitted
-    /// solid hides nothing (a sheet) and clusters that are a second patch of a fruit another
-    /// cluster reports ([`fragments`]). Fits are made here, not
-    /// on integration (a replica integrates without them), and only for the fruits whose voxels
-    /// or surroundings changed since their last fit.
+    /// evidence's that it is a fruit: the clusters [`TrolleyPlanner::cluster_outcomes`] reports.
     pub fn fruits(&mut self) -> Vec<FruitEstimate> {
+        let outcomes = self.cluster_outcomes();
+        outcomes
+            .iter()
+            .enumerate()
+            .filter(|(_, outcome)| outcome.is_reported())
+            .filter_map(|(i, outcome)| Some(self.record(i, outcome.fit.as_ref()?)))
+            .collect()
+    }
+
+    /// What becomes of each latest cluster (same order): clusters whose shape says they are not
+    /// fruit ([`glasshouse_nbv::evidence`]: flat, thin, too small or too large) are not fitted
+    /// at all; clusters whose fitted solid hides nothing are sheets; clusters that are a second
+    /// patch of a fruit another cluster reports are fragments ([`fragments`]); the rest are
+    /// reported as fruit. Fits are made here, not on integration (a replica integrates without
+    /// them), and only for the fruits whose voxels or surroundings changed since their last fit.
+    pub fn cluster_outcomes(&mut self) -> Vec<ClusterOutcome> {
         let evidence_config = self.settings.fit.evidence;
         let shapes = self.fit_cache.shapes(&self.map, &self.clusters);
-        let shaped: Vec<usize> = (0..self.clusters.len())
-            .filter(|&i| shapes[i].verdict(&evidence_config).is_fruit())
+        let mut outcomes: Vec<ClusterOutcome> = self
+            .clusters
+            .iter()
+            .zip(&shapes)
+            .map(|(cluster, shape)| ClusterOutcome {
+                centre: cluster.centre,
+                voxels: cluster.voxels.len(),
+                shape: *shape,
+                verdict: shape.verdict(&evidence_config),
+                fit: None,
+                interior: None,
+                fragment: false,
+            })
+            .collect();
+        let shaped: Vec<usize> = (0..outcomes.len())
+            .filter(|&i| outcomes[i].verdict.is_fruit())
             .collect();
         if self.fits_stale {
             let clusters = shaped.iter().map(|&i| &self.clusters[i]);
@@ -500,35 +525,29 @@ impl TrolleyPlanner {
                     .update(&self.map, clusters, &self.settings.fit);
             self.fits_stale = false;
         }
-        let (solid, fits): (Vec<usize>, Vec<FruitSolid>) = shaped
-            .into_iter()
-            .zip(&self.fits)
-            .filter(|(i, _)| self.hides_something(*i))
+        for (&i, fitted) in shaped.iter().zip(&self.fits) {
+            let interior = self.fit_cache.interior_of(&self.clusters[i]);
+            let outcome = &mut outcomes[i];
+            (outcome.fit, outcome.interior) = (Some(*fitted), interior);
+            let holds = |inside| interior_holds(&inside, &outcome.shape, &evidence_config);
+            if !interior.is_none_or(holds) {
+                outcome.verdict = Verdict::Sheet;
+            }
+        }
+        let (solid, fits): (Vec<usize>, Vec<FruitSolid>) = (0..outcomes.len())
+            .filter(|&i| outcomes[i].verdict.is_fruit())
+            .filter_map(|i| Some((i, outcomes[i].fit?)))
             .unzip();
-        let counts: Vec<usize> = solid
-            .iter()
-            .map(|&i| self.clusters[i].voxels.len())
-            .collect();
-        let fragment = fragments(&fits, &counts);
-        solid
-            .into_iter()
-            .zip(&fits)
-            .zip(fragment)
-            .filter(|(_, fragment)| !fragment)
-            .map(|((i, fitted), _)| self.record(i, fitted))
-            .collect()
-    }
-
-    /// Whether the fitted solid of cluster `i` hides unknown space, as a fruit does and a red
-    /// sheet does not ([`glasshouse_nbv::evidence::interior_holds`]).
-    fn hides_something(&self, i: usize) -> bool {
-        let interior = self.fit_cache.interior_of(&self.clusters[i]);
-        interior.is_none_or(|inside| interior_holds(&inside, &self.settings.fit.evidence))
+        let counts: Vec<usize> = solid.iter().map(|&i| outcomes[i].voxels).collect();
+        for (i, fragment) in solid.into_iter().zip(fragments(&fits, &counts)) {
+            outcomes[i].fragment = fragment;
+        }
+        outcomes
     }
 
     /// The fruit of cluster `i`, fitted `fitted`, with its evidence's confidence.
     fn record(&self, i: usize, fitted: &FruitSolid) -> FruitEstimate {
-        use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence, Interior};
+        use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence};
         let (cluster, estimate) = (&self.clusters[i], &self.estimates[i]);
         let seen = match self.fit_cache.evidence_of(cluster) {
             Some(seen) => *seen,
@@ -745,6 +764,29 @@ fn voxel_change(key: VoxelKey, voxel: Voxel, is_roi: bool) -> VoxelChange {
         occupancy_logodds: voxel.occupancy_logodds,
         roi_logodds: voxel.roi_logodds,
         state,
+    }
+}
+
+/// What became of one ROI cluster ([`TrolleyPlanner::cluster_outcomes`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClusterOutcome {
+    pub centre: Point3<f64>,
+    pub voxels: usize,
+    pub shape: ClusterShape,
+    /// The shape rule's verdict; [`Verdict::Sheet`] when its fitted solid hides nothing.
+    pub verdict: Verdict,
+    /// The fitted solid (`None`: the shape rule refused the cluster, so it was not fitted).
+    pub fit: Option<FruitSolid>,
+    /// What the map knows inside the fitted solid.
+    pub interior: Option<Interior>,
+    /// A second patch of a fruit another cluster reports.
+    pub fragment: bool,
+}
+
+impl ClusterOutcome {
+    /// Whether the cluster is reported as a fruit.
+    pub fn is_reported(&self) -> bool {
+        self.verdict.is_fruit() && !self.fragment && self.fit.is_some()
     }
 }
 

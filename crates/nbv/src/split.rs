@@ -9,7 +9,11 @@
 //! single fruit, lobed, tapered or tilted, has no waist. The voxels are divided by 2-means,
 //! started at the two ends of the longest axis; the split is kept only when each half has
 //! enough voxels and fits a solid of its own. A big single fruit fits one solid and is never
-//! split; a split half is tried again (three fruits in a row), up to [`MAX_PARTS`].
+//! split; a split half is tried again (three fruits in a row), up to [`MAX_PARTS`]. A cluster
+//! longer than any fruit (the fruit evidence's [`crate::evidence::EvidenceConfig::max_length_m`])
+//! is split whatever its halves' fits say: whole it is dropped as too large, and in the
+//! realistic world the fruits merged with each other or with red leaves into such clusters
+//! (3 of 8 tuning trials, 6 fruits) fit poorly half by half.
 //!
 //! The converse, one fruit as two clusters (a leaf across it leaves two patches that do not
 //! touch), is caught after fitting: [`fragments`] marks a cluster whose fitted centre lies inside
@@ -19,7 +23,7 @@
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
-use crate::evidence::principal_axes;
+use crate::evidence::{principal_axes, ClusterShape};
 use crate::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid, SolidKind};
 use crate::superellipsoid::Superellipsoid;
 
@@ -161,8 +165,9 @@ fn split_once(
     if longest_extent_m(cluster) <= config.split_extent_m || cluster.voxels.len() < 2 * min_voxels {
         return None;
     }
+    let too_long = too_long_for_a_fruit(map, cluster, config);
     let one_solid = fits.ellipsoid(map, cluster, config);
-    if one_solid && !has_waist(map, cluster) {
+    if one_solid && !has_waist(map, cluster) && !too_long {
         return None;
     }
     let (a, b) = two_means(map, &cluster.voxels);
@@ -170,7 +175,17 @@ fn split_once(
         return None;
     }
     let (a, b) = (map.cluster_of(a), map.cluster_of(b));
-    (fits.ellipsoid(map, &a, config) && fits.ellipsoid(map, &b, config)).then_some((a, b))
+    let halves_fit = fits.ellipsoid(map, &a, config) && fits.ellipsoid(map, &b, config);
+    (halves_fit || too_long).then_some((a, b))
+}
+
+/// Whether the fruit evidence would call `cluster` too large for one fruit
+/// ([`crate::evidence::Verdict::TooLarge`]): it is then split whatever its halves' fits say,
+/// since whole it is no fruit at all.
+fn too_long_for_a_fruit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> bool {
+    let points: Vec<Point3<f64>> = cluster.voxels.iter().map(|k| map.centre_of(*k)).collect();
+    let shape = ClusterShape::of(&points, map.config().resolution_m);
+    config.evidence.enabled && shape.extents_m[0] > config.evidence.max_length_m
 }
 
 /// The narrowest middle cross-section of `points` along their longest principal axis, relative
@@ -384,6 +399,36 @@ mod tests {
             "{all_round} {one_side}"
         );
         assert!(long > 0.95, "{long}");
+    }
+
+    /// A red cluster 24 cm long fits one solid and has no waist, but no fruit is that long:
+    /// whole it would be dropped as too large, so it is split and each part judged on its own.
+    #[test]
+    fn a_cluster_too_long_for_a_fruit_is_split_without_a_waist() {
+        let mut m = map();
+        around(&mut m, &[(centre(), Vector3::new(0.12, 0.035, 0.035))]);
+        let clusters = m.clusters(10);
+        assert_eq!(clusters.len(), 1);
+        let config = clean_scan_config();
+        let points: Vec<Point3<f64>> = clusters[0].voxels.iter().map(|k| m.centre_of(*k)).collect();
+        let whole = ClusterShape::of(&points, 0.01);
+        assert_eq!(
+            whole.verdict(&config.evidence),
+            crate::evidence::Verdict::TooLarge
+        );
+        assert!(waist_ratio(&points, 0.01) >= WAIST_RATIO);
+        assert!(split_touching(&m, clusters.clone(), 10, &config).len() >= 2);
+        let judged_whole = FitConfig {
+            evidence: crate::evidence::EvidenceConfig {
+                enabled: false,
+                ..config.evidence
+            },
+            ..config
+        };
+        assert_eq!(
+            split_touching(&m, clusters.clone(), 10, &judged_whole),
+            clusters
+        );
     }
 
     #[test]

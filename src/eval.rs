@@ -102,8 +102,7 @@ pub struct EvalArgs {
     #[arg(long, value_name = "HOW", default_value_t = RoiEvidence::Labels)]
     pub roi_evidence: RoiEvidence,
     /// Which ROI voxels ROI-targeted sampling aims at: `patches` (those with an ROI face
-    /// neighbour, the planner's default), `balanced` (patches, drawn 8 cm cube by cube, so a
-    /// small patch of fruit draws as many views as a large one) or `every` (the paper).
+    /// neighbour, the planner's default) or `every` (the paper).
     #[arg(long, value_name = "WHICH", default_value_t = RoiTargets::Patches)]
     pub roi_targets: RoiTargets,
     /// Align each scan to the map before inserting it (point-to-plane ICP, checked; off by

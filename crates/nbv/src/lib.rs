@@ -174,11 +174,6 @@ pub struct PlannerConfig {
     pub max_ranked_views: usize,
     /// Threads that score candidates; 0 means one per core. Any value gives the same plan.
     pub scoring_threads: usize,
-    /// ROI targets are drawn cell by cell: the map is cut into cubes this wide, each cube that
-    /// holds targets is as likely as any other, then each of its targets (a small patch of
-    /// fruit draws as many views as a large one). 0: every target as likely as any other (the
-    /// paper).
-    pub roi_target_cell_m: f64,
 }
 
 impl Default for PlannerConfig {
@@ -201,7 +196,6 @@ impl Default for PlannerConfig {
             occlusion_occupancy_logodds: (0.6f32 / 0.4).ln(),
             max_ranked_views: 20,
             scoring_threads: 0,
-            roi_target_cell_m: 0.0,
         }
     }
 }
@@ -218,9 +212,6 @@ impl PlannerConfig {
         }
         if self.fan_width == 0 || self.fan_height == 0 {
             return bad("fan_width and fan_height must be >= 1");
-        }
-        if !(self.roi_target_cell_m.is_finite() && self.roi_target_cell_m >= 0.0) {
-            return bad("roi_target_cell_m must be finite and >= 0");
         }
         if self.fan_width.saturating_mul(self.fan_height) > 100_000 {
             return bad("fan has too many rays (> 100000)");
@@ -536,27 +527,6 @@ fn rng_stream(seed: u64, stream: u64) -> ChaCha8Rng {
     rng
 }
 
-/// `targets` grouped by the cube of side `cell_m` their centres lie in, in the order of each
-/// cube's first target ([`PlannerConfig::roi_target_cell_m`]); one group of all when `cell_m`
-/// is 0 (then a target is drawn as the paper draws it).
-fn target_cells(map: &RoiMap, targets: &[VoxelKey], cell_m: f64) -> Vec<Vec<VoxelKey>> {
-    if cell_m <= 0.0 {
-        return vec![targets.to_vec()];
-    }
-    let mut index_of: HashMap<[i64; 3], usize> = HashMap::new();
-    let mut cells: Vec<Vec<VoxelKey>> = Vec::new();
-    for key in targets {
-        let centre = map.centre_of(*key);
-        let cube = [centre.x, centre.y, centre.z].map(|v| (v / cell_m).floor() as i64);
-        let i = *index_of.entry(cube).or_insert_with(|| {
-            cells.push(Vec::new());
-            cells.len() - 1
-        });
-        cells[i].push(*key);
-    }
-    cells
-}
-
 /// ROI-targeted candidate poses.
 fn sample_roi_views(
     ctx: &PlanningContext,
@@ -568,14 +538,8 @@ fn sample_roi_views(
     if targets.is_empty() {
         return poses;
     }
-    let cells = target_cells(ctx.map, targets, config.roi_target_cell_m);
     for _ in 0..config.roi_samples {
-        // One cell: no draw, so the random stream stays the paper's.
-        let cell = match cells.len() {
-            1 => &cells[0],
-            n => &cells[rng.gen_range(0..n)],
-        };
-        let target_in_world = ctx.map.centre_of(cell[rng.gen_range(0..cell.len())]);
+        let target_in_world = ctx.map.centre_of(targets[rng.gen_range(0..targets.len())]);
         let direction = uniform_unit_vector(rng);
         let radius_m = uniform_in(rng, config.min_view_distance_m, config.max_view_distance_m);
         let camera_in_world = target_in_world + direction * radius_m;

@@ -501,24 +501,3 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         assert_eq!(plan.candidates_scored, 0);
     }
 }
-
-#[test]
-fn roi_targets_drawn_cell_by_cell_group_by_cube() {
-    let map = empty_map();
-    let mut targets: Vec<VoxelKey> = (0..40).map(|i| k(i % 5, i / 5 % 4, 1)).collect();
-    targets.extend([k(30, 30, 30), k(31, 30, 30)]);
-    let cells = target_cells(&map, &targets, 0.08);
-    let sizes: Vec<usize> = cells.iter().map(Vec::len).collect();
-    assert_eq!(sizes.iter().sum::<usize>(), 42, "{sizes:?}");
-    assert!(
-        sizes.contains(&2),
-        "the far patch is a cell of its own: {sizes:?}"
-    );
-    assert!(cells.iter().all(|c| !c.is_empty()));
-    assert_eq!(target_cells(&map, &targets, 0.0), vec![targets.clone()]);
-    let bad = PlannerConfig {
-        roi_target_cell_m: f64::NAN,
-        ..PlannerConfig::default()
-    };
-    assert!(bad.validate().is_err());
-}

@@ -79,13 +79,7 @@ pub enum RoiTargets {
     /// ROI, and so the fruits, is unchanged.
     #[default]
     Patches,
-    /// Patches, drawn cell by cell ([`ROI_TARGET_CELL_M`] cubes, each as likely as any other):
-    /// a fruit seen only as a small patch draws as many views as a large fruit's surface.
-    Balanced,
 }
-
-/// Side of the cubes [`RoiTargets::Balanced`] draws targets by: about a fruit.
-pub const ROI_TARGET_CELL_M: f64 = 0.08;
 
 impl std::str::FromStr for RoiTargets {
     type Err = String;
@@ -94,10 +88,7 @@ impl std::str::FromStr for RoiTargets {
         match s {
             "every" => Ok(Self::Every),
             "patches" => Ok(Self::Patches),
-            "balanced" => Ok(Self::Balanced),
-            _ => Err(format!(
-                "ROI targets must be every, patches or balanced, got {s:?}"
-            )),
+            _ => Err(format!("ROI targets must be every or patches, got {s:?}")),
         }
     }
 }
@@ -107,7 +98,6 @@ impl std::fmt::Display for RoiTargets {
         f.write_str(match self {
             Self::Every => "every",
             Self::Patches => "patches",
-            Self::Balanced => "balanced",
         })
     }
 }
@@ -190,7 +180,7 @@ impl PlanningSettings {
             // fruit; two more fruit than non-fruit labels still make an ROI voxel.
             roi_miss_logodds: -ROI_EVIDENCE_LOGODDS,
             roi_hit_logodds: ROI_EVIDENCE_LOGODDS,
-            roi_target_needs_neighbour: self.roi_targets != RoiTargets::Every,
+            roi_target_needs_neighbour: self.roi_targets == RoiTargets::Patches,
             ..MapConfig::default()
         }
     }
@@ -199,10 +189,6 @@ impl PlanningSettings {
         PlannerConfig {
             method: self.method,
             scoring_threads: self.scoring_threads,
-            roi_target_cell_m: match self.roi_targets {
-                RoiTargets::Balanced => ROI_TARGET_CELL_M,
-                RoiTargets::Every | RoiTargets::Patches => 0.0,
-            },
             ..PlannerConfig::default()
         }
     }

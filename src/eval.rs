@@ -10,7 +10,8 @@
 //! - `trials/<method>-<trial>-clusters.csv`: every ROI cluster at the end, reported as a fruit
 //!   or not and why (the fruit evidence's verdict, its shape, what its fitted solid hides), with
 //!   the nearest true fruit;
-//! - `table.md`: Table I (mean ± std at the end of the budget) and the Mann-Whitney p-values;
+//! - `table.md`: Table I (mean ± std at the end of the budget), the missed fruits by reason and
+//!   the Mann-Whitney p-values;
 //! - `summary.json`: `{"<method>": {"<metric>": {"mean", "std", "n"}}, "fruits_total", "p_values",
 //!   "settings"}`;
 //! - `covered_volume.png`, `volume_accuracy.png`, `f1.png`, `count_ratio.png`: mean curves over

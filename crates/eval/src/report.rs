@@ -10,6 +10,8 @@ use serde_json::{json, Map, Value};
 use crate::metrics::{greedy_match, volume_accuracy, MATCH_DISTANCE_M};
 use crate::stats::{mann_whitney_u, mean_std, Alternative};
 use crate::trial::{Sample, TrialResult};
+use glasshouse_nbv::evidence::Verdict;
+use glasshouse_pipeline::ClusterOutcome;
 
 /// Which values of a metric are better.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -314,6 +316,55 @@ pub fn clusters_csv(result: &TrialResult) -> String {
     out
 }
 
+/// A true fruit missed is put down to the largest cluster this near it whose nearest true
+/// fruit it is ([`missed_reasons`]).
+pub const MISSED_NEAR_M: f64 = 0.08;
+
+/// Why each true fruit that no fitted estimate matched (the matching of [`fruits_csv`]) was
+/// missed, counted by reason: the outcome of the largest cluster within [`MISSED_NEAR_M`] whose
+/// nearest true fruit it is (too small, flat, a sheet, …), or no such cluster.
+pub fn missed_reasons(result: &TrialResult) -> BTreeMap<&'static str, usize> {
+    let fitted: Vec<_> = result
+        .fruits
+        .iter()
+        .map(|f| f.solid_or_box().centre)
+        .collect();
+    let truths: Vec<_> = result.truths.iter().map(|t| t.centre).collect();
+    let matches = greedy_match(&fitted, &truths, MATCH_DISTANCE_M);
+    let mut reasons = BTreeMap::new();
+    for (t, truth) in truths.iter().enumerate() {
+        if matches.iter().any(|m| m.truth == t) {
+            continue;
+        }
+        let nearest_is = |c: &&ClusterOutcome| {
+            let d = (c.centre - truth).norm();
+            d <= MISSED_NEAR_M && truths.iter().all(|o| (c.centre - o).norm() >= d)
+        };
+        let largest = result
+            .clusters
+            .iter()
+            .filter(nearest_is)
+            .max_by_key(|c| c.voxels);
+        *reasons.entry(missed_reason(largest)).or_insert(0) += 1;
+    }
+    reasons
+}
+
+fn missed_reason(cluster: Option<&ClusterOutcome>) -> &'static str {
+    let Some(cluster) = cluster else {
+        return "no cluster within 8 cm";
+    };
+    match cluster.verdict {
+        Verdict::TooSmall => "too small",
+        Verdict::Thin => "thin",
+        Verdict::TooLarge => "too large",
+        Verdict::Flat => "flat",
+        Verdict::Sheet => "a sheet (its solid hides nothing)",
+        Verdict::Fruit if cluster.fragment => "a second patch of another fruit",
+        Verdict::Fruit => "reported, but matched to another fruit",
+    }
+}
+
 /// The final estimates of one trial against the true fruits, one row per true fruit (estimate
 /// columns empty when missed) and one per false fruit (truth columns empty). The pairs are the
 /// fitted estimates' matching, so a row says why a trial's fitted figures are what they are:
@@ -526,6 +577,49 @@ fn cell(values: &[f64], decimals: usize) -> String {
     }
 }
 
+/// The missed fruits by reason ([`missed_reasons`]), summed over each method's trials; nothing
+/// when no trial kept its clusters.
+fn write_missed(out: &mut String, runs: &[MethodRuns]) {
+    let trials = || runs.iter().flat_map(|r| &r.trials);
+    if trials().all(|t| t.clusters.is_empty()) {
+        return;
+    }
+    let per_method: Vec<BTreeMap<&str, usize>> = runs
+        .iter()
+        .map(|r| {
+            let mut sum = BTreeMap::new();
+            for (reason, n) in r.trials.iter().flat_map(missed_reasons) {
+                *sum.entry(reason).or_insert(0) += n;
+            }
+            sum
+        })
+        .collect();
+    let reasons: std::collections::BTreeSet<&str> =
+        per_method.iter().flat_map(|m| m.keys().copied()).collect();
+    let _ = writeln!(
+        out,
+        "\n## Missed fruits by reason (sum over trials)\n\n\
+         Each true fruit no fitted estimate matched, put down to the largest cluster within 8 cm \
+         whose nearest true fruit it is (`trials/*-clusters.csv`).\n"
+    );
+    let _ = write!(out, "| reason |");
+    for r in runs {
+        let _ = write!(out, " {} |", method_label(r.method));
+    }
+    let _ = write!(out, "\n|---|");
+    for _ in runs {
+        let _ = write!(out, "---|");
+    }
+    out.push('\n');
+    for reason in reasons {
+        let _ = write!(out, "| {reason} |");
+        for m in &per_method {
+            let _ = write!(out, " {} |", m.get(reason).copied().unwrap_or(0));
+        }
+        out.push('\n');
+    }
+}
+
 /// Table I in markdown (mean ± std over trials at the end of the budget), then the p-values.
 pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> String {
     let mut out = String::new();
@@ -584,6 +678,7 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         out.push('\n');
     }
 
+    write_missed(&mut out, runs);
     let p = p_values(runs);
     let pairs: Vec<(Method, Method)> = runs
         .iter()
@@ -736,6 +831,56 @@ mod tests {
             registration: Default::default(),
             plans: Vec::new(),
         }
+    }
+
+    /// Three true fruits a metre apart, none matched: the first has a small patch and a larger
+    /// sheet beside it, the second only a flat patch 12 cm away, the third a second patch.
+    #[test]
+    fn missed_fruits_are_put_down_to_the_largest_cluster_near_them() {
+        use glasshouse_nbv::evidence::ClusterShape;
+        use glasshouse_sim::FruitTruth;
+        use nalgebra::{Point3, Vector3};
+        let at = |x: f64| Point3::new(x, 0.0, 1.0);
+        let cluster =
+            |centre: Point3<f64>, voxels: usize, verdict: Verdict, fragment: bool| ClusterOutcome {
+                centre,
+                voxels,
+                shape: ClusterShape {
+                    extents_m: Vector3::new(0.06, 0.05, 0.04),
+                    bulge: 0.4,
+                },
+                verdict,
+                fit: None,
+                interior: None,
+                fragment,
+            };
+        let mut trial = result(Method::OursUu, 0);
+        let half = Vector3::repeat(0.03);
+        trial.truths = (0..3)
+            .map(|i| FruitTruth::ellipsoid(i, at(f64::from(i)), half))
+            .collect();
+        trial.clusters = vec![
+            cluster(at(0.03), 15, Verdict::TooSmall, false),
+            cluster(at(-0.02), 100, Verdict::Sheet, false),
+            cluster(at(1.12), 20, Verdict::Flat, false),
+            cluster(at(2.01), 40, Verdict::Fruit, true),
+        ];
+        let reasons = missed_reasons(&trial);
+        let expected: BTreeMap<&str, usize> = [
+            ("a sheet (its solid hides nothing)", 1),
+            ("no cluster within 8 cm", 1),
+            ("a second patch of another fruit", 1),
+        ]
+        .into();
+        assert_eq!(reasons, expected);
+        let runs = vec![MethodRuns {
+            method: Method::OursUu,
+            trials: vec![trial],
+        }];
+        let table = table_markdown("2", &runs, 180.0);
+        assert!(table.contains("## Missed fruits by reason"), "{table}");
+        assert!(table.contains("| no cluster within 8 cm | 1 |"), "{table}");
+        assert!(!table_markdown("2", &super::tests::runs(), 180.0).contains("Missed fruits"));
     }
 
     fn runs() -> Vec<MethodRuns> {

@@ -577,6 +577,19 @@ fn cell(values: &[f64], decimals: usize) -> String {
     }
 }
 
+/// A markdown table's header: the `first` columns, then one per method.
+fn write_method_header(out: &mut String, first: &[&str], runs: &[MethodRuns]) {
+    let _ = write!(out, "|");
+    for column in first {
+        let _ = write!(out, " {column} |");
+    }
+    for r in runs {
+        let _ = write!(out, " {} |", method_label(r.method));
+    }
+    let _ = write!(out, "\n|{}", "---|".repeat(first.len() + runs.len()));
+    out.push('\n');
+}
+
 /// The missed fruits by reason ([`missed_reasons`]), summed over each method's trials; nothing
 /// when no trial kept its clusters.
 fn write_missed(out: &mut String, runs: &[MethodRuns]) {
@@ -602,15 +615,7 @@ fn write_missed(out: &mut String, runs: &[MethodRuns]) {
          Each true fruit no fitted estimate matched, put down to the largest cluster within 8 cm \
          whose nearest true fruit it is (`trials/*-clusters.csv`).\n"
     );
-    let _ = write!(out, "| reason |");
-    for r in runs {
-        let _ = write!(out, " {} |", method_label(r.method));
-    }
-    let _ = write!(out, "\n|---|");
-    for _ in runs {
-        let _ = write!(out, "---|");
-    }
-    out.push('\n');
+    write_method_header(out, &["reason"], runs);
     for reason in reasons {
         let _ = write!(out, "| {reason} |");
         for m in &per_method {
@@ -634,15 +639,7 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
          (paper-method §5). The first four rows are the paper's Table I; the others add the \
          > 0.5 rule of the published plots and the fitted ellipsoid estimates.\n"
     );
-    let _ = write!(out, "| scenario | metric |");
-    for r in runs {
-        let _ = write!(out, " {} |", method_label(r.method));
-    }
-    let _ = write!(out, "\n|---|---|");
-    for _ in runs {
-        let _ = write!(out, "---|");
-    }
-    out.push('\n');
+    write_method_header(&mut out, &["scenario", "metric"], runs);
     for metric in &METRICS {
         let _ = write!(out, "| {scenario} | {} |", metric.label);
         for r in runs {

@@ -23,7 +23,7 @@
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 use nalgebra::{Point3, Vector3};
 
-use crate::evidence::{principal_axes, ClusterShape};
+use crate::evidence::principal_axes;
 use crate::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid, SolidKind};
 use crate::superellipsoid::Superellipsoid;
 
@@ -184,8 +184,9 @@ fn split_once(
 /// since whole it is no fruit at all.
 fn too_long_for_a_fruit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> bool {
     let points: Vec<Point3<f64>> = cluster.voxels.iter().map(|k| map.centre_of(*k)).collect();
-    let shape = ClusterShape::of(&points, map.config().resolution_m);
-    config.evidence.enabled && shape.extents_m[0] > config.evidence.max_length_m
+    // The evidence's length, `√12·σ` along the first principal axis (its bulge is not needed).
+    let length_m = principal_axes(&points).map_or(0.0, |pca| (12.0 * pca.variances_m2[0]).sqrt());
+    config.evidence.enabled && length_m > config.evidence.max_length_m
 }
 
 /// The narrowest middle cross-section of `points` along their longest principal axis, relative
@@ -411,7 +412,7 @@ mod tests {
         assert_eq!(clusters.len(), 1);
         let config = clean_scan_config();
         let points: Vec<Point3<f64>> = clusters[0].voxels.iter().map(|k| m.centre_of(*k)).collect();
-        let whole = ClusterShape::of(&points, 0.01);
+        let whole = crate::evidence::ClusterShape::of(&points, 0.01);
         assert_eq!(
             whole.verdict(&config.evidence),
             crate::evidence::Verdict::TooLarge

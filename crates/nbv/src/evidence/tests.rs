@@ -29,13 +29,27 @@ fn scanned(
         let hits = scan_with(&mut m, centre(), *eye, &hit);
         tracker.note_scan(*eye, hits.iter().map(|p| m.key_of(p)).collect());
     }
+    let (cluster, views) = largest(&m, &mut tracker);
+    (m, cluster, views)
+}
+
+/// The map's largest cluster (of any size) and the view directions the tracker counted for it.
+fn largest(m: &RoiMap, tracker: &mut FruitTracker) -> (RoiCluster, u32) {
     let clusters = m.clusters(1);
     let estimates = tracker.update(&clusters);
     let largest = (0..clusters.len())
         .max_by_key(|&i| clusters[i].voxels.len())
         .unwrap();
-    let views = estimates[largest].view_directions;
-    (m, clusters[largest].clone(), views)
+    (
+        clusters[largest].clone(),
+        estimates[largest].view_directions,
+    )
+}
+
+/// What the fruit rule says of the map's largest cluster.
+fn judged_largest(m: &RoiMap, tracker: &mut FruitTracker) -> FruitEvidence {
+    let (cluster, views) = largest(m, tracker);
+    judged(m, &cluster, views)
 }
 
 fn judged(m: &RoiMap, cluster: &RoiCluster, views: u32) -> FruitEvidence {
@@ -122,12 +136,7 @@ fn a_red_leaf_two_voxels_thick_with_its_petiole_is_rejected() {
         let hits = scan_with(&mut m, c, *eye, hit);
         tracker.note_scan(*eye, hits.iter().map(|p| m.key_of(p)).collect());
     }
-    let clusters = m.clusters(1);
-    let views = tracker.update(&clusters);
-    let largest = (0..clusters.len())
-        .max_by_key(|&i| clusters[i].voxels.len())
-        .unwrap();
-    let evidence = judged(&m, &clusters[largest], views[largest].view_directions);
+    let evidence = judged_largest(&m, &mut tracker);
     assert_eq!(evidence.verdict, Verdict::Flat, "{evidence:?}");
 }
 
@@ -151,12 +160,7 @@ fn a_red_leaf_doubled_by_a_pose_error_hides_nothing() {
         let hits = scan_with(&mut m, c, eye, |o, d| sheet.hit(o, d));
         tracker.note_scan(eye, hits.iter().map(|p| m.key_of(p)).collect());
     }
-    let clusters = m.clusters(1);
-    let views = tracker.update(&clusters);
-    let largest = (0..clusters.len())
-        .max_by_key(|&i| clusters[i].voxels.len())
-        .unwrap();
-    let evidence = judged(&m, &clusters[largest], views[largest].view_directions);
+    let evidence = judged_largest(&m, &mut tracker);
     let config = EvidenceConfig::default();
     assert_eq!(
         evidence.shape.verdict(&config),
@@ -209,12 +213,7 @@ fn a_fruit_smeared_by_pose_errors_is_round_though_it_hides_nothing() {
         let hits = scan_with(&mut m, centre(), eye, |o, d| first_hit(&body, o, d));
         tracker.note_scan(eye, hits.iter().map(|p| m.key_of(p)).collect());
     }
-    let clusters = m.clusters(1);
-    let views = tracker.update(&clusters);
-    let largest = (0..clusters.len())
-        .max_by_key(|&i| clusters[i].voxels.len())
-        .unwrap();
-    let evidence = judged(&m, &clusters[largest], views[largest].view_directions);
+    let evidence = judged_largest(&m, &mut tracker);
     assert_eq!(evidence.interior.unknown, 0, "{evidence:?}");
     assert!(evidence.shape.is_round(&EvidenceConfig::default()));
     assert_eq!(evidence.verdict, Verdict::Fruit, "{evidence:?}");

@@ -44,12 +44,15 @@
 //!
 //! A fit that is degenerate (too few voxels, non-finite, semi-axes outside
 //! `[resolution / 2, max_semi_axis_m]`, centre far from the cluster, or a poor surface fit) falls
-//! back: a failed superellipsoid to the axis-aligned ellipsoid, a failed ellipsoid to the
-//! cluster's box (the ellipsoid inscribed in it, [`SolidKind::Box`]).
+//! back: a failed superellipsoid to the axis-aligned ellipsoid; a failed ellipsoid to the
+//! superellipsoid fitted to the part of the cluster around its best-supported fruit-sized
+//! sphere ([`FitConfig::best_part`], a fruit grown together with red leaves); and when that
+//! fails too, to the cluster's box (the ellipsoid inscribed in it, [`SolidKind::Box`]).
 //!
 //! Ground truth comes as boxes, so the fitted estimate is compared to the truth through the
 //! world-axis box around the fitted solid ([`FruitSolid::box_volume_m3`]).
 
+mod consensus;
 mod refine;
 #[cfg(test)]
 mod shape_tests;
@@ -119,6 +122,10 @@ pub struct FitConfig {
     pub outlier_band_voxels: f64,
     /// ... when they are at least this share of the cluster.
     pub min_inlier_share: f64,
+    /// When no solid fits the whole cluster, fit one to the part around its best-supported
+    /// fruit-sized sphere before falling back to the box (a fruit grown together with red
+    /// leaves; [`consensus`]).
+    pub best_part: bool,
     /// Largest accepted RMS surface distance, in voxels.
     pub max_rms_voxels: f64,
     /// Clusters longer than this along some axis, which no single ellipsoid fits, are tried as
@@ -147,6 +154,7 @@ impl Default for FitConfig {
             size_prior: SizePrior::default(),
             outlier_band_voxels: 1.5,
             min_inlier_share: 0.4,
+            best_part: true,
             max_rms_voxels: 1.5,
             split_extent_m: 0.11,
             surface_samples: 256,
@@ -614,22 +622,44 @@ pub fn fit_ellipsoid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> 
         return box_shape(map, cluster, config);
     };
     if config.model == ShapeModel::Superellipsoid {
-        match fit_solid(map, &data, config) {
-            Ok(fit) => return fit,
-            // A sound solid that fits poorly: fitted again to the voxels near it.
-            Err(Some(poor)) => {
-                if let Some(fit) = data
-                    .trimmed(&poor, config)
-                    .and_then(|inliers| fit_solid(map, &inliers, config).ok())
-                {
-                    return fit;
-                }
-            }
-            Err(None) => {}
+        if let Some(fit) = fit_solid_or_inliers(map, &data, config) {
+            return fit;
         }
     }
     let (centre, axes) = data.solve_axis_aligned(config, config.max_iterations);
-    finish_axis_aligned(map, cluster, &data, centre, axes, config)
+    let fit = finish_axis_aligned(map, cluster, &data, centre, axes, config);
+    if fit.kind == SolidKind::Box && config.best_part && config.model == ShapeModel::Superellipsoid
+    {
+        if let Some(part) = fit_best_part(map, &data, config) {
+            return part;
+        }
+    }
+    fit
+}
+
+/// The solid fitted to the part of the cluster around its best-supported fruit-sized sphere
+/// ([`consensus`]): a fruit grown together with red leaves, which the cluster's box would make
+/// many times too large.
+fn fit_best_part(map: &RoiMap, data: &FitData, config: &FitConfig) -> Option<FruitSolid> {
+    let sphere = consensus::best_sphere(data, config)?;
+    let share = FitConfig {
+        min_inlier_share: consensus::MIN_SHARE,
+        ..*config
+    };
+    fit_solid_or_inliers(map, &data.trimmed(&sphere, &share)?, config)
+}
+
+/// The superellipsoid fitted to `data`, or, when a sound solid fits it poorly, to the voxels
+/// near that solid.
+fn fit_solid_or_inliers(map: &RoiMap, data: &FitData, config: &FitConfig) -> Option<FruitSolid> {
+    match fit_solid(map, data, config) {
+        Ok(fit) => Some(fit),
+        Err(Some(poor)) => {
+            let inliers = data.trimmed(&poor, config)?;
+            fit_solid(map, &inliers, config).ok()
+        }
+        Err(None) => None,
+    }
 }
 
 /// The superellipsoid of steps 2-5, started from a rough axis-aligned solve.
@@ -745,6 +775,7 @@ mod tests {
         let cluster = only_cluster(&m);
         let untrimmed = FitConfig {
             min_inlier_share: 1.0,
+            best_part: false,
             ..clean_scan_config()
         };
         let whole = fit_ellipsoid(&m, &cluster, &untrimmed);

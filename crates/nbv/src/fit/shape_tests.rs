@@ -221,3 +221,78 @@ fn on_axis_aligned_ellipsoids_the_superellipsoid_is_no_worse() {
         "{new_off:?} vs {old_off:?}"
     );
 }
+
+/// A capsicum grown together with two red leaves into one cluster, seen from three sides: no
+/// solid fits the cluster and no waist splits it, so without the best part it is reported as
+/// its box, several times the body's volume. The solid fitted to the part around the
+/// best-supported sphere is within 30 % of the body's volume and 1.5 cm of its centroid.
+#[test]
+fn a_capsicum_grown_together_with_red_leaves_is_fitted_by_its_best_part() {
+    let c = centre();
+    let body = capsicum(c, 3, 25.0, Vector3::new(0.024, 0.022, 0.04));
+    let (truth_m3, truth_centre) = volume_and_centroid(&body, c);
+    // Leaves upright beside the fruit, on its shoulders and under it, pressed into it.
+    let leaf = |offset: Vector3<f64>, axis: Vector3<f64>, semi_axes_m: Vector3<f64>| Lobe {
+        centre: c + offset,
+        world_from_lobe: crate::test_bodies::turn(axis, 10.0),
+        semi_axes_m,
+    };
+    let leaves = [
+        leaf(
+            Vector3::new(0.0, 0.08, 0.0),
+            Vector3::z(),
+            Vector3::new(0.003, 0.07, 0.05),
+        ),
+        leaf(
+            Vector3::new(0.03, 0.0, 0.045),
+            Vector3::y(),
+            Vector3::new(0.07, 0.05, 0.003),
+        ),
+        leaf(
+            Vector3::new(-0.02, -0.02, -0.05),
+            Vector3::x(),
+            Vector3::new(0.07, 0.05, 0.003),
+        ),
+    ];
+    let scene: Vec<Lobe> = body.iter().chain(leaves.iter()).copied().collect();
+    let eyes = [
+        Vector3::new(-1.0, -0.2, 0.15).normalize(),
+        Vector3::new(-0.3, 1.0, 0.3).normalize(),
+        Vector3::new(0.6, -0.5, 0.6).normalize(),
+    ];
+    // Each view sees the scene up to 1 cm off the others (a pose error): the leaves smear
+    // into the fruit.
+    let shifts = [
+        Vector3::new(0.006, -0.004, 0.005),
+        Vector3::new(-0.005, 0.006, -0.004),
+        Vector3::new(0.0, -0.006, -0.006),
+    ];
+    let mut m = map();
+    for (eye, shift) in eyes.iter().zip(shifts) {
+        scan_with(&mut m, c, c + eye * 0.4, |o, d| {
+            first_hit(&scene, &(o + shift), d)
+        });
+    }
+    let mut clusters = m.clusters(10);
+    clusters.sort_by_key(|k| std::cmp::Reverse(k.voxels.len()));
+    let cluster = clusters.remove(0);
+    let whole = FitConfig {
+        best_part: false,
+        ..clean_scan_config()
+    };
+    let boxed = fit_ellipsoid(&m, &cluster, &whole);
+    let fit = fit_ellipsoid(&m, &cluster, &clean_scan_config());
+    println!(
+        "{} voxels; box {:.2} of the body; best part {:?} {:.2} of the body, centre {:.1} mm off",
+        cluster.voxels.len(),
+        boxed.volume_m3 / truth_m3,
+        fit.kind,
+        fit.volume_m3 / truth_m3,
+        (fit.centre - truth_centre).norm() * 1e3
+    );
+    assert_eq!(boxed.kind, SolidKind::Box);
+    assert!(boxed.volume_m3 > 3.0 * truth_m3);
+    assert_ne!(fit.kind, SolidKind::Box);
+    assert!((fit.volume_m3 / truth_m3 - 1.0).abs() < 0.3);
+    assert!((fit.centre - truth_centre).norm() < 0.015);
+}

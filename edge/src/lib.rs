@@ -645,7 +645,7 @@ pub async fn run(
     let drops = counters.drops.clone();
     let out = Outputs::declare(&session, &tid, &drops).await?;
     let views = Subscriber::declare(&session, &keys::views_from_any(&tid)?, drops.clone()).await?;
-    let planners = MemberWatch::declare(&session, MemberKind::Planner).await?;
+    let mut planners = MemberWatch::declare(&session, MemberKind::Planner).await?;
     let _alive = declare_alive(&session, MemberKind::Trolley, &tid).await?;
     let source = config.open_source(&session, &drops)?;
     let mut driver = Driver::new(config, source, out, drops.clone(), events, shutdown.clone())?;

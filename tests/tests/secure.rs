@@ -10,7 +10,7 @@ use std::process::Command;
 use std::time::Duration;
 
 use glasshouse_bus::probe::{probe, Attempt, ProbeSetup};
-use glasshouse_bus::{declare_alive, BusArgs};
+use glasshouse_bus::{declare_alive, live_members, BusArgs};
 use glasshouse_dashboard::DashboardSettings;
 use glasshouse_edge::EdgeEvent;
 use glasshouse_planner::PlannerSettings;
@@ -141,6 +141,17 @@ async fn only_the_roster_may_do_its_part() {
     let _d3_alive = declare_alive(&d3, MemberKind::Detector, "d3")
         .await
         .expect("token");
+
+    // A detector may ask the router for the members it watches (the check of a leave), and
+    // only those: the planners' tokens are not for it.
+    within(20, "d3's query finds trolley t1", async {
+        while live_members(&d3, MemberKind::Trolley).await != ["t1"] {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    })
+    .await;
+    assert_eq!(live_members(&d3, MemberKind::Detector).await, ["d1", "d3"]);
+    assert!(live_members(&d3, MemberKind::Planner).await.is_empty());
 
     let setup = probe_setup(&dir, &pki, &other, Some(config_of(&pki, "planner-p2")));
     let attempts = within(300, "the probe", probe(&setup))

@@ -527,11 +527,51 @@ pub enum MemberEvent {
     Left(String),
 }
 
+/// How long after a leave [`MemberWatch`] asks the routers whether the member's token is still
+/// declared. With two routers a leave can be stale: a member that moved to the other router has
+/// declared its token there before the first router's undeclaration of it arrives. Asked at
+/// once, the question can be answered from the watcher's own copy of the token before the leave
+/// is applied; a second later the leave has been applied everywhere it will be.
+pub const LEAVE_RECHECK_AFTER: Duration = Duration::from_secs(1);
+
+/// How many events each member has had, so that a recheck re-joins a member only when the leave
+/// it was for is still the latest news of it.
+#[derive(Debug, Default)]
+struct MemberNews {
+    events: std::collections::HashMap<String, u64>,
+}
+
+impl MemberNews {
+    /// Notes an event of `id`; its number.
+    fn heard(&mut self, id: &str) -> u64 {
+        let count = self.events.entry(id.to_owned()).or_default();
+        *count += 1;
+        *count
+    }
+
+    /// Whether `id`, found alive after its event number `after`, joins again: only when nothing
+    /// was heard of it since (that re-join is then its latest news).
+    fn rejoins(&mut self, id: &str, after: u64) -> bool {
+        let latest = self.events.get(id).copied().unwrap_or(0) == after;
+        if latest {
+            self.heard(id);
+        }
+        latest
+    }
+}
+
 /// Follows the liveliness tokens of one kind of member: the ones alive when it starts come first
-/// as [`MemberEvent::Joined`], then every change.
+/// as [`MemberEvent::Joined`], then every change. Every leave is passed on at once and checked
+/// again [`LEAVE_RECHECK_AFTER`] later: a member whose token the routers still hold then, with
+/// no other news of it since, joins again (the leave was stale).
 pub struct MemberWatch {
     subscriber:
         zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    session: Session,
+    kind: keys::MemberKind,
+    news: MemberNews,
+    rechecks: tokio::sync::mpsc::UnboundedSender<(String, u64)>,
+    still_alive: tokio::sync::mpsc::UnboundedReceiver<(String, u64)>,
 }
 
 impl MemberWatch {
@@ -547,22 +587,78 @@ impl MemberWatch {
                 key,
                 reason: e.to_string(),
             })?;
-        Ok(Self { subscriber })
+        let (rechecks, still_alive) = tokio::sync::mpsc::unbounded_channel();
+        Ok(Self {
+            subscriber,
+            session: session.clone(),
+            kind,
+            news: MemberNews::default(),
+            rechecks,
+            still_alive,
+        })
     }
 
     /// The next join or leave; `None` once the session is closed.
-    pub async fn recv(&self) -> Option<MemberEvent> {
+    pub async fn recv(&mut self) -> Option<MemberEvent> {
         loop {
-            let sample = self.subscriber.recv_async().await.ok()?;
-            let Some(keys::ParsedKey::Alive { id, .. }) = keys::parse(sample.key_expr().as_str())
-            else {
-                continue;
+            let event = tokio::select! {
+                sample = self.subscriber.recv_async() => self.on_sample(&sample.ok()?),
+                Some((id, after)) = self.still_alive.recv() => self.on_still_alive(id, after),
             };
-            return Some(match sample.kind() {
-                zenoh::sample::SampleKind::Put => MemberEvent::Joined(id),
-                zenoh::sample::SampleKind::Delete => MemberEvent::Left(id),
-            });
+            if event.is_some() {
+                return event;
+            }
         }
+    }
+
+    fn on_sample(&mut self, sample: &zenoh::sample::Sample) -> Option<MemberEvent> {
+        let keys::ParsedKey::Alive { id, .. } = keys::parse(sample.key_expr().as_str())? else {
+            return None;
+        };
+        let count = self.news.heard(&id);
+        Some(match sample.kind() {
+            zenoh::sample::SampleKind::Put => MemberEvent::Joined(id),
+            zenoh::sample::SampleKind::Delete => {
+                self.recheck(id.clone(), count);
+                MemberEvent::Left(id)
+            }
+        })
+    }
+
+    /// A member found alive after its leave number `after`: it joins again unless other news of
+    /// it came since.
+    fn on_still_alive(&mut self, id: String, after: u64) -> Option<MemberEvent> {
+        if !self.news.rejoins(&id, after) {
+            return None;
+        }
+        tracing::warn!(member = %id, kind = self.kind.as_str(),
+            "a member's leave was stale (its token is still declared): it joins again");
+        Some(MemberEvent::Joined(id))
+    }
+
+    /// Asks the routers for `id`'s token [`LEAVE_RECHECK_AFTER`] after its leave.
+    fn recheck(&self, id: String, after: u64) {
+        let Ok(key) = keys::alive(self.kind, &id) else {
+            return;
+        };
+        let (session, found) = (self.session.clone(), self.rechecks.clone());
+        tokio::spawn(async move {
+            tokio::time::sleep(LEAVE_RECHECK_AFTER).await;
+            let Ok(replies) = session
+                .liveliness()
+                .get(key)
+                .timeout(LEAVE_RECHECK_AFTER)
+                .await
+            else {
+                return;
+            };
+            while let Ok(reply) = replies.recv_async().await {
+                if reply.result().is_ok() {
+                    let _ = found.send((id, after));
+                    return;
+                }
+            }
+        });
     }
 }
 
@@ -883,4 +979,30 @@ where
     let result = service(session.clone(), shutdown).await;
     let _ = session.close().await;
     result
+}
+
+#[cfg(test)]
+mod member_news_tests {
+    use super::MemberNews;
+
+    #[test]
+    fn a_recheck_rejoins_only_the_latest_leave() {
+        let mut news = MemberNews::default();
+        assert_eq!(news.heard("t1"), 1); // joined
+        let leave = news.heard("t1");
+        // Found alive after the leave, nothing heard since: joins again, once.
+        assert!(news.rejoins("t1", leave));
+        assert!(!news.rejoins("t1", leave));
+        // A leave followed by a join: the recheck of the leave is old news.
+        let leave = news.heard("t1");
+        news.heard("t1");
+        assert!(!news.rejoins("t1", leave));
+        // Two leaves in a row: only the second's recheck counts.
+        let first = news.heard("t2");
+        let second = news.heard("t2");
+        assert!(!news.rejoins("t2", first));
+        assert!(news.rejoins("t2", second));
+        // A member never heard of is not made up.
+        assert!(!news.rejoins("t3", 1));
+    }
 }

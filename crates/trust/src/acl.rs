@@ -5,8 +5,9 @@
 //! Each identity gets [`grants`]: what its role sends and receives, on which key expressions.
 //! Besides the data itself a role needs the declarations that make it flow: a publisher is told
 //! of the subscribers on its keys (egress `declare_subscriber`: Zenoh clients send only where a
-//! subscriber is known), a watcher of liveliness receives the tokens (egress `liveliness_token`),
-//! and a snapshot's answer travels back as a `reply`.
+//! subscriber is known), a watcher of liveliness receives the tokens (egress `liveliness_token`)
+//! and may ask for the ones it watches (ingress `liveliness_query`, answered with tokens), and a
+//! snapshot's answer travels back as a `reply`.
 //!
 //! Clouds and views are keyed by their sender (`gh/trolley/{tid}/roi/{did}`,
 //! `gh/trolley/{tid}/views/{pid}`) and an identity may put them only under its own id, so a
@@ -106,13 +107,17 @@ fn token(kind: MemberKind, id: &str) -> Option<Grant> {
     ))
 }
 
-/// Following the membership of `kinds` (history included).
+/// Following the membership of `kinds` (history included), and asking the router whether a
+/// member that left is still declared (`glasshouse_bus::MemberWatch` checks every leave again).
 fn watch(kinds: &[MemberKind]) -> [Grant; 2] {
     let all: Vec<String> = kinds.iter().map(|&k| keys::alive_all(k)).collect();
     [
         grant(
             Flow::Ingress,
-            &[AclMessage::DeclareLivelinessSubscriber],
+            &[
+                AclMessage::DeclareLivelinessSubscriber,
+                AclMessage::LivelinessQuery,
+            ],
             all.clone(),
         ),
         grant(Flow::Egress, &[AclMessage::LivelinessToken], all),
@@ -463,7 +468,7 @@ mod tests {
             for message in AclMessage::ALL {
                 let alive = key.starts_with("gh/alive");
                 let subscribing = message == DeclareSubscriber && !key.contains("snapshot");
-                let watching = message == DeclareLivelinessSubscriber;
+                let watching = matches!(message, DeclareLivelinessSubscriber | LivelinessQuery);
                 assert_eq!(
                     may(W, "web1", Ingress, message, key),
                     if alive { watching } else { subscribing },
@@ -489,13 +494,26 @@ mod tests {
     }
 
     #[test]
-    fn nobody_deletes_or_queries_liveliness() {
+    fn nobody_deletes_and_liveliness_is_queried_only_where_it_is_watched() {
         for kind in Kind::ALL {
             let identity = Identity::new(kind, "x").expect("valid");
             for g in grants(&identity) {
-                assert!(!g.messages.contains(&Delete) && !g.messages.contains(&LivelinessQuery));
+                assert!(!g.messages.contains(&Delete));
+                if g.messages.contains(&LivelinessQuery) {
+                    assert!(g.messages.contains(&DeclareLivelinessSubscriber), "{g:?}");
+                }
             }
         }
+        check(
+            T,
+            "t1",
+            "
+            + in liveliness_query gh/alive/planner/p1
+            - in liveliness_query gh/alive/detector/d1
+            - in liveliness_query gh/alive/trolley/t2
+            ",
+        );
+        check(D, "d1", "+ in liveliness_query gh/alive/trolley/t1");
     }
 
     #[test]

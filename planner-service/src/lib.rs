@@ -164,6 +164,12 @@ impl Inputs {
         shutdown: &mut Shutdown,
         drops: &DropCounters,
     ) -> Option<PlannerEvent> {
+        // The node's own events first: a trolley taken over catches up before the clouds that
+        // queued meanwhile (a batch of them integrated first held each further trolley taken
+        // over back by their integration, about 0.75 s each on a loaded two-core machine).
+        if let Ok(event) = self.events.try_recv() {
+            return Some(event);
+        }
         loop {
             let event = tokio::select! {
                 _ = shutdown.wait() => return None,

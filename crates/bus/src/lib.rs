@@ -636,27 +636,14 @@ impl MemberWatch {
         Some(MemberEvent::Joined(id))
     }
 
-    /// Asks the routers for `id`'s token [`LEAVE_RECHECK_AFTER`] after its leave.
+    /// Asks the routers for the live members [`LEAVE_RECHECK_AFTER`] after `id`'s leave (the
+    /// query [`live_members`] makes, which the ACL grants a watcher).
     fn recheck(&self, id: String, after: u64) {
-        let Ok(key) = keys::alive(self.kind, &id) else {
-            return;
-        };
-        let (session, found) = (self.session.clone(), self.rechecks.clone());
+        let (session, kind, found) = (self.session.clone(), self.kind, self.rechecks.clone());
         tokio::spawn(async move {
             tokio::time::sleep(LEAVE_RECHECK_AFTER).await;
-            let Ok(replies) = session
-                .liveliness()
-                .get(key)
-                .timeout(LEAVE_RECHECK_AFTER)
-                .await
-            else {
-                return;
-            };
-            while let Ok(reply) = replies.recv_async().await {
-                if reply.result().is_ok() {
-                    let _ = found.send((id, after));
-                    return;
-                }
+            if live_members(&session, kind).await.contains(&id) {
+                let _ = found.send((id, after));
             }
         });
     }

@@ -702,7 +702,7 @@ impl TrolleyPlanner {
             ));
         }
         let mut planner = Self::new(settings)?;
-        planner.published_solid = map.solid_keys().collect();
+        planner.published_solid = PublishedSolid::from_cells(map.solid_blocks());
         planner.map = map;
         let tracked = snapshot.tracked_fruits.iter();
         planner.tracker = FruitTracker::from_state(

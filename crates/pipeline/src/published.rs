@@ -1,68 +1,82 @@
-//! The solid (occupied or ROI) voxels a planner has published in MapUpdates, counted per 8³ cell:
-//! a scan frees hundreds of thousands of voxels, arriving block by block, and nearly none of them
-//! was ever published, so each is first checked against its cell (one lookup per run of voxels in
-//! the same cell) rather than against the whole set.
+//! The solid (occupied or ROI) voxels a planner has published in MapUpdates, as one bit mask per
+//! 8³ cell (the map's block, the unit its changes arrive in): a scan frees hundreds of thousands
+//! of voxels, block by block, and nearly none of them was ever published, so each is checked
+//! against its cell's mask (one lookup per run of voxels in the same cell). A planner restored
+//! from a snapshot takes the map's solid masks block by block instead of voxel by voxel.
 
 use std::collections::HashMap;
 
-use glasshouse_roimap::{KeyBuildHasher, KeySet, VoxelKey};
+use glasshouse_roimap::{KeyBuildHasher, VoxelKey};
 
-/// log2 of a cell's edge in voxels: the map's block edge, the unit its changes arrive in.
+/// log2 of a cell's edge in voxels: the map's block edge.
 const CELL_SHIFT: i32 = 3;
 
-fn cell_of(key: VoxelKey) -> VoxelKey {
-    VoxelKey::new(
+/// The cell of `key` and the voxel's bit in the cell's mask (`z * 64 + y * 8 + x`).
+fn cell_and_bit(key: VoxelKey) -> (VoxelKey, usize) {
+    let cell = VoxelKey::new(
         key.x >> CELL_SHIFT,
         key.y >> CELL_SHIFT,
         key.z >> CELL_SHIFT,
-    )
+    );
+    let local = |v: i32| (v & 7) as usize;
+    (cell, local(key.z) * 64 + local(key.y) * 8 + local(key.x))
 }
 
 #[derive(Clone, Debug, Default)]
 pub(crate) struct PublishedSolid {
-    voxels: KeySet,
-    /// Published voxels per cell (cells with none have no entry).
-    per_cell: HashMap<VoxelKey, u32, KeyBuildHasher>,
+    /// Published voxels per cell, bit `z * 64 + y * 8 + x` (cells with none have no entry).
+    per_cell: HashMap<VoxelKey, [u64; 8], KeyBuildHasher>,
     /// The last cell looked up and whether it holds a published voxel (reset on any change).
     last_cell: Option<(VoxelKey, bool)>,
 }
 
 impl PublishedSolid {
+    /// Everything published at once: each cell's mask of solid voxels, as
+    /// [`glasshouse_roimap::RoiMap::solid_blocks`] gives them.
+    pub(crate) fn from_cells(cells: impl IntoIterator<Item = (VoxelKey, [u64; 8])>) -> Self {
+        let per_cell = cells
+            .into_iter()
+            .filter(|(_, mask)| mask.iter().any(|&w| w != 0))
+            .collect();
+        Self {
+            per_cell,
+            last_cell: None,
+        }
+    }
+
     /// Records `key` as published solid.
     pub(crate) fn insert(&mut self, key: VoxelKey) {
-        if self.voxels.insert(key) {
-            *self.per_cell.entry(cell_of(key)).or_default() += 1;
-            self.last_cell = None;
-        }
+        let (cell, bit) = cell_and_bit(key);
+        self.per_cell.entry(cell).or_default()[bit >> 6] |= 1 << (bit & 63);
+        self.last_cell = None;
     }
 
     /// Forgets `key`; whether it was published solid.
     pub(crate) fn remove(&mut self, key: VoxelKey) -> bool {
-        let cell = cell_of(key);
-        let occupied_cell = match self.last_cell {
-            Some((last, any)) if last == cell => any,
-            _ => {
-                let any = self.per_cell.contains_key(&cell);
-                self.last_cell = Some((cell, any));
-                any
+        let (cell, bit) = cell_and_bit(key);
+        if let Some((last, false)) = self.last_cell {
+            if last == cell {
+                return false;
             }
-        };
-        if !occupied_cell || !self.voxels.remove(&key) {
+        }
+        let Some(mask) = self.per_cell.get_mut(&cell) else {
+            self.last_cell = Some((cell, false));
             return false;
+        };
+        let (word, flag) = (bit >> 6, 1u64 << (bit & 63));
+        let was = mask[word] & flag != 0;
+        mask[word] &= !flag;
+        if mask.iter().all(|&w| w == 0) {
+            self.per_cell.remove(&cell);
+            self.last_cell = None;
         }
-        if let Some(count) = self.per_cell.get_mut(&cell) {
-            *count -= 1;
-            if *count == 0 {
-                self.per_cell.remove(&cell);
-            }
-        }
-        self.last_cell = None;
-        true
+        was
     }
 
     #[cfg(test)]
     pub(crate) fn len(&self) -> usize {
-        self.voxels.len()
+        let ones = |m: &[u64; 8]| m.iter().map(|w| w.count_ones() as usize).sum::<usize>();
+        self.per_cell.values().map(ones).sum()
     }
 }
 
@@ -119,5 +133,31 @@ mod tests {
         }
         assert_eq!(published.len(), 0);
         assert!(published.per_cell.is_empty());
+    }
+
+    #[test]
+    fn cells_from_the_map_are_its_solid_voxels() {
+        let keys = [
+            k(0, 0, 0),
+            k(7, 7, 7),
+            k(8, 0, 0),
+            k(-1, 0, 0),
+            k(-9, 3, 100),
+        ];
+        let by_voxel: PublishedSolid = keys.into_iter().collect();
+        let cells = by_voxel
+            .per_cell
+            .clone()
+            .into_iter()
+            .chain([(k(5, 5, 5), [0; 8])]);
+        let mut by_cell = PublishedSolid::from_cells(cells);
+        assert_eq!(
+            by_cell.per_cell, by_voxel.per_cell,
+            "an empty cell is not kept"
+        );
+        for key in keys {
+            assert!(by_cell.remove(key), "{key:?}");
+        }
+        assert_eq!(by_cell.len(), 0);
     }
 }

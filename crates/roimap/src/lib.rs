@@ -701,19 +701,11 @@ impl RoiMap {
             })
     }
 
-    /// Keys of the voxels that are occupied or ROI, block by block, from the masks alone (no
-    /// value is read; a map is mostly free space).
-    pub fn solid_keys(&self) -> impl Iterator<Item = VoxelKey> + '_ {
-        self.store
-            .blocks
-            .iter()
-            .zip(&self.store.coords)
-            .flat_map(|(b, &bk)| {
-                let solid: Mask = std::array::from_fn(|w| b.occupied[w] | b.roi_mask[w]);
-                let mut out = Vec::with_capacity(grid::mask_count(&solid));
-                for_each_bit(&solid, |l| out.push(key_at(bk, l)));
-                out
-            })
+    /// Each block's solid (occupied or ROI) voxels: the block's coordinate (voxel key ÷ 8) and
+    /// a mask with bit `z * 64 + y * 8 + x` set for each solid voxel at that offset in the block.
+    pub fn solid_blocks(&self) -> impl Iterator<Item = (VoxelKey, [u64; 8])> + '_ {
+        let blocks = self.store.blocks.iter().zip(&self.store.coords);
+        blocks.map(|(b, &bk)| (bk, std::array::from_fn(|w| b.occupied[w] | b.roi_mask[w])))
     }
 
     /// Keys of all ROI voxels, sorted.

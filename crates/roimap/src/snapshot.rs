@@ -282,6 +282,37 @@ fn write_values(body: &mut Vec<u8>, values: &Values, known: &Mask) {
     }
 }
 
+/// Palette indices of `bits` bits each, packed LSB first, read in order. At most 512 indices of at
+/// most 8 bits: the bytes are copied once into a zero-padded buffer so that each index is one
+/// unaligned 16-bit read, with no bounds check per byte.
+struct PackedIndices {
+    padded: [u8; 512 + 2],
+    at_bit: usize,
+    bits: u32,
+}
+
+impl PackedIndices {
+    fn new(bytes: &[u8], bits: u32) -> Self {
+        let mut padded = [0u8; 512 + 2];
+        let n = bytes.len().min(512);
+        padded[..n].copy_from_slice(&bytes[..n]);
+        Self {
+            padded,
+            at_bit: 0,
+            bits,
+        }
+    }
+
+    #[inline]
+    fn next(&mut self) -> u8 {
+        let byte = (self.at_bit >> 3).min(512);
+        let pair = u16::from_le_bytes([self.padded[byte], self.padded[byte + 1]]);
+        let index = (pair >> (self.at_bit & 7)) & ((1u16 << self.bits) - 1);
+        self.at_bit += self.bits as usize;
+        index as u8
+    }
+}
+
 /// Reads what [`write_values`] wrote.
 fn read_values(c: &mut Cursor, known: &Mask) -> Result<Values, SnapshotError> {
     let finite = |v: f32| {
@@ -292,8 +323,7 @@ fn read_values(c: &mut Cursor, known: &Mask) -> Result<Values, SnapshotError> {
     match c.u8()? {
         0 => {
             let v = finite(c.f32()?)?;
-            Values::from_palette(vec![v], known, || 0)
-                .ok_or_else(|| SnapshotError::Corrupt("bad palette".into()))
+            Ok(Values::uniform_on(v, known))
         }
         1 => {
             let n = usize::from(c.u8()?) + 1;
@@ -303,19 +333,8 @@ fn read_values(c: &mut Cursor, known: &Mask) -> Result<Values, SnapshotError> {
             }
             let bits = index_bits(n);
             let packed = (mask_count(known) * bits as usize).div_ceil(8);
-            let bytes = c.slice(packed)?;
-            let (mut at, mut acc, mut filled) = (0usize, 0u64, 0u32);
-            let index = || {
-                while filled < bits {
-                    acc |= u64::from(bytes.get(at).copied().unwrap_or(0)) << filled;
-                    at += 1;
-                    filled += 8;
-                }
-                let i = (acc & ((1 << bits) - 1)) as u8;
-                acc >>= bits;
-                filled -= bits;
-                i
-            };
+            let mut indices = PackedIndices::new(c.slice(packed)?, bits);
+            let index = || indices.next();
             Values::from_palette(pal, known, index)
                 .ok_or_else(|| SnapshotError::Corrupt("palette index out of range".into()))
         }
@@ -444,15 +463,8 @@ impl RoiMap {
         let thr = self.config.roi_threshold_logodds;
         let bi = self.store.get_or_create(bk);
         let b = &mut self.store.blocks[bi];
-        for_each_bit(&known, |l| {
-            let bit = 1u64 << (l & 63);
-            if occ.get(l) > 0.0 {
-                b.occupied[l >> 6] |= bit;
-            }
-            if roi.get(l) >= thr {
-                b.roi_mask[l >> 6] |= bit;
-            }
-        });
+        b.occupied = occ.mask_where(&known, |v| v > 0.0);
+        b.roi_mask = roi.mask_where(&known, |v| v >= thr);
         b.known = known;
         b.occ = occ;
         b.roi = roi;

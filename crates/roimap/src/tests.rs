@@ -1490,14 +1490,12 @@ fn evidence_is_added_per_voxel_the_largest_delta_winning() {
 }
 
 #[test]
-fn solid_keys_are_the_occupied_and_roi_voxels() {
+fn solid_blocks_are_the_occupied_and_roi_voxels() {
     let w = Workload::small(35, 96, 72, 12, 3);
     let mut m = RoiMap::new(w.map_config()).expect("valid");
     for s in w.filtered_scans() {
         m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
     }
-    let mut from_masks: Vec<VoxelKey> = m.solid_keys().collect();
-    from_masks.sort_unstable();
     let mut from_values: Vec<VoxelKey> = m
         .iter()
         .filter(|(key, voxel)| voxel.occupancy() == Occupancy::Occupied || m.is_roi(*key))
@@ -1505,7 +1503,18 @@ fn solid_keys_are_the_occupied_and_roi_voxels() {
         .collect();
     from_values.sort_unstable();
     assert!(!m.roi_voxels().is_empty() && from_values.len() > m.roi_voxels().len());
-    assert_eq!(from_masks, from_values);
+    let mut from_blocks: Vec<VoxelKey> = m
+        .solid_blocks()
+        .flat_map(|(bk, mask)| {
+            let solid = move |l: &usize| mask[l >> 6] >> (l & 63) & 1 != 0;
+            (0..512usize).filter(solid).map(move |l| {
+                let at = |b: i32, i: usize| b * 8 + i as i32;
+                VoxelKey::new(at(bk.x, l & 7), at(bk.y, (l >> 3) & 7), at(bk.z, l >> 6))
+            })
+        })
+        .collect();
+    from_blocks.sort_unstable();
+    assert_eq!(from_blocks, from_values);
 }
 
 // Incremental clusters.

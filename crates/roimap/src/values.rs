@@ -5,7 +5,7 @@
 //!
 //! Values are compared by their bits, so what is read back is exactly what was stored.
 
-use crate::grid::{Mask, BLOCK_VOXELS, EMPTY};
+use crate::grid::{mask_test, Mask, BLOCK_VOXELS, EMPTY};
 
 /// Largest palette; one more distinct value makes the block flat.
 const MAX_PALETTE: usize = 256;
@@ -155,6 +155,55 @@ impl Values {
         let mut v = Values::Palette(Box::new(p));
         v.collapse();
         Some(v)
+    }
+
+    /// One value on the voxels of `known`, 0 on the others: what [`Values::from_palette`] makes
+    /// of a one-value palette, without visiting the voxels one by one (most blocks of a map
+    /// are free space that every ray left at the same value).
+    pub(crate) fn uniform_on(v: f32, known: &Mask) -> Values {
+        let known_all = known.iter().all(|&w| w == u64::MAX);
+        let none_known = known.iter().all(|&w| w == 0);
+        if known_all || v.to_bits() == 0f32.to_bits() {
+            return Values::Uniform(v);
+        }
+        if none_known {
+            return Values::Uniform(0.0);
+        }
+        // Index 0 is `v`, index 1 the 0 of the unknown voxels.
+        let idx = std::array::from_fn(|l| u8::from(!mask_test(known, l)));
+        Values::Palette(Box::new(Palette {
+            values: vec![v, 0.0],
+            idx,
+        }))
+    }
+
+    /// The voxels of `known` whose value satisfies `pred`, each distinct value tested once.
+    pub(crate) fn mask_where(&self, known: &Mask, pred: impl Fn(f32) -> bool) -> Mask {
+        let gather = |holds: &dyn Fn(usize) -> bool| {
+            let mut out = EMPTY;
+            for (w, (o, &k)) in out.iter_mut().zip(known).enumerate() {
+                if k == 0 {
+                    continue;
+                }
+                let word = (0..64).fold(0u64, |acc, b| acc | u64::from(holds(w * 64 + b)) << b);
+                *o = word & k;
+            }
+            out
+        };
+        match self {
+            Values::Uniform(v) => match pred(*v) {
+                true => *known,
+                false => EMPTY,
+            },
+            Values::Palette(p) => {
+                let mut holds = [false; MAX_PALETTE];
+                for (h, &v) in holds.iter_mut().zip(&p.values) {
+                    *h = pred(v);
+                }
+                gather(&|l| holds[usize::from(p.idx[l])])
+            }
+            Values::Flat(a) => gather(&|l| pred(a[l])),
+        }
     }
 
     /// Flat storage from the values of the voxels in `known` (in bit order); the others hold 0.
@@ -313,4 +362,83 @@ fn for_each_touched(
         }
     }
     (changed, satisfied)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::for_each_bit;
+
+    /// Masks with every word kind a block has: empty, full, sparse, dense.
+    fn masks() -> Vec<Mask> {
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut out = vec![EMPTY, [u64::MAX; 8]];
+        for _ in 0..8 {
+            out.push(std::array::from_fn(|w| match w % 4 {
+                0 => 0,
+                1 => u64::MAX,
+                2 => next() & next(),
+                _ => next(),
+            }));
+        }
+        out
+    }
+
+    fn same(a: &Values, b: &Values) -> bool {
+        let bits = |v: &Values| {
+            (0..BLOCK_VOXELS)
+                .map(|l| v.get(l).to_bits())
+                .collect::<Vec<_>>()
+        };
+        let kind = |v: &Values| std::mem::discriminant(v);
+        bits(a) == bits(b)
+            && kind(a) == kind(b)
+            && a.palette().map(|p| p.0) == b.palette().map(|p| p.0)
+    }
+
+    #[test]
+    fn uniform_on_is_a_one_value_palette() {
+        for known in masks() {
+            for v in [0.0, -0.0, 0.85, -2.0] {
+                let slow = Values::from_palette(vec![v], &known, || 0).expect("index 0 fits");
+                assert!(
+                    same(&Values::uniform_on(v, &known), &slow),
+                    "{v} on {known:x?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn mask_where_tests_every_known_voxel() {
+        let pred = |v: f32| v > 0.0;
+        for known in masks() {
+            let mut value = 0u32;
+            let palette = Values::from_palette(vec![-0.4, 0.0, 0.85, 2.0], &known, || {
+                value += 1;
+                (value % 4) as u8
+            })
+            .expect("indices fit");
+            let mut x = -1.0f32;
+            let flat = Values::from_known(&known, || {
+                x += 0.37;
+                x
+            });
+            for v in [Values::Uniform(0.5), Values::Uniform(-0.5), palette, flat] {
+                let mut slow = EMPTY;
+                for_each_bit(&known, |l| {
+                    if pred(v.get(l)) {
+                        slow[l >> 6] |= 1 << (l & 63);
+                    }
+                });
+                assert_eq!(v.mask_where(&known, pred), slow);
+            }
+        }
+    }
 }

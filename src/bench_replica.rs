@@ -61,7 +61,10 @@ struct ReplicaRun {
     /// The owner's ms per frame in each stage, over the first and the last `window` frames.
     owner_stages_first_frames: BTreeMap<&'static str, f64>,
     owner_stages_last_frames: BTreeMap<&'static str, f64>,
+    /// From the owner's loss to the replica's views.
     takeover_ms: f64,
+    /// The takeover's clusters, fruit ids and fits, made after the views went out.
+    takeover_finish_ms: f64,
     takeover_plans: bool,
     maps_equal: bool,
     map_voxels: usize,
@@ -249,6 +252,14 @@ fn replay(
             }
         )
     });
+    // What the views went out before: the clusters, fruit ids and fits, fed back as the driver does.
+    let started = Instant::now();
+    for action in actions {
+        if let PlannerAction::Finish { tid } = action {
+            pair.replica.handle(PlannerEvent::Finish { tid });
+        }
+    }
+    let takeover_finish_ms = ms_since(started);
     let owner_map = pair.owner.planner(TROLLEY).context("owner holds t1")?.map();
     let replica_map = pair
         .replica
@@ -276,6 +287,7 @@ fn replay(
         owner_stages_first_frames: per_frame(&StageTimes::default(), &stages_at.0),
         owner_stages_last_frames: per_frame(&stages_at.1, &pair.owner.stats().stages),
         takeover_ms,
+        takeover_finish_ms,
         takeover_plans,
         maps_equal: same_map(owner_map, replica_map),
         map_voxels: owner_map.len(),
@@ -324,7 +336,7 @@ fn print_run(run: &ReplicaRun) {
         stages(&run.owner_stages_last_frames)
     );
     println!(
-        "  takeover {:.1} ms (plans: {}), maps equal voxel for voxel: {} ({} voxels)",
-        run.takeover_ms, run.takeover_plans, run.maps_equal, run.map_voxels
+        "  takeover {:.1} ms to views (plans: {}), then {:.1} ms of clusters and fits; maps equal voxel for voxel: {} ({} voxels)",
+        run.takeover_ms, run.takeover_plans, run.takeover_finish_ms, run.maps_equal, run.map_voxels
     );
 }

@@ -400,6 +400,9 @@ async fn perform(
             // Back into the event queue: the node picks it up after what is already waiting.
             let _ = out.events.send(PlannerEvent::CatchUp { tid });
         }
+        PlannerAction::Finish { tid } => {
+            let _ = out.events.send(PlannerEvent::Finish { tid });
+        }
     }
     Ok(0)
 }

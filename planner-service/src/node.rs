@@ -119,6 +119,11 @@ pub enum PlannerEvent {
     CatchUp {
         tid: String,
     },
+    /// The clusters, fruit ids and fits of a cloud whose views went out first (see
+    /// [`PlannerAction::Finish`]).
+    Finish {
+        tid: String,
+    },
     /// Time to publish the status; `dropped_messages` is the bus's drop count, `now_ns` this
     /// process's wall clock (Unix ns).
     StatusTick {
@@ -172,6 +177,13 @@ pub enum PlannerAction {
     CatchUp {
         tid: String,
     },
+    /// Feed `PlannerEvent::Finish { tid }` back once the actions before it are done, like
+    /// `CatchUp`: after a takeover each trolley's views go out before its clusters, fruit ids
+    /// and fits are made, and those come after the catch-ups queued before them. A trolley's
+    /// cloud, snapshot or catch-up finishes what is left first, so the order per trolley holds.
+    Finish {
+        tid: String,
+    },
 }
 
 /// Counts the driver mirrors into its counters.
@@ -202,6 +214,25 @@ pub struct PlannerStats {
     pub stale_epoch: u64,
     /// Terms this planner gave up on seeing a newer epoch for a trolley it owned.
     pub stepped_down: u64,
+}
+
+/// What follows a cloud's insert ([`PlannerNode::integrate_then`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Then {
+    /// Clusters and fruit ids (a replica, or an owner's cloud with a later one queued).
+    Track,
+    /// Also the fits and the views.
+    Plan,
+    /// The views at once, the rest on [`PlannerEvent::Finish`] (a trolley taken over).
+    ViewsFirst,
+}
+
+/// A cloud planned on before its clusters, fruit ids and fits were made: what its map update
+/// needs once they are ([`PlannerNode::finish`]).
+#[derive(Clone, Debug)]
+pub(crate) struct Unfinished {
+    header: Header,
+    registration: Option<glasshouse_proto::FrameRegistration>,
 }
 
 /// Milliseconds between successive laps: the stages of one cloud's handling, timed in turn.
@@ -432,6 +463,7 @@ impl PlannerNode {
             }
             PlannerEvent::SnapshotAsked { query_id, tid } => self.on_snapshot_asked(query_id, &tid),
             PlannerEvent::CatchUp { tid } => self.on_catch_up(&tid),
+            PlannerEvent::Finish { tid } => self.finish(&tid),
             PlannerEvent::StatusTick {
                 dropped_messages,
                 now_ns,
@@ -446,6 +478,7 @@ impl PlannerNode {
     /// A standby copy answers with every cloud it holds integrated.
     fn on_snapshot_asked(&mut self, query_id: u64, tid: &str) -> Vec<PlannerAction> {
         let mut actions = self.catch_up(tid, false);
+        actions.extend(self.finish(tid));
         let mut laps = Laps::start();
         let answer = self.snapshot_of(tid);
         self.stats.stages.publish_ms += laps.lap_ms();
@@ -634,11 +667,12 @@ impl PlannerNode {
     /// last is planned on, or, with none pending, the latest cloud again (the edge may wait on
     /// it).
     fn catch_up(&mut self, tid: &str, plan_last: bool) -> Vec<PlannerAction> {
+        let mut actions = self.finish(tid);
         let Some(slot) = self.slots.get_mut(tid) else {
-            return Vec::new();
+            return actions;
         };
         let Some((held, pending)) = slot.take_backlog() else {
-            return Vec::new();
+            return actions;
         };
         let started = Instant::now();
         let decoded = held.map(|snapshot| slot.planner.restore(&snapshot));
@@ -649,12 +683,15 @@ impl PlannerNode {
         let decode_ms = started.elapsed().as_secs_f64() * 1e3;
         let last = slot.last_cloud.clone();
         let n = pending.len();
-        let mut actions = Vec::new();
+        let then = |planned| match planned {
+            true => Then::ViewsFirst,
+            false => Then::Track,
+        };
         for (i, received) in pending.into_iter().enumerate() {
-            actions.extend(self.integrate(tid, received, plan_last && i + 1 == n));
+            actions.extend(self.integrate_then(tid, received, then(plan_last && i + 1 == n)));
         }
         if let (0, true, Some(last)) = (n, plan_last, last) {
-            actions.extend(self.integrate(tid, last, true));
+            actions.extend(self.integrate_then(tid, last, Then::ViewsFirst));
         }
         if decoded.is_some() {
             let total_ms = started.elapsed().as_secs_f64() * 1e3;
@@ -888,6 +925,7 @@ impl PlannerNode {
                         }
                     }
                     *slot.planner = loaded;
+                    slot.unfinished = None;
                     from_snapshot = true;
                 }
                 Err(e) => {
@@ -962,9 +1000,24 @@ impl PlannerNode {
     /// publishes its map changes. A replica keeps its map, fruit ids and change tracking exactly
     /// as the owner's.
     fn integrate(&mut self, tid: &str, received: ReceivedCloud, plan: bool) -> Vec<PlannerAction> {
+        let then = match plan {
+            true => Then::Plan,
+            false => Then::Track,
+        };
+        self.integrate_then(tid, received, then)
+    }
+
+    /// [`PlannerNode::integrate`], with what follows the insert chosen by `then`.
+    fn integrate_then(
+        &mut self,
+        tid: &str,
+        received: ReceivedCloud,
+        then: Then,
+    ) -> Vec<PlannerAction> {
+        let mut actions = self.finish(tid);
         let pid = self.pid.clone();
         let Some(slot) = self.slots.get_mut(tid) else {
-            return Vec::new();
+            return actions;
         };
         let started = Instant::now();
         let mut laps = Laps::start();
@@ -981,47 +1034,124 @@ impl PlannerNode {
         self.stats.stages.integrate_ms += laps.lap_ms();
         let (stats, refusals) = (&mut self.stats, &mut self.logged_refusals);
         if !note_insert(stats, refusals, (&pid, tid), header, frame, inserted) {
-            return Vec::new();
+            return actions;
         }
+        self.stats.clouds_integrated += 1;
+        let camera = cloud.world_from_camera;
+        let header = received.header.clone();
+        slot.last_cloud = Some(received);
+        let unfinished = Unfinished {
+            header,
+            registration,
+        };
+        let plan = then == Then::Plan;
+        if then != Then::ViewsFirst {
+            actions.extend(self.track_and_publish(tid, unfinished, (plan, plan), started));
+            return actions;
+        }
+        // Planning reads only the map: the views go out now, the clusters, fruit ids and fits
+        // once the other trolleys taken over have theirs.
+        let views = self.plan_views(tid, &camera, frame, started);
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return actions;
+        };
+        let header = unfinished.header.clone();
+        slot.unfinished = Some(unfinished);
+        let mut laps = Laps::start();
+        actions.extend(self.publish(tid, &header, views, None, None));
+        self.stats.stages.publish_ms += laps.lap_ms();
+        actions.push(PlannerAction::Finish {
+            tid: tid.to_owned(),
+        });
+        actions
+    }
+
+    /// What a cloud's views were planned without: its clusters, fruit ids, fits, and the
+    /// fruits and map update they publish (none while the trolley is no longer this planner's).
+    fn finish(&mut self, tid: &str) -> Vec<PlannerAction> {
+        let Some(unfinished) = self.slots.get_mut(tid).and_then(|s| s.unfinished.take()) else {
+            return Vec::new();
+        };
+        self.track_and_publish(tid, unfinished, (true, false), Instant::now())
+    }
+
+    /// Clusters and tracks the cloud just integrated and publishes its map update; with `fit`
+    /// also the fruits, with `plan` also the views (an owner's outputs; a replica publishes
+    /// nothing).
+    fn track_and_publish(
+        &mut self,
+        tid: &str,
+        done: Unfinished,
+        (fit, plan): (bool, bool),
+        started: Instant,
+    ) -> Vec<PlannerAction> {
+        let pid = self.pid.clone();
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
+        };
+        let mut laps = Laps::start();
         slot.planner.cluster();
         self.stats.stages.cluster_ms += laps.lap_ms();
         slot.planner.track();
         self.stats.stages.track_ms += laps.lap_ms();
-        self.stats.clouds_integrated += 1;
         let term = slot.term();
+        let seq = done.header.seq;
         let map = MapUpdate {
-            registration,
+            registration: done.registration,
             owner_epoch: term,
-            ..slot.planner.map_update(frame.seq, &pid)
+            ..slot.planner.map_update(seq, &pid)
         };
         self.stats.stages.publish_ms += laps.lap_ms();
-        let camera = cloud.world_from_camera;
-        let header = received.header.clone();
-        slot.last_cloud = Some(received);
-        let seq = frame.seq;
-        if !plan {
-            let actions = match slot.role() {
-                Role::Owner => self.publish(tid, &header, None, None, map),
-                Role::Replica => Vec::new(),
-            };
-            self.stats.stages.publish_ms += laps.lap_ms();
-            return actions;
-        }
-        let fruits = FruitEstimates {
+        let owner = slot.role() == Role::Owner;
+        let fruits = fit.then(|| FruitEstimates {
             fruits: slot.planner.fruits(),
             based_on_seq: seq,
             planner_id: pid.clone(),
             owner_epoch: term,
+        });
+        let fit_ms = laps.lap_ms();
+        if fit {
+            self.stats.stages.fit_ms += fit_ms;
+        }
+        let views = match plan {
+            true => {
+                let Some(last) = slot.last_cloud.as_ref() else {
+                    return Vec::new();
+                };
+                let (camera, frame) = (last.cloud.world_from_camera, last.cloud.source_frame());
+                self.plan_views(tid, &camera, frame, started)
+            }
+            false => None,
         };
-        self.stats.stages.fit_ms += laps.lap_ms();
-        let planned = slot.planner.plan(&camera, seq);
+        // The planning counted itself (plan stage).
+        laps.lap_ms();
+        let actions = match owner {
+            true => self.publish(tid, &done.header, views, fruits, Some(map)),
+            false => Vec::new(),
+        };
+        self.stats.stages.publish_ms += laps.lap_ms();
+        actions
+    }
+
+    /// The owner's ranked views on `frame`, taken from `camera` (`None`: no info yet, or the
+    /// planning failed; logged).
+    fn plan_views(
+        &mut self,
+        tid: &str,
+        camera: &nalgebra::Isometry3<f64>,
+        frame: FrameId,
+        started: Instant,
+    ) -> Option<RankedViews> {
+        let slot = self.slots.get(tid)?;
+        let mut laps = Laps::start();
+        let planned = slot.planner.plan(camera, frame.seq);
         self.stats.stages.plan_ms += laps.lap_ms();
-        let views = match planned {
+        match planned {
             Ok(Some(plan)) => {
                 let ms = (started.elapsed().as_secs_f64() * 1e3) as f32;
                 Some(RankedViews {
-                    owner_epoch: term,
-                    ..ranked_views(&plan, frame, ms, &pid)
+                    owner_epoch: slot.term(),
+                    ..ranked_views(&plan, frame, ms, &self.pid)
                 })
             }
             Ok(None) => {
@@ -1029,13 +1159,10 @@ impl PlannerNode {
                 None
             }
             Err(e) => {
-                tracing::warn!(trolley = %tid, seq, error = %e, "planning failed");
+                tracing::warn!(trolley = %tid, seq = frame.seq, error = %e, "planning failed");
                 None
             }
-        };
-        let actions = self.publish(tid, &header, views, Some(fruits), map);
-        self.stats.stages.publish_ms += laps.lap_ms();
-        actions
+        }
     }
 
     fn publish(
@@ -1044,7 +1171,7 @@ impl PlannerNode {
         cloud_header: &Header,
         views: Option<RankedViews>,
         fruits: Option<FruitEstimates>,
-        map: MapUpdate,
+        map: Option<MapUpdate>,
     ) -> Vec<PlannerAction> {
         let header = Header {
             seq: cloud_header.seq,
@@ -1064,7 +1191,7 @@ impl PlannerNode {
             outputs.push(TrolleyOutput::Views(views));
         }
         outputs.extend(fruits.map(TrolleyOutput::Fruits));
-        outputs.push(TrolleyOutput::Map(map));
+        outputs.extend(map.map(TrolleyOutput::Map));
         let publish = |output| PlannerAction::Publish {
             tid: tid.to_owned(),
             header: header.clone(),

@@ -4,6 +4,7 @@
 //! holds consistent (a term only while owning, a held snapshot only while standing by or taking
 //! over, clouds buffered only while loading).
 
+use crate::node::Unfinished;
 use glasshouse_fleet::Role;
 use glasshouse_pipeline::TrolleyPlanner;
 use glasshouse_proto::{FrameId, Header, MapSnapshot, RoiCloud};
@@ -61,6 +62,8 @@ pub(crate) struct Slot {
     /// The latest cloud: a planner that takes over plans on it at once.
     pub last_cloud: Option<ReceivedCloud>,
     pub stage: Stage,
+    /// The latest cloud's clusters, fruit ids and fits, when its views went out first.
+    pub unfinished: Option<Unfinished>,
 }
 
 impl Slot {
@@ -69,6 +72,7 @@ impl Slot {
         Self {
             planner: Box::new(planner),
             last_cloud: None,
+            unfinished: None,
             stage: Stage::Loading {
                 role,
                 buffered: Vec::new(),
@@ -165,6 +169,8 @@ impl Slot {
                 return 0;
             }
         };
+        // The copy is replaced by a snapshot: what was left of its last cloud goes with it.
+        self.unfinished = None;
         if let Some(held) = held {
             if let Err(e) = self.planner.restore(&held) {
                 tracing::warn!(planner = %pid, trolley = %tid, error = %e, "held snapshot not restored");
@@ -245,6 +251,7 @@ impl Slot {
         };
         pending.retain(|c| snapshot_frame.is_none_or(|b| c.cloud.source_frame() > b));
         *held = Some(snapshot);
+        self.unfinished = None;
         if let Err(e) = self.planner.clear() {
             tracing::warn!(planner = %pid, trolley = %tid, error = %e, "copy not cleared");
         }

@@ -110,6 +110,23 @@ fn asks(actions: &[PlannerAction]) -> Vec<(String, Vec<String>)> {
         .collect()
 }
 
+/// `actions` and what the `Finish` events they ask for give, fed back as the driver does.
+fn settle(node: &mut PlannerNode, actions: Vec<PlannerAction>) -> Vec<PlannerAction> {
+    let mut out = Vec::new();
+    for action in actions {
+        let finish = match &action {
+            PlannerAction::Finish { tid } => Some(tid.clone()),
+            _ => None,
+        };
+        out.push(action);
+        if let Some(tid) = finish {
+            let more = node.handle(PlannerEvent::Finish { tid });
+            out.extend(settle(node, more));
+        }
+    }
+    out
+}
+
 fn views_of(actions: &[PlannerAction]) -> Vec<RankedViews> {
     actions
         .iter()
@@ -210,20 +227,72 @@ fn planning_waits_for_the_trolley_info() {
     assert_eq!(views_of(&owner.handle(cloud_event(&clouds[1]))).len(), 1);
 }
 
-#[test]
-fn the_replica_takes_over_and_plans_on_the_latest_cloud_at_once() {
-    let (info, clouds) = trolley_clouds(1);
+/// `n` clouds of a trolley, and its owner and hot replica, informed, with the first integrated.
+fn owner_and_replica_on_the_first_of(n: u64) -> (Vec<RoiCloud>, PlannerNode, PlannerNode) {
+    let (info, clouds) = trolley_clouds(n);
     let (mut owner, mut replica) = roles(pair());
     for n in [&mut owner, &mut replica] {
         n.handle(info_event(&info));
         n.handle(cloud_event(&clouds[0]));
     }
+    (clouds, owner, replica)
+}
+
+#[test]
+fn a_cloud_after_a_takeover_finishes_the_one_before_first() {
+    let (clouds, mut owner, mut replica) = owner_and_replica_on_the_first_of(2);
+    let taken = replica.handle(PlannerEvent::PlannerLeft(owner.pid.clone()));
+    assert_eq!(outputs_for(&taken, "t1"), (1, 0, 0), "{taken:?}");
+    // The next cloud comes before the Finish event: frame 1's fruits and map go out first.
+    let actions = replica.handle(cloud_event(&clouds[1]));
+    let maps: Vec<u64> = actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::Publish {
+                output: TrolleyOutput::Map(m),
+                ..
+            } => Some(m.based_on_seq),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(maps, vec![1, 2]);
+    assert_eq!(outputs_for(&actions, "t1"), (1, 2, 2), "{actions:?}");
+    assert!(replica
+        .handle(PlannerEvent::Finish { tid: "t1".into() })
+        .is_empty());
+    owner.handle(cloud_event(&clouds[1]));
+    let ids = |n: &PlannerNode| {
+        let snapshot = n.planner("t1").expect("holds t1").snapshot("t1", "p");
+        let fruits = snapshot.expect("a snapshot").tracked_fruits;
+        fruits.iter().map(|f| f.id).collect::<Vec<_>>()
+    };
+    assert_eq!(
+        ids(&replica),
+        ids(&owner),
+        "the same fruit ids as the lost owner's"
+    );
+}
+
+#[test]
+fn the_replica_takes_over_and_plans_on_the_latest_cloud_at_once() {
+    let (_, owner, mut replica) = owner_and_replica_on_the_first_of(1);
     let lost = owner.pid.clone();
     let actions = replica.handle(PlannerEvent::PlannerLeft(lost));
     assert_eq!(replica.role("t1"), Some(Role::Owner));
     let views = views_of(&actions);
     assert_eq!(views.len(), 1, "{actions:?}");
     assert_eq!(views[0].based_on_seq, 1);
+    // The views go out first; the clusters, fruit ids and fits follow on the event asked for.
+    assert_eq!(outputs_for(&actions, "t1"), (1, 0, 0), "{actions:?}");
+    let finish = PlannerAction::Finish { tid: "t1".into() };
+    assert_eq!(actions.last(), Some(&finish));
+    let finished = replica.handle(PlannerEvent::Finish { tid: "t1".into() });
+    assert_eq!(outputs_for(&finished, "t1"), (0, 1, 1), "{finished:?}");
+    let term = replica.term("t1").expect("the new owner's term");
+    assert_eq!(epochs_of(&finished), vec![term; 2]);
+    assert!(replica
+        .handle(PlannerEvent::Finish { tid: "t1".into() })
+        .is_empty());
     // The frame was not inserted twice.
     assert_eq!(replica.stats().clouds_integrated, 2);
     assert_eq!(
@@ -1277,6 +1346,7 @@ fn a_paused_owner_that_wakes_up_steps_down_catches_up_and_begins_a_newer_term() 
     // The owner is paused: its token goes. The replica takes over under a newer term and plans
     // frame 1 at once; frames 2 and 3 reach it alone.
     let taken = b.handle(PlannerEvent::PlannerLeft(a_id.clone()));
+    let taken = settle(&mut b, taken);
     let term_b = b.term("t1").expect("the new owner's term began");
     assert!(term_b > term_a, "{term_b} after {term_a}");
     assert_eq!(views_of(&taken).len(), 1);
@@ -1358,6 +1428,7 @@ fn every_ownership_change_begins_a_later_term() {
         hear_fruits(&mut b, &published);
         b.handle(cloud_event(cloud));
         let published = b.handle(PlannerEvent::PlannerLeft(a_id.clone()));
+        let published = settle(&mut b, published);
         terms.push(b.term("t1").unwrap());
         hear_fruits(&mut a, &published);
         b.handle(PlannerEvent::PlannerJoined(a_id.clone()));

@@ -232,6 +232,8 @@ enum Then {
 #[derive(Clone, Debug)]
 pub(crate) struct Unfinished {
     header: Header,
+    /// The cloud's source frame (its map update and fruits are based on it).
+    frame: FrameId,
     registration: Option<glasshouse_proto::FrameRegistration>,
 }
 
@@ -1042,6 +1044,7 @@ impl PlannerNode {
         slot.last_cloud = Some(received);
         let unfinished = Unfinished {
             header,
+            frame,
             registration,
         };
         let plan = then == Then::Plan;
@@ -1095,7 +1098,7 @@ impl PlannerNode {
         slot.planner.track();
         self.stats.stages.track_ms += laps.lap_ms();
         let term = slot.term();
-        let seq = done.header.seq;
+        let seq = done.frame.seq;
         let map = MapUpdate {
             registration: done.registration,
             owner_epoch: term,

@@ -243,8 +243,25 @@ fn a_cloud_after_a_takeover_finishes_the_one_before_first() {
     let (clouds, mut owner, mut replica) = owner_and_replica_on_the_first_of(2);
     let taken = replica.handle(PlannerEvent::PlannerLeft(owner.pid.clone()));
     assert_eq!(outputs_for(&taken, "t1"), (1, 0, 0), "{taken:?}");
-    // The next cloud comes before the Finish event: frame 1's fruits and map go out first.
-    let actions = replica.handle(cloud_event(&clouds[1]));
+    // The next cloud comes before the Finish event: frame 1's fruits and map go out first,
+    // each based on its frame (not on the message's own seq).
+    let PlannerEvent::Cloud {
+        sender,
+        mut header,
+        cloud,
+        received_ns,
+    } = cloud_event(&clouds[1])
+    else {
+        unreachable!("cloud_event makes a cloud")
+    };
+    header.seq = 99;
+    let second = PlannerEvent::Cloud {
+        sender,
+        header,
+        cloud,
+        received_ns,
+    };
+    let actions = replica.handle(second);
     let maps: Vec<u64> = actions
         .iter()
         .filter_map(|a| match a {

@@ -203,6 +203,30 @@ fn cloud_event(seq: usize, cloud: &RoiCloud) -> PlannerEvent {
     }
 }
 
+/// The replica takes over from the lost owner `owner_pid`: the ms until its views, the ms of the
+/// clusters and fits that follow them (fed back as the driver does), and whether it planned.
+fn take_over(replica: &mut PlannerNode, owner_pid: String) -> (f64, f64, bool) {
+    let started = Instant::now();
+    let actions = replica.handle(PlannerEvent::PlannerLeft(owner_pid));
+    let to_views_ms = ms_since(started);
+    let plans = actions.iter().any(|a| {
+        matches!(
+            a,
+            PlannerAction::Publish {
+                output: TrolleyOutput::Views(_),
+                ..
+            }
+        )
+    });
+    let started = Instant::now();
+    for action in actions {
+        if let PlannerAction::Finish { tid } = action {
+            replica.handle(PlannerEvent::Finish { tid });
+        }
+    }
+    (to_views_ms, ms_since(started), plans)
+}
+
 fn ms_since(started: Instant) -> f64 {
     started.elapsed().as_secs_f64() * 1e3
 }
@@ -240,26 +264,7 @@ fn replay(
     }
     bar.finish_and_clear();
     let owner_pid = pair.owner.pid().to_string();
-    let started = Instant::now();
-    let actions = pair.replica.handle(PlannerEvent::PlannerLeft(owner_pid));
-    let takeover_ms = ms_since(started);
-    let takeover_plans = actions.iter().any(|a| {
-        matches!(
-            a,
-            PlannerAction::Publish {
-                output: TrolleyOutput::Views(_),
-                ..
-            }
-        )
-    });
-    // What the views went out before: the clusters, fruit ids and fits, fed back as the driver does.
-    let started = Instant::now();
-    for action in actions {
-        if let PlannerAction::Finish { tid } = action {
-            pair.replica.handle(PlannerEvent::Finish { tid });
-        }
-    }
-    let takeover_finish_ms = ms_since(started);
+    let (takeover_ms, takeover_finish_ms, takeover_plans) = take_over(&mut pair.replica, owner_pid);
     let owner_map = pair.owner.planner(TROLLEY).context("owner holds t1")?.map();
     let replica_map = pair
         .replica

@@ -98,15 +98,20 @@ mod tests {
         VoxelKey::new(x, y, z)
     }
 
-    #[test]
-    fn removes_exactly_what_was_inserted_across_cells() {
-        let inserted = [
+    /// Voxels in four cells, two of them in one cell, on both sides of 0.
+    fn spread_keys() -> [VoxelKey; 5] {
+        [
             k(0, 0, 0),
             k(7, 7, 7),
             k(8, 0, 0),
             k(-1, 0, 0),
             k(-9, 3, 100),
-        ];
+        ]
+    }
+
+    #[test]
+    fn removes_exactly_what_was_inserted_across_cells() {
+        let inserted = spread_keys();
         let mut published: PublishedSolid = inserted.into_iter().collect();
         published.insert(k(0, 0, 0)); // twice: counted once
         assert_eq!(published.len(), 5);
@@ -137,13 +142,7 @@ mod tests {
 
     #[test]
     fn cells_from_the_map_are_its_solid_voxels() {
-        let keys = [
-            k(0, 0, 0),
-            k(7, 7, 7),
-            k(8, 0, 0),
-            k(-1, 0, 0),
-            k(-9, 3, 100),
-        ];
+        let keys = spread_keys();
         let by_voxel: PublishedSolid = keys.into_iter().collect();
         let cells = by_voxel
             .per_cell

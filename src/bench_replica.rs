@@ -20,8 +20,8 @@ use glasshouse_roimap::RoiMap;
 use glasshouse_sim::ScenarioKind;
 use serde::Serialize;
 
-const TROLLEY: &str = "t1";
-const DETECTOR: &str = "d1";
+pub(crate) const TROLLEY: &str = "t1";
+pub(crate) const DETECTOR: &str = "d1";
 
 #[derive(clap::Args, Debug)]
 pub struct BenchReplicaArgs {
@@ -97,7 +97,7 @@ pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
 }
 
 /// The trolley's info and the ROI clouds of its first `frames` planned frames.
-fn record_stream(
+pub(crate) fn record_stream(
     config: &TrialConfig,
     frames: usize,
 ) -> anyhow::Result<(TrolleyInfo, Vec<RoiCloud>)> {
@@ -189,7 +189,7 @@ impl Pair {
     }
 }
 
-fn cloud_event(seq: usize, cloud: &RoiCloud) -> PlannerEvent {
+pub(crate) fn cloud_event(seq: usize, cloud: &RoiCloud) -> PlannerEvent {
     PlannerEvent::Cloud {
         sender: DETECTOR.into(),
         header: Header {
@@ -227,7 +227,7 @@ fn take_over(replica: &mut PlannerNode, owner_pid: String) -> (f64, f64, bool) {
     (to_views_ms, ms_since(started), plans)
 }
 
-fn ms_since(started: Instant) -> f64 {
+pub(crate) fn ms_since(started: Instant) -> f64 {
     started.elapsed().as_secs_f64() * 1e3
 }
 
@@ -300,7 +300,7 @@ fn replay(
 }
 
 /// Whether both maps hold the same voxels with the same values and scan count.
-fn same_map(a: &RoiMap, b: &RoiMap) -> bool {
+pub(crate) fn same_map(a: &RoiMap, b: &RoiMap) -> bool {
     a.len() == b.len()
         && a.scans_inserted() == b.scans_inserted()
         && a.iter().all(|(key, voxel)| b.get(key) == Some(voxel))

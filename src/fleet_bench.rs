@@ -103,9 +103,14 @@ pub struct FleetBenchArgs {
     #[arg(long)]
     pub secure: bool,
     /// Every planner's `--replica-refresh-clouds`: clouds a standby replica keeps before it
-    /// asks the owner for a snapshot (planner default 4); 0: replicas integrate every cloud.
+    /// asks the owner for a snapshot (planner default 8); 0: replicas integrate every cloud.
     #[arg(long)]
     pub replica_refresh_clouds: Option<usize>,
+    /// Every planner keeps its trolleys in a store, DIR/<planner>.redb (`planner-service
+    /// --store`), and the report gives what the stores wrote per frame. `--fault restart-all`
+    /// uses stores in the logs folder when this is not given.
+    #[arg(long, value_name = "DIR")]
+    pub store: Option<PathBuf>,
 }
 
 /// One process of the fleet.
@@ -192,6 +197,8 @@ struct TrolleyLog {
     views_from: Vec<(Instant, String, Option<Instant>)>,
     /// The views its arm executed per ownership term, as its status said, when that changed.
     terms: Vec<(Instant, Vec<glasshouse_proto::OwnerTerm>)>,
+    /// Its fruits' ids and centres, when they changed (for the fruit ids lost to a fault).
+    fruits: Vec<(Instant, FruitIds)>,
 }
 
 #[derive(Default)]
@@ -210,6 +217,9 @@ struct Observed {
     /// Every ROI cloud of every trolley since the fleet started (for the scans-lost check).
     clouds: BTreeMap<String, Vec<glasshouse_proto::RoiCloud>>,
 }
+
+/// A trolley's fruits as published: each fruit's id and centre (world, m).
+type FruitIds = Vec<(u32, [f64; 3])>;
 
 fn percentile(values: &[f64], p: f64) -> Option<f64> {
     if values.is_empty() {
@@ -458,6 +468,8 @@ struct Fleet {
     logs: PathBuf,
     /// The logs folder is temporary (no `--logs`): removed at the end.
     temp_logs: bool,
+    /// Each planner's name and flags, to start it again (`--fault restart-all`).
+    planner_flags: Vec<(String, Vec<String>)>,
 }
 
 impl Fleet {
@@ -487,6 +499,7 @@ impl Fleet {
             lease: args.lease_ms.to_string(),
             logs,
             temp_logs,
+            planner_flags: Vec::new(),
         })
     }
 
@@ -606,6 +619,11 @@ impl Fleet {
             if let Some(n) = args.replica_refresh_clouds {
                 extra.extend(["--replica-refresh-clouds".into(), n.to_string()]);
             }
+            if let Some(dir) = self.store_dir(args) {
+                let file = dir.join(format!("p{i}.redb"));
+                extra.extend(["--store".into(), file.to_string_lossy().into_owned()]);
+            }
+            self.planner_flags.push((format!("p{i}"), extra.clone()));
             self.spawn_client("planner", format!("p{i}"), "planner-service", &extra)?;
         }
         if let Some(dir) = &args.record {
@@ -636,6 +654,23 @@ impl Fleet {
                 extra.push("--realtime".into());
             }
             self.spawn_client("edge", format!("t{i}"), "edge", &extra)?;
+        }
+        Ok(())
+    }
+
+    /// Where the planners keep their stores: `--store`, or the logs folder for `--fault
+    /// restart-all`; None: in memory only.
+    fn store_dir(&self, args: &FleetBenchArgs) -> Option<PathBuf> {
+        let restarts = args.fault == fault::Fault::RestartAll;
+        args.store
+            .clone()
+            .or_else(|| restarts.then(|| self.logs.join("stores")))
+    }
+
+    /// Starts every planner again with the flags it first had (the same id and store).
+    fn respawn_planners(&mut self) -> anyhow::Result<()> {
+        for (name, extra) in self.planner_flags.clone() {
+            self.spawn_client("planner", name, "planner-service", &extra)?;
         }
         Ok(())
     }
@@ -794,6 +829,16 @@ impl Observed {
                         .push(now.duration_since(f).as_secs_f64() * 1e3);
                 }
                 t.views_from.push((now, header.source_id.clone(), frame));
+            }
+            (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => {
+                let ids: FruitIds = f
+                    .fruits
+                    .iter()
+                    .map(|f| (f.id, [f.centre.x, f.centre.y, f.centre.z]))
+                    .collect();
+                if t.fruits.last().map(|(_, last)| last) != Some(&ids) {
+                    t.fruits.push((now, ids));
+                }
             }
             (TrolleyTopic::Status, Message::TrolleyStatus(s)) => {
                 self.drops

@@ -2,6 +2,7 @@
 
 mod bench_map;
 mod bench_replica;
+mod bench_store;
 mod dashboard_bench;
 mod dataset;
 mod demo;
@@ -46,6 +47,9 @@ enum Command {
     /// Measure what a trolley's replica planner costs next to its owner (hot or standby), its
     /// takeover time, and the owner's time per frame at the start and end of a run.
     BenchReplica(bench_replica::BenchReplicaArgs),
+    /// Measure what the planner's store costs per frame (bytes, durable write time) and how long
+    /// restoring a fleet's maps from it takes at start.
+    BenchStore(bench_store::BenchStoreArgs),
     /// Run the paper's experiments on the simulator: seeded trials per method, Table I, p-values,
     /// per-trial CSVs and plots.
     Eval(eval::EvalArgs),
@@ -89,6 +93,7 @@ async fn main() -> anyhow::Result<()> {
         Command::FleetBench(args) => fleet_bench::run(args).await,
         Command::BenchMap(args) => bench_map::run(args),
         Command::BenchReplica(args) => bench_replica::run(args),
+        Command::BenchStore(args) => bench_store::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Render(args) => render::run(args),
         Command::Dataset(args) => dataset::run(args),

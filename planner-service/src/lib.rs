@@ -28,8 +28,10 @@ pub mod metrics;
 pub mod node;
 mod registration;
 mod slot;
+pub mod storage;
 
 use std::collections::{BTreeMap, HashMap};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -46,7 +48,7 @@ use glasshouse_proto::{
     FleetFruit, FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus,
     RankedViews, RoiCloud, TrolleyInfo,
 };
-use node::{KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, TrolleyOutput};
+use node::{KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, StoreRules, TrolleyOutput};
 use serde::Deserialize;
 use zenoh::Session;
 
@@ -62,6 +64,35 @@ pub struct PlannerSettings {
     pub replica_refresh_clouds: usize,
     /// Method, seed, map and fit settings (the experiments use the same defaults).
     pub planning: PlanningSettings,
+    /// Where the planner keeps the trolleys it owns, so that they outlive it (none: in memory
+    /// only).
+    pub store: Option<StoreSettings>,
+}
+
+/// The planner's store: every trolley it owns, kept so that a restart loses no integrated
+/// scan and no fruit id.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StoreSettings {
+    /// The database file (created with its folders). Each planner has its own: a file is
+    /// locked by the planner that opened it.
+    pub path: PathBuf,
+    /// Clouds logged between two checkpoints of a trolley's map (each checkpoint writes the
+    /// blocks changed since the last).
+    pub checkpoint_clouds: usize,
+    /// How long after its start the planner waits for its peers before it takes on trolleys,
+    /// so that after a full restart each trolley goes on from the newest copy any store holds.
+    pub settle_ms: u64,
+}
+
+impl Default for StoreSettings {
+    fn default() -> Self {
+        Self {
+            path: PathBuf::from("glasshouse-planner.redb"),
+            checkpoint_clouds: node::REPLICA_REFRESH_CLOUDS,
+            settle_ms: 3000,
+        }
+    }
 }
 
 impl Default for PlannerSettings {
@@ -78,12 +109,23 @@ impl PlannerSettings {
             status_period_ms: 1000,
             replica_refresh_clouds: node::REPLICA_REFRESH_CLOUDS,
             planning: PlanningSettings::default(),
+            store: None,
         }
     }
 
     pub fn validate(&self) -> anyhow::Result<()> {
         keys::validate_id(&self.planner_id)?;
         self.planning.validate()?;
+        if let Some(store) = &self.store {
+            anyhow::ensure!(
+                !store.path.as_os_str().is_empty(),
+                "store.path: a file name is needed"
+            );
+            anyhow::ensure!(
+                store.checkpoint_clouds > 0,
+                "store.checkpoint_clouds: at least 1 (clouds logged between two checkpoints)"
+            );
+        }
         Ok(())
     }
 }
@@ -105,6 +147,10 @@ pub struct PlannerCounters {
     pub stage_seconds: metrics::StageHistograms,
     /// Map snapshot bytes sent to planners taking a trolley over.
     pub snapshot_bytes_sent: AtomicU64,
+    /// Store writes performed, their bytes (keys and values) and the writes that failed.
+    pub store_writes: AtomicU64,
+    pub store_bytes_written: AtomicU64,
+    pub store_errors: AtomicU64,
 }
 
 /// Snapshots are asked of each candidate in turn for this long: a row's map is hundreds of MB and
@@ -279,6 +325,7 @@ struct Outputs {
     fleet: Publisher<FleetFruits>,
     trolleys: HashMap<String, TrolleyPublishers>,
     events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
+    store: Option<Arc<storage::PlannerStore>>,
 }
 
 impl Outputs {
@@ -296,6 +343,7 @@ impl Outputs {
             fleet: Publisher::declare(session, &keys::fleet_fruits(), drops.clone()).await?,
             trolleys: HashMap::new(),
             events,
+            store: None,
         })
     }
 
@@ -403,8 +451,71 @@ async fn perform(
         PlannerAction::Finish { tid } => {
             let _ = out.events.send(PlannerEvent::Finish { tid });
         }
+        PlannerAction::Store(write) => {
+            if let Some(store) = out.store.clone() {
+                let tid = write.trolley().map(str::to_owned);
+                let written = write_store(store, write).await;
+                if let (u64::MAX, Some(tid)) = (written, tid) {
+                    let _ = out.events.send(PlannerEvent::StoreFailed { tid });
+                }
+                return Ok(written);
+            }
+        }
     }
     Ok(0)
+}
+
+/// Performs a store write on a blocking thread; the bytes it wrote (0 on a failure, logged:
+/// the planner goes on serving from memory).
+async fn write_store(store: Arc<storage::PlannerStore>, write: node::StoreWrite) -> u64 {
+    let written = tokio::task::spawn_blocking(move || {
+        let before = store.totals().bytes;
+        store.write(&write).map(|()| store.totals().bytes - before)
+    })
+    .await;
+    match written {
+        Ok(Ok(bytes)) => bytes,
+        Ok(Err(e)) => {
+            tracing::error!(error = %format!("{e:#}"), "store write failed: the planner goes on, this state is in memory only");
+            u64::MAX
+        }
+        Err(e) => {
+            tracing::error!(error = %e, "store write task failed");
+            u64::MAX
+        }
+    }
+}
+
+/// Opens the store and hands the node what it holds (decoding every map takes a while: a
+/// blocking thread).
+async fn open_store(
+    settings: &StoreSettings,
+    node: Box<PlannerNode>,
+    pid: &str,
+) -> anyhow::Result<(Box<PlannerNode>, Arc<storage::PlannerStore>)> {
+    let path = settings.path.clone();
+    let rules = StoreRules {
+        checkpoint_clouds: settings.checkpoint_clouds,
+        settle_ns: settings.settle_ms.saturating_mul(1_000_000),
+    };
+    let pid = pid.to_owned();
+    tokio::task::spawn_blocking(move || {
+        let started = std::time::Instant::now();
+        let store = storage::PlannerStore::open(&path)?;
+        let loaded = store.load()?;
+        let mut node = Box::new(node.with_store(rules));
+        for line in &loaded.unreadable {
+            tracing::error!(planner = %pid, record = %line, "store record unreadable: left out");
+        }
+        let trolleys = loaded.trolleys.len();
+        for line in node.restore(loaded.trolleys, loaded.fruits) {
+            tracing::error!(planner = %pid, trolley = %line, "stored trolley not restored: left out");
+        }
+        tracing::info!(planner = %pid, path = %path.display(), trolleys, restore_ms = started.elapsed().as_secs_f64() * 1e3, "store opened");
+        Ok((node, Arc::new(store)))
+    })
+    .await
+    .context("store task failed")?
 }
 
 /// Runs the planner until `shutdown` fires.
@@ -425,6 +536,11 @@ pub async fn run(
     let node = PlannerNode::new(&pid, settings.planning.clone(), epoch_ns)
         .with_replica_refresh(settings.replica_refresh_clouds);
     let mut node = Box::new(node);
+    if let Some(store) = &settings.store {
+        let (restored, opened) = open_store(store, node, &pid).await?;
+        node = restored;
+        out.store = Some(opened);
+    }
     tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
     while let Some(event) = inputs.next(&mut shutdown, &drops).await {
         // Integration, fits and planning are heavy: the node works on a blocking thread.
@@ -461,10 +577,20 @@ pub async fn run(
                     *last = Some(status.clone());
                 }
             }
-            let snapshot_bytes = perform(action, &mut inputs, &mut out).await?;
-            counters
-                .snapshot_bytes_sent
-                .fetch_add(snapshot_bytes, Ordering::Relaxed);
+            let is_store = matches!(action, PlannerAction::Store(_));
+            let bytes = perform(action, &mut inputs, &mut out).await?;
+            match (is_store, bytes) {
+                (true, u64::MAX) => counters.store_errors.fetch_add(1, Ordering::Relaxed),
+                (true, bytes) => {
+                    counters.store_writes.fetch_add(1, Ordering::Relaxed);
+                    counters
+                        .store_bytes_written
+                        .fetch_add(bytes, Ordering::Relaxed)
+                }
+                (false, bytes) => counters
+                    .snapshot_bytes_sent
+                    .fetch_add(bytes, Ordering::Relaxed),
+            };
         }
     }
     out.close().await;

@@ -2,13 +2,15 @@
 
 use clap::Parser;
 use glasshouse_bus::set_flag;
-use glasshouse_planner::PlannerSettings;
+use std::path::PathBuf;
+
+use glasshouse_planner::{PlannerSettings, StoreSettings};
 
 /// Integrates ROI clouds into a voxel map per trolley, publishes ranked next best views and
 /// fruit estimates.
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
-/// replica_refresh_clouds, and
+/// replica_refresh_clouds, `store: { path, checkpoint_clouds, settle_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
 /// scoring_threads }`), then the flags below.
 ///
@@ -30,6 +32,12 @@ struct Cli {
     /// takeover integrates at most this many); 0 makes replicas integrate every cloud.
     #[arg(long)]
     replica_refresh_clouds: Option<usize>,
+    /// Keep every trolley this planner owns in this store file (created if missing; one per
+    /// planner), so that maps and fruit ids survive a restart of every planner. Without it maps
+    /// live in memory only. The planner then waits `store.settle_ms` (3 s) for its peers
+    /// before it takes on trolleys.
+    #[arg(long, value_name = "FILE")]
+    store: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -42,5 +50,11 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.planning.method, cli.method);
     set_flag(&mut s.planning.seed, cli.seed);
     set_flag(&mut s.replica_refresh_clouds, cli.replica_refresh_clouds);
+    if let Some(path) = cli.store {
+        s.store = Some(StoreSettings {
+            path,
+            ..s.store.take().unwrap_or_default()
+        });
+    }
     s.validate()
 }

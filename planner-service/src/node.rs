@@ -49,6 +49,12 @@ use glasshouse_proto::{
     RegistrationTotals, RoiCloud, StageTimes, TrolleyInfo,
 };
 
+mod persist;
+
+pub(crate) use persist::StoredMark;
+use persist::{store_cloud, store_term_start, Restored};
+pub use persist::{StoreRules, StoreWrite, StoredTrolley};
+
 use crate::fleet_fruits;
 use crate::registration::{frame_registration, registration_totals};
 use crate::slot::{ReceivedCloud, Slot, Stage};
@@ -124,6 +130,11 @@ pub enum PlannerEvent {
     Finish {
         tid: String,
     },
+    /// A store write of `tid` failed: the store may miss what it held, so the next checkpoint
+    /// of the trolley writes every block again.
+    StoreFailed {
+        tid: String,
+    },
     /// Time to publish the status; `dropped_messages` is the bus's drop count, `now_ns` this
     /// process's wall clock (Unix ns).
     StatusTick {
@@ -184,6 +195,8 @@ pub enum PlannerAction {
     Finish {
         tid: String,
     },
+    /// Write to the planner's store before performing the actions after this one.
+    Store(StoreWrite),
 }
 
 /// Counts the driver mirrors into its counters.
@@ -289,6 +302,18 @@ pub struct PlannerNode {
     queued_clouds: BTreeMap<String, usize>,
     /// See [`PlannerNode::with_replica_refresh`]; 0: a hot replica.
     replica_refresh_clouds: usize,
+    /// See [`PlannerNode::with_store`]; None: no store.
+    store: Option<StoreRules>,
+    /// Until then (this process's clock) no ownership decision is made; `settled` once past it.
+    settle_until_ns: u64,
+    settled: bool,
+    /// Clouds and trolley infos that came while settling, taken once settled.
+    settle_held: VecDeque<ReceivedCloud>,
+    settle_infos: BTreeMap<String, TrolleyInfo>,
+    /// Copies the store held at start that no slot has claimed yet.
+    restored: BTreeMap<String, Restored>,
+    /// Trolleys whose latest fruits changed since they were last stored.
+    fruits_to_store: BTreeSet<String>,
 }
 
 /// Clouds a standby replica holds before it asks its owner for a snapshot (the default of
@@ -342,6 +367,13 @@ impl PlannerNode {
             status_seq: 0,
             queued_clouds: BTreeMap::new(),
             replica_refresh_clouds: REPLICA_REFRESH_CLOUDS,
+            store: None,
+            settle_until_ns: epoch_ns,
+            settled: true,
+            settle_held: VecDeque::new(),
+            settle_infos: BTreeMap::new(),
+            restored: BTreeMap::new(),
+            fruits_to_store: BTreeSet::new(),
         }
     }
 
@@ -396,6 +428,12 @@ impl PlannerNode {
 
     /// Feeds one event; returns what to do.
     pub fn handle(&mut self, event: PlannerEvent) -> Vec<PlannerAction> {
+        let mut actions = self.handle_event(event);
+        actions.extend(self.settle_if_due());
+        actions
+    }
+
+    fn handle_event(&mut self, event: PlannerEvent) -> Vec<PlannerAction> {
         match event {
             PlannerEvent::PlannerJoined(id) => {
                 let changes = self.membership.server_joined(&id);
@@ -466,6 +504,12 @@ impl PlannerNode {
             PlannerEvent::SnapshotAsked { query_id, tid } => self.on_snapshot_asked(query_id, &tid),
             PlannerEvent::CatchUp { tid } => self.on_catch_up(&tid),
             PlannerEvent::Finish { tid } => self.finish(&tid),
+            PlannerEvent::StoreFailed { tid } => {
+                if let Some(slot) = self.slots.get_mut(&tid) {
+                    slot.stored = StoredMark::default();
+                }
+                Vec::new()
+            }
             PlannerEvent::StatusTick {
                 dropped_messages,
                 now_ns,
@@ -515,6 +559,11 @@ impl PlannerNode {
         if keys::validate_id(tid).is_err() {
             return Vec::new();
         }
+        if !self.settled {
+            self.fence.observe(tid, info.owner_epoch);
+            self.settle_infos.insert(tid.to_owned(), info);
+            return Vec::new();
+        }
         let mut actions = self.introduce(tid);
         actions.extend(self.note_epoch(tid, info.owner_epoch, &info.owner_id));
         if let Some(slot) = self.slots.get_mut(tid) {
@@ -543,6 +592,9 @@ impl PlannerNode {
         };
         let owner = self.membership.assignment(&tid).map(|a| a.owner);
         if owner.as_ref() == Some(&header.source_id) {
+            if self.store.is_some() {
+                self.fruits_to_store.insert(tid.clone());
+            }
             self.latest_fruits.insert(tid, fruits);
         }
         actions
@@ -606,6 +658,10 @@ impl PlannerNode {
         if keys::validate_id(&tid).is_err() {
             self.stats.clouds_rejected += 1;
             tracing::warn!(trolley = %tid, "cloud with an invalid trolley id dropped");
+            return Vec::new();
+        }
+        if !self.settled {
+            self.hold_while_settling(received);
             return Vec::new();
         }
         if self.sender_of(&received.header) != Sender::Serving {
@@ -833,6 +889,10 @@ impl PlannerNode {
     /// lost owner's answer).
     fn apply(&mut self, changes: &[OwnershipChange]) -> Vec<PlannerAction> {
         let mut actions = Vec::new();
+        // Settling: every live trolley is assigned at once when it ends.
+        if !self.settled {
+            return actions;
+        }
         let mut caught_up = false;
         for change in changes {
             let pid = &self.pid;
@@ -874,11 +934,15 @@ impl PlannerNode {
     /// A trolley new to this planner: an empty copy that buffers clouds until a snapshot from
     /// the planners that may hold one is loaded (or none is found).
     fn take_on(&mut self, change: &OwnershipChange, role: Role) -> Vec<PlannerAction> {
-        let Ok(planner) = TrolleyPlanner::new(self.planning.clone()) else {
-            return Vec::new();
-        };
         let tid = change.trolley.clone();
-        self.slots.insert(tid.clone(), Slot::loading(planner, role));
+        let slot = match self.claim_restored(&tid) {
+            Some(restored) => Slot::loading(restored.planner, role).restored_under(restored.epoch),
+            None => match TrolleyPlanner::new(self.planning.clone()) {
+                Ok(planner) => Slot::loading(planner, role),
+                Err(_) => return Vec::new(),
+            },
+        };
+        self.slots.insert(tid.clone(), slot);
         let sources = snapshot_sources(change, &self.pid);
         vec![PlannerAction::AskSnapshot { tid, sources }]
     }
@@ -917,6 +981,7 @@ impl PlannerNode {
             return Vec::new();
         }
         let mut from_snapshot = false;
+        let snapshot = snapshot.filter(|s| !slot.holds_newer_than(s));
         if let Some(snapshot) = snapshot {
             match TrolleyPlanner::from_snapshot(self.planning.clone(), &snapshot) {
                 Ok(mut loaded) => {
@@ -970,20 +1035,25 @@ impl PlannerNode {
     }
 
     fn snapshot_of(&self, tid: &str) -> Result<(Header, Box<MapSnapshot>), String> {
-        let planner = match self.slots.get(tid) {
-            Some(slot) if !slot.is_loading() => &slot.planner,
-            _ => {
-                return Err(format!(
-                    "planner {} holds no up-to-date map of {tid}",
-                    self.pid
-                ))
-            }
-        };
-        let snapshot = MapSnapshot {
-            owner_epoch: self.fence.newest(tid),
-            ..planner
-                .snapshot(tid, &self.pid)
-                .map_err(|e| e.to_string())?
+        let none = || format!("planner {} holds no up-to-date map of {tid}", self.pid);
+        let snapshot = match self.slots.get(tid) {
+            Some(slot) if !slot.is_loading() => MapSnapshot {
+                owner_epoch: self.fence.newest(tid),
+                ..slot
+                    .planner
+                    .snapshot(tid, &self.pid)
+                    .map_err(|e| e.to_string())?
+            },
+            // A copy restored from the store, still loading: under the epoch it was written in.
+            Some(slot) if slot.restored_epoch != 0 => MapSnapshot {
+                owner_epoch: slot.restored_epoch,
+                ..slot
+                    .planner
+                    .snapshot(tid, &self.pid)
+                    .map_err(|e| e.to_string())?
+            },
+            Some(_) => return Err(none()),
+            None => self.restored_snapshot(tid).ok_or_else(none)??,
         };
         let header = Header {
             seq: snapshot.based_on_seq,
@@ -1022,6 +1092,7 @@ impl PlannerNode {
             return actions;
         };
         let started = Instant::now();
+        actions.extend(store_term_start(self.store, slot, (&pid, tid)));
         let mut laps = Laps::start();
         let (header, cloud) = (&received.header, &received.cloud);
         let frame = cloud.source_frame();
@@ -1034,9 +1105,13 @@ impl PlannerNode {
             .flatten()
             .map(|alignment| frame_registration(frame, alignment));
         self.stats.stages.integrate_ms += laps.lap_ms();
+        let verdict = inserted.as_ref().ok().cloned();
         let (stats, refusals) = (&mut self.stats, &mut self.logged_refusals);
         if !note_insert(stats, refusals, (&pid, tid), header, frame, inserted) {
             return actions;
+        }
+        if let Some(verdict) = verdict {
+            actions.extend(store_cloud(self.store, slot, tid, &received, &verdict));
         }
         self.stats.clouds_integrated += 1;
         let camera = cloud.world_from_camera;
@@ -1128,10 +1203,10 @@ impl PlannerNode {
         };
         // The planning counted itself (plan stage).
         laps.lap_ms();
-        let actions = match owner {
-            true => self.publish(tid, &done.header, views, fruits, Some(map)),
-            false => Vec::new(),
-        };
+        let mut actions: Vec<PlannerAction> = self.store_checkpoint(tid).into_iter().collect();
+        if owner {
+            actions.extend(self.publish(tid, &done.header, views, fruits, Some(map)));
+        }
         self.stats.stages.publish_ms += laps.lap_ms();
         actions
     }
@@ -1254,6 +1329,7 @@ impl PlannerNode {
             header: header.clone(),
             status,
         }];
+        actions.extend(self.store_fruits());
         let first = self.membership.first_ranked(FLEET_MAP_KEY) == Some(self.pid.as_str());
         if first && !self.latest_fruits.is_empty() {
             let fruits = fleet_fruits(&self.latest_fruits, &self.pid);

@@ -4,7 +4,7 @@
 //! holds consistent (a term only while owning, a held snapshot only while standing by or taking
 //! over, clouds buffered only while loading).
 
-use crate::node::Unfinished;
+use crate::node::{StoredMark, Unfinished};
 use glasshouse_fleet::Role;
 use glasshouse_pipeline::TrolleyPlanner;
 use glasshouse_proto::{FrameId, Header, MapSnapshot, RoiCloud};
@@ -64,6 +64,10 @@ pub(crate) struct Slot {
     pub stage: Stage,
     /// The latest cloud's clusters, fruit ids and fits, when its views went out first.
     pub unfinished: Option<Unfinished>,
+    /// What this planner's store holds of the copy.
+    pub stored: StoredMark,
+    /// The ownership epoch of the store record the copy was restored from (0: not restored).
+    pub restored_epoch: u64,
 }
 
 impl Slot {
@@ -73,11 +77,27 @@ impl Slot {
             planner: Box::new(planner),
             last_cloud: None,
             unfinished: None,
+            stored: StoredMark::default(),
+            restored_epoch: 0,
             stage: Stage::Loading {
                 role,
                 buffered: Vec::new(),
             },
         }
+    }
+
+    /// The copy was restored from a store record written under `epoch`.
+    pub fn restored_under(mut self, epoch: u64) -> Self {
+        self.restored_epoch = epoch;
+        self
+    }
+
+    /// Whether the copy, restored from the store, is newer than `snapshot`: written in the same
+    /// term or a later one, and holding a later frame.
+    pub fn holds_newer_than(&self, snapshot: &MapSnapshot) -> bool {
+        self.restored_epoch != 0
+            && snapshot.owner_epoch <= self.restored_epoch
+            && based_on(snapshot) < self.planner.last_frame()
     }
 
     pub fn role(&self) -> Role {

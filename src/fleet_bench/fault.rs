@@ -9,6 +9,10 @@
 //! behind a dead switch; healed after `--fault-for-s`). Router faults move every trolley:
 //! `router-restart` (SIGKILL, a new router on the same endpoint after `--fault-for-s`) and
 //! `router-failover` (two routers, every client knowing both; the one they use is killed).
+//! `restart-all` kills every planner and the router, then starts them again after
+//! `--fault-for-s` on the planners' stores: every trolley's map and fruit ids come back from
+//! disk. For every fault each moved trolley's fruit ids are checked too: an id its fruits carried
+//! before the fault that no fruits after it carry at the same place is lost.
 
 use std::collections::{BTreeMap, HashMap};
 use std::process::Command;
@@ -34,12 +38,18 @@ pub enum Fault {
     RouterRestart,
     /// Two routers, every client knowing both: SIGKILL the one the clients use.
     RouterFailover,
+    /// SIGKILL every planner and the router; start them again after --fault-for-s, each planner
+    /// on its store.
+    RestartAll,
 }
 
 impl Fault {
     /// The fault hits the router, not a planner: every trolley is moved.
     pub fn hits_router(self) -> bool {
-        matches!(self, Fault::RouterRestart | Fault::RouterFailover)
+        matches!(
+            self,
+            Fault::RouterRestart | Fault::RouterFailover | Fault::RestartAll
+        )
     }
 
     /// How long the fault lasts unless `--fault-for-s` says (None: it is not undone).
@@ -48,6 +58,7 @@ impl Fault {
             Fault::Kill | Fault::RouterFailover => None,
             Fault::Stop | Fault::Partition => Some(10.0),
             Fault::RouterRestart => Some(1.0),
+            Fault::RestartAll => Some(2.0),
         }
     }
 }
@@ -79,6 +90,10 @@ pub(super) struct MovedTrolley {
     pub stale_motions: u64,
     /// Its map at its owner after the run against one rebuilt offline from every cloud observed.
     pub map: Option<LostReport>,
+    /// Fruit ids of its last fruits before the fault, and those of them no fruits after the
+    /// fault carry within 5 cm of where they were (None: no fruits before the fault).
+    pub fruit_ids_before: Option<usize>,
+    pub fruit_ids_lost: Option<usize>,
 }
 
 #[derive(Debug, Serialize)]
@@ -98,6 +113,34 @@ pub(super) struct FaultReport {
     /// The longest an arm waited for those views (see `MovedTrolley::waited_s`).
     pub longest_wait_s: Option<f64>,
     pub stale_motions: u64,
+    /// Fruit ids lost over every moved trolley (see `MovedTrolley::fruit_ids_lost`).
+    pub fruit_ids_lost: usize,
+}
+
+/// Where a fruit id may move between two estimates and still be the same fruit.
+const SAME_FRUIT_M: f64 = 0.05;
+
+/// The fruit ids of `log`'s last fruits before `at`, and how many of them no fruits after `at`
+/// carry within [`SAME_FRUIT_M`] of where they were.
+fn fruit_ids_lost(log: &TrolleyLog, at: Instant) -> Option<(usize, usize)> {
+    let (_, before) = log.fruits.iter().rev().find(|(when, _)| *when <= at)?;
+    let after: Vec<&(u32, [f64; 3])> = log
+        .fruits
+        .iter()
+        .filter(|(when, _)| *when > at)
+        .flat_map(|(_, fruits)| fruits)
+        .collect();
+    let near = |a: &[f64; 3], b: &[f64; 3]| {
+        let d2: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+        d2.sqrt() <= SAME_FRUIT_M
+    };
+    let kept = |(id, centre): &(u32, [f64; 3])| {
+        after
+            .iter()
+            .any(|(other, place)| other == id && near(centre, place))
+    };
+    let lost = before.iter().filter(|f| !kept(f)).count();
+    Some((before.len(), lost))
 }
 
 /// `log`'s first views after the fault not from `hit` (a planner fault) or from anyone (a
@@ -165,7 +208,10 @@ pub(super) fn report(o: &Observed, fault: &Injected, started: Instant) -> FaultR
             let log = o.trolleys.get(tid);
             let back = log.and_then(|l| back_on_views(l, fault));
             let stale = log.map_or(0, |l| stale_motions(&l.terms, fault.at));
+            let ids = log.and_then(|l| fruit_ids_lost(l, fault.at));
             let trolley = MovedTrolley {
+                fruit_ids_before: ids.map(|(before, _)| before),
+                fruit_ids_lost: ids.map(|(_, lost)| lost),
                 back_on_views_s: back.as_ref().map(|b| b.after_fault_s),
                 waited_s: back.as_ref().map(|b| b.waited_s),
                 served_by: back.map(|b| b.from),
@@ -190,6 +236,7 @@ pub(super) fn report(o: &Observed, fault: &Injected, started: Instant) -> FaultR
         last_s: times.iter().copied().reduce(f64::max).filter(|_| all_back),
         longest_wait_s: waits.iter().copied().reduce(f64::max).filter(|_| all_back),
         stale_motions: moved.values().map(|m| m.stale_motions).sum(),
+        fruit_ids_lost: moved.values().filter_map(|m| m.fruit_ids_lost).sum(),
         moved,
     }
 }
@@ -205,7 +252,7 @@ pub(super) fn print(report: Option<&FaultReport>) {
         .map_or(String::new(), |s| format!(", undone after {s:.1} s"));
     let secs = |s: Option<f64>| s.map_or("NEVER".to_string(), |s| format!("{s:.2} s"));
     println!(
-        "  fault: {:?} of {} at {:.1} s{lasted}; {} trolleys moved, back on views: t1 {}, p99 {}, last {} (longest an arm waited {}); stale arm motions {}",
+        "  fault: {:?} of {} at {:.1} s{lasted}; {} trolleys moved, back on views: t1 {}, p99 {}, last {} (longest an arm waited {}); stale arm motions {}; fruit ids lost {}",
         r.fault,
         r.target,
         r.at_s,
@@ -214,7 +261,8 @@ pub(super) fn print(report: Option<&FaultReport>) {
         secs(r.p99_s),
         secs(r.last_s),
         secs(r.longest_wait_s),
-        r.stale_motions
+        r.stale_motions,
+        r.fruit_ids_lost
     );
     for (tid, m) in &r.moved {
         let map = m.map.as_ref().map_or("map not checked".to_string(), |l| {
@@ -223,8 +271,12 @@ pub(super) fn print(report: Option<&FaultReport>) {
                 l.scans_lost, l.scans_in_survivor_map, l.survivor, l.scans_rebuilt, l.clouds_observed, l.maps_equal
             )
         });
+        let ids = match (m.fruit_ids_before, m.fruit_ids_lost) {
+            (Some(before), Some(lost)) => format!("fruit ids lost {lost} of {before}"),
+            _ => "no fruits before the fault".to_string(),
+        };
         println!(
-            "    {tid}: back on views {} (waited {}) from {}; {map}",
+            "    {tid}: back on views {} (waited {}) from {}; {ids}; {map}",
             secs(m.back_on_views_s),
             secs(m.waited_s),
             m.served_by.as_deref().unwrap_or("nobody")
@@ -309,6 +361,13 @@ pub(super) fn inject(
             find(procs, "router", "router").ok_or_else(missing)?,
             cpu_at_kill,
         ),
+        Fault::RestartAll => {
+            for p in procs.iter_mut() {
+                if !p.killed && matches!(p.kind, "planner" | "router") {
+                    kill(p, cpu_at_kill);
+                }
+            }
+        }
     }
     Ok(Some(Injected {
         fault,
@@ -339,6 +398,10 @@ pub(super) fn undo(injected: &mut Injected, fleet: &mut Fleet) -> anyhow::Result
             )?
         }
         Fault::RouterRestart => fleet.spawn_router(0)?,
+        Fault::RestartAll => {
+            fleet.spawn_router(0)?;
+            fleet.respawn_planners()?;
+        }
         Fault::Kill | Fault::RouterFailover => return Ok(()),
     }
     injected.ended = Some(Instant::now());

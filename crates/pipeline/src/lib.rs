@@ -34,7 +34,7 @@ pub use order::{
 };
 pub use planning::{
     plan_seed, ranked_views, roi_evidence_logodds, ClusterOutcome, PlanningError, PlanningSettings,
-    RoiEvidence, RoiTargets, TrolleyPlanner, ROI_EVIDENCE_LOGODDS,
+    RoiEvidence, RoiTargets, StoredCopy, TrolleyPlanner, ROI_EVIDENCE_LOGODDS,
 };
 pub use reach::ReachFilter;
 pub use source::{Executed, TrolleySource, DEPTH_SCALE_M};

@@ -693,6 +693,53 @@ impl TrolleyPlanner {
     ) -> Result<Self, PlanningError> {
         let map = RoiMap::read_snapshot(snapshot.map.as_slice())
             .map_err(|e| PlanningError::Snapshot(e.to_string()))?;
+        Self::from_map(settings, map, snapshot)
+    }
+
+    /// What a store keeps of this copy at a checkpoint: its fruit ids and last frame (`meta`, a
+    /// snapshot whose `map` is the map's [`RoiMap::stored_header`]) and the map's blocks
+    /// changed after it had taken `since_scans` scans (0: every block).
+    pub fn checkpoint(&self, tid: &str, pid: &str, since_scans: u64) -> StoredCopy {
+        let (tracked, next_fruit_id) = self.tracker.state();
+        let tracked_fruits = tracked.into_iter().map(|(id, c)| TrackedFruit {
+            id,
+            centre_in_world: c.cast(),
+        });
+        let meta = MapSnapshot {
+            trolley_id: tid.to_owned(),
+            planner_id: pid.to_owned(),
+            based_on_seq: self.order.last().map_or(0, |f| f.seq),
+            based_on_epoch_ns: self.order.last().map_or(0, |f| f.epoch_ns),
+            map: self.map.stored_header(),
+            tracked_fruits: tracked_fruits.collect(),
+            next_fruit_id,
+            owner_epoch: glasshouse_fleet::NO_EPOCH,
+        };
+        StoredCopy {
+            meta,
+            blocks: self.map.stored_blocks_since(since_scans),
+            scans: self.map.scans_inserted(),
+        }
+    }
+
+    /// A copy from what a store kept: the newest checkpoint's `meta` and the newest record of
+    /// each block ([`TrolleyPlanner::checkpoint`]).
+    pub fn from_stored<'a>(
+        settings: PlanningSettings,
+        meta: &MapSnapshot,
+        blocks: impl IntoIterator<Item = &'a [u8]>,
+    ) -> Result<Self, PlanningError> {
+        let map = RoiMap::from_stored(&meta.map, blocks)
+            .map_err(|e| PlanningError::Snapshot(e.to_string()))?;
+        Self::from_map(settings, map, meta)
+    }
+
+    /// A copy of `map` with the fruit ids and last frame of `snapshot`.
+    fn from_map(
+        settings: PlanningSettings,
+        map: RoiMap,
+        snapshot: &MapSnapshot,
+    ) -> Result<Self, PlanningError> {
         let wanted = settings.map_config();
         if map.config().resolution_m != wanted.resolution_m
             || map.config().max_range_m != wanted.max_range_m
@@ -743,6 +790,17 @@ impl TrolleyPlanner {
         *self = fresh;
         Ok(())
     }
+}
+
+/// A trolley's copy as a store keeps it ([`TrolleyPlanner::checkpoint`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoredCopy {
+    /// Fruit ids, last frame and the map's header (`map`); the owner epoch is the caller's.
+    pub meta: MapSnapshot,
+    /// Block coordinates and records of the blocks changed since the checkpoint asked about.
+    pub blocks: Vec<(glasshouse_roimap::VoxelKey, Vec<u8>)>,
+    /// The map's scan count: the next checkpoint's `since_scans`.
+    pub scans: u64,
 }
 
 /// A cloud's sensor origin and points as they go into the map, world frame.

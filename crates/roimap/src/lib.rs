@@ -46,6 +46,7 @@ mod insert;
 pub mod ply;
 pub mod simd;
 pub mod snapshot;
+pub mod stored;
 pub mod testdata;
 mod values;
 mod walk;

@@ -174,13 +174,13 @@ fn unframe(expected_kind: u16, r: &mut impl Read) -> Result<Vec<u8>, SnapshotErr
 }
 
 /// Little-endian reader over a verified body.
-struct Cursor<'a> {
+pub(crate) struct Cursor<'a> {
     bytes: &'a [u8],
     at: usize,
 }
 
 impl<'a> Cursor<'a> {
-    fn new(bytes: &'a [u8]) -> Self {
+    pub(crate) fn new(bytes: &'a [u8]) -> Self {
         Self { bytes, at: 0 }
     }
 
@@ -227,7 +227,7 @@ impl<'a> Cursor<'a> {
     fn f64(&mut self) -> Result<f64, SnapshotError> {
         Ok(f64::from_le_bytes(self.take()?))
     }
-    fn finished(&self) -> Result<(), SnapshotError> {
+    pub(crate) fn finished(&self) -> Result<(), SnapshotError> {
         if self.at == self.bytes.len() {
             Ok(())
         } else {
@@ -356,38 +356,14 @@ fn read_values(c: &mut Cursor, known: &Mask) -> Result<Values, SnapshotError> {
 impl RoiMap {
     /// Writes the whole map (configuration and voxels) as a compressed snapshot.
     pub fn write_snapshot(&self, mut w: impl Write) -> Result<(), SnapshotError> {
-        let c = &self.config;
         let mut body = Vec::with_capacity(64 + self.known_count + self.store.blocks.len() * 100);
-        body.extend_from_slice(&c.resolution_m.to_le_bytes());
-        for v in [
-            c.hit_logodds,
-            c.miss_logodds,
-            c.clamp_min_logodds,
-            c.clamp_max_logodds,
-            c.roi_threshold_logodds,
-            c.roi_hit_logodds,
-            c.roi_miss_logodds,
-        ] {
-            body.extend_from_slice(&v.to_le_bytes());
-        }
-        body.extend_from_slice(&c.max_range_m.unwrap_or(-1.0).to_le_bytes());
-        body.push(u8::from(c.roi_target_needs_neighbour));
-        body.extend_from_slice(&self.scans_inserted.to_le_bytes());
+        self.write_header(&mut body);
         let blocks: Vec<usize> = (0..self.store.blocks.len())
             .filter(|&i| mask_count(&self.store.blocks[i].known) > 0)
             .collect();
         body.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
         for i in blocks {
-            let b = &self.store.blocks[i];
-            let bk = self.store.coords[i];
-            for v in [bk.x, bk.y, bk.z] {
-                body.extend_from_slice(&v.to_le_bytes());
-            }
-            for w in b.known {
-                body.extend_from_slice(&w.to_le_bytes());
-            }
-            write_values(&mut body, &b.occ, &b.known);
-            write_values(&mut body, &b.roi, &b.known);
+            self.write_block(i, &mut body);
         }
         let packed = lz4_flex::block::compress_prepend_size(&body);
         frame(KIND_SNAPSHOT, &packed, &mut w)
@@ -406,6 +382,53 @@ impl RoiMap {
         let packed = unframe(KIND_SNAPSHOT, &mut r)?;
         let body = unpack(&packed)?;
         let mut c = Cursor::new(&body);
+        let mut map = Self::read_header(&mut c)?;
+        let n_blocks = c.u32()?;
+        let mut log = ChangeLog::default();
+        for _ in 0..n_blocks {
+            map.read_block(&mut c, &mut log)?;
+        }
+        c.finished()?;
+        map.refresh_derived(&log);
+        Ok(map)
+    }
+
+    /// Appends the configuration and the scan count (the body's first fields).
+    pub(crate) fn write_header(&self, body: &mut Vec<u8>) {
+        let c = &self.config;
+        body.extend_from_slice(&c.resolution_m.to_le_bytes());
+        for v in [
+            c.hit_logodds,
+            c.miss_logodds,
+            c.clamp_min_logodds,
+            c.clamp_max_logodds,
+            c.roi_threshold_logodds,
+            c.roi_hit_logodds,
+            c.roi_miss_logodds,
+        ] {
+            body.extend_from_slice(&v.to_le_bytes());
+        }
+        body.extend_from_slice(&c.max_range_m.unwrap_or(-1.0).to_le_bytes());
+        body.push(u8::from(c.roi_target_needs_neighbour));
+        body.extend_from_slice(&self.scans_inserted.to_le_bytes());
+    }
+
+    /// Appends block `i`: its coordinate, known mask and values.
+    pub(crate) fn write_block(&self, i: usize, body: &mut Vec<u8>) {
+        let b = &self.store.blocks[i];
+        let bk = self.store.coords[i];
+        for v in [bk.x, bk.y, bk.z] {
+            body.extend_from_slice(&v.to_le_bytes());
+        }
+        for w in b.known {
+            body.extend_from_slice(&w.to_le_bytes());
+        }
+        write_values(body, &b.occ, &b.known);
+        write_values(body, &b.roi, &b.known);
+    }
+
+    /// An empty map with the configuration and scan count [`RoiMap::write_header`] wrote.
+    pub(crate) fn read_header(c: &mut Cursor) -> Result<RoiMap, SnapshotError> {
         let resolution_m = c.f64()?;
         let hit_logodds = c.f32()?;
         let miss_logodds = c.f32()?;
@@ -434,18 +457,15 @@ impl RoiMap {
         };
         let mut map = RoiMap::new(config)?;
         map.scans_inserted = c.u64()?;
-        let n_blocks = c.u32()?;
-        let mut log = ChangeLog::default();
-        for _ in 0..n_blocks {
-            map.read_block(&mut c, &mut log)?;
-        }
-        c.finished()?;
-        map.refresh_derived(&log);
         Ok(map)
     }
 
     /// Reads one block of a snapshot into a new block of the map.
-    fn read_block(&mut self, c: &mut Cursor, log: &mut ChangeLog) -> Result<(), SnapshotError> {
+    pub(crate) fn read_block(
+        &mut self,
+        c: &mut Cursor,
+        log: &mut ChangeLog,
+    ) -> Result<(), SnapshotError> {
         let bk = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
         let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
         if !(key_ok(bk.x) && key_ok(bk.y) && key_ok(bk.z)) {

@@ -1717,3 +1717,82 @@ fn every_vector_unit_walks_the_same_voxels() {
         }
     }
 }
+
+/// A store's view of a map: its header and the newest record of each block.
+fn store_records(
+    store: &mut BTreeMap<(i32, i32, i32), Vec<u8>>,
+    records: Vec<(VoxelKey, Vec<u8>)>,
+) -> usize {
+    let n = records.len();
+    for (bk, record) in records {
+        assert_eq!(stored::stored_block_coord(&record), Some(bk));
+        store.insert((bk.x, bk.y, bk.z), record);
+    }
+    n
+}
+
+#[test]
+fn stored_blocks_since_a_checkpoint_rebuild_the_map() {
+    let w = Workload::small(5, 64, 48, 6, 4);
+    let scans = w.filtered_scans();
+    let mut m = RoiMap::new(w.map_config()).expect("valid");
+    let mut store = BTreeMap::new();
+    let mut header = m.stored_header();
+    let mut checkpoint_scans = 0;
+    for (i, s) in scans.iter().enumerate() {
+        m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+        let written = store_records(&mut store, m.stored_blocks_since(checkpoint_scans));
+        if i > 0 {
+            // Incremental: fewer blocks than the map holds.
+            assert!(
+                written < m.counts().blocks,
+                "{written} of {}",
+                m.counts().blocks
+            );
+        }
+        checkpoint_scans = m.scans_inserted();
+        header = m.stored_header();
+        let back = RoiMap::from_stored(&header, store.values().map(Vec::as_slice)).expect("load");
+        assert_eq!(sorted_voxels(&back), sorted_voxels(&m), "after scan {i}");
+        assert_eq!(back.counts(), m.counts());
+        assert_eq!(back.roi_keys(), m.roi_keys());
+        assert_eq!(back.scans_inserted(), m.scans_inserted());
+    }
+    // The store's map goes on exactly as the live one.
+    let mut back = RoiMap::from_stored(&header, store.values().map(Vec::as_slice)).expect("load");
+    let s = &scans[0];
+    m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+    back.insert_scan(&s.origin, &s.points, &s.roi)
+        .expect("valid");
+    assert_eq!(sorted_voxels(&back), sorted_voxels(&m));
+    let everywhere = Aabb::new(Point3::new(-9.0, -9.0, -9.0), Point3::new(9.0, 9.0, 9.0));
+    assert_eq!(
+        back.exploration_frontier(&everywhere),
+        m.exploration_frontier(&everywhere)
+    );
+}
+
+#[test]
+fn damaged_stored_records_are_errors() {
+    let m = Workload::small(6, 32, 24, 3, 2)
+        .filtered_map()
+        .expect("valid");
+    let header = m.stored_header();
+    let records = m.stored_blocks_since(0);
+    let first = records[0].1.as_slice();
+    let twice = [first, first];
+    assert!(matches!(
+        RoiMap::from_stored(&header, twice),
+        Err(snapshot::SnapshotError::Corrupt(_))
+    ));
+    for cut in [0, 11, 12, first.len() - 1] {
+        assert!(
+            RoiMap::from_stored(&header, [&first[..cut]]).is_err(),
+            "cut {cut}"
+        );
+    }
+    assert!(RoiMap::from_stored(&header[..header.len() - 1], [first]).is_err());
+    let mut longer = first.to_vec();
+    longer.push(0);
+    assert!(RoiMap::from_stored(&header, [longer.as_slice()]).is_err());
+}

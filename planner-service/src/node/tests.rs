@@ -1519,3 +1519,267 @@ fn fruits_under_an_older_epoch_are_dropped_and_counted() {
     assert_eq!(fleet.stats().stale_epoch, 1);
     assert_eq!(fleet.newest_epoch("t1"), 20);
 }
+
+/// A fresh store file for a test (removed first if a run before left it).
+fn store_file(name: &str) -> std::path::PathBuf {
+    let path = std::env::temp_dir().join(format!(
+        "glasshouse-node-{name}-{}.redb",
+        std::process::id()
+    ));
+    let _ = std::fs::remove_file(&path);
+    path
+}
+
+/// Store rules with checkpoints every `clouds` clouds and no settling.
+fn rules(clouds: usize) -> StoreRules {
+    StoreRules {
+        checkpoint_clouds: clouds,
+        settle_ns: 0,
+    }
+}
+
+/// The store writes among `actions`, in order.
+fn store_writes(actions: &[PlannerAction]) -> Vec<&StoreWrite> {
+    let writes = actions.iter().filter_map(|a| match a {
+        PlannerAction::Store(w) => Some(w),
+        _ => None,
+    });
+    writes.collect()
+}
+
+/// Feeds `event` and the `Finish` events it asks for; every action.
+fn feed(node: &mut PlannerNode, event: PlannerEvent) -> Vec<PlannerAction> {
+    let actions = node.handle(event);
+    settle(node, actions)
+}
+
+/// [`feed`], performing the store writes on `store` as the driver does.
+fn perform_writes(
+    node: &mut PlannerNode,
+    store: &crate::storage::PlannerStore,
+    event: PlannerEvent,
+) -> Vec<PlannerAction> {
+    let actions = feed(node, event);
+    for w in store_writes(&actions) {
+        store.write(w).unwrap();
+    }
+    actions
+}
+
+/// The fruit ids `actions` publish last.
+fn fruit_ids(actions: &[PlannerAction]) -> Vec<u32> {
+    let fruits = actions.iter().rev().find_map(|a| match a {
+        PlannerAction::Publish {
+            output: TrolleyOutput::Fruits(f),
+            ..
+        } => Some(f),
+        _ => None,
+    });
+    fruits.map_or_else(Vec::new, |f| f.fruits.iter().map(|f| f.id).collect())
+}
+
+#[test]
+fn an_owner_stores_a_full_checkpoint_then_its_clouds_then_the_changed_blocks() {
+    let (info, clouds) = trolley_clouds(5);
+    let mut p1 = node("p1").with_store(rules(2));
+    p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    p1.handle(info_event(&info));
+    let mut kinds = Vec::new();
+    for cloud in &clouds {
+        let actions = feed(&mut p1, cloud_event(cloud));
+        // Every write of a cloud comes before its views: they go out once it is stored.
+        let first_views = actions
+            .iter()
+            .position(|a| {
+                matches!(
+                    a,
+                    PlannerAction::Publish {
+                        output: TrolleyOutput::Views(_),
+                        ..
+                    }
+                )
+            })
+            .unwrap();
+        let last_write = actions
+            .iter()
+            .rposition(|a| matches!(a, PlannerAction::Store(_)))
+            .unwrap();
+        assert!(last_write < first_views, "{actions:?}");
+        kinds.extend(store_writes(&actions).into_iter().map(|w| match w {
+            StoreWrite::Checkpoint {
+                full: true, copy, ..
+            } => format!("full@{}", copy.meta.based_on_seq),
+            StoreWrite::Checkpoint { copy, .. } => format!("blocks@{}", copy.meta.based_on_seq),
+            StoreWrite::Cloud { cloud, epoch, .. } => {
+                assert_eq!(Some(*epoch), p1.term("t1"));
+                format!("cloud{}", cloud.source_frame_seq)
+            }
+            StoreWrite::Fruits(_) => "fruits".into(),
+        }));
+    }
+    assert_eq!(
+        kinds,
+        ["full@0", "cloud1", "cloud2", "blocks@2", "cloud3", "cloud4", "blocks@4", "cloud5"]
+    );
+}
+
+#[test]
+fn a_planner_restarted_from_its_store_goes_on_with_the_same_map_and_fruit_ids() {
+    let path = store_file("restart");
+    let (info, clouds) = trolley_clouds(7);
+    let store = crate::storage::PlannerStore::open(&path).unwrap();
+    let mut p1 = node("p1").with_store(rules(3));
+    let mut uninterrupted = node("p1");
+    for n in [&mut p1, &mut uninterrupted] {
+        n.handle(PlannerEvent::TrolleyJoined("t1".into()));
+        n.handle(PlannerEvent::SnapshotLoaded {
+            tid: "t1".into(),
+            snapshot: None,
+        });
+        n.handle(info_event(&info));
+    }
+    for cloud in &clouds[..5] {
+        perform_writes(&mut p1, &store, cloud_event(cloud));
+        feed(&mut uninterrupted, cloud_event(cloud));
+    }
+    let term = p1.term("t1").unwrap();
+    drop((p1, store));
+    // Restarted: the checkpoint at frame 3 and the two clouds logged after it.
+    let store = crate::storage::PlannerStore::open(&path).unwrap();
+    let loaded = store.load().unwrap();
+    assert!(loaded.unreadable.is_empty());
+    assert_eq!(loaded.trolleys.len(), 1);
+    assert_eq!(loaded.trolleys[0].clouds.len(), 2);
+    let mut p1 = node("p1").with_store(rules(3));
+    assert!(p1.restore(loaded.trolleys, loaded.fruits).is_empty());
+    assert_eq!(p1.newest_epoch("t1"), term);
+    let actions = p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    assert_eq!(asks(&actions).len(), 1);
+    // Nobody else has a copy: the restored one is the map, under a newer term.
+    p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    assert!(p1.term("t1").unwrap() > term);
+    p1.handle(info_event(&info));
+    assert!(same_map(&p1, &uninterrupted, "t1"));
+    for cloud in &clouds[5..] {
+        let restarted = perform_writes(&mut p1, &store, cloud_event(cloud));
+        let through = feed(&mut uninterrupted, cloud_event(cloud));
+        assert_eq!(fruit_ids(&restarted), fruit_ids(&through));
+        assert_eq!(views_of(&restarted)[0].views, views_of(&through)[0].views);
+    }
+    assert!(same_map(&p1, &uninterrupted, "t1"));
+    drop(store);
+    let _ = std::fs::remove_file(&path);
+}
+
+#[test]
+fn a_settling_planner_decides_nothing_and_takes_what_came_once_settled() {
+    let (info, clouds) = trolley_clouds(1);
+    let settle_ns = 2_000_000_000;
+    let mut p1 = node("p1").with_store(StoreRules {
+        checkpoint_clouds: 8,
+        settle_ns,
+    });
+    assert!(p1.is_settling());
+    assert!(p1
+        .handle(PlannerEvent::TrolleyJoined("t1".into()))
+        .is_empty());
+    assert!(p1.handle(info_event(&info)).is_empty());
+    assert!(p1.handle(cloud_event(&clouds[0])).is_empty());
+    assert!(p1
+        .handle(PlannerEvent::PlannerJoined("p2".into()))
+        .is_empty());
+    assert_eq!(p1.role("t1"), None);
+    // Settled: t1 is assigned with both planners known, and its cloud waits for the snapshot.
+    let actions = p1.handle(status_tick(NOW_NS + settle_ns));
+    assert!(!p1.is_settling());
+    assert_eq!(asks(&actions), [("t1".to_string(), vec!["p2".to_string()])]);
+    let loaded = p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    assert_eq!(p1.stats().clouds_integrated, 1);
+    if p1.role("t1") == Some(Role::Owner) {
+        assert_eq!(views_of(&settle(&mut p1, loaded)).len(), 1, "info kept too");
+    }
+}
+
+#[test]
+fn a_restored_copy_answers_under_its_epoch_and_a_newer_terms_snapshot_wins() {
+    let path = store_file("answer");
+    let (info, clouds) = trolley_clouds(4);
+    let store = crate::storage::PlannerStore::open(&path).unwrap();
+    let mut p1 = node("p1").with_store(rules(8));
+    perform_writes(&mut p1, &store, PlannerEvent::TrolleyJoined("t1".into()));
+    for event in [
+        PlannerEvent::SnapshotLoaded {
+            tid: "t1".into(),
+            snapshot: None,
+        },
+        info_event(&info),
+        cloud_event(&clouds[0]),
+        cloud_event(&clouds[1]),
+    ] {
+        perform_writes(&mut p1, &store, event);
+    }
+    let term = p1.term("t1").unwrap();
+    drop(store);
+    let store = crate::storage::PlannerStore::open(&path).unwrap();
+    let loaded = store.load().unwrap();
+    // Restarted but not yet holding t1: a peer asking gets the stored copy under its epoch.
+    let mut restarted = node("p1").with_store(rules(8));
+    restarted.restore(loaded.trolleys, loaded.fruits);
+    let answer = restarted.handle(PlannerEvent::SnapshotAsked {
+        query_id: 2,
+        tid: "t1".into(),
+    });
+    let [PlannerAction::ReplySnapshot {
+        answer: Ok((_, stored)),
+        ..
+    }] = &answer[..]
+    else {
+        panic!("{answer:?}")
+    };
+    assert_eq!((stored.owner_epoch, stored.based_on_seq), (term, 2));
+    // An older snapshot of the same term does not replace the restored copy...
+    restarted.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    let older = MapSnapshot {
+        based_on_seq: 1,
+        ..(**stored).clone()
+    };
+    restarted.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(Box::new(older)),
+    });
+    assert_eq!(
+        restarted.planner("t1").unwrap().last_frame(),
+        Some(FrameId::new(EDGE_EPOCH_NS, 2))
+    );
+    // ...a newer term's does, whatever its frame.
+    let mut again = node("p1").with_store(rules(8));
+    let loaded = store.load().unwrap();
+    again.restore(loaded.trolleys, loaded.fruits);
+    again.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    let newer = MapSnapshot {
+        based_on_seq: 1,
+        owner_epoch: term + 1,
+        ..(**stored).clone()
+    };
+    again.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(Box::new(newer)),
+    });
+    assert_eq!(
+        again.planner("t1").unwrap().last_frame(),
+        Some(FrameId::new(EDGE_EPOCH_NS, 1))
+    );
+    assert!(again.term("t1").unwrap() > term + 1);
+    drop(store);
+    let _ = std::fs::remove_file(&path);
+}

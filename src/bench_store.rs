@@ -59,12 +59,23 @@ struct StoreRun {
     cloud_bytes_per_frame: f64,
     checkpoint_bytes_per_frame: f64,
     full_checkpoint_bytes: u64,
-    /// Time of the writes per frame (each durable when done), mean, p99 and the longest.
-    write_ms_per_frame: f64,
-    write_ms_p99: f64,
-    write_ms_max: f64,
+    /// Time of each frame's cloud write, on the path to its views (durable when done): mean,
+    /// p99 and the longest.
+    cloud_write_ms: f64,
+    cloud_write_ms_p99: f64,
+    cloud_write_ms_max: f64,
+    /// Time of a checkpoint's write, off that path (the writer thread does it while the
+    /// planner works on the next cloud): mean and the longest.
+    checkpoint_write_ms: f64,
+    checkpoint_write_ms_max: f64,
     /// The store file's size at the end.
     file_bytes: u64,
+    /// A full checkpoint of the final map (what a takeover writes first): its bytes, the time to
+    /// encode it (the node) and to write it (the writer thread; the takeover's first cloud write
+    /// waits behind it).
+    final_map_checkpoint_bytes: u64,
+    final_map_checkpoint_encode_ms: f64,
+    final_map_checkpoint_write_ms: f64,
     trolleys_restored: usize,
     /// Open, read and decode every record (`PlannerStore::load`), then rebuild every map with
     /// its logged clouds (`PlannerNode::restore`).
@@ -126,35 +137,41 @@ fn measure(
         checkpoint_clouds: args.checkpoint_clouds,
         ..StoreRun::default()
     };
-    let (mut owner_ms, mut write_ms) = (0.0, Vec::new());
+    let (mut owner_ms, mut cloud_ms, mut checkpoint_ms) = (0.0, Vec::new(), Vec::new());
     let bar = indicatif::ProgressBar::new(clouds.len() as u64);
     for (seq, cloud) in clouds.iter().enumerate() {
         let started = Instant::now();
         let mut actions = owner.handle(cloud_event(seq, cloud));
         actions.extend(finish(&mut owner, &actions));
         owner_ms += ms_since(started);
-        let started = Instant::now();
         for action in &actions {
             if let PlannerAction::Store(write) = action {
-                let before = store.totals().bytes;
+                let (before, started) = (store.totals().bytes, Instant::now());
                 store.write(write)?;
+                match write {
+                    StoreWrite::Cloud { .. } => cloud_ms.push(ms_since(started)),
+                    _ => checkpoint_ms.push(ms_since(started)),
+                }
                 note_write(&mut run, write, store.totals().bytes - before);
             }
         }
-        write_ms.push(ms_since(started));
         bar.inc(1);
     }
     bar.finish_and_clear();
     let frames = clouds.len() as f64;
     let total = store.totals().bytes as f64;
-    write_ms.sort_by(f64::total_cmp);
+    cloud_ms.sort_by(f64::total_cmp);
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     run.owner_ms_per_frame = owner_ms / frames;
     run.bytes_per_frame = total / frames;
     run.cloud_bytes_per_frame /= frames;
     run.checkpoint_bytes_per_frame /= frames;
-    run.write_ms_per_frame = write_ms.iter().sum::<f64>() / frames;
-    run.write_ms_p99 = write_ms[((write_ms.len() - 1) as f64 * 0.99).round() as usize];
-    run.write_ms_max = write_ms.last().copied().unwrap_or(0.0);
+    run.cloud_write_ms = mean(&cloud_ms);
+    run.cloud_write_ms_p99 = crate::fleet_bench::percentile(&cloud_ms, 99.0).unwrap_or(0.0);
+    run.cloud_write_ms_max = max(&cloud_ms);
+    run.checkpoint_write_ms = mean(&checkpoint_ms);
+    run.checkpoint_write_ms_max = max(&checkpoint_ms);
     drop(store);
     run.file_bytes = std::fs::metadata(&path)?.len();
     restore_fleet(args, config, dir, &owner, &mut run)?;
@@ -227,15 +244,24 @@ fn restore_fleet(
     let epoch = owner.term(TROLLEY).unwrap_or(1);
     {
         let store = PlannerStore::open(&path)?;
+        let (mut encode_ms, mut write_ms) = (0.0, 0.0);
         for i in 1..=args.trolleys {
+            let started = Instant::now();
             let copy = planner.checkpoint(&format!("t{i}"), "p1", 0);
+            encode_ms += ms_since(started);
+            let started = Instant::now();
             store.write(&StoreWrite::Checkpoint {
                 tid: format!("t{i}"),
                 epoch,
                 copy: Box::new(copy),
                 full: true,
             })?;
+            write_ms += ms_since(started);
         }
+        let n = args.trolleys as f64;
+        run.final_map_checkpoint_bytes = store.totals().bytes / args.trolleys as u64;
+        run.final_map_checkpoint_encode_ms = encode_ms / n;
+        run.final_map_checkpoint_write_ms = write_ms / n;
     }
     let started = Instant::now();
     let store = PlannerStore::open(&path)?;
@@ -270,8 +296,13 @@ fn print_run(r: &StoreRun) {
         r.frames, r.checkpoint_clouds, r.map_voxels
     );
     println!(
-        "  owner {:.1} ms per frame; store writes {:.1} ms per frame (p99 {:.1}, max {:.1} ms), each durable",
-        r.owner_ms_per_frame, r.write_ms_per_frame, r.write_ms_p99, r.write_ms_max
+        "  owner {:.1} ms per frame; its cloud's durable write {:.2} ms (p99 {:.2}, max {:.2}) before the views; a checkpoint {:.1} ms (max {:.1}) after them",
+        r.owner_ms_per_frame,
+        r.cloud_write_ms,
+        r.cloud_write_ms_p99,
+        r.cloud_write_ms_max,
+        r.checkpoint_write_ms,
+        r.checkpoint_write_ms_max
     );
     println!(
         "  written per frame {:.1} kB (clouds {:.1} kB, checkpoints {:.1} kB); first full checkpoint {:.1} kB; file {:.1} MB",
@@ -280,6 +311,12 @@ fn print_run(r: &StoreRun) {
         r.checkpoint_bytes_per_frame / 1e3,
         r.full_checkpoint_bytes as f64 / 1e3,
         r.file_bytes as f64 / 1e6
+    );
+    println!(
+        "  a full checkpoint of the final map (a takeover's first write): {:.1} MB, encoded in {:.0} ms, written in {:.0} ms",
+        r.final_map_checkpoint_bytes as f64 / 1e6,
+        r.final_map_checkpoint_encode_ms,
+        r.final_map_checkpoint_write_ms
     );
     println!(
         "  restore of {} trolleys' maps: read {:.0} ms, rebuilt {:.0} ms; equal to the owner's: {}",

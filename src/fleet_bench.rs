@@ -221,7 +221,7 @@ struct Observed {
 /// A trolley's fruits as published: each fruit's id and centre (world, m).
 type FruitIds = Vec<(u32, [f64; 3])>;
 
-fn percentile(values: &[f64], p: f64) -> Option<f64> {
+pub(crate) fn percentile(values: &[f64], p: f64) -> Option<f64> {
     if values.is_empty() {
         return None;
     }

@@ -325,7 +325,7 @@ struct Outputs {
     fleet: Publisher<FleetFruits>,
     trolleys: HashMap<String, TrolleyPublishers>,
     events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
-    store: Option<Arc<storage::PlannerStore>>,
+    store: Option<storage::StoreWriter>,
 }
 
 impl Outputs {
@@ -452,38 +452,12 @@ async fn perform(
             let _ = out.events.send(PlannerEvent::Finish { tid });
         }
         PlannerAction::Store(write) => {
-            if let Some(store) = out.store.clone() {
-                let tid = write.trolley().map(str::to_owned);
-                let written = write_store(store, write).await;
-                if let (u64::MAX, Some(tid)) = (written, tid) {
-                    let _ = out.events.send(PlannerEvent::StoreFailed { tid });
-                }
-                return Ok(written);
+            if let Some(store) = &out.store {
+                store.write(write).await;
             }
         }
     }
     Ok(0)
-}
-
-/// Performs a store write on a blocking thread; the bytes it wrote (0 on a failure, logged:
-/// the planner goes on serving from memory).
-async fn write_store(store: Arc<storage::PlannerStore>, write: node::StoreWrite) -> u64 {
-    let written = tokio::task::spawn_blocking(move || {
-        let before = store.totals().bytes;
-        store.write(&write).map(|()| store.totals().bytes - before)
-    })
-    .await;
-    match written {
-        Ok(Ok(bytes)) => bytes,
-        Ok(Err(e)) => {
-            tracing::error!(error = %format!("{e:#}"), "store write failed: the planner goes on, this state is in memory only");
-            u64::MAX
-        }
-        Err(e) => {
-            tracing::error!(error = %e, "store write task failed");
-            u64::MAX
-        }
-    }
 }
 
 /// Opens the store and hands the node what it holds (decoding every map takes a while: a
@@ -492,7 +466,7 @@ async fn open_store(
     settings: &StoreSettings,
     node: Box<PlannerNode>,
     pid: &str,
-) -> anyhow::Result<(Box<PlannerNode>, Arc<storage::PlannerStore>)> {
+) -> anyhow::Result<(Box<PlannerNode>, storage::PlannerStore)> {
     let path = settings.path.clone();
     let rules = StoreRules {
         checkpoint_clouds: settings.checkpoint_clouds,
@@ -512,7 +486,7 @@ async fn open_store(
             tracing::error!(planner = %pid, trolley = %line, "stored trolley not restored: left out");
         }
         tracing::info!(planner = %pid, path = %path.display(), trolleys, restore_ms = started.elapsed().as_secs_f64() * 1e3, "store opened");
-        Ok((node, Arc::new(store)))
+        Ok((node, store))
     })
     .await
     .context("store task failed")?
@@ -539,7 +513,12 @@ pub async fn run(
     if let Some(store) = &settings.store {
         let (restored, opened) = open_store(store, node, &pid).await?;
         node = restored;
-        out.store = Some(opened);
+        let events = out.events.clone();
+        out.store = Some(storage::StoreWriter::start(
+            opened,
+            counters.clone(),
+            events,
+        )?);
     }
     tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
     while let Some(event) = inputs.next(&mut shutdown, &drops).await {
@@ -577,21 +556,15 @@ pub async fn run(
                     *last = Some(status.clone());
                 }
             }
-            let is_store = matches!(action, PlannerAction::Store(_));
-            let bytes = perform(action, &mut inputs, &mut out).await?;
-            match (is_store, bytes) {
-                (true, u64::MAX) => counters.store_errors.fetch_add(1, Ordering::Relaxed),
-                (true, bytes) => {
-                    counters.store_writes.fetch_add(1, Ordering::Relaxed);
-                    counters
-                        .store_bytes_written
-                        .fetch_add(bytes, Ordering::Relaxed)
-                }
-                (false, bytes) => counters
-                    .snapshot_bytes_sent
-                    .fetch_add(bytes, Ordering::Relaxed),
-            };
+            let snapshot_bytes = perform(action, &mut inputs, &mut out).await?;
+            counters
+                .snapshot_bytes_sent
+                .fetch_add(snapshot_bytes, Ordering::Relaxed);
         }
+    }
+    if let Some(store) = out.store.take() {
+        // The checkpoints still queued are written before the planner stops.
+        let _ = tokio::task::spawn_blocking(move || store.close()).await;
     }
     out.close().await;
     tracing::info!(planner = %pid, clouds = node.stats().clouds_integrated, dropped = drops.total(), "planner stopped");

@@ -1203,10 +1203,12 @@ impl PlannerNode {
         };
         // The planning counted itself (plan stage).
         laps.lap_ms();
-        let mut actions: Vec<PlannerAction> = self.store_checkpoint(tid).into_iter().collect();
-        if owner {
-            actions.extend(self.publish(tid, &done.header, views, fruits, Some(map)));
-        }
+        let mut actions = match owner {
+            true => self.publish(tid, &done.header, views, fruits, Some(map)),
+            false => Vec::new(),
+        };
+        // After the views: the clouds it covers are in the log already.
+        actions.extend(self.store_checkpoint(tid));
         self.stats.stages.publish_ms += laps.lap_ms();
         actions
     }

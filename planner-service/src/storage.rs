@@ -6,6 +6,8 @@
 //! Logged clouds, most of what a planner writes, are kept zstd-compressed (level 1).
 
 use std::path::Path;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
 
 use anyhow::Context;
 use glasshouse_proto::{
@@ -13,7 +15,8 @@ use glasshouse_proto::{
 };
 use glasshouse_store::{BlockCoord, Checkpoint, FrameKey, Store, WriteTotals};
 
-use crate::node::{StoreWrite, StoredTrolley};
+use crate::node::{PlannerEvent, StoreWrite, StoredTrolley};
+use crate::PlannerCounters;
 
 /// A planner's store.
 pub struct PlannerStore {
@@ -170,4 +173,96 @@ fn decode_trolley(t: glasshouse_store::StoredTrolley) -> anyhow::Result<StoredTr
         clouds,
         tid,
     })
+}
+
+/// A write queued for the writer thread; `done` is answered once it is durable.
+struct Job {
+    write: StoreWrite,
+    done: Option<tokio::sync::oneshot::Sender<()>>,
+}
+
+/// The store behind one writer thread: writes are performed in the order they are queued. A
+/// cloud's write is awaited (its views go out only once it is durable); a checkpoint's and the
+/// fruits' are not: they overlap the work on the next cloud, whose own write then waits behind
+/// them. A failed write is logged and counted, and its trolley reported to the node
+/// ([`PlannerEvent::StoreFailed`]) so that its next checkpoint is a full one.
+pub struct StoreWriter {
+    jobs: std::sync::mpsc::Sender<Job>,
+    thread: std::thread::JoinHandle<()>,
+}
+
+impl StoreWriter {
+    pub fn start(
+        store: PlannerStore,
+        counters: Arc<PlannerCounters>,
+        events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
+    ) -> anyhow::Result<Self> {
+        let (jobs, queue) = std::sync::mpsc::channel::<Job>();
+        let thread = std::thread::Builder::new()
+            .name("store-writer".into())
+            .spawn(move || {
+                for job in queue {
+                    perform(&store, &job.write, &counters, &events);
+                    if let Some(done) = job.done {
+                        let _ = done.send(());
+                    }
+                }
+            })
+            .context("starting the store writer")?;
+        Ok(Self { jobs, thread })
+    }
+
+    /// Queues `write`; returns once it is durable for a cloud, at once otherwise.
+    pub async fn write(&self, write: StoreWrite) {
+        let awaited = matches!(write, StoreWrite::Cloud { .. });
+        let (done, written) = tokio::sync::oneshot::channel();
+        let job = Job {
+            write,
+            done: awaited.then_some(done),
+        };
+        if self.jobs.send(job).is_err() {
+            tracing::error!("the store writer has stopped: this write is in memory only");
+            return;
+        }
+        if awaited {
+            let _ = written.await;
+        }
+    }
+
+    /// Performs every queued write, then stops the thread.
+    pub fn close(self) {
+        drop(self.jobs);
+        if self.thread.join().is_err() {
+            tracing::error!("the store writer failed");
+        }
+    }
+}
+
+/// One write on the writer thread, counted; a failure logged and reported.
+fn perform(
+    store: &PlannerStore,
+    write: &StoreWrite,
+    counters: &PlannerCounters,
+    events: &tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
+) {
+    let before = store.totals().bytes;
+    match store.write(write) {
+        Ok(()) => {
+            let bytes = store.totals().bytes - before;
+            counters.store_writes.fetch_add(1, Ordering::Relaxed);
+            counters
+                .store_bytes_written
+                .fetch_add(bytes, Ordering::Relaxed);
+        }
+        Err(e) => {
+            counters.store_errors.fetch_add(1, Ordering::Relaxed);
+            tracing::error!(error = %format!("{e:#}"), trolley = write.trolley().unwrap_or("-"),
+                "store write failed: the planner goes on, this state is in memory only");
+            if let Some(tid) = write.trolley() {
+                let _ = events.send(PlannerEvent::StoreFailed {
+                    tid: tid.to_owned(),
+                });
+            }
+        }
+    }
 }

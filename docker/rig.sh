@@ -9,7 +9,8 @@
 #                        container that must get every attempt refused, kill the planner that
 #                        owns a trolley, check every trolley keeps getting views and keeps its
 #                        fruit, restart that planner and check it rejoins
-#   docker/rig.sh down   stop and remove the rig's containers and network (images are kept)
+#   docker/rig.sh down   stop and remove the rig's containers, network and planner stores (the
+#                        named volumes; images are kept)
 #   docker/rig.sh logs [SERVICE...]   the last 50 log lines of the rig (or of some services)
 #
 # Environment (all optional):
@@ -247,7 +248,7 @@ cmd_up() {
 }
 
 cmd_down() {
-    dc down --remove-orphans
+    dc down --remove-orphans --volumes
     log "rig removed (images kept)"
 }
 

@@ -39,6 +39,8 @@ use glasshouse_nbv::Method;
 use glasshouse_sim::{ScenarioKind, WorldSettings};
 use indicatif::{ProgressBar, ProgressStyle};
 
+mod visits;
+
 /// The simulated world and the detector (`demo` and `eval`).
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct PerceptionArgs {
@@ -110,6 +112,16 @@ pub struct EvalArgs {
     /// default, as in the planner), for a side-by-side run.
     #[arg(long)]
     pub registration: bool,
+    /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
+    /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
+    /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
+    /// visits.md (per visit, identity against the simulator's ids, growth error, revisit time)
+    /// and visits.json instead of the single-visit tables.
+    #[arg(long, value_name = "N")]
+    pub days: Option<f64>,
+    /// Days between two visits of `--days`.
+    #[arg(long, default_value_t = 3.5, value_name = "D")]
+    pub visit_every_days: f64,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -173,6 +185,10 @@ fn write(path: &Path, bytes: impl AsRef<[u8]>) -> anyhow::Result<()> {
 /// Runs the experiment; see the module docs.
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let plan = check(&args)?;
+    if let Some(days) = args.days {
+        let days = visits::visit_days(days, args.visit_every_days)?;
+        return visits::run(&args, &plan, &days);
+    }
     let trials_dir = prepare_out(&args.out)?;
     let height = args.width * 3 / 4;
     let configs = trial_configs(&args, &plan, height)?;
@@ -525,6 +541,8 @@ mod tests {
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::Patches,
             registration: false,
+            days: None,
+            visit_every_days: 3.5,
             perception: PerceptionArgs::default(),
         }
     }
@@ -576,6 +594,15 @@ mod tests {
                     },
                     ..PerceptionArgs::default()
                 },
+                ..args(out.clone())
+            },
+            EvalArgs {
+                days: Some(7.0),
+                visit_every_days: 0.0,
+                ..args(out.clone())
+            },
+            EvalArgs {
+                days: Some(-3.0),
                 ..args(out.clone())
             },
             EvalArgs {
@@ -646,5 +673,33 @@ mod tests {
         assert!(summary["ours-uu"]["detected"]["mean"].is_number());
         assert!(summary["fruits_total"].as_u64().unwrap() > 0);
         let _ = std::fs::remove_dir_all(&base);
+    }
+
+    #[test]
+    fn a_season_of_visits_writes_its_report() {
+        let out = std::env::temp_dir().join(format!("gh-eval-visits-{}", std::process::id()));
+        let season = EvalArgs {
+            methods: vec![Method::OursUu],
+            days: Some(3.5),
+            budget_s: 6.0,
+            ..args(out.clone())
+        };
+        run(season).unwrap();
+        let table = std::fs::read_to_string(out.join("visits.md")).unwrap();
+        assert!(table.contains("visits on days [0.0, 3.5]"), "{table}");
+        assert!(
+            table.contains("Identity over consecutive visits"),
+            "{table}"
+        );
+        let seasons: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("visits.json")).unwrap())
+                .unwrap();
+        assert_eq!(seasons[0]["visits"].as_array().map(Vec::len), Some(2));
+        for visit in 0..2 {
+            assert!(out
+                .join(format!("trials/ours-uu-0-visit{visit}.csv"))
+                .is_file());
+        }
+        let _ = std::fs::remove_dir_all(&out);
     }
 }

@@ -17,6 +17,7 @@ pub mod plot;
 pub mod report;
 pub mod stats;
 pub mod trial;
+pub mod visits;
 
 /// How detections enter the planner's map, an experiment's choice.
 pub use glasshouse_pipeline::{RoiEvidence, RoiTargets};

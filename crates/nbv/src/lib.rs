@@ -38,6 +38,7 @@
 
 pub mod evidence;
 pub mod fit;
+pub mod season;
 pub mod split;
 pub mod superellipsoid;
 #[cfg(test)]

@@ -4,6 +4,7 @@
 mod capsicum;
 mod clutter;
 mod options;
+mod season;
 #[cfg(test)]
 mod tests;
 
@@ -16,7 +17,7 @@ use crate::shapes::{Bounds, Cylinder, Shape};
 use crate::{FruitColour, FruitTruth, ScenarioKind};
 
 pub use options::{
-    FruitShape, ParseFruitShapeError, SceneOptions, SceneOptionsError, MAX_RED_CLUTTER,
+    FruitShape, ParseFruitShapeError, SceneOptions, SceneOptionsError, MAX_DAY, MAX_RED_CLUTTER,
 };
 
 /// ChaCha streams of generation. Stream 0 draws everything the default scene has, so an option
@@ -381,12 +382,16 @@ pub(crate) fn build(kind: ScenarioKind, seed: u64, options: &SceneOptions) -> Bu
             &mut solids,
         );
     }
-    Built {
+    let mut built = Built {
         fruits: fruits.truths,
         solids,
         plants,
         camera_workspace,
+    };
+    if let Some(day) = options.visit_day() {
+        season::apply(&mut built, seed, day);
     }
+    built
 }
 
 /// Plant positions with their fruit counts, the scenario's fixed structures and the camera

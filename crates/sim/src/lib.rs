@@ -33,7 +33,7 @@ pub use artefacts::{
 };
 pub use depth::{d435_rms_m, DepthNoiseModel, ParseDepthNoiseError};
 pub use generate::{
-    FruitShape, ParseFruitShapeError, SceneOptions, SceneOptionsError, MAX_RED_CLUTTER,
+    FruitShape, ParseFruitShapeError, SceneOptions, SceneOptionsError, MAX_DAY, MAX_RED_CLUTTER,
 };
 pub use light::{COVERED_SKY_SHARE, DROPOUT_HIGHLIGHT, EXPOSURE_RANGE};
 pub use trolley::SimArm;

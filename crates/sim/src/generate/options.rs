@@ -22,6 +22,10 @@ pub struct SceneOptions {
     /// also gets a red clip on its stem and 2-3 red petioles, and the scene two red or orange
     /// labels: red things that are not fruit.
     pub red_clutter: f64,
+    /// The day of a visit, counted from the first (0): the scene as it is then, its fruit grown,
+    /// set or harvested and its leaves moved (`season`). None: the scene as generated, which is
+    /// not any visit's (day 0 of the visits has the fruit not yet set removed).
+    pub day: Option<f64>,
 }
 
 /// Scene options out of range.
@@ -29,7 +33,12 @@ pub struct SceneOptions {
 pub enum SceneOptionsError {
     #[error("red clutter must be a share of leaves in [0, {MAX_RED_CLUTTER}], got {0}")]
     RedClutter(f64),
+    #[error("a visit's day must be in [0, {MAX_DAY}], got {0}")]
+    Day(f64),
 }
+
+/// Latest visit day accepted.
+pub const MAX_DAY: f64 = 365.0;
 
 impl SceneOptions {
     /// The red clutter share must be within [0, [`MAX_RED_CLUTTER`]].
@@ -37,7 +46,17 @@ impl SceneOptions {
         if !(0.0..=MAX_RED_CLUTTER).contains(&self.red_clutter) {
             return Err(SceneOptionsError::RedClutter(self.red_clutter));
         }
+        if let Some(day) = self.day.filter(|d| !(0.0..=MAX_DAY).contains(d)) {
+            return Err(SceneOptionsError::Day(day));
+        }
         Ok(())
+    }
+
+    /// The visit day generation uses: clamped into range, none for NaN.
+    pub(crate) fn visit_day(&self) -> Option<f64> {
+        self.day
+            .filter(|d| !d.is_nan())
+            .map(|d| d.clamp(0.0, MAX_DAY))
     }
 
     /// The red clutter share generation uses: clamped into range, 0 for NaN (generation does

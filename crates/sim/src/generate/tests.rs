@@ -704,6 +704,7 @@ fn scene_options_parse_validate_and_read_from_json() {
             fruit_colour: FruitColour::LeafGreen,
             fruit_shape: FruitShape::Capsicum,
             red_clutter: 0.1,
+            day: None,
         }
     );
     let back: SceneOptions =
@@ -748,4 +749,112 @@ fn ground_truth_json_gives_the_body() {
     assert_eq!(j["body_centre_m"][1].as_f64().unwrap(), f.body_centre.y);
     assert_eq!(j["axis"][0].as_f64().unwrap(), f.axis.x);
     assert_eq!(j["volume_m3"].as_f64().unwrap(), f.volume_m3);
+}
+
+fn visit(kind: ScenarioKind, seed: u64, day: f64) -> Scene {
+    let options = SceneOptions {
+        fruit_shape: FruitShape::Capsicum,
+        day: Some(day),
+        ..SceneOptions::default()
+    };
+    Scene::generate_with(kind, seed, &options)
+}
+
+#[test]
+fn fruit_keep_their_ids_over_visits_and_grow_set_and_are_harvested() {
+    let days = [0.0, 3.5, 7.0, 10.5];
+    let (mut set_later, mut harvested) = (0, 0);
+    for seed in 1..=3 {
+        let generated = Scene::generate_with(
+            ScenarioKind::Two,
+            seed,
+            &SceneOptions {
+                fruit_shape: FruitShape::Capsicum,
+                ..SceneOptions::default()
+            },
+        );
+        let final_volume: std::collections::BTreeMap<u32, f64> = generated
+            .fruits()
+            .iter()
+            .map(|f| (f.id, f.body_volume_m3))
+            .collect();
+        let visits: Vec<Scene> = days
+            .iter()
+            .map(|&d| visit(ScenarioKind::Two, seed, d))
+            .collect();
+        let of = |scene: &Scene, id: u32| scene.fruits().iter().find(|f| f.id == id).cloned();
+        for (k, pair) in visits.windows(2).enumerate() {
+            let (before, after) = (&pair[0], &pair[1]);
+            for f in before.fruits() {
+                let Some(later) = of(after, f.id) else {
+                    harvested += 1;
+                    continue;
+                };
+                // Grown, by at most what the growth rate allows, never past the final size.
+                let (v0, v1) = (f.body_volume_m3, later.body_volume_m3);
+                let most = (1.0 + season::GROWTH_PER_DAY * 3.5 / 0.55).powi(3);
+                assert!(
+                    v1 >= v0 && v1 <= v0 * most + 1e-12,
+                    "fruit {} day {k}: {v0} -> {v1}",
+                    f.id
+                );
+                assert!(v1 <= final_volume[&f.id] * (1.0 + 1e-9));
+                // Still hanging from the same place: the stalk end does not move.
+                assert!((later.body_centre - f.body_centre).norm() < 0.03);
+            }
+            set_later += after
+                .fruits()
+                .iter()
+                .filter(|f| of(before, f.id).is_none())
+                .count();
+        }
+        // The same day twice is the same scene.
+        let again = visit(ScenarioKind::Two, seed, 7.0);
+        let ids = |s: &Scene| {
+            s.fruits()
+                .iter()
+                .map(|f| (f.id, f.body_volume_m3.to_bits()))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(ids(&again), ids(&visits[2]));
+    }
+    assert!(
+        set_later > 0 && harvested > 0,
+        "set {set_later}, harvested {harvested}"
+    );
+}
+
+#[test]
+fn a_later_visit_looks_different_to_the_camera() {
+    let (monday, thursday) = (
+        visit(ScenarioKind::Two, 4, 0.0),
+        visit(ScenarioKind::Two, 4, 3.5),
+    );
+    let pose = monday.initial_camera_pose();
+    let camera = CameraModel::with_resolution(160, 120);
+    let (a, b) = (
+        monday.render(&camera, &pose, 1),
+        thursday.render(&camera, &pose, 1),
+    );
+    let changed = a
+        .depth_m
+        .iter()
+        .zip(&b.depth_m)
+        .filter(|(x, y)| x.to_bits() != y.to_bits())
+        .count();
+    assert!(changed > 200, "{changed} pixels changed");
+    // Visits keep the fruit index consistent with the truth list.
+    let counts = thursday.fruit_pixel_counts(&camera, &pose);
+    assert_eq!(counts.len(), thursday.fruits().len());
+}
+
+#[test]
+fn a_visit_day_out_of_range_is_refused() {
+    for day in [-1.0, 400.0] {
+        let options = SceneOptions {
+            day: Some(day),
+            ..SceneOptions::default()
+        };
+        assert_eq!(options.validate(), Err(SceneOptionsError::Day(day)));
+    }
 }

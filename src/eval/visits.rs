@@ -1,0 +1,166 @@
+//! `glasshouse eval --days N`: every trial's scene visited every `--visit-every-days` days from
+//! day 0 to day N (the simulator's season: fruit grow, set and are harvested, leaves move), one
+//! trial per visit, and each fruit followed from visit to visit
+//! ([`glasshouse_eval::visits`]). Writes `visits.md` (per method: the paper's figures per visit,
+//! identity precision / recall / F1 against the simulator's ids, growth error, time to 95 % of
+//! the fruits on a revisit against the first visit), `visits.json` (every trial's figures) and
+//! the per-visit trial CSVs.
+
+use anyhow::bail;
+use glasshouse_eval::visits::{season_figures, IdentityCounts, SeasonFigures, GROWTH_TOLERANCE};
+use glasshouse_eval::{mean_std, TrialConfig};
+use glasshouse_nbv::season::SeasonRules;
+
+use super::{prepare_out, report, run_trials, write, EvalArgs, Plan};
+
+/// The visit days: 0, every, 2·every, ... up to `days`.
+pub(super) fn visit_days(days: f64, every: f64) -> anyhow::Result<Vec<f64>> {
+    if !(every.is_finite() && every > 0.0) {
+        bail!("--visit-every-days must be above 0");
+    }
+    if !(days.is_finite() && (0.0..=glasshouse_sim::MAX_DAY).contains(&days)) {
+        bail!("--days must be within [0, {}]", glasshouse_sim::MAX_DAY);
+    }
+    let n = (days / every + 1e-9).floor() as usize + 1;
+    Ok((0..n).map(|k| k as f64 * every).collect())
+}
+
+pub(super) fn run(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<()> {
+    let trials_dir = prepare_out(&args.out)?;
+    let configs = configs(args, plan, days)?;
+    let results = run_trials(&configs, plan, args.budget_s)?;
+    let mut per_trial: Vec<Vec<glasshouse_eval::TrialResult>> = Vec::new();
+    for (i, (config, result)) in configs.iter().zip(results).enumerate() {
+        let Some((result, _)) = result else {
+            bail!(
+                "trial {} seed {} did not finish",
+                config.method,
+                config.seed
+            );
+        };
+        let (trial, visit) = (i / days.len(), i % days.len());
+        let path = trials_dir.join(format!(
+            "{}-{}-visit{visit}.csv",
+            config.method,
+            trial % args.trials as usize
+        ));
+        write(&path, report::trial_csv(&result))?;
+        if visit == 0 {
+            per_trial.push(Vec::new());
+        }
+        if let Some(last) = per_trial.last_mut() {
+            last.push(result);
+        }
+    }
+    let seasons: Vec<SeasonFigures> = per_trial
+        .iter()
+        .map(|visits| season_figures(visits, days, SeasonRules::default()))
+        .collect();
+    let mut table = String::new();
+    for (m, method) in plan.methods.iter().enumerate() {
+        let trials = args.trials as usize;
+        let of_method = &seasons[m * trials..(m + 1) * trials];
+        table.push_str(&method_table(&method.to_string(), of_method, days));
+    }
+    write(&args.out.join("visits.md"), &table)?;
+    write(
+        &args.out.join("visits.json"),
+        serde_json::to_string_pretty(&seasons)?,
+    )?;
+    print!("{table}");
+    Ok(())
+}
+
+/// Trial t of each method on each visit day, in order (method, trial, visit).
+fn configs(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<Vec<TrialConfig>> {
+    let base = super::trial_configs(args, plan, args.width * 3 / 4)?;
+    let configs: Vec<TrialConfig> = base
+        .iter()
+        .flat_map(|config| {
+            days.iter().map(move |&day| {
+                let mut c = *config;
+                c.world.scene.day = Some(day);
+                c
+            })
+        })
+        .collect();
+    Ok(configs)
+}
+
+fn fmt(values: &[f64], digits: usize) -> String {
+    match mean_std(values) {
+        Some(m) => format!("{:.digits$} ± {:.digits$}", m.mean, m.std),
+        None => "–".into(),
+    }
+}
+
+/// One method's visits: a row per visit, then identity, growth and revisit time.
+fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String {
+    let mut out = format!(
+        "## {method}: {} trials, visits on days {days:?}\n\n| day | count ratio | F1 | F1, 5 cm | centre (cm) | volume acc. | time to 95 % (s) | reached |\n|---|---|---|---|---|---|---|---|\n",
+        seasons.len()
+    );
+    for (k, day) in days.iter().enumerate() {
+        let of = |f: fn(&glasshouse_eval::visits::VisitFigures) -> f64| -> Vec<f64> {
+            seasons.iter().map(|s| f(&s.visits[k])).collect()
+        };
+        let t95: Vec<f64> = seasons
+            .iter()
+            .filter_map(|s| s.visits[k].time_to_95_s.map(f64::from))
+            .collect();
+        out.push_str(&format!(
+            "| {day} | {} | {} | {} | {} | {} | {} | {} of {} |\n",
+            fmt(&of(|v| v.count_ratio), 2),
+            fmt(&of(|v| v.f1), 2),
+            fmt(&of(|v| v.f1_near), 2),
+            fmt(&of(|v| v.centre_cm), 2),
+            fmt(&of(|v| v.volume_accuracy), 2),
+            fmt(&t95, 0),
+            t95.len(),
+            seasons.len()
+        ));
+    }
+    let mut identity = IdentityCounts::default();
+    for s in seasons {
+        identity.add(&s.identity);
+    }
+    let per_trial_f1: Vec<f64> = seasons.iter().map(|s| s.identity.f1()).collect();
+    let mut errors: Vec<f64> = seasons
+        .iter()
+        .flat_map(|s| s.growth_errors.clone())
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    let within = errors.iter().filter(|&&e| e <= GROWTH_TOLERANCE).count();
+    let median = errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN);
+    let ratios: Vec<f64> = seasons
+        .iter()
+        .flat_map(|s| {
+            let first = s.visits[0].time_to_95_s;
+            s.visits[1..]
+                .iter()
+                .filter_map(move |v| match (first, v.time_to_95_s) {
+                    (Some(a), Some(b)) if a > 0 => Some(f64::from(b) / f64::from(a)),
+                    _ => None,
+                })
+        })
+        .collect();
+    out.push_str(&format!(
+        "\nIdentity over consecutive visits: precision {:.3}, recall {:.3}, F1 {:.3} ({} correct of {} links made, {} possible; per trial F1 {}).\n\
+         Growth: {} correct links of growing fruit, |ΔV_est − ΔV_true| / ΔV_true median {:.2}, {} within {:.0} %.\n\
+         Time to 95 % on a revisit against the first visit: {} ({} revisits that reached 95 % after a first visit that did).\n\n",
+        identity.precision(),
+        identity.recall(),
+        identity.f1(),
+        identity.correct,
+        identity.made,
+        identity.possible,
+        fmt(&per_trial_f1, 3),
+        errors.len(),
+        median,
+        within,
+        GROWTH_TOLERANCE * 100.0,
+        fmt(&ratios, 2),
+        ratios.len()
+    ));
+    out
+}

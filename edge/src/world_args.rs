@@ -60,6 +60,11 @@ pub struct WorldArgs {
     /// yellow-green) or `leaf-green` (the leaves' own colour range).
     #[arg(long, value_name = "COLOUR")]
     pub fruit_colour: Option<FruitColour>,
+    /// The scene on day D of a season of visits (0: the first visit; fruit swell, set and are
+    /// harvested over the days, leaves drift and grow, every fruit keeps its id). Default: the
+    /// scene as generated, which is no visit's.
+    #[arg(long, value_name = "D")]
+    pub day: Option<f64>,
 }
 
 impl WorldArgs {
@@ -86,6 +91,7 @@ impl WorldArgs {
         let s = &mut world.scene;
         s.fruit_shape = self.fruit_shape.unwrap_or(s.fruit_shape);
         s.fruit_colour = self.fruit_colour.unwrap_or(s.fruit_colour);
+        s.day = self.day.or(s.day);
         world
             .validate()
             .context("--world and the flags that override it")?;

@@ -20,6 +20,8 @@ const HAND_EYE_STREAM: u64 = 11;
 const RAIL_STREAM: u64 = 12;
 /// Joint noise is seeded from the frame's noise seed.
 const JOINT_STREAM: u64 = 13;
+/// A visit's base offset is seeded from the visit's seed (`visit_offset`).
+const VISIT_STREAM: u64 = 14;
 
 /// Largest pose errors accepted (beyond them the setting is surely a typo).
 pub const MAX_HAND_EYE_ERROR_DEG: f64 = 10.0;
@@ -94,6 +96,31 @@ impl PoseError {
             Translation3::from(direction.into_inner() * self.hand_eye_error_mm * 1e-3),
             UnitQuaternion::from_axis_angle(&axis, self.hand_eye_error_deg.to_radians()),
         )
+    }
+
+    /// Where the trolley really stands on a visit against where it believes (its base localised
+    /// anew each visit): an offset along the row (x) with the rail error's size, a third of it
+    /// across and up, and a yaw of 0.02° per millimetre of it; seeded by `visit_seed`. None
+    /// without a rail error.
+    pub fn visit_offset(&self, visit_seed: u64) -> Option<Isometry3<f64>> {
+        if self.rail_error_mm <= 0.0 {
+            return None;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(visit_seed);
+        rng.set_stream(VISIT_STREAM);
+        let mut spare = None;
+        let mut normal = || standard_normal(&mut rng, &mut spare);
+        let sd_m = self.rail_error_mm * 1e-3;
+        let (x, y, z) = (
+            normal() * sd_m,
+            normal() * sd_m / 3.0,
+            normal() * sd_m / 3.0,
+        );
+        let yaw = (normal() * 0.02 * self.rail_error_mm).to_radians();
+        Some(Isometry3::from_parts(
+            Translation3::new(x, y, z),
+            UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), yaw),
+        ))
     }
 
     /// Each joint's encoder error for the frame seeded with `noise_seed` (true minus reported
@@ -245,6 +272,21 @@ impl fmt::Display for WorldPreset {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn each_visit_has_its_own_base_offset_of_the_rail_errors_size() {
+        let realistic = WorldSettings::realistic().pose;
+        let offsets: Vec<Isometry3<f64>> = (0..200)
+            .filter_map(|seed| realistic.visit_offset(seed))
+            .collect();
+        assert_eq!(offsets.len(), 200);
+        let along: Vec<f64> = offsets.iter().map(|o| o.translation.x).collect();
+        let sd = (along.iter().map(|x| x * x).sum::<f64>() / along.len() as f64).sqrt();
+        assert!((sd - 0.010).abs() < 0.002, "{sd}");
+        assert_ne!(realistic.visit_offset(1), realistic.visit_offset(2));
+        assert_eq!(realistic.visit_offset(1), realistic.visit_offset(1));
+        assert!(PoseError::default().visit_offset(1).is_none());
+    }
 
     #[test]
     fn hand_eye_error_has_the_asked_size_and_depends_on_the_seed() {

@@ -25,6 +25,16 @@ pub enum CaptureError {
     World(#[from] WorldError),
 }
 
+/// The seed of what differs between two visits of one trolley to its scene (`day`: see
+/// `SceneOptions::day`): its odometry, its encoders' noise and its camera noise; the scene seed
+/// itself without visits. The hand-eye error stays the trolley's own.
+pub fn visit_seed(scene_seed: u64, day: Option<f64>) -> u64 {
+    match day {
+        Some(d) => scene_seed ^ d.to_bits().rotate_left(17) ^ 0x005E_A50F_DA75,
+        None => scene_seed,
+    }
+}
+
 /// Seed of the camera noise of frame `frame_seq` of a scene seeded with `scene_seed`.
 pub fn noise_seed(scene_seed: u64, frame_seq: u64) -> u64 {
     scene_seed.wrapping_mul(1_000_003).wrapping_add(frame_seq)
@@ -111,6 +121,10 @@ pub struct SimTrolley {
     believed_camera_from_true: Isometry3<f64>,
     /// True minus believed rail position on each segment (odometry error), metres.
     rail_errors_m: Vec<f64>,
+    /// [`visit_seed`] of this trolley's visit.
+    visit_seed: u64,
+    /// Where the trolley's base really is against where it believes, on this visit.
+    visit_offset: Option<Isometry3<f64>>,
 }
 
 impl SimTrolley {
@@ -130,12 +144,16 @@ impl SimTrolley {
             .position(|s| s.camera_workspace.contains(&eye.into()))
             .unwrap_or(0);
         let pose_error = settings.world.pose;
+        let day = settings.world.scene.day;
+        let visit = visit_seed(settings.seed, day);
         Ok(Self {
+            visit_seed: visit,
+            visit_offset: day.and_then(|_| pose_error.visit_offset(visit)),
             camera: CameraModel::with_resolution(w, h),
             scene,
             arm,
             believed_camera_from_true: pose_error.believed_camera_from_true(settings.seed),
-            rail_errors_m: pose_error.rail_errors_m(settings.seed, segments.len()),
+            rail_errors_m: pose_error.rail_errors_m(visit, segments.len()),
             segments,
             segment,
             settings,
@@ -160,7 +178,7 @@ impl SimTrolley {
         }
         let arm_pose = self.arm.pose();
         let errors = pose_error.joint_errors_rad(
-            noise_seed(self.settings.seed, frame_seq),
+            noise_seed(self.visit_seed, frame_seq),
             arm_pose.joints.len(),
         );
         let mut joints = arm_pose.joints;
@@ -176,7 +194,9 @@ impl SimTrolley {
             MountState::Rail { .. } => self.rail_errors_m.get(self.segment).copied(),
             _ => None,
         };
-        Translation3::new(rail_m.unwrap_or(0.0), 0.0, 0.0)
+        let visit = self.visit_offset.unwrap_or_else(Isometry3::identity);
+        visit
+            * Translation3::new(rail_m.unwrap_or(0.0), 0.0, 0.0)
             * flange_truth
             * self.believed_camera_from_true
     }
@@ -216,7 +236,7 @@ impl TrolleySource for SimTrolley {
     }
 
     fn capture(&mut self, frame_seq: u64) -> Result<Option<RgbdFrame>, String> {
-        let seed = noise_seed(self.settings.seed, frame_seq);
+        let seed = noise_seed(self.visit_seed, frame_seq);
         let noise = &self.settings.world.perception;
         let truth = self.true_world_from_camera(frame_seq);
         let mut frame = render_frame(&self.scene, &self.camera, &truth, seed, noise);

@@ -3,10 +3,14 @@
 //!
 //! A fruit grows between visits (towards its stalk end, so its centre moves a few millimetres),
 //! the trolley's pose errors move a whole visit by up to a centimetre or two, and leaves move.
-//! Matching is one to one, greedily from the smallest centre distance, up to
+//! So a visit is first registered to the fruits known: the pairs within
+//! [`SeasonRules::coarse_distance_m`] give the visit's offset (the median of their differences,
+//! per axis, with at least [`MIN_PAIRS_FOR_OFFSET`] pairs), and the visit's centres, shifted by
+//! it, are matched one to one, greedily from the smallest centre distance, up to
 //! [`SeasonRules::max_distance_m`], and only between a fruit and an estimate whose volumes are
 //! within [`SeasonRules::max_volume_ratio`] of each other (a fruit does not halve, nor grow
-//! eightfold, in a few days). A known fruit that no estimate of a visit matches is closed
+//! eightfold, in a few days). Histories hold the shifted centres: every visit in the first
+//! visit's frame. A known fruit that no estimate of a visit matches is closed
 //! (harvested, or hidden this time: it may be matched again on a later visit, up to
 //! [`SeasonRules::reopen_visits`] visits after it was last seen); an estimate that matches no known fruit is a new
 //! fruit with a new id. Each fruit keeps its history: centre, size and volume per visit.
@@ -19,6 +23,8 @@ use serde::Serialize;
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct SeasonRules {
     pub max_distance_m: f64,
+    /// Pairs this close estimate the visit's offset.
+    pub coarse_distance_m: f64,
     pub max_volume_ratio: f64,
     /// A fruit stays matchable this many visits after it was last seen (2: one hidden on one
     /// visit is matched on the next).
@@ -29,6 +35,7 @@ impl Default for SeasonRules {
     fn default() -> Self {
         Self {
             max_distance_m: 0.04,
+            coarse_distance_m: 0.08,
             max_volume_ratio: 4.0,
             reopen_visits: 2,
         }
@@ -65,6 +72,9 @@ impl SeasonFruit {
         self.history.iter().find(|r| r.visit == visit)
     }
 }
+
+/// Pairs needed to estimate a visit's offset; with fewer the visit is taken as it is.
+pub const MIN_PAIRS_FOR_OFFSET: usize = 3;
 
 /// The fruits of every visit so far, with stable ids.
 #[derive(Clone, Debug, Default)]
@@ -103,55 +113,110 @@ impl SeasonTracker {
                     .is_some_and(|r| visit - r.visit <= self.rules.reopen_visits)
             })
             .collect();
+        let coarse = self.matches(
+            estimates,
+            &open,
+            Vector3::zeros(),
+            self.rules.coarse_distance_m,
+        );
+        let offset = self.offset_of(estimates, &coarse);
+        let matched = self.matches(estimates, &open, offset, self.rules.max_distance_m);
+        let mut ids: Vec<Option<u32>> = vec![None; estimates.len()];
+        for (e, f) in matched {
+            ids[e] = Some(self.fruits[f].id);
+            self.fruits[f]
+                .history
+                .push(record(visit, &estimates[e], &offset));
+        }
+        ids.iter()
+            .zip(estimates)
+            .map(|(id, estimate)| id.unwrap_or_else(|| self.open_new(visit, estimate, &offset)))
+            .collect()
+    }
+
+    /// One-to-one (estimate, fruit) pairs of the estimates shifted by `offset` within
+    /// `max_distance_m`, greedily from the smallest distance.
+    fn matches(
+        &self,
+        estimates: &[FruitEstimate],
+        open: &[usize],
+        offset: Vector3<f64>,
+        max_distance_m: f64,
+    ) -> Vec<(usize, usize)> {
         let mut pairs = Vec::new();
         for (e, estimate) in estimates.iter().enumerate() {
-            for &f in &open {
-                if let Some(d) = self.distance(f, estimate) {
+            for &f in open {
+                if let Some(d) = self.distance(f, estimate, &offset, max_distance_m) {
                     pairs.push((d, e, f));
                 }
             }
         }
         pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-        let mut ids: Vec<Option<u32>> = vec![None; estimates.len()];
-        let mut taken = vec![false; self.fruits.len()];
+        let (mut estimate_taken, mut fruit_taken) =
+            (vec![false; estimates.len()], vec![false; self.fruits.len()]);
+        let mut out = Vec::new();
         for (_, e, f) in pairs {
-            if ids[e].is_none() && !taken[f] {
-                taken[f] = true;
-                ids[e] = Some(self.fruits[f].id);
-                self.fruits[f].history.push(record(visit, &estimates[e]));
+            if !estimate_taken[e] && !fruit_taken[f] {
+                estimate_taken[e] = true;
+                fruit_taken[f] = true;
+                out.push((e, f));
             }
         }
-        ids.iter()
-            .zip(estimates)
-            .map(|(id, estimate)| id.unwrap_or_else(|| self.open_new(visit, estimate)))
-            .collect()
+        out
     }
 
-    /// The centre distance between fruit `f`'s last record and `estimate`, when they may be
-    /// the same fruit.
-    fn distance(&self, f: usize, estimate: &FruitEstimate) -> Option<f64> {
+    /// The visit's offset against the fruits known: the per-axis median of the pairs'
+    /// differences (estimate minus fruit); zero with fewer than [`MIN_PAIRS_FOR_OFFSET`] pairs.
+    fn offset_of(&self, estimates: &[FruitEstimate], pairs: &[(usize, usize)]) -> Vector3<f64> {
+        if pairs.len() < MIN_PAIRS_FOR_OFFSET {
+            return Vector3::zeros();
+        }
+        let median = |axis: usize| {
+            let mut d: Vec<f64> = pairs
+                .iter()
+                .filter_map(|&(e, f)| {
+                    let last = self.fruits[f].last()?;
+                    Some(estimates[e].centre[axis] - last.centre[axis])
+                })
+                .collect();
+            d.sort_by(f64::total_cmp);
+            d.get(d.len() / 2).copied().unwrap_or(0.0)
+        };
+        Vector3::new(median(0), median(1), median(2))
+    }
+
+    /// The centre distance between fruit `f`'s last record and `estimate` shifted back by
+    /// `offset`, when they may be the same fruit.
+    fn distance(
+        &self,
+        f: usize,
+        estimate: &FruitEstimate,
+        offset: &Vector3<f64>,
+        max_distance_m: f64,
+    ) -> Option<f64> {
         let last = self.fruits[f].last()?;
-        let d = (last.centre - estimate.centre).norm();
+        let d = (last.centre - (estimate.centre - offset)).norm();
         let ratio = estimate_volume_m3(estimate) / last.volume_m3;
         let r = self.rules.max_volume_ratio;
         let plausible = ratio.is_finite() && ratio >= 1.0 / r && ratio <= r;
-        (d <= self.rules.max_distance_m && plausible).then_some(d)
+        (d <= max_distance_m && plausible).then_some(d)
     }
 
-    fn open_new(&mut self, visit: usize, estimate: &FruitEstimate) -> u32 {
+    fn open_new(&mut self, visit: usize, estimate: &FruitEstimate, offset: &Vector3<f64>) -> u32 {
         let id = self.fruits.len() as u32 + 1;
         self.fruits.push(SeasonFruit {
             id,
-            history: vec![record(visit, estimate)],
+            history: vec![record(visit, estimate, offset)],
         });
         id
     }
 }
 
-fn record(visit: usize, e: &FruitEstimate) -> VisitRecord {
+/// An estimate's record, its centre shifted back by its visit's `offset`.
+fn record(visit: usize, e: &FruitEstimate, offset: &Vector3<f64>) -> VisitRecord {
     VisitRecord {
         visit,
-        centre: e.centre,
+        centre: e.centre - offset,
         size_m: e.max - e.min,
         volume_m3: estimate_volume_m3(e),
         visit_fruit_id: e.id,
@@ -189,6 +254,25 @@ mod tests {
         assert_eq!(one.history.len(), 2);
         assert_eq!(one.on(1).map(|r| r.visit_fruit_id), Some(9));
         assert!(season.fruits()[1].on(1).is_none(), "harvested");
+    }
+
+    #[test]
+    fn a_visit_shifted_by_the_trolleys_error_is_registered_first() {
+        let mut season = SeasonTracker::new(SeasonRules::default());
+        let monday: Vec<FruitEstimate> = (0..5)
+            .map(|i| fruit(i + 1, 0.1 * f64::from(i), 0.03))
+            .collect();
+        season.observe(&monday);
+        // The whole visit 5 cm off along the row: beyond the match distance, but one offset.
+        let thursday: Vec<FruitEstimate> = (0..5)
+            .map(|i| fruit(i + 10, 0.1 * f64::from(i) + 0.05, 0.031))
+            .collect();
+        assert_eq!(season.observe(&thursday), [1, 2, 3, 4, 5]);
+        let back = season.fruits()[2]
+            .on(1)
+            .map(|r| r.centre.x)
+            .unwrap_or(f64::NAN);
+        assert!((back - 0.2).abs() < 1e-9, "{back}");
     }
 
     #[test]

@@ -1,6 +1,5 @@
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::Instant;
 
 use super::*;
 
@@ -313,85 +312,5 @@ fn totals_count_transactions_and_bytes() -> TestResult {
     let totals = store.totals();
     assert_eq!(totals.transactions, 3);
     assert!(totals.bytes >= after_cloud.bytes + 2 * (100 + 12) + 4 + 24);
-    Ok(())
-}
-
-/// Timings of the planner's two hot writes; run with `--ignored --nocapture`.
-#[test]
-#[ignore = "timing, prints only"]
-fn print_write_timings() -> TestResult {
-    let dir = TempDir::new("timings");
-    let store = Store::open(&dir.db())?;
-    let cloud = vec![7u8; 100_000];
-    let rounds = 50u32;
-    let start = Instant::now();
-    for seq in 0..rounds {
-        store.append_cloud("t1", 1, frame(1, seq.into()), &cloud)?;
-    }
-    let per_cloud = start.elapsed() / rounds;
-    let blocks: Vec<_> = (0..2000)
-        .map(|i| (coord(i, i % 7, -i), vec![3u8; 100]))
-        .collect();
-    let start = Instant::now();
-    for seq in 0..rounds {
-        let full = seq == 0;
-        store.checkpoint("t1", &checkpoint(1, frame(1, seq.into()), &blocks, full))?;
-    }
-    let per_checkpoint = start.elapsed() / rounds;
-    println!("append_cloud 100 kB: {per_cloud:?} per call; checkpoint 2000 x 100 B: {per_checkpoint:?} per call");
-    println!("totals {:?}", store.totals());
-    Ok(())
-}
-
-/// Set in the child process of [`print_open_after_kill_timings`]: the database path to fill.
-const KILLED_CHILD_DB: &str = "GLASSHOUSE_STORE_KILLED_CHILD_DB";
-
-/// Fills a store as 16 trolleys would, then aborts (no clean close).
-fn fill_and_abort(path: &Path) -> TestResult {
-    let store = Store::open(path)?;
-    let blocks: Vec<_> = (0..2000)
-        .map(|i| (coord(i, 0, 0), vec![1u8; 1000]))
-        .collect();
-    for t in 0..16 {
-        let tid = format!("t{t}");
-        store.checkpoint(&tid, &checkpoint(1, frame(1, 0), &blocks, true))?;
-        for seq in 1..=10 {
-            store.append_cloud(&tid, 1, frame(1, seq), &[2u8; 100_000])?;
-        }
-    }
-    std::process::abort();
-}
-
-/// The open after a killed process (redb repairs: walks the whole file) against a clean one.
-#[test]
-#[ignore = "timing, prints only"]
-fn print_open_after_kill_timings() -> TestResult {
-    if let Ok(path) = std::env::var(KILLED_CHILD_DB) {
-        return fill_and_abort(Path::new(&path));
-    }
-    let dir = TempDir::new("killed");
-    let exe = std::env::current_exe().map_err(|e| StoreError::Db(e.to_string()))?;
-    let status = std::process::Command::new(exe)
-        .args([
-            "--ignored",
-            "--exact",
-            "tests::print_open_after_kill_timings",
-        ])
-        .env(KILLED_CHILD_DB, dir.db())
-        .status()
-        .map_err(|e| StoreError::Db(e.to_string()))?;
-    let size_bytes = std::fs::metadata(dir.db()).map_or(0, |m| m.len());
-    println!("child {status}, file {size_bytes} B");
-    for what in ["after kill", "after clean close"] {
-        let start = Instant::now();
-        let store = Store::open(&dir.db())?;
-        let opened = start.elapsed();
-        let (trolleys, _) = store.load()?;
-        println!(
-            "open {what}: {opened:?}, load {:?} ({} trolleys)",
-            start.elapsed() - opened,
-            trolleys.len()
-        );
-    }
     Ok(())
 }

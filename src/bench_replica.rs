@@ -115,6 +115,28 @@ pub(crate) fn record_stream(
     Ok((trial.info(), clouds))
 }
 
+/// What a planner hears when the trolley and its detector appear (no snapshot to load) and the
+/// trolley's info comes.
+pub(crate) fn joining(info: &TrolleyInfo) -> [PlannerEvent; 4] {
+    let header = Header {
+        trolley_id: TROLLEY.into(),
+        source_id: "edge".into(),
+        ..Header::default()
+    };
+    [
+        PlannerEvent::DetectorJoined(DETECTOR.into()),
+        PlannerEvent::TrolleyJoined(TROLLEY.into()),
+        PlannerEvent::SnapshotLoaded {
+            tid: TROLLEY.into(),
+            snapshot: None,
+        },
+        PlannerEvent::Info {
+            header,
+            info: info.clone(),
+        },
+    ]
+}
+
 /// Owner and replica of one trolley, the owner first.
 struct Pair {
     owner: PlannerNode,
@@ -127,25 +149,9 @@ impl Pair {
         let node =
             |pid: &str| PlannerNode::new(pid, config.planning(), 0).with_replica_refresh(refresh);
         let mut nodes = [(node("p1"), "p2"), (node("p2"), "p1")];
-        let header = Header {
-            trolley_id: TROLLEY.into(),
-            source_id: "edge".into(),
-            ..Header::default()
-        };
         for (node, other) in &mut nodes {
-            let events = [
-                PlannerEvent::PlannerJoined(other.to_string()),
-                PlannerEvent::DetectorJoined(DETECTOR.into()),
-                PlannerEvent::TrolleyJoined(TROLLEY.into()),
-                PlannerEvent::SnapshotLoaded {
-                    tid: TROLLEY.into(),
-                    snapshot: None,
-                },
-                PlannerEvent::Info {
-                    header: header.clone(),
-                    info: info.clone(),
-                },
-            ];
+            node.handle(PlannerEvent::PlannerJoined(other.to_string()));
+            let events = joining(info);
             for event in events {
                 node.handle(event);
             }

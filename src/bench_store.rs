@@ -16,11 +16,11 @@ use glasshouse_eval::{ComputeTime, TrialConfig};
 use glasshouse_nbv::Method;
 use glasshouse_planner::node::{PlannerAction, PlannerEvent, PlannerNode, StoreRules, StoreWrite};
 use glasshouse_planner::storage::PlannerStore;
-use glasshouse_proto::{Header, RoiCloud, TrolleyInfo};
+use glasshouse_proto::{RoiCloud, TrolleyInfo};
 use glasshouse_sim::ScenarioKind;
 use serde::Serialize;
 
-use crate::bench_replica::{cloud_event, ms_since, record_stream, same_map, DETECTOR, TROLLEY};
+use crate::bench_replica::{cloud_event, joining, ms_since, record_stream, same_map, TROLLEY};
 
 #[derive(clap::Args, Debug)]
 pub struct BenchStoreArgs {
@@ -181,23 +181,7 @@ fn measure(
 /// A planner alone with the trolley, owning it, with a store.
 fn owner(config: &TrialConfig, rules: StoreRules, info: &TrolleyInfo) -> PlannerNode {
     let mut node = PlannerNode::new("p1", config.planning(), 0).with_store(rules);
-    let header = Header {
-        trolley_id: TROLLEY.into(),
-        source_id: "edge".into(),
-        ..Header::default()
-    };
-    for event in [
-        PlannerEvent::DetectorJoined(DETECTOR.into()),
-        PlannerEvent::TrolleyJoined(TROLLEY.into()),
-        PlannerEvent::SnapshotLoaded {
-            tid: TROLLEY.into(),
-            snapshot: None,
-        },
-        PlannerEvent::Info {
-            header,
-            info: info.clone(),
-        },
-    ] {
+    for event in joining(info) {
         node.handle(event);
     }
     node

@@ -46,7 +46,7 @@ use glasshouse_pipeline::PlanningSettings;
 use glasshouse_proto::keys::{self, MemberKind};
 use glasshouse_proto::{
     FleetFruit, FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus,
-    RankedViews, RoiCloud, TrolleyInfo,
+    RankedViews, RoiCloud, StageTimes, TrolleyInfo,
 };
 use node::{KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, StoreRules, TrolleyOutput};
 use serde::Deserialize;
@@ -531,25 +531,7 @@ pub async fn run(
         .await
         .context("planner task failed")?;
         node = back;
-        let stats = node.stats();
-        counters
-            .stage_seconds
-            .observe(&stages_before, &stats.stages);
-        counters
-            .clouds_integrated
-            .store(stats.clouds_integrated, Ordering::Relaxed);
-        counters
-            .clouds_rejected
-            .store(stats.clouds_rejected, Ordering::Relaxed);
-        counters
-            .views_published
-            .store(stats.views_published, Ordering::Relaxed);
-        counters
-            .clouds_refused
-            .store(stats.clouds_refused, Ordering::Relaxed);
-        drops
-            .stale_epoch
-            .store(stats.stale_epoch, Ordering::Relaxed);
+        mirror_stats(&counters, &stages_before, &node.stats());
         for action in actions {
             if let PlannerAction::PublishStatus { status, .. } = &action {
                 if let Ok(mut last) = counters.status.lock() {
@@ -564,11 +546,28 @@ pub async fn run(
     }
     if let Some(store) = out.store.take() {
         // The checkpoints still queued are written before the planner stops.
-        let _ = tokio::task::spawn_blocking(move || store.close()).await;
+        if let Err(e) = tokio::task::spawn_blocking(move || store.close()).await {
+            tracing::error!(planner = %pid, error = %e, "closing the store failed");
+        }
     }
     out.close().await;
     tracing::info!(planner = %pid, clouds = node.stats().clouds_integrated, dropped = drops.total(), "planner stopped");
     Ok(())
+}
+
+/// Mirrors the node's counts into the counters tests and `/metrics` read.
+fn mirror_stats(
+    counters: &PlannerCounters,
+    stages_before: &StageTimes,
+    stats: &node::PlannerStats,
+) {
+    counters.stage_seconds.observe(stages_before, &stats.stages);
+    let set = |counter: &AtomicU64, value: u64| counter.store(value, Ordering::Relaxed);
+    set(&counters.clouds_integrated, stats.clouds_integrated);
+    set(&counters.clouds_rejected, stats.clouds_rejected);
+    set(&counters.views_published, stats.views_published);
+    set(&counters.clouds_refused, stats.clouds_refused);
+    set(&counters.drops.stale_epoch, stats.stale_epoch);
 }
 
 /// Environment variable that caps the map's vector unit (`portable`, `avx2` or `avx512`), for

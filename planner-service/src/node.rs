@@ -487,19 +487,7 @@ impl PlannerNode {
             PlannerEvent::Info { header, info } => self.on_info(&header.trolley_id, info),
             PlannerEvent::Fruits { header, fruits } => self.on_fruits(header, fruits),
             PlannerEvent::SnapshotLoaded { tid, snapshot } => {
-                let refreshing = self.slots.get(&tid).is_some_and(|s| {
-                    matches!(
-                        s.stage,
-                        Stage::Standby {
-                            refresh_asked: true,
-                            ..
-                        }
-                    )
-                });
-                match refreshing {
-                    true => self.on_refresh(&tid, snapshot),
-                    false => self.on_snapshot(&tid, snapshot),
-                }
+                self.on_snapshot_loaded(&tid, snapshot)
             }
             PlannerEvent::SnapshotAsked { query_id, tid } => self.on_snapshot_asked(query_id, &tid),
             PlannerEvent::CatchUp { tid } => self.on_catch_up(&tid),
@@ -513,12 +501,36 @@ impl PlannerNode {
             PlannerEvent::StatusTick {
                 dropped_messages,
                 now_ns,
-            } => {
-                self.clock_ns = self.clock_ns.max(now_ns);
-                self.expire_unknown_sources(now_ns);
-                self.status(dropped_messages)
-            }
+            } => self.on_tick(dropped_messages, now_ns),
         }
+    }
+
+    /// A snapshot asked for: a standby copy's refresh, or the copy of a loading trolley.
+    fn on_snapshot_loaded(
+        &mut self,
+        tid: &str,
+        snapshot: Option<Box<MapSnapshot>>,
+    ) -> Vec<PlannerAction> {
+        let refreshing = self.slots.get(tid).is_some_and(|s| {
+            matches!(
+                s.stage,
+                Stage::Standby {
+                    refresh_asked: true,
+                    ..
+                }
+            )
+        });
+        match refreshing {
+            true => self.on_refresh(tid, snapshot),
+            false => self.on_snapshot(tid, snapshot),
+        }
+    }
+
+    /// The status period: held clouds that waited too long are refused, the status goes out.
+    fn on_tick(&mut self, dropped_messages: u64, now_ns: u64) -> Vec<PlannerAction> {
+        self.clock_ns = self.clock_ns.max(now_ns);
+        self.expire_unknown_sources(now_ns);
+        self.status(dropped_messages)
     }
 
     /// A standby copy answers with every cloud it holds integrated.

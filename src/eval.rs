@@ -33,9 +33,10 @@ use anyhow::{bail, ensure, Context};
 use glasshouse_detect::FruitDetector;
 use glasshouse_eval::plot::{render_png, PlotSpec, Series, PALETTE};
 use glasshouse_eval::report::{self, method_label, MethodRuns};
-use glasshouse_eval::{run_trial_with, ComputeTime, TrialConfig, TrialResult};
+use glasshouse_eval::{ComputeTime, Trial, TrialConfig, TrialResult};
 use glasshouse_eval::{RoiEvidence, RoiTargets};
 use glasshouse_nbv::Method;
+use glasshouse_roimap::{PriorRules, RoiMap};
 use glasshouse_sim::{ScenarioKind, WorldSettings};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -122,6 +123,11 @@ pub struct EvalArgs {
     /// Days between two visits of `--days`.
     #[arg(long, default_value_t = 3.5, value_name = "D")]
     pub visit_every_days: f64,
+    /// With `--days`: start every revisit from an empty map, not from the previous visit's
+    /// map made into a prior (what was free stays likely free, the fruit are looked for again),
+    /// to compare the two.
+    #[arg(long)]
+    pub revisit_from_empty: bool,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -193,7 +199,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let height = args.width * 3 / 4;
     let configs = trial_configs(&args, &plan, height)?;
     let started = Instant::now();
-    let results = run_trials(&configs, &plan, args.budget_s)?;
+    let results = run_trials(&configs, &plan, args.budget_s, Season::NONE)?;
     let (runs, wall_times) = group_by_method(&plan, &configs, results)?;
     let wall_s = started.elapsed().as_secs_f64();
 
@@ -302,6 +308,10 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
 /// What the trial threads share: the next trial to take, the results and the first error.
 struct TrialQueue<'a> {
     configs: &'a [TrialConfig],
+    /// A thread takes this many consecutive configs at once and runs them in turn (a season's
+    /// visits), each after the first from its predecessor's map made into a prior when
+    /// `prior` is set.
+    season: Season,
     fruit_detector: Arc<dyn FruitDetector>,
     next: AtomicUsize,
     done: AtomicUsize,
@@ -310,11 +320,26 @@ struct TrialQueue<'a> {
     bar: ProgressBar,
 }
 
+/// How consecutive trials belong together: one trial each (`visits: 1`), or a season's visits.
+#[derive(Clone, Copy, Debug)]
+struct Season {
+    visits: usize,
+    prior: Option<PriorRules>,
+}
+
+impl Season {
+    const NONE: Season = Season {
+        visits: 1,
+        prior: None,
+    };
+}
+
 /// Runs the trials on `jobs` threads; returns (result, wall seconds) per config, in order.
 fn run_trials(
     configs: &[TrialConfig],
     plan: &Plan,
     budget_s: f64,
+    season: Season,
 ) -> anyhow::Result<Vec<Option<(TrialResult, f64)>>> {
     // Progress in simulated seconds over all trials; the message counts finished trials.
     let total_s = budget_s * configs.len() as f64;
@@ -330,6 +355,7 @@ fn run_trials(
     let jobs = plan.jobs;
     let queue = TrialQueue {
         configs,
+        season,
         fruit_detector: plan.fruit_detector.clone(),
         next: AtomicUsize::new(0),
         done: AtomicUsize::new(0),
@@ -338,7 +364,7 @@ fn run_trials(
         bar,
     };
     std::thread::scope(|scope| {
-        for _ in 0..jobs.min(configs.len()) {
+        for _ in 0..jobs.min(configs.len().div_ceil(season.visits.max(1))) {
             scope.spawn(|| queue.work());
         }
     });
@@ -357,43 +383,59 @@ fn run_trials(
 }
 
 impl TrialQueue<'_> {
-    /// One thread: takes trials until none is left or one has failed.
+    /// One thread: takes seasons (single trials unless the queue's season says otherwise)
+    /// until none is left or one has failed.
     fn work(&self) {
+        let visits = self.season.visits.max(1);
         loop {
-            let index = self.next.fetch_add(1, Ordering::Relaxed);
-            let Some(config) = self.configs.get(index) else {
-                break;
-            };
-            if self.first_error.lock().map(|e| e.is_some()).unwrap_or(true) {
+            let first = self.next.fetch_add(1, Ordering::Relaxed) * visits;
+            if first >= self.configs.len() {
                 break;
             }
-            let trial_started = Instant::now();
-            let mut reported = 0.0;
-            let outcome = run_trial_with(*config, self.fruit_detector.clone(), |clock_s| {
-                let step = ((clock_s - reported) * 10.0).max(0.0);
-                self.bar.inc(step.round() as u64);
-                reported += step.round() / 10.0;
-            });
-            match outcome {
-                Ok(result) => {
-                    let wall_s = trial_started.elapsed().as_secs_f64();
-                    if let Ok(mut r) = self.results.lock() {
-                        r[index] = Some((result, wall_s));
-                    }
-                    let n = self.done.fetch_add(1, Ordering::Relaxed) + 1;
-                    self.bar.set_message(format!("{n}/{}", self.configs.len()));
+            let mut prior = None;
+            for index in first..(first + visits).min(self.configs.len()) {
+                if self.first_error.lock().map(|e| e.is_some()).unwrap_or(true) {
+                    return;
                 }
-                Err(e) => {
-                    if let Ok(mut slot) = self.first_error.lock() {
-                        slot.get_or_insert(anyhow::Error::new(e).context(format!(
-                            "trial {} seed {} failed",
-                            config.method, config.seed
-                        )));
+                match self.run_one(index, prior.take()) {
+                    Ok(map) => prior = self.season.prior.map(|rules| map.prior(&rules)),
+                    Err(e) => {
+                        if let Ok(mut slot) = self.first_error.lock() {
+                            slot.get_or_insert(e);
+                        }
+                        return;
                     }
-                    break;
                 }
             }
         }
+    }
+
+    /// Runs config `index` (from `prior` when given), stores its result; returns its final map.
+    fn run_one(&self, index: usize, prior: Option<RoiMap>) -> anyhow::Result<RoiMap> {
+        let config = self.configs[index];
+        let failed = || format!("trial {} seed {} failed", config.method, config.seed);
+        let trial_started = Instant::now();
+        let mut reported = 0.0;
+        let mut trial = Trial::new(config)
+            .with_context(failed)?
+            .with_fruit_detector(self.fruit_detector.clone());
+        if let Some(prior) = prior {
+            trial = trial.with_prior(prior).with_context(failed)?;
+        }
+        let (result, map) = trial
+            .run_keeping_map(|clock_s| {
+                let step = ((clock_s - reported) * 10.0).max(0.0);
+                self.bar.inc(step.round() as u64);
+                reported += step.round() / 10.0;
+            })
+            .with_context(failed)?;
+        let wall_s = trial_started.elapsed().as_secs_f64();
+        if let Ok(mut r) = self.results.lock() {
+            r[index] = Some((result, wall_s));
+        }
+        let n = self.done.fetch_add(1, Ordering::Relaxed) + 1;
+        self.bar.set_message(format!("{n}/{}", self.configs.len()));
+        Ok(map)
     }
 }
 
@@ -543,6 +585,7 @@ mod tests {
             registration: false,
             days: None,
             visit_every_days: 3.5,
+            revisit_from_empty: false,
             perception: PerceptionArgs::default(),
         }
     }

@@ -11,7 +11,9 @@ use glasshouse_eval::visits::{season_figures, IdentityCounts, SeasonFigures, GRO
 use glasshouse_eval::{mean_std, TrialConfig};
 use glasshouse_nbv::season::SeasonRules;
 
-use super::{prepare_out, report, run_trials, write, EvalArgs, Plan};
+use glasshouse_roimap::PriorRules;
+
+use super::{prepare_out, report, run_trials, write, EvalArgs, Plan, Season};
 
 /// The visit days: 0, every, 2·every, ... up to `days`.
 pub(super) fn visit_days(days: f64, every: f64) -> anyhow::Result<Vec<f64>> {
@@ -26,9 +28,19 @@ pub(super) fn visit_days(days: f64, every: f64) -> anyhow::Result<Vec<f64>> {
 }
 
 pub(super) fn run(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<()> {
+    let start = if args.revisit_from_empty {
+        "every revisit from an empty map"
+    } else {
+        "every revisit from the previous visit's map as a prior"
+    };
+    eprintln!("{} visits per trial on days {days:?}, {start}", days.len());
     let trials_dir = prepare_out(&args.out)?;
     let configs = configs(args, plan, days)?;
-    let results = run_trials(&configs, plan, args.budget_s)?;
+    let season = Season {
+        visits: days.len(),
+        prior: (!args.revisit_from_empty).then(PriorRules::default),
+    };
+    let results = run_trials(&configs, plan, args.budget_s, season)?;
     let mut per_trial: Vec<Vec<glasshouse_eval::TrialResult>> = Vec::new();
     for (i, (config, result)) in configs.iter().zip(results).enumerate() {
         let Some((result, _)) = result else {
@@ -97,7 +109,7 @@ fn fmt(values: &[f64], digits: usize) -> String {
 /// One method's visits: a row per visit, then identity, growth and revisit time.
 fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String {
     let mut out = format!(
-        "## {method}: {} trials, visits on days {days:?}\n\n| day | count ratio | F1 | F1, 5 cm | centre (cm) | volume acc. | time to 95 % (s) | reached |\n|---|---|---|---|---|---|---|---|\n",
+        "## {method}: {} trials, visits on days {days:?}\n\n| day | count ratio | F1 | F1, 5 cm | centre (cm) | volume acc. | time to 95 % (s) | reached | detected at the end | time to the first visit's level (s) | reached |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
         seasons.len()
     );
     for (k, day) in days.iter().enumerate() {
@@ -108,8 +120,12 @@ fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String
             .iter()
             .filter_map(|s| s.visits[k].time_to_95_s.map(f64::from))
             .collect();
+        let t_level: Vec<f64> = seasons
+            .iter()
+            .filter_map(|s| s.visits[k].time_to_first_level_s.map(f64::from))
+            .collect();
         out.push_str(&format!(
-            "| {day} | {} | {} | {} | {} | {} | {} | {} of {} |\n",
+            "| {day} | {} | {} | {} | {} | {} | {} | {} of {} | {} | {} | {} of {} |\n",
             fmt(&of(|v| v.count_ratio), 2),
             fmt(&of(|v| v.f1), 2),
             fmt(&of(|v| v.f1_near), 2),
@@ -117,6 +133,10 @@ fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String
             fmt(&of(|v| v.volume_accuracy), 2),
             fmt(&t95, 0),
             t95.len(),
+            seasons.len(),
+            fmt(&of(|v| v.detected_share), 2),
+            fmt(&t_level, 0),
+            t_level.len(),
             seasons.len()
         ));
     }
@@ -132,22 +152,12 @@ fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String
     errors.sort_by(f64::total_cmp);
     let within = errors.iter().filter(|&&e| e <= GROWTH_TOLERANCE).count();
     let median = errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN);
-    let ratios: Vec<f64> = seasons
-        .iter()
-        .flat_map(|s| {
-            let first = s.visits[0].time_to_95_s;
-            s.visits[1..]
-                .iter()
-                .filter_map(move |v| match (first, v.time_to_95_s) {
-                    (Some(a), Some(b)) if a > 0 => Some(f64::from(b) / f64::from(a)),
-                    _ => None,
-                })
-        })
-        .collect();
+    let ratios = revisit_ratios(seasons, |v| v.time_to_95_s);
+    let level_ratios = revisit_ratios(seasons, |v| v.time_to_first_level_s);
     out.push_str(&format!(
         "\nIdentity over consecutive visits: precision {:.3}, recall {:.3}, F1 {:.3} ({} correct of {} links made, {} possible; per trial F1 {}).\n\
          Growth: {} correct links of growing fruit, |ΔV_est − ΔV_true| / ΔV_true median {:.2}, {} within {:.0} %.\n\
-         Time to 95 % on a revisit against the first visit: {} ({} revisits that reached 95 % after a first visit that did).\n\n",
+         Time to 95 % on a revisit against the first visit: {} ({} revisits that reached 95 % after a first visit that did).\n         Time to 95 % of what the first visit found, a revisit against the first visit: {} ({} revisits; median {:.2}).\n\n",
         identity.precision(),
         identity.recall(),
         identity.f1(),
@@ -160,7 +170,35 @@ fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String
         within,
         GROWTH_TOLERANCE * 100.0,
         fmt(&ratios, 2),
-        ratios.len()
+        ratios.len(),
+        fmt(&level_ratios, 2),
+        level_ratios.len(),
+        median_of(&level_ratios)
     ));
     out
+}
+
+/// Every revisit's time against its season's first visit's, where both exist.
+fn revisit_ratios(
+    seasons: &[SeasonFigures],
+    time_s: fn(&glasshouse_eval::visits::VisitFigures) -> Option<u32>,
+) -> Vec<f64> {
+    seasons
+        .iter()
+        .flat_map(|s| {
+            let first = time_s(&s.visits[0]);
+            s.visits[1..]
+                .iter()
+                .filter_map(move |v| match (first, time_s(v)) {
+                    (Some(a), Some(b)) if a > 0 => Some(f64::from(b) / f64::from(a)),
+                    _ => None,
+                })
+        })
+        .collect()
+}
+
+fn median_of(values: &[f64]) -> f64 {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    sorted.get(sorted.len() / 2).copied().unwrap_or(f64::NAN)
 }

@@ -319,6 +319,13 @@ impl<S: TrolleySource> Trial<S> {
         self
     }
 
+    /// The same trial starting from `prior` instead of an empty map (a revisit: the previous
+    /// visit's map made into a prior, [`glasshouse_roimap::RoiMap::prior`]).
+    pub fn with_prior(mut self, prior: glasshouse_roimap::RoiMap) -> Result<Self, EvalError> {
+        self.planner = TrolleyPlanner::on_prior(self.config.planning(), prior)?;
+        Ok(self)
+    }
+
     /// The ROI cloud of the latest frame planned on, taken (a bench replays the stream).
     pub fn take_last_cloud(&mut self) -> Option<RoiCloud> {
         self.last_cloud.take()
@@ -528,12 +535,22 @@ impl<S: TrolleySource> Trial<S> {
     }
 
     /// Runs to the end of the budget; `progress` gets the simulated clock after every step.
-    pub fn run(mut self, mut progress: impl FnMut(f64)) -> Result<TrialResult, EvalError> {
+    pub fn run(self, progress: impl FnMut(f64)) -> Result<TrialResult, EvalError> {
+        Ok(self.run_keeping_map(progress)?.0)
+    }
+
+    /// [`Trial::run`], and the planner's map at the end (a season's next visit starts from it).
+    pub fn run_keeping_map(
+        mut self,
+        mut progress: impl FnMut(f64),
+    ) -> Result<(TrialResult, glasshouse_roimap::RoiMap), EvalError> {
         while self.step()? {
             progress(self.clock_s.min(self.config.budget_s));
         }
         progress(self.config.budget_s);
-        Ok(TrialResult {
+        let clusters = self.planner.cluster_outcomes();
+        let registration = *self.planner.alignment_counts();
+        let result = TrialResult {
             config: self.config,
             fruits_total: self.scene.fruits().len(),
             samples: self.samples,
@@ -543,11 +560,12 @@ impl<S: TrolleySource> Trial<S> {
             frames_without_reachable_view: self.frames_without_reachable_view,
             compute_time_s: self.compute_time_s,
             fruits: self.published.fruits,
-            clusters: self.planner.cluster_outcomes(),
+            clusters,
             truths: self.scene.fruits().to_vec(),
-            registration: *self.planner.alignment_counts(),
+            registration,
             plans: self.plans,
-        })
+        };
+        Ok((result, self.planner.into_map()))
     }
 }
 

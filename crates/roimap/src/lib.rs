@@ -44,6 +44,7 @@ pub mod fuzzing;
 mod grid;
 mod insert;
 pub mod ply;
+pub mod prior;
 pub mod simd;
 pub mod snapshot;
 pub mod stored;
@@ -66,6 +67,7 @@ use crate::walk::{axis_key, RaySetup, KEY_LIMIT};
 pub use crate::batch::RayCount;
 pub use crate::clusters::{ClusterUpdate, Clusters};
 pub use crate::insert::RoiInput;
+pub use crate::prior::PriorRules;
 pub use crate::snapshot::SnapshotError;
 
 /// Offsets of the 6-neighbourhood (face neighbours).

@@ -110,6 +110,11 @@ pub struct EdgeConfig {
     /// capture time before capturing the next frame (false: capture as soon as the view is
     /// executed; the simulated clock alone counts the time).
     pub realtime: bool,
+    /// Which visit of its row this run is (0: the first; count up by one per pass of the row,
+    /// days apart). Announced in TrolleyInfo: a planner that sees a later visit than its copy's
+    /// closes the one before (its fruits go into their histories) and starts this one from the
+    /// previous visit's map as a prior.
+    pub visit: u32,
 }
 
 impl Default for EdgeConfig {
@@ -134,6 +139,7 @@ impl Default for EdgeConfig {
             world: WorldSettings::default(),
             compress_frames: true,
             realtime: false,
+            visit: 0,
         }
     }
 }
@@ -443,6 +449,7 @@ impl Driver {
         };
         a.info.owner_epoch = owner_epoch;
         a.info.owner_id = owner_id;
+        a.info.visit = self.config.visit;
         if let (Some(recorder), false) = (&self.recorder, a.recorded) {
             recorder.write(header, &a.info)?;
             recorder.write(header, &a.frame)?;
@@ -604,6 +611,8 @@ impl Driver {
             planner_id: format!("truth-{tid}"),
             // The truth has no owner.
             owner_epoch: 0,
+            visit: config.visit,
+            history: Vec::new(),
         });
         let recorder = config
             .record_frames_dir

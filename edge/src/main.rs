@@ -23,7 +23,7 @@ use glasshouse_edge::EdgeConfig;
 /// Settings come from defaults, then `--config FILE` (JSON5 with the fields of EdgeConfig:
 /// trolley_id, scenario, seed, width, height, max_views, views_timeout_ms, capture_time_s,
 /// frame_interval_ms, segment_length_m, segment_done_utility, source, bag, ros, replay_dir,
-/// record_frames_dir,
+/// record_frames_dir, visit,
 /// world: { perception: {..}, scene: {..}, pose: {..} }, compress_frames, realtime), then the
 /// flags below (`--world` replaces the file's world with a preset, the other world flags
 /// override one part of it).
@@ -75,6 +75,11 @@ struct Cli {
     /// from the arm's joint speed limits) in wall-clock time before the next capture.
     #[arg(long)]
     realtime: bool,
+    /// Which visit of its row this run is (0: the first; one more per pass of the row, days
+    /// apart): a planner starts a later visit from the previous visit's map as a prior and
+    /// keeps each fruit's id and history from visit to visit.
+    #[arg(long, value_name = "N")]
+    visit: Option<u32>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -89,6 +94,7 @@ fn apply_flags(cli: Cli, c: &mut EdgeConfig) -> anyhow::Result<()> {
     set_flag(&mut c.seed, cli.seed);
     set_flag(&mut c.max_views, cli.max_views);
     set_flag(&mut c.frame_interval_ms, cli.frame_interval_ms);
+    set_flag(&mut c.visit, cli.visit);
     if let Some(width) = cli.width {
         c.width = width;
         c.height = cli.height.unwrap_or(width * 3 / 4);

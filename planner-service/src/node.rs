@@ -48,11 +48,12 @@ use glasshouse_proto::{
     FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus, RankedViews,
     RegistrationTotals, RoiCloud, StageTimes, TrolleyInfo,
 };
+use glasshouse_roimap::PriorRules;
 
 mod persist;
 
 pub(crate) use persist::StoredMark;
-use persist::{store_cloud, store_term_start, Restored};
+use persist::{store_cloud, store_term_start, store_visit_start, Restored};
 pub use persist::{StoreRules, StoreWrite, StoredTrolley};
 
 use crate::fleet_fruits;
@@ -304,6 +305,8 @@ pub struct PlannerNode {
     replica_refresh_clouds: usize,
     /// See [`PlannerNode::with_store`]; None: no store.
     store: Option<StoreRules>,
+    /// How a new visit's prior is made from the previous visit's map.
+    revisit_prior: PriorRules,
     /// Until then (this process's clock) no ownership decision is made; `settled` once past it.
     settle_until_ns: u64,
     settled: bool,
@@ -368,6 +371,7 @@ impl PlannerNode {
             queued_clouds: BTreeMap::new(),
             replica_refresh_clouds: REPLICA_REFRESH_CLOUDS,
             store: None,
+            revisit_prior: PriorRules::default(),
             settle_until_ns: epoch_ns,
             settled: true,
             settle_held: VecDeque::new(),
@@ -578,12 +582,43 @@ impl PlannerNode {
         }
         let mut actions = self.introduce(tid);
         actions.extend(self.note_epoch(tid, info.owner_epoch, &info.owner_id));
+        let visit = info.visit;
         if let Some(slot) = self.slots.get_mut(tid) {
             if let Err(e) = slot.planner.set_info(info) {
                 tracing::warn!(planner = %self.pid, trolley = %tid, error = %e, "views are not filtered by reach");
             }
         }
+        actions.extend(self.begin_visit(tid, visit));
         actions
+    }
+
+    /// The trolley is on `visit`: a copy on an earlier one closes it (its fruits go into their
+    /// histories) and starts this one from its map made into a prior; the owner keeps the new
+    /// map in its store at once (a full checkpoint: the clouds logged belong to the visit
+    /// before). Every copy does this on the same info, so replicas stay the owner's equals; a
+    /// copy still loading takes the visit from the snapshot it waits for.
+    fn begin_visit(&mut self, tid: &str, visit: u32) -> Vec<PlannerAction> {
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
+        };
+        if slot.is_loading() || visit <= slot.planner.visit() {
+            return Vec::new();
+        }
+        let from = slot.planner.visit();
+        match slot.planner.start_visit(visit, &self.revisit_prior) {
+            Ok(_) => {
+                tracing::info!(planner = %self.pid, trolley = %tid, from, visit,
+                    season_fruits = slot.planner.season_histories(&[]).len(),
+                    "a new visit of the row: the previous visit's map is its prior");
+                store_visit_start(self.store, slot, (&self.pid, tid))
+                    .into_iter()
+                    .collect()
+            }
+            Err(e) => {
+                tracing::warn!(planner = %self.pid, trolley = %tid, visit, error = %e, "the new visit was not started");
+                Vec::new()
+            }
+        }
     }
 
     /// A trolley's fruits as its owner published them: dropped and counted under an older
@@ -1193,11 +1228,16 @@ impl PlannerNode {
         };
         self.stats.stages.publish_ms += laps.lap_ms();
         let owner = slot.role() == Role::Owner;
-        let fruits = fit.then(|| FruitEstimates {
-            fruits: slot.planner.fruits(),
-            based_on_seq: seq,
-            planner_id: pid.clone(),
-            owner_epoch: term,
+        let fruits = fit.then(|| {
+            let fruits = slot.planner.fruits();
+            FruitEstimates {
+                history: slot.planner.season_histories(&fruits),
+                visit: slot.planner.visit(),
+                fruits,
+                based_on_seq: seq,
+                planner_id: pid.clone(),
+                owner_epoch: term,
+            }
         });
         let fit_ms = laps.lap_ms();
         if fit {

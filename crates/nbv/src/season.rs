@@ -102,10 +102,40 @@ impl SeasonTracker {
         &self.fruits
     }
 
+    /// A tracker that knows `fruits` (their histories) and `visits` visits so far (the next
+    /// one [`SeasonTracker::observe`] takes is visit `visits`); ids must be 1..=n in order, as
+    /// the tracker gives them, else the fruits are renumbered so.
+    pub fn from_fruits(rules: SeasonRules, fruits: Vec<SeasonFruit>, visits: usize) -> Self {
+        let fruits = fruits
+            .into_iter()
+            .enumerate()
+            .map(|(i, f)| SeasonFruit {
+                id: i as u32 + 1,
+                ..f
+            })
+            .collect();
+        Self {
+            rules,
+            fruits,
+            visits,
+        }
+    }
+
+    /// Visits taken so far: the next one [`SeasonTracker::observe`] takes.
+    pub fn visits(&self) -> usize {
+        self.visits
+    }
+
     /// Takes the next visit's estimates; returns each estimate's season id, in order.
     pub fn observe(&mut self, estimates: &[FruitEstimate]) -> Vec<u32> {
-        let visit = self.visits;
-        self.visits += 1;
+        self.observe_visit(self.visits, estimates)
+    }
+
+    /// Takes the estimates of visit `visit` (visits skipped before it saw nothing; an earlier
+    /// visit than the next is taken as the next); returns each estimate's season id, in order.
+    pub fn observe_visit(&mut self, visit: usize, estimates: &[FruitEstimate]) -> Vec<u32> {
+        let visit = visit.max(self.visits);
+        self.visits = visit + 1;
         let open: Vec<usize> = (0..self.fruits.len())
             .filter(|&i| {
                 self.fruits[i]

@@ -23,6 +23,7 @@ mod order;
 mod planning;
 mod published;
 mod reach;
+mod season;
 mod source;
 
 pub use detection::{detect_frame, detect_frame_with};

@@ -6,6 +6,7 @@ use std::borrow::Cow;
 use glasshouse_arm::Robot;
 use glasshouse_nbv::evidence::{interior_holds, ClusterShape, Interior, Verdict};
 use glasshouse_nbv::fit::{FitConfig, FruitSolid};
+use glasshouse_nbv::season::SeasonTracker;
 use glasshouse_nbv::split::fragments;
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, Plan, PlanError, PlannerConfig,
@@ -268,12 +269,12 @@ pub fn ranked_views(
 /// trolley's info, and what the map changes already published.
 #[derive(Clone)]
 pub struct TrolleyPlanner {
-    settings: PlanningSettings,
-    map: RoiMap,
+    pub(crate) settings: PlanningSettings,
+    pub(crate) map: RoiMap,
     tracker: FruitTracker,
-    info: Option<TrolleyInfo>,
+    pub(crate) info: Option<TrolleyInfo>,
     /// Views the arm cannot reach are never proposed (once the trolley's robot is known).
-    reach: Option<ReachFilter>,
+    pub(crate) reach: Option<ReachFilter>,
     /// Which frames the map takes (the last one integrated, see [`FrameOrder`]).
     order: FrameOrder,
     /// The map's ROI clusters, regrown only where a scan changed ROI voxels.
@@ -293,10 +294,13 @@ pub struct TrolleyPlanner {
     map_seq: u64,
     /// Voxels last published as occupied or ROI: MapUpdate carries solid voxels and the ones
     /// that stopped being solid, not every newly freed voxel (those would dominate the traffic).
-    published_solid: PublishedSolid,
+    pub(crate) published_solid: PublishedSolid,
     /// The registration of the last cloud taken, and how every registration so far ended.
     last_alignment: Option<Alignment>,
-    alignment_counts: AlignmentCounts,
+    pub(crate) alignment_counts: AlignmentCounts,
+    /// The trolley's visit of its row this copy is on, and the fruits of the visits before it.
+    pub(crate) visit: u32,
+    pub(crate) season: SeasonTracker,
 }
 
 impl TrolleyPlanner {
@@ -321,6 +325,8 @@ impl TrolleyPlanner {
             published_solid: PublishedSolid::default(),
             last_alignment: None,
             alignment_counts: AlignmentCounts::default(),
+            visit: 0,
+            season: SeasonTracker::default(),
         })
     }
 
@@ -682,6 +688,8 @@ impl TrolleyPlanner {
             next_fruit_id,
             // Set by the planner service (the newest ownership epoch it knows).
             owner_epoch: glasshouse_fleet::NO_EPOCH,
+            visit: self.visit,
+            season: self.season_histories(&[]),
         })
     }
 
@@ -714,6 +722,8 @@ impl TrolleyPlanner {
             tracked_fruits: tracked_fruits.collect(),
             next_fruit_id,
             owner_epoch: glasshouse_fleet::NO_EPOCH,
+            visit: self.visit,
+            season: self.season_histories(&[]),
         };
         StoredCopy {
             meta,
@@ -734,12 +744,19 @@ impl TrolleyPlanner {
         Self::from_map(settings, map, meta)
     }
 
-    /// A copy of `map` with the fruit ids and last frame of `snapshot`.
-    fn from_map(
-        settings: PlanningSettings,
-        map: RoiMap,
-        snapshot: &MapSnapshot,
-    ) -> Result<Self, PlanningError> {
+    /// A planner starting a new visit of its trolley's row on `prior` (the previous visit's map
+    /// made into a prior, [`glasshouse_roimap::RoiMap::prior`]): no fruit ids, no frame yet.
+    pub fn on_prior(settings: PlanningSettings, prior: RoiMap) -> Result<Self, PlanningError> {
+        Self::with_map(settings, prior)
+    }
+
+    /// The map, given up (the experiments keep a visit's map for the next one's prior).
+    pub fn into_map(self) -> RoiMap {
+        self.map
+    }
+
+    /// A planner on `map` (its resolution and range must be this planner's), no fruit ids yet.
+    fn with_map(settings: PlanningSettings, map: RoiMap) -> Result<Self, PlanningError> {
         let wanted = settings.map_config();
         if map.config().resolution_m != wanted.resolution_m
             || map.config().max_range_m != wanted.max_range_m
@@ -751,6 +768,16 @@ impl TrolleyPlanner {
         let mut planner = Self::new(settings)?;
         planner.published_solid = PublishedSolid::from_cells(map.solid_blocks());
         planner.map = map;
+        Ok(planner)
+    }
+
+    /// A copy of `map` with the fruit ids and last frame of `snapshot`.
+    fn from_map(
+        settings: PlanningSettings,
+        map: RoiMap,
+        snapshot: &MapSnapshot,
+    ) -> Result<Self, PlanningError> {
+        let mut planner = Self::with_map(settings, map)?;
         let tracked = snapshot.tracked_fruits.iter();
         planner.tracker = FruitTracker::from_state(
             tracked.map(|f| (f.id, f.centre_in_world.cast())).collect(),
@@ -758,6 +785,7 @@ impl TrolleyPlanner {
         );
         let last = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
         planner.order = FrameOrder::starting_at((last != FrameId::default()).then_some(last));
+        planner.set_season(snapshot.visit, &snapshot.season);
         Ok(planner)
     }
 }
@@ -787,6 +815,8 @@ impl TrolleyPlanner {
         fresh.info = self.info.take();
         fresh.reach = self.reach.take();
         fresh.alignment_counts = self.alignment_counts;
+        fresh.visit = self.visit;
+        fresh.season = std::mem::take(&mut self.season);
         *self = fresh;
         Ok(())
     }

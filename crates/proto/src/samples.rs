@@ -1,7 +1,7 @@
 //! Small, valid example messages of every kind, for tests and for fault injection.
 
 use glasshouse_geom::{look_at, Aabb, CameraIntrinsics, FruitEstimate, FruitSolid, SolidKind};
-use nalgebra::{Isometry3, Point3};
+use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::*;
 
@@ -97,6 +97,7 @@ pub fn trolley_info() -> TrolleyInfo {
         ))),
         owner_epoch: SAMPLE_OWNER_EPOCH,
         owner_id: "p1".into(),
+        visit: 2,
     }
 }
 
@@ -146,6 +147,22 @@ pub fn ranked_views() -> RankedViews {
     }
 }
 
+/// A fruit seen on visits 0 and 2 (`fruit_id` its estimate on the current one, 0: none).
+pub fn fruit_histories(fruit_id: u32) -> Vec<FruitHistory> {
+    let record = |visit: u32, grown: f64| FruitVisit {
+        visit,
+        centre: Point3::new(0.25, -0.5, 1.0),
+        // Values a wire f32 holds exactly, so that a round trip compares equal.
+        size_m: Vector3::new(0.0625, 0.078125, 0.09375) * grown,
+        volume_m3: 2f64.powi(-13) * grown.powi(3),
+    };
+    vec![FruitHistory {
+        season_id: 5,
+        fruit_id,
+        visits: vec![record(0, 1.0), record(2, 1.25)],
+    }]
+}
+
 /// A small valid FruitEstimates.
 pub fn fruit_estimates() -> FruitEstimates {
     FruitEstimates {
@@ -153,6 +170,8 @@ pub fn fruit_estimates() -> FruitEstimates {
         based_on_seq: 42,
         planner_id: "p1".into(),
         owner_epoch: SAMPLE_OWNER_EPOCH,
+        visit: 2,
+        history: fruit_histories(sample_fruit().id),
     }
 }
 
@@ -293,6 +312,8 @@ pub fn map_snapshot() -> MapSnapshot {
         }],
         next_fruit_id: 4,
         owner_epoch: SAMPLE_OWNER_EPOCH,
+        visit: 2,
+        season: fruit_histories(0),
     }
 }
 

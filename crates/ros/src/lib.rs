@@ -53,9 +53,10 @@ pub fn trolley_info(trolley: &RosTrolley, intrinsics: Option<CameraIntrinsics>) 
             cy: 0.0,
         }),
         robot: trolley.robot.clone().map(Box::new),
-        // The edge fills in the ownership term it obeys.
+        // The edge fills in the ownership term it obeys and its visit.
         owner_epoch: 0,
         owner_id: String::new(),
+        visit: 0,
     }
 }
 

@@ -224,9 +224,10 @@ impl TrolleySource for SimTrolley {
             scene_seed: self.settings.seed,
             intrinsics: self.camera.intrinsics,
             robot: Some(Box::new(robot.clone())),
-            // The edge fills in the ownership term it obeys.
+            // The edge fills in the ownership term it obeys and its visit.
             owner_epoch: 0,
             owner_id: String::new(),
+            visit: 0,
         }
     }
 

@@ -108,6 +108,18 @@ pub(super) fn store_term_start(
     (epoch != 0 && slot.stored.term != epoch).then(|| checkpoint(slot, (pid, tid), None))
 }
 
+/// After an owner's copy started a new visit: a full checkpoint of its new map (the clouds
+/// logged so far belong to the visit before, and a full checkpoint drops them).
+pub(super) fn store_visit_start(
+    store: Option<StoreRules>,
+    slot: &mut Slot,
+    (pid, tid): (&str, &str),
+) -> Option<PlannerAction> {
+    store?;
+    (slot.term() != 0 && slot.stored.term == slot.term())
+        .then(|| checkpoint(slot, (pid, tid), None))
+}
+
 /// The store write of a cloud an owner just integrated, when it goes in the log.
 pub(super) fn store_cloud(
     store: Option<StoreRules>,

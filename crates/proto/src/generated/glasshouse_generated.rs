@@ -2068,6 +2068,167 @@ impl<'a> View {
 
 }
 
+/// One fruit on one visit, as its history keeps it: centre in the first visit's frame (each
+/// visit registered to the fruits known before it), world axes, metres.
+// struct FruitVisit, aligned to 4
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct FruitVisit(pub [u8; 32]);
+impl Default for FruitVisit { 
+  fn default() -> Self { 
+    Self([0; 32])
+  }
+}
+impl ::core::fmt::Debug for FruitVisit {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("FruitVisit")
+      .field("visit", &self.visit())
+      .field("centre", &self.centre())
+      .field("size", &self.size())
+      .field("volume_m3", &self.volume_m3())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for FruitVisit {}
+impl<'a> ::flatbuffers::Follow<'a> for FruitVisit {
+  type Inner = &'a FruitVisit;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a FruitVisit>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a FruitVisit {
+  type Inner = &'a FruitVisit;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<FruitVisit>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for FruitVisit {
+    type Output = FruitVisit;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const FruitVisit as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(4)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for FruitVisit {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> FruitVisit {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    visit: u32,
+    centre: &Vec3,
+    size: &Vec3,
+    volume_m3: f32,
+  ) -> Self {
+    let mut s = Self([0; 32]);
+    s.set_visit(visit);
+    s.set_centre(centre);
+    s.set_size(size);
+    s.set_volume_m3(volume_m3);
+    s
+  }
+
+  pub fn visit(&self) -> u32 {
+    let mut mem = ::core::mem::MaybeUninit::<<u32 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u32 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_visit(&mut self, x: u32) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<u32 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn centre(&self) -> &Vec3 {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[4..].as_ptr() as *const Vec3) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_centre(&mut self, x: &Vec3) {
+    self.0[4..4 + 12].copy_from_slice(&x.0)
+  }
+
+  /// The size of the fruit's box.
+  pub fn size(&self) -> &Vec3 {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[16..].as_ptr() as *const Vec3) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_size(&mut self, x: &Vec3) {
+    self.0[16..16 + 12].copy_from_slice(&x.0)
+  }
+
+  /// The fitted solid's volume, else the box's.
+  pub fn volume_m3(&self) -> f32 {
+    let mut mem = ::core::mem::MaybeUninit::<<f32 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[28..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<f32 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_volume_m3(&mut self, x: f32) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[28..].as_mut_ptr(),
+        ::core::mem::size_of::<<f32 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
 /// One voxel's new value; key = floor(position / resolution).
 // struct VoxelChange, aligned to 4
 #[repr(transparent)]
@@ -3261,6 +3422,7 @@ impl<'a> TrolleyInfo<'a> {
   pub const VT_ROBOT_JSON: ::flatbuffers::VOffsetT = 32;
   pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 34;
   pub const VT_OWNER_ID: ::flatbuffers::VOffsetT = 36;
+  pub const VT_VISIT: ::flatbuffers::VOffsetT = 38;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3274,6 +3436,7 @@ impl<'a> TrolleyInfo<'a> {
     let mut builder = TrolleyInfoBuilder::new(_fbb);
     builder.add_owner_epoch(args.owner_epoch);
     builder.add_scene_seed(args.scene_seed);
+    builder.add_visit(args.visit);
     if let Some(x) = args.owner_id { builder.add_owner_id(x); }
     if let Some(x) = args.robot_json { builder.add_robot_json(x); }
     if let Some(x) = args.intrinsics { builder.add_intrinsics(x); }
@@ -3352,6 +3515,16 @@ impl<'a> TrolleyInfo<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<&str>>(TrolleyInfo::VT_OWNER_ID, None)}
   }
+  /// Which visit of its row the trolley is on (0: the first). A planner that sees a higher one
+  /// than its copy's closes the visit before (its fruits go into their histories) and starts the
+  /// new one from the map the previous visit left, made into a prior.
+  #[inline]
+  pub fn visit(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(TrolleyInfo::VT_VISIT, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
@@ -3369,6 +3542,7 @@ impl ::flatbuffers::Verifiable for TrolleyInfo<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("robot_json", Self::VT_ROBOT_JSON, false)?
      .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("owner_id", Self::VT_OWNER_ID, false)?
+     .visit_field::<u32>("visit", Self::VT_VISIT, false)?
      .finish();
     Ok(())
   }
@@ -3383,6 +3557,7 @@ pub struct TrolleyInfoArgs<'a> {
     pub robot_json: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub owner_epoch: u64,
     pub owner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
+    pub visit: u32,
 }
 impl<'a> Default for TrolleyInfoArgs<'a> {
   #[inline]
@@ -3397,6 +3572,7 @@ impl<'a> Default for TrolleyInfoArgs<'a> {
       robot_json: None,
       owner_epoch: 0,
       owner_id: None,
+      visit: 0,
     }
   }
 }
@@ -3443,6 +3619,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> TrolleyInfoBuilder<'a, 'b, A>
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(TrolleyInfo::VT_OWNER_ID, owner_id);
   }
   #[inline]
+  pub fn add_visit(&mut self, visit: u32) {
+    self.fbb_.push_slot::<u32>(TrolleyInfo::VT_VISIT, visit, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> TrolleyInfoBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     TrolleyInfoBuilder {
@@ -3469,6 +3649,7 @@ impl ::core::fmt::Debug for TrolleyInfo<'_> {
       ds.field("robot_json", &self.robot_json());
       ds.field("owner_epoch", &self.owner_epoch());
       ds.field("owner_id", &self.owner_id());
+      ds.field("visit", &self.visit());
       ds.finish()
   }
 }
@@ -4429,6 +4610,139 @@ impl ::core::fmt::Debug for Fruit<'_> {
       ds.finish()
   }
 }
+pub enum FruitHistoryOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// A fruit over the visits of its row: its season id (stable from visit to visit), the id of its
+/// estimate on the current visit (0: not seen on it: hidden, or harvested), and one record per
+/// visit it was seen on, oldest first (the current visit's last, while it lasts).
+pub struct FruitHistory<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for FruitHistory<'a> {
+  type Inner = FruitHistory<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> FruitHistory<'a> {
+  pub const VT_SEASON_ID: ::flatbuffers::VOffsetT = 4;
+  pub const VT_FRUIT_ID: ::flatbuffers::VOffsetT = 6;
+  pub const VT_VISITS: ::flatbuffers::VOffsetT = 8;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    FruitHistory { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args FruitHistoryArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<FruitHistory<'bldr>> {
+    let mut builder = FruitHistoryBuilder::new(_fbb);
+    if let Some(x) = args.visits { builder.add_visits(x); }
+    builder.add_fruit_id(args.fruit_id);
+    builder.add_season_id(args.season_id);
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn season_id(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FruitHistory::VT_SEASON_ID, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn fruit_id(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FruitHistory::VT_FRUIT_ID, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn visits(&self) -> Option<::flatbuffers::Vector<'a, FruitVisit>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, FruitVisit>>>(FruitHistory::VT_VISITS, None)}
+  }
+}
+
+impl ::flatbuffers::Verifiable for FruitHistory<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<u32>("season_id", Self::VT_SEASON_ID, false)?
+     .visit_field::<u32>("fruit_id", Self::VT_FRUIT_ID, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, FruitVisit>>>("visits", Self::VT_VISITS, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct FruitHistoryArgs<'a> {
+    pub season_id: u32,
+    pub fruit_id: u32,
+    pub visits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, FruitVisit>>>,
+}
+impl<'a> Default for FruitHistoryArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    FruitHistoryArgs {
+      season_id: 0,
+      fruit_id: 0,
+      visits: None,
+    }
+  }
+}
+
+pub struct FruitHistoryBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitHistoryBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_season_id(&mut self, season_id: u32) {
+    self.fbb_.push_slot::<u32>(FruitHistory::VT_SEASON_ID, season_id, 0);
+  }
+  #[inline]
+  pub fn add_fruit_id(&mut self, fruit_id: u32) {
+    self.fbb_.push_slot::<u32>(FruitHistory::VT_FRUIT_ID, fruit_id, 0);
+  }
+  #[inline]
+  pub fn add_visits(&mut self, visits: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , FruitVisit>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitHistory::VT_VISITS, visits);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitHistoryBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    FruitHistoryBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<FruitHistory<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for FruitHistory<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("FruitHistory");
+      ds.field("season_id", &self.season_id());
+      ds.field("fruit_id", &self.fruit_id());
+      ds.field("visits", &self.visits());
+      ds.finish()
+  }
+}
 pub enum FruitEstimatesOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
@@ -4449,6 +4763,8 @@ impl<'a> FruitEstimates<'a> {
   pub const VT_BASED_ON_SEQ: ::flatbuffers::VOffsetT = 6;
   pub const VT_PLANNER_ID: ::flatbuffers::VOffsetT = 8;
   pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 10;
+  pub const VT_VISIT: ::flatbuffers::VOffsetT = 12;
+  pub const VT_HISTORY: ::flatbuffers::VOffsetT = 14;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4462,6 +4778,8 @@ impl<'a> FruitEstimates<'a> {
     let mut builder = FruitEstimatesBuilder::new(_fbb);
     builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_seq(args.based_on_seq);
+    if let Some(x) = args.history { builder.add_history(x); }
+    builder.add_visit(args.visit);
     if let Some(x) = args.planner_id { builder.add_planner_id(x); }
     if let Some(x) = args.fruits { builder.add_fruits(x); }
     builder.finish()
@@ -4498,6 +4816,23 @@ impl<'a> FruitEstimates<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(FruitEstimates::VT_OWNER_EPOCH, Some(0)).unwrap()}
   }
+  /// The trolley's visit of its row these fruits are from (TrolleyInfo.visit).
+  #[inline]
+  pub fn visit(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(FruitEstimates::VT_VISIT, Some(0)).unwrap()}
+  }
+  /// Every fruit of the row's season: the current visit's and every earlier visit's (empty:
+  /// none known, or a sender without histories).
+  #[inline]
+  pub fn history(&self) -> Option<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory<'a>>>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory>>>>(FruitEstimates::VT_HISTORY, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for FruitEstimates<'_> {
@@ -4510,6 +4845,8 @@ impl ::flatbuffers::Verifiable for FruitEstimates<'_> {
      .visit_field::<u64>("based_on_seq", Self::VT_BASED_ON_SEQ, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<&str>>("planner_id", Self::VT_PLANNER_ID, false)?
      .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
+     .visit_field::<u32>("visit", Self::VT_VISIT, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<FruitHistory>>>>("history", Self::VT_HISTORY, false)?
      .finish();
     Ok(())
   }
@@ -4519,6 +4856,8 @@ pub struct FruitEstimatesArgs<'a> {
     pub based_on_seq: u64,
     pub planner_id: Option<::flatbuffers::WIPOffset<&'a str>>,
     pub owner_epoch: u64,
+    pub visit: u32,
+    pub history: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory<'a>>>>>,
 }
 impl<'a> Default for FruitEstimatesArgs<'a> {
   #[inline]
@@ -4528,6 +4867,8 @@ impl<'a> Default for FruitEstimatesArgs<'a> {
       based_on_seq: 0,
       planner_id: None,
       owner_epoch: 0,
+      visit: 0,
+      history: None,
     }
   }
 }
@@ -4554,6 +4895,14 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitEstimatesBuilder<'a, 'b,
     self.fbb_.push_slot::<u64>(FruitEstimates::VT_OWNER_EPOCH, owner_epoch, 0);
   }
   #[inline]
+  pub fn add_visit(&mut self, visit: u32) {
+    self.fbb_.push_slot::<u32>(FruitEstimates::VT_VISIT, visit, 0);
+  }
+  #[inline]
+  pub fn add_history(&mut self, history: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , ::flatbuffers::ForwardsUOffset<FruitHistory<'b >>>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitEstimates::VT_HISTORY, history);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitEstimatesBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FruitEstimatesBuilder {
@@ -4575,6 +4924,8 @@ impl ::core::fmt::Debug for FruitEstimates<'_> {
       ds.field("based_on_seq", &self.based_on_seq());
       ds.field("planner_id", &self.planner_id());
       ds.field("owner_epoch", &self.owner_epoch());
+      ds.field("visit", &self.visit());
+      ds.field("history", &self.history());
       ds.finish()
   }
 }
@@ -6188,6 +6539,8 @@ impl<'a> MapSnapshot<'a> {
   pub const VT_NEXT_FRUIT_ID: ::flatbuffers::VOffsetT = 14;
   pub const VT_BASED_ON_EPOCH_NS: ::flatbuffers::VOffsetT = 16;
   pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 18;
+  pub const VT_VISIT: ::flatbuffers::VOffsetT = 20;
+  pub const VT_SEASON: ::flatbuffers::VOffsetT = 22;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -6202,6 +6555,8 @@ impl<'a> MapSnapshot<'a> {
     builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_epoch_ns(args.based_on_epoch_ns);
     builder.add_based_on_seq(args.based_on_seq);
+    if let Some(x) = args.season { builder.add_season(x); }
+    builder.add_visit(args.visit);
     builder.add_next_fruit_id(args.next_fruit_id);
     if let Some(x) = args.tracked_fruits { builder.add_tracked_fruits(x); }
     if let Some(x) = args.map { builder.add_map(x); }
@@ -6272,6 +6627,21 @@ impl<'a> MapSnapshot<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(MapSnapshot::VT_OWNER_EPOCH, Some(0)).unwrap()}
   }
+  /// The trolley's visit the map is from, and the fruits of the visits before it (fruit_id 0).
+  #[inline]
+  pub fn visit(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(MapSnapshot::VT_VISIT, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn season(&self) -> Option<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory<'a>>>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory>>>>(MapSnapshot::VT_SEASON, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
@@ -6288,6 +6658,8 @@ impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
      .visit_field::<u32>("next_fruit_id", Self::VT_NEXT_FRUIT_ID, false)?
      .visit_field::<u64>("based_on_epoch_ns", Self::VT_BASED_ON_EPOCH_NS, false)?
      .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
+     .visit_field::<u32>("visit", Self::VT_VISIT, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<FruitHistory>>>>("season", Self::VT_SEASON, false)?
      .finish();
     Ok(())
   }
@@ -6301,6 +6673,8 @@ pub struct MapSnapshotArgs<'a> {
     pub next_fruit_id: u32,
     pub based_on_epoch_ns: u64,
     pub owner_epoch: u64,
+    pub visit: u32,
+    pub season: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory<'a>>>>>,
 }
 impl<'a> Default for MapSnapshotArgs<'a> {
   #[inline]
@@ -6314,6 +6688,8 @@ impl<'a> Default for MapSnapshotArgs<'a> {
       next_fruit_id: 0,
       based_on_epoch_ns: 0,
       owner_epoch: 0,
+      visit: 0,
+      season: None,
     }
   }
 }
@@ -6356,6 +6732,14 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapSnapshotBuilder<'a, 'b, A>
     self.fbb_.push_slot::<u64>(MapSnapshot::VT_OWNER_EPOCH, owner_epoch, 0);
   }
   #[inline]
+  pub fn add_visit(&mut self, visit: u32) {
+    self.fbb_.push_slot::<u32>(MapSnapshot::VT_VISIT, visit, 0);
+  }
+  #[inline]
+  pub fn add_season(&mut self, season: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , ::flatbuffers::ForwardsUOffset<FruitHistory<'b >>>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_SEASON, season);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapSnapshotBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     MapSnapshotBuilder {
@@ -6381,6 +6765,8 @@ impl ::core::fmt::Debug for MapSnapshot<'_> {
       ds.field("next_fruit_id", &self.next_fruit_id());
       ds.field("based_on_epoch_ns", &self.based_on_epoch_ns());
       ds.field("owner_epoch", &self.owner_epoch());
+      ds.field("visit", &self.visit());
+      ds.field("season", &self.season());
       ds.finish()
   }
 }

@@ -17,6 +17,103 @@ pub struct FruitEstimates {
     /// The ownership epoch of the owner that estimated them (0: none, e.g. the simulator's
     /// truth).
     pub owner_epoch: u64,
+    /// The trolley's visit of its row these fruits are from (0: the first).
+    pub visit: u32,
+    /// Every fruit of the row's season, the current visit's and the earlier ones' (empty: none
+    /// known, or a sender without histories).
+    pub history: Vec<FruitHistory>,
+}
+
+/// One fruit on one visit: centre in the first visit's frame, world axes, metres.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FruitVisit {
+    pub visit: u32,
+    pub centre: Point3<f64>,
+    /// The size of the fruit's box.
+    pub size_m: Vector3<f64>,
+    /// The fitted solid's volume, else the box's.
+    pub volume_m3: f64,
+}
+
+/// A fruit over the visits of its row: its season id, its estimate's id on the current visit
+/// (0: not seen on it), its records oldest first.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FruitHistory {
+    pub season_id: u32,
+    pub fruit_id: u32,
+    pub visits: Vec<FruitVisit>,
+}
+
+type HistoryVector<'a> =
+    flatbuffers::Vector<'a, flatbuffers::ForwardsUOffset<fb::FruitHistory<'a>>>;
+
+/// Writes fruit histories (FruitEstimates' and MapSnapshot's).
+pub(super) fn write_histories<'a>(
+    fbb: &mut FlatBufferBuilder<'a>,
+    histories: &[FruitHistory],
+) -> WIPOffset<HistoryVector<'a>> {
+    let tables: Vec<_> = histories
+        .iter()
+        .map(|h| {
+            let visits: Vec<fb::FruitVisit> = h
+                .visits
+                .iter()
+                .map(|v| {
+                    fb::FruitVisit::new(
+                        v.visit,
+                        &vec3(&v.centre.coords),
+                        &vec3(&v.size_m),
+                        v.volume_m3 as f32,
+                    )
+                })
+                .collect();
+            let visits = fbb.create_vector(&visits);
+            fb::FruitHistory::create(
+                fbb,
+                &fb::FruitHistoryArgs {
+                    season_id: h.season_id,
+                    fruit_id: h.fruit_id,
+                    visits: Some(visits),
+                },
+            )
+        })
+        .collect();
+    fbb.create_vector(&tables)
+}
+
+/// Reads fruit histories; a record with a non-finite value is an error.
+pub(super) fn read_histories(
+    kind: MessageKind,
+    histories: Option<HistoryVector<'_>>,
+) -> Result<Vec<FruitHistory>> {
+    let Some(histories) = histories else {
+        return Ok(Vec::new());
+    };
+    histories
+        .iter()
+        .map(|h| {
+            let visits = h.visits().map(|vs| vs.iter().collect::<Vec<_>>());
+            let visits = visits.unwrap_or_default().into_iter().map(|v| {
+                let record = FruitVisit {
+                    visit: v.visit(),
+                    centre: point(v.centre()),
+                    size_m: vector(v.size()),
+                    volume_m3: v.volume_m3().into(),
+                };
+                let finite = record.centre.iter().chain(record.size_m.iter()).all(|x| x.is_finite())
+                    && record.volume_m3.is_finite();
+                match finite {
+                    true => Ok(record),
+                    false => Err(content(kind, "fruit history holds a non-finite value")),
+                }
+            });
+            Ok(FruitHistory {
+                season_id: h.season_id(),
+                fruit_id: h.fruit_id(),
+                visits: visits.collect::<Result<Vec<_>>>()?,
+            })
+        })
+        .collect()
 }
 
 impl Wire for FruitEstimates {
@@ -26,6 +123,7 @@ impl Wire for FruitEstimates {
         let fruits: Vec<_> = self.fruits.iter().map(|f| write_fruit(fbb, f)).collect();
         let fruits = fbb.create_vector(&fruits);
         let planner = fbb.create_string(&self.planner_id);
+        let history = write_histories(fbb, &self.history);
         fb::FruitEstimates::create(
             fbb,
             &fb::FruitEstimatesArgs {
@@ -33,6 +131,8 @@ impl Wire for FruitEstimates {
                 based_on_seq: self.based_on_seq,
                 planner_id: Some(planner),
                 owner_epoch: self.owner_epoch,
+                visit: self.visit,
+                history: Some(history),
             },
         )
         .as_union_value()
@@ -54,6 +154,8 @@ impl Wire for FruitEstimates {
             based_on_seq: m.based_on_seq(),
             planner_id: string_or_empty(m.planner_id()),
             owner_epoch: m.owner_epoch(),
+            visit: m.visit(),
+            history: read_histories(Self::KIND, m.history())?,
         })
     }
 }

@@ -4,6 +4,7 @@ use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 use nalgebra::Point3;
 
 use super::convert::{payload, point3f, string_or_empty, vec3f};
+use super::fruit_estimates::{read_histories, write_histories, FruitHistory};
 use crate::{fb, MessageKind, Result, Wire};
 
 /// A fruit the tracker follows (id and centre), carried in [`MapSnapshot`].
@@ -29,6 +30,9 @@ pub struct MapSnapshot {
     /// The newest ownership epoch the answering planner knows for the trolley (its own term
     /// when it owns it); a receiver that has seen a newer one refuses the snapshot as stale.
     pub owner_epoch: u64,
+    /// The trolley's visit the map is from, and the fruits of the visits before it.
+    pub visit: u32,
+    pub season: Vec<FruitHistory>,
 }
 
 impl Wire for MapSnapshot {
@@ -44,6 +48,7 @@ impl Wire for MapSnapshot {
             .map(|f| fb::TrackedFruit::new(f.id, &vec3f(&f.centre_in_world)))
             .collect();
         let tracked = fbb.create_vector(&tracked);
+        let season = write_histories(fbb, &self.season);
         fb::MapSnapshot::create(
             fbb,
             &fb::MapSnapshotArgs {
@@ -55,6 +60,8 @@ impl Wire for MapSnapshot {
                 next_fruit_id: self.next_fruit_id,
                 based_on_epoch_ns: self.based_on_epoch_ns,
                 owner_epoch: self.owner_epoch,
+                visit: self.visit,
+                season: Some(season),
             },
         )
         .as_union_value()
@@ -78,6 +85,8 @@ impl Wire for MapSnapshot {
                 .unwrap_or_default(),
             next_fruit_id: m.next_fruit_id(),
             owner_epoch: m.owner_epoch(),
+            visit: m.visit(),
+            season: read_histories(Self::KIND, m.season())?,
         })
     }
 }

@@ -32,6 +32,9 @@ pub struct TrolleyInfo {
     /// The planner whose views the edge took under `owner_epoch` (empty: none yet): the one a
     /// replaced owner catches up from.
     pub owner_id: String,
+    /// Which visit of its row the trolley is on (0: the first); a planner that sees a higher
+    /// one than its copy's starts the new visit from the previous visit's map as a prior.
+    pub visit: u32,
 }
 
 /// The robot travels as JSON in `robot_json` (one typed value on each side; the schema's older
@@ -76,6 +79,7 @@ impl Wire for TrolleyInfo {
                 robot_json: Some(robot_json),
                 owner_epoch: self.owner_epoch,
                 owner_id: Some(owner_id),
+                visit: self.visit,
             },
         )
         .as_union_value()
@@ -94,6 +98,7 @@ impl Wire for TrolleyInfo {
             robot: robot_from_json(m.robot_json().unwrap_or_default())?,
             owner_epoch: m.owner_epoch(),
             owner_id: string_or_empty(m.owner_id()),
+            visit: m.visit(),
         })
     }
 }

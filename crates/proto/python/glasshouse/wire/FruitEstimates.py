@@ -6,6 +6,7 @@ import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
 from glasshouse.wire.Fruit import Fruit
+from glasshouse.wire.FruitHistory import FruitHistory
 from typing import Optional
 np = import_numpy()
 
@@ -78,8 +79,42 @@ class FruitEstimates(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # The trolley's visit of its row these fruits are from (TrolleyInfo.visit).
+    # FruitEstimates
+    def Visit(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
+        return 0
+
+    # Every fruit of the row's season: the current visit's and every earlier visit's (empty:
+    # none known, or a sender without histories).
+    # FruitEstimates
+    def History(self, j: int) -> Optional[FruitHistory]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 4
+            x = self._tab.Indirect(x)
+            obj = FruitHistory()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # FruitEstimates
+    def HistoryLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # FruitEstimates
+    def HistoryIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        return o == 0
+
 def FruitEstimatesStart(builder: flatbuffers.Builder):
-    builder.StartObject(4)
+    builder.StartObject(6)
 
 def Start(builder: flatbuffers.Builder):
     FruitEstimatesStart(builder)
@@ -113,6 +148,24 @@ def FruitEstimatesAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
 
 def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
     FruitEstimatesAddOwnerEpoch(builder, ownerEpoch)
+
+def FruitEstimatesAddVisit(builder: flatbuffers.Builder, visit: int):
+    builder.PrependUint32Slot(4, visit, 0)
+
+def AddVisit(builder: flatbuffers.Builder, visit: int):
+    FruitEstimatesAddVisit(builder, visit)
+
+def FruitEstimatesAddHistory(builder: flatbuffers.Builder, history: int):
+    builder.PrependUOffsetTRelativeSlot(5, flatbuffers.number_types.UOffsetTFlags.py_type(history), 0)
+
+def AddHistory(builder: flatbuffers.Builder, history: int):
+    FruitEstimatesAddHistory(builder, history)
+
+def FruitEstimatesStartHistoryVector(builder, numElems: int) -> int:
+    return builder.StartVector(4, numElems, 4)
+
+def StartHistoryVector(builder, numElems: int) -> int:
+    return FruitEstimatesStartHistoryVector(builder, numElems)
 
 def FruitEstimatesEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

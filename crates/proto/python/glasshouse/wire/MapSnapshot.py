@@ -5,6 +5,7 @@
 import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
+from glasshouse.wire.FruitHistory import FruitHistory
 from glasshouse.wire.TrackedFruit import TrackedFruit
 from typing import Optional
 np = import_numpy()
@@ -131,8 +132,40 @@ class MapSnapshot(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # The trolley's visit the map is from, and the fruits of the visits before it (fruit_id 0).
+    # MapSnapshot
+    def Visit(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
+        return 0
+
+    # MapSnapshot
+    def Season(self, j: int) -> Optional[FruitHistory]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 4
+            x = self._tab.Indirect(x)
+            obj = FruitHistory()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # MapSnapshot
+    def SeasonLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # MapSnapshot
+    def SeasonIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        return o == 0
+
 def MapSnapshotStart(builder: flatbuffers.Builder):
-    builder.StartObject(8)
+    builder.StartObject(10)
 
 def Start(builder: flatbuffers.Builder):
     MapSnapshotStart(builder)
@@ -196,6 +229,24 @@ def MapSnapshotAddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
 
 def AddOwnerEpoch(builder: flatbuffers.Builder, ownerEpoch: int):
     MapSnapshotAddOwnerEpoch(builder, ownerEpoch)
+
+def MapSnapshotAddVisit(builder: flatbuffers.Builder, visit: int):
+    builder.PrependUint32Slot(8, visit, 0)
+
+def AddVisit(builder: flatbuffers.Builder, visit: int):
+    MapSnapshotAddVisit(builder, visit)
+
+def MapSnapshotAddSeason(builder: flatbuffers.Builder, season: int):
+    builder.PrependUOffsetTRelativeSlot(9, flatbuffers.number_types.UOffsetTFlags.py_type(season), 0)
+
+def AddSeason(builder: flatbuffers.Builder, season: int):
+    MapSnapshotAddSeason(builder, season)
+
+def MapSnapshotStartSeasonVector(builder, numElems: int) -> int:
+    return builder.StartVector(4, numElems, 4)
+
+def StartSeasonVector(builder, numElems: int) -> int:
+    return MapSnapshotStartSeasonVector(builder, numElems)
 
 def MapSnapshotEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -112,8 +112,18 @@ class TrolleyInfo(object):
             return self._tab.String(o + self._tab.Pos)
         return None
 
+    # Which visit of its row the trolley is on (0: the first). A planner that sees a higher one
+    # than its copy's closes the visit before (its fruits go into their histories) and starts the
+    # new one from the map the previous visit left, made into a prior.
+    # TrolleyInfo
+    def Visit(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(38))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
+        return 0
+
 def TrolleyInfoStart(builder: flatbuffers.Builder):
-    builder.StartObject(17)
+    builder.StartObject(18)
 
 def Start(builder: flatbuffers.Builder):
     TrolleyInfoStart(builder)
@@ -171,6 +181,12 @@ def TrolleyInfoAddOwnerId(builder: flatbuffers.Builder, ownerId: int):
 
 def AddOwnerId(builder: flatbuffers.Builder, ownerId: int):
     TrolleyInfoAddOwnerId(builder, ownerId)
+
+def TrolleyInfoAddVisit(builder: flatbuffers.Builder, visit: int):
+    builder.PrependUint32Slot(17, visit, 0)
+
+def AddVisit(builder: flatbuffers.Builder, visit: int):
+    TrolleyInfoAddVisit(builder, visit)
 
 def TrolleyInfoEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

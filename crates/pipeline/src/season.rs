@@ -1,0 +1,96 @@
+//! A trolley's visits of its row on the planner's copy: the visit it is on, the fruits of the
+//! visits before it ([`SeasonTracker`]: each fruit's id from visit to visit and its history), and
+//! the step from one visit to the next ([`TrolleyPlanner::start_visit`]: the previous visit's
+//! map made into a prior, [`glasshouse_roimap::RoiMap::prior`]).
+
+use glasshouse_geom::FruitEstimate;
+use glasshouse_nbv::season::{SeasonFruit, SeasonRules, SeasonTracker, VisitRecord};
+use glasshouse_proto::{FruitHistory, FruitVisit};
+use glasshouse_roimap::PriorRules;
+
+use crate::{PlanningError, TrolleyPlanner};
+
+impl TrolleyPlanner {
+    /// The trolley's visit of its row this copy is on (0: the first).
+    pub fn visit(&self) -> u32 {
+        self.visit
+    }
+
+    /// Closes the current visit (its fruits go into their histories) and starts visit `visit`
+    /// from the current map made into a prior: no fruit ids, no frame yet; the trolley's info,
+    /// reach filter, registration counts and what was published are kept. Returns false, and
+    /// changes nothing, when `visit` is not later than the current one.
+    pub fn start_visit(&mut self, visit: u32, rules: &PriorRules) -> Result<bool, PlanningError> {
+        if visit <= self.visit {
+            return Ok(false);
+        }
+        rules.validate().map_err(PlanningError::Settings)?;
+        let fruits = self.fruits();
+        self.season.observe_visit(self.visit as usize, &fruits);
+        let prior = self.map.prior(rules);
+        let mut next = Self::on_prior(self.settings.clone(), prior)?;
+        next.info = self.info.take();
+        next.reach = self.reach.take();
+        next.alignment_counts = self.alignment_counts;
+        // Dashboards hold what was published; the voxels forgotten stay published until seen
+        // again (then they are published as what they are now).
+        next.published_solid = std::mem::take(&mut self.published_solid);
+        next.season = std::mem::take(&mut self.season);
+        next.visit = visit;
+        *self = next;
+        Ok(true)
+    }
+
+    /// Every fruit of the season as FruitEstimates carries it: the fruits of the earlier visits
+    /// and `current` (this visit's estimates, matched to them as a visit's end would match
+    /// them, new ones numbered after them), each with its estimate's id on this visit (0: not
+    /// seen on it). Nothing is committed: the visit's end decides.
+    pub fn season_histories(&self, current: &[FruitEstimate]) -> Vec<FruitHistory> {
+        let mut season = self.season.clone();
+        let ids = season.observe_visit(self.visit as usize, current);
+        season
+            .fruits()
+            .iter()
+            .map(|f| FruitHistory {
+                season_id: f.id,
+                fruit_id: ids
+                    .iter()
+                    .position(|&id| id == f.id)
+                    .map_or(0, |i| current[i].id),
+                visits: f.history.iter().map(wire_record).collect(),
+            })
+            .collect()
+    }
+
+    /// Takes the visit and the earlier visits' fruits a snapshot or store carried.
+    pub(crate) fn set_season(&mut self, visit: u32, fruits: &[FruitHistory]) {
+        let fruits = fruits
+            .iter()
+            .map(|h| SeasonFruit {
+                id: h.season_id,
+                history: h.visits.iter().map(tracker_record).collect(),
+            })
+            .collect();
+        self.visit = visit;
+        self.season = SeasonTracker::from_fruits(SeasonRules::default(), fruits, visit as usize);
+    }
+}
+
+fn wire_record(r: &VisitRecord) -> FruitVisit {
+    FruitVisit {
+        visit: u32::try_from(r.visit).unwrap_or(u32::MAX),
+        centre: r.centre,
+        size_m: r.size_m,
+        volume_m3: r.volume_m3,
+    }
+}
+
+fn tracker_record(r: &FruitVisit) -> VisitRecord {
+    VisitRecord {
+        visit: r.visit as usize,
+        centre: r.centre,
+        size_m: r.size_m,
+        volume_m3: r.volume_m3,
+        visit_fruit_id: 0,
+    }
+}

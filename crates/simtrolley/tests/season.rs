@@ -1,0 +1,76 @@
+//! A trolley's visits on the planner's copy: a new visit starts on the previous visit's map made
+//! into a prior, and each fruit keeps its season id and history, through snapshots too.
+#![allow(clippy::unwrap_used)]
+
+use glasshouse_detect::DetectorConfig;
+use glasshouse_pipeline::*;
+use glasshouse_proto::FrameId;
+use glasshouse_roimap::PriorRules;
+use glasshouse_sim::ScenarioKind;
+use glasshouse_simtrolley::*;
+
+/// A planner that integrated three frames of scenario 2's first view, and its fruits.
+fn planner_with_fruit() -> (TrolleyPlanner, Vec<glasshouse_geom::FruitEstimate>) {
+    let mut trolley = SimTrolley::new(SimTrolleySettings::new(
+        ScenarioKind::Two,
+        3,
+        (320, 240),
+        1.0,
+    ))
+    .unwrap();
+    let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    planner.set_info(trolley.info()).unwrap();
+    let detector = DetectorConfig::default();
+    for seq in 1..=3 {
+        let frame = trolley.capture(seq).unwrap().unwrap();
+        let cloud = detect_frame(&frame, FrameId::new(0, seq), "d", &detector).unwrap();
+        planner.integrate(&cloud, 0).unwrap();
+    }
+    let fruits = planner.fruits();
+    (planner, fruits)
+}
+
+#[test]
+fn a_new_visit_starts_on_a_prior_and_keeps_the_fruits_histories() {
+    let (mut planner, seen) = planner_with_fruit();
+    assert!(!seen.is_empty(), "no fruit in the first view");
+    let known_before = planner.map().counts().known;
+    assert!(!planner.start_visit(0, &PriorRules::default()).unwrap());
+    assert!(planner.start_visit(1, &PriorRules::default()).unwrap());
+    assert_eq!(planner.visit(), 1);
+    assert!(planner.fruits().is_empty(), "no fruit on the prior's word");
+    let known = planner.map().counts().known;
+    assert!(
+        known > 0 && known < known_before,
+        "{known} of {known_before}"
+    );
+    assert_eq!(planner.last_frame(), None);
+    // Not seen yet on this visit: the first visit's fruits, each with one record.
+    let histories = planner.season_histories(&[]);
+    assert_eq!(histories.len(), seen.len());
+    assert!(histories
+        .iter()
+        .all(|h| h.fruit_id == 0 && h.visits.len() == 1 && h.visits[0].visit == 0));
+    // Seen again: the same season ids, a record of this visit each, this visit's fruit ids.
+    let again = planner.season_histories(&seen);
+    assert_eq!(again.len(), seen.len());
+    for (h, before) in again.iter().zip(&histories) {
+        assert_eq!(h.season_id, before.season_id);
+        assert_eq!(h.visits.len(), 2);
+        assert_eq!(h.visits[1].visit, 1);
+        assert!(seen.iter().any(|f| f.id == h.fruit_id));
+    }
+    // A snapshot (and so a store's checkpoint and a replica) carries the visit and histories.
+    let snapshot = planner.snapshot("t1", "p1").unwrap();
+    assert_eq!(snapshot.visit, 1);
+    let copy = TrolleyPlanner::from_snapshot(planner.settings().clone(), &snapshot).unwrap();
+    assert_eq!(copy.visit(), 1);
+    assert_eq!(copy.season_histories(&seen), again);
+    // A bad prior rule is refused, nothing changed.
+    let bad = PriorRules {
+        fruit_below_threshold_logodds: 0.0,
+        ..PriorRules::default()
+    };
+    assert!(planner.start_visit(2, &bad).is_err());
+    assert_eq!(planner.visit(), 1);
+}

@@ -30,8 +30,8 @@ use glasshouse_fleet::EpochFence;
 use glasshouse_geom::FruitEstimate;
 use glasshouse_proto::keys::{self, ParsedKey, Qos, TrolleyTopic};
 use glasshouse_proto::{
-    DetectorStatus, FleetFruits, FrameId, FrameRegistration, Header, Message, PlannerStatus,
-    RankedViews, TrolleyInfo, TrolleyStatus,
+    DetectorStatus, FleetFruits, FrameId, FrameRegistration, FruitHistory, Header, Message,
+    PlannerStatus, RankedViews, TrolleyInfo, TrolleyStatus,
 };
 use serde::Deserialize;
 use zenoh::Session;
@@ -119,6 +119,10 @@ pub struct TrolleyView {
     pub fruits: Vec<FruitEstimate>,
     /// The frame the latest fruits were estimated on.
     pub fruits_based_on_seq: u64,
+    /// The visit of its row the latest fruits are from (0: the first).
+    pub visit: u32,
+    /// Every fruit of the row's season as the latest fruits carried it.
+    pub history: Vec<FruitHistory>,
     pub last_views: Option<RankedViews>,
     pub frames: u64,
     pub clouds: u64,
@@ -201,6 +205,8 @@ impl TrolleyView {
             (TrolleyTopic::Fruits, Message::FruitEstimates(f)) => {
                 self.fruits = f.fruits.clone();
                 self.fruits_based_on_seq = f.based_on_seq;
+                self.visit = f.visit;
+                self.history = f.history.clone();
                 self.covered_volume = covered_volume(&self.fruits, &self.truth);
             }
             (TrolleyTopic::Truth, Message::FruitEstimates(f)) if self.truth != f.fruits => {

@@ -3,7 +3,14 @@
 //! - `GET /`: the page (plain HTML/CSS/JS embedded in the binary; polls the API every second);
 //! - `GET /api/fleet`: trolleys, planners, detectors, the Rerun viewer link;
 //! - `GET /api/trolleys/{id}/fruits` (`?format=csv` for CSV): one trolley's fruit estimates;
+//! - `GET /api/trolleys/{id}/season` (`?format=csv` for CSV, `?download=1` to save the JSON):
+//!   every fruit of one trolley's row over the visits (centre, size, volume per visit) and
+//!   whether it was seen on the current visit;
+//! - `GET /api/season`: a row per trolley: its visit, fruits seen now and known this season,
+//!   fruits not seen or new on this visit, mean volume now and on the previous visit;
 //! - `GET /healthz`: `ok`.
+//!
+//! A season record holding a non-finite value is left out of both: JSON has no NaN.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -14,7 +21,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
-use glasshouse_proto::{FrameRegistration, RigidCorrection};
+use glasshouse_proto::{FrameRegistration, FruitHistory, FruitVisit, RigidCorrection};
 use serde::Serialize;
 
 use crate::{DashboardCounters, FleetState};
@@ -306,6 +313,169 @@ pub fn fruits_csv(fruits: &[FruitDoc]) -> String {
     out
 }
 
+/// `status` of a fruit its estimate was matched to on the current visit.
+pub const SEEN: &str = "seen";
+/// `status` of a fruit known from earlier visits but not seen on this one (hidden or harvested).
+pub const NOT_SEEN: &str = "not seen this visit";
+
+/// The `/api/trolleys/{id}/season` document: every fruit of the trolley's row this season.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct SeasonDoc {
+    pub trolley: String,
+    /// The visit of its row the trolley is on (0: the first).
+    pub visit: u32,
+    pub fruits: Vec<SeasonFruitDoc>,
+}
+
+/// One fruit over the visits.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct SeasonFruitDoc {
+    /// Stable from visit to visit.
+    pub season_id: u32,
+    /// Its estimate's id on the current visit (the fruit table's id); 0 when not seen on it.
+    pub fruit_id: u32,
+    /// [`SEEN`] or [`NOT_SEEN`].
+    pub status: &'static str,
+    /// Oldest visit first.
+    pub visits: Vec<SeasonVisitDoc>,
+}
+
+/// One fruit on one visit.
+#[derive(Serialize, Debug, Clone, Copy, PartialEq)]
+pub struct SeasonVisitDoc {
+    pub visit: u32,
+    /// World frame (the first visit's), metres.
+    pub centre_m: [f64; 3],
+    /// The fruit's box, metres.
+    pub size_m: [f64; 3],
+    /// The fitted solid's volume, else the box's.
+    pub volume_cm3: f64,
+}
+
+impl SeasonVisitDoc {
+    /// The record in the page's units; `None` when a value is not finite.
+    fn new(v: &FruitVisit) -> Option<Self> {
+        let doc = Self {
+            visit: v.visit,
+            centre_m: v.centre.coords.into(),
+            size_m: v.size_m.into(),
+            volume_cm3: v.volume_m3 * 1e6,
+        };
+        let values = doc.centre_m.iter().chain(&doc.size_m);
+        let finite = values.chain([&doc.volume_cm3]).all(|x| x.is_finite());
+        finite.then_some(doc)
+    }
+}
+
+impl SeasonFruitDoc {
+    fn new(h: &FruitHistory) -> Self {
+        Self {
+            season_id: h.season_id,
+            fruit_id: h.fruit_id,
+            status: if h.fruit_id == 0 { NOT_SEEN } else { SEEN },
+            visits: h.visits.iter().filter_map(SeasonVisitDoc::new).collect(),
+        }
+    }
+
+    fn seen(&self) -> bool {
+        self.fruit_id != 0
+    }
+
+    /// Its volume on `visit`, when it has a record of it.
+    fn volume_cm3_on(&self, visit: u32) -> Option<f64> {
+        let record = self.visits.iter().find(|v| v.visit == visit);
+        record.map(|v| v.volume_cm3)
+    }
+}
+
+/// The season of one trolley, or `None` when the trolley is unknown.
+pub fn season_doc(fleet: &FleetState, tid: &str) -> Option<SeasonDoc> {
+    let t = fleet.trolleys.get(tid)?;
+    Some(SeasonDoc {
+        trolley: tid.to_owned(),
+        visit: t.visit,
+        fruits: t.history.iter().map(SeasonFruitDoc::new).collect(),
+    })
+}
+
+/// CSV of a season: a header line, then a line per fruit and visit.
+pub fn season_csv(season: &SeasonDoc) -> String {
+    let mut out = String::from(
+        "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit\n",
+    );
+    for f in &season.fruits {
+        for v in &f.visits {
+            let [cx, cy, cz] = v.centre_m;
+            let [sx, sy, sz] = v.size_m;
+            out.push_str(&format!(
+                "{},{},{cx:.4},{cy:.4},{cz:.4},{sx:.4},{sy:.4},{sz:.4},{:.3},{}\n",
+                f.season_id,
+                v.visit,
+                v.volume_cm3,
+                f.seen(),
+            ));
+        }
+    }
+    out
+}
+
+/// One trolley's row of `/api/season`.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct SeasonRow {
+    pub trolley: String,
+    pub visit: u32,
+    /// Fruits seen on the current visit.
+    pub fruits_now: usize,
+    /// Fruits of the season: seen now or on an earlier visit.
+    pub fruits_known: usize,
+    pub not_seen_this_visit: usize,
+    /// Fruits whose first record is the current visit.
+    pub new_this_visit: usize,
+    /// Mean volume of the fruits with a record of the current visit; null when none has.
+    pub mean_volume_cm3_now: Option<f64>,
+    /// Mean volume of the fruits with a record of the visit before (each fruit recorded then,
+    /// seen now or not); null on the first visit or when none has.
+    pub mean_volume_cm3_previous_visit: Option<f64>,
+}
+
+/// The `/api/season` document.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct SeasonTable {
+    pub trolleys: Vec<SeasonRow>,
+}
+
+impl SeasonRow {
+    pub fn new(season: &SeasonDoc) -> Self {
+        let fruits = &season.fruits;
+        let visit = season.visit;
+        let is_new = |f: &&SeasonFruitDoc| f.visits.first().is_some_and(|v| v.visit == visit);
+        let mean_on = |visit: u32| mean(fruits.iter().filter_map(|f| f.volume_cm3_on(visit)));
+        Self {
+            trolley: season.trolley.clone(),
+            visit,
+            fruits_now: fruits.iter().filter(|f| f.seen()).count(),
+            fruits_known: fruits.len(),
+            not_seen_this_visit: fruits.iter().filter(|f| !f.seen()).count(),
+            new_this_visit: fruits.iter().filter(is_new).count(),
+            mean_volume_cm3_now: mean_on(visit),
+            mean_volume_cm3_previous_visit: visit.checked_sub(1).and_then(mean_on),
+        }
+    }
+}
+
+/// Every trolley's season row.
+pub fn season_table(fleet: &FleetState) -> SeasonTable {
+    let docs = fleet.trolleys.keys().filter_map(|id| season_doc(fleet, id));
+    SeasonTable {
+        trolleys: docs.map(|doc| SeasonRow::new(&doc)).collect(),
+    }
+}
+
+fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let (sum, n) = values.fold((0.0, 0usize), |(sum, n), v| (sum + v, n + 1));
+    (n > 0).then(|| sum / n as f64)
+}
+
 /// The HTTP routes.
 pub fn router(state: WebState) -> Router {
     Router::new()
@@ -313,6 +483,8 @@ pub fn router(state: WebState) -> Router {
         .route("/healthz", get(|| async { "ok" }))
         .route("/api/fleet", get(fleet))
         .route("/api/trolleys/{id}/fruits", get(fruits))
+        .route("/api/trolleys/{id}/season", get(season))
+        .route("/api/season", get(season_all))
         .with_state(state)
 }
 
@@ -351,17 +523,11 @@ async fn fruits(
         return (StatusCode::NOT_FOUND, format!("no trolley {id:?}")).into_response();
     };
     match query.get("format").map(String::as_str) {
-        Some("csv") => (
-            [
-                (header::CONTENT_TYPE, "text/csv; charset=utf-8".to_owned()),
-                (
-                    header::CONTENT_DISPOSITION,
-                    format!("attachment; filename=\"fruits-{id}.csv\""),
-                ),
-            ],
+        Some("csv") => attachment(
+            "text/csv; charset=utf-8",
+            &format!("fruits-{id}.csv"),
             fruits_csv(&docs),
-        )
-            .into_response(),
+        ),
         None | Some("json") => Json(docs).into_response(),
         Some(other) => (
             StatusCode::BAD_REQUEST,
@@ -369,6 +535,62 @@ async fn fruits(
         )
             .into_response(),
     }
+}
+
+/// A file name for a download of trolley `tid`'s `what`: characters a header or a file system
+/// could take for something else become `_`.
+fn download_name(tid: &str, what: &str) -> String {
+    let safe = |c: char| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.');
+    let tid: String = tid.chars().map(|c| if safe(c) { c } else { '_' }).collect();
+    format!("{tid}-{what}")
+}
+
+/// `body` as a download named `filename`.
+fn attachment(content_type: &str, filename: &str, body: String) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, content_type.to_owned()),
+            (
+                header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"{filename}\""),
+            ),
+        ],
+        body,
+    )
+        .into_response()
+}
+
+async fn season(
+    State(state): State<WebState>,
+    Path(id): Path<String>,
+    Query(query): Query<HashMap<String, String>>,
+) -> Response {
+    let doc = season_doc(&locked(&state), &id);
+    let Some(doc) = doc else {
+        return (StatusCode::NOT_FOUND, format!("no trolley {id:?}")).into_response();
+    };
+    let download = query.get("download").is_some_and(|d| d == "1");
+    match query.get("format").map(String::as_str) {
+        Some("csv") => attachment(
+            "text/csv; charset=utf-8",
+            &download_name(&id, "season.csv"),
+            season_csv(&doc),
+        ),
+        None | Some("json") if download => match serde_json::to_string_pretty(&doc) {
+            Ok(json) => attachment("application/json", &download_name(&id, "season.json"), json),
+            Err(e) => (StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+        },
+        None | Some("json") => Json(doc).into_response(),
+        Some(other) => (
+            StatusCode::BAD_REQUEST,
+            format!("unknown format {other:?}: use json or csv"),
+        )
+            .into_response(),
+    }
+}
+
+async fn season_all(State(state): State<WebState>) -> Response {
+    Json(season_table(&locked(&state))).into_response()
 }
 
 #[cfg(test)]
@@ -479,5 +701,210 @@ mod tests {
         assert!(fleet.apply(&key(TrolleyTopic::Truth), &header, &fruits(0), now));
         assert!(fleet.apply(&key(TrolleyTopic::Fruits), &header, &fruits(20), now));
         assert_eq!(fleet.trolleys["t1"].fruits.len(), 1);
+    }
+
+    fn fruits_key(tid: &str) -> ParsedKey {
+        ParsedKey::Trolley {
+            tid: tid.into(),
+            topic: TrolleyTopic::Fruits,
+        }
+    }
+
+    /// The sample's season (visit 2; fruit 5 seen on visits 0 and 2) plus fruit 6, seen on
+    /// visit 1 only, fruit 7, new on visit 2, and fruit 8, whose one record holds a NaN.
+    fn season_fleet() -> FleetState {
+        let mut estimates = samples::fruit_estimates();
+        let record = estimates.history[0].visits[0];
+        let on = |visit: u32, volume_m3: f64| FruitVisit {
+            visit,
+            volume_m3,
+            ..record
+        };
+        estimates.history.extend([
+            FruitHistory {
+                season_id: 6,
+                fruit_id: 0,
+                visits: vec![on(1, 2e-4)],
+            },
+            FruitHistory {
+                season_id: 7,
+                fruit_id: 9,
+                visits: vec![on(2, 1e-4)],
+            },
+            FruitHistory {
+                season_id: 8,
+                fruit_id: 0,
+                visits: vec![on(1, f64::NAN)],
+            },
+        ]);
+        let mut fleet = FleetState::default();
+        let message = Message::FruitEstimates(estimates);
+        fleet.apply(
+            &fruits_key("t1"),
+            &samples::header(1),
+            &message,
+            Instant::now(),
+        );
+        fleet
+    }
+
+    /// The sample fruit's record of its visit `i`-th (0: visit 0, 1: visit 2).
+    fn sample_record(i: usize) -> FruitVisit {
+        samples::fruit_estimates().history[0].visits[i]
+    }
+
+    fn near(value: f64, expected: f64) -> bool {
+        (value - expected).abs() < 1e-6
+    }
+
+    #[test]
+    fn the_season_document_shows_each_fruit_over_the_visits_and_whether_it_was_seen() {
+        let fleet = season_fleet();
+        let doc = season_doc(&fleet, "t1").expect("t1 is known");
+        assert_eq!((doc.trolley.as_str(), doc.visit), ("t1", 2));
+        let ids: Vec<_> = doc.fruits.iter().map(|f| (f.season_id, f.status)).collect();
+        assert_eq!(ids, [(5, SEEN), (6, NOT_SEEN), (7, SEEN), (8, NOT_SEEN)]);
+        let sample = &doc.fruits[0];
+        assert_eq!(sample.fruit_id, samples::fruit_estimates().fruits[0].id);
+        let visits: Vec<_> = sample.visits.iter().map(|v| v.visit).collect();
+        assert_eq!(visits, [0, 2]);
+        let (last, sent) = (sample.visits[1], sample_record(1));
+        assert!(near(last.volume_cm3, sent.volume_m3 * 1e6), "{last:?}");
+        assert_eq!(last.size_m, <[f64; 3]>::from(sent.size_m));
+        assert_eq!(last.centre_m, <[f64; 3]>::from(sent.centre.coords));
+        // The NaN record is left out, so the document is valid JSON.
+        assert!(doc.fruits[3].visits.is_empty());
+        let json = serde_json::to_string(&doc).expect("json");
+        assert!(
+            json.contains("\"status\":\"not seen this visit\""),
+            "{json}"
+        );
+        assert!(season_doc(&fleet, "t2").is_none());
+    }
+
+    #[test]
+    fn the_season_csv_has_a_line_per_fruit_and_visit() {
+        let doc = season_doc(&season_fleet(), "t1").expect("t1 is known");
+        let csv = season_csv(&doc);
+        let lines: Vec<_> = csv.lines().collect();
+        assert_eq!(
+            lines[0],
+            "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit"
+        );
+        // Fruit 5's two visits, fruit 6's and fruit 7's one each; fruit 8's NaN left out.
+        assert_eq!(lines.len(), 1 + 4, "{csv}");
+        let r = sample_record(1);
+        let (c, size) = (r.centre, r.size_m);
+        let expected = format!(
+            "5,2,{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},true",
+            c.x,
+            c.y,
+            c.z,
+            size.x,
+            size.y,
+            size.z,
+            r.volume_m3 * 1e6
+        );
+        assert_eq!(lines[2], expected);
+        assert!(lines[3].starts_with("6,1,") && lines[3].ends_with(",200.000,false"));
+        assert!(lines.iter().all(|l| l.split(',').count() == 10), "{csv}");
+    }
+
+    #[test]
+    fn the_season_row_counts_fruits_now_known_missing_and_new() {
+        let table = season_table(&season_fleet());
+        let row = &table.trolleys[0];
+        let counts = (
+            row.fruits_now,
+            row.fruits_known,
+            row.not_seen_this_visit,
+            row.new_this_visit,
+        );
+        assert_eq!(counts, (2, 4, 2, 1));
+        // Visit 2: fruit 5 and 7 (100 cm³); visit 1: fruit 6 (200), 8's NaN left out.
+        let now = row.mean_volume_cm3_now.expect("a mean now");
+        let fruit_5_cm3 = sample_record(1).volume_m3 * 1e6;
+        assert!(near(now, (fruit_5_cm3 + 100.0) / 2.0), "{row:?}");
+        let before = row.mean_volume_cm3_previous_visit.expect("a mean before");
+        assert!(near(before, 200.0), "{row:?}");
+    }
+
+    #[test]
+    fn a_trolley_without_a_season_has_an_empty_row() {
+        let mut fleet = FleetState::default();
+        let first_visit = Message::FruitEstimates(glasshouse_proto::FruitEstimates {
+            visit: 0,
+            history: Vec::new(),
+            ..samples::fruit_estimates()
+        });
+        fleet.apply(
+            &fruits_key("t1"),
+            &samples::header(1),
+            &first_visit,
+            Instant::now(),
+        );
+        let row = &season_table(&fleet).trolleys[0];
+        assert_eq!((row.visit, row.fruits_known, row.fruits_now), (0, 0, 0));
+        let means = (row.mean_volume_cm3_now, row.mean_volume_cm3_previous_visit);
+        assert_eq!(means, (None, None));
+        let json = serde_json::to_string(&season_table(&fleet)).expect("json");
+        assert!(json.contains("\"mean_volume_cm3_now\":null"), "{json}");
+    }
+
+    fn web_state(fleet: FleetState) -> WebState {
+        WebState {
+            fleet: Arc::new(Mutex::new(fleet)),
+            counters: Arc::default(),
+            rerun_viewer_url: None,
+        }
+    }
+
+    async fn season_response(tid: &str, query: &[(&str, &str)]) -> (StatusCode, String, String) {
+        let query = query.iter().map(|(k, v)| (k.to_string(), v.to_string()));
+        let response = season(
+            State(web_state(season_fleet())),
+            Path(tid.to_owned()),
+            Query(query.collect()),
+        )
+        .await;
+        let status = response.status();
+        let disposition = response
+            .headers()
+            .get(header::CONTENT_DISPOSITION)
+            .map_or(String::new(), |h| h.to_str().unwrap_or("?").to_owned());
+        let body = axum::body::to_bytes(response.into_body(), 1 << 20)
+            .await
+            .expect("body");
+        (status, disposition, String::from_utf8_lossy(&body).into())
+    }
+
+    #[tokio::test]
+    async fn the_season_route_answers_csv_and_json_downloads_and_404_for_an_unknown_trolley() {
+        let (status, disposition, body) = season_response("t1", &[("format", "csv")]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(disposition, "attachment; filename=\"t1-season.csv\"");
+        assert!(body.starts_with("season_id,visit,"), "{body}");
+
+        let (status, disposition, body) = season_response("t1", &[("download", "1")]).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(disposition, "attachment; filename=\"t1-season.json\"");
+        let json: serde_json::Value = serde_json::from_str(&body).expect("json");
+        assert_eq!(json["fruits"][0]["season_id"], 5);
+
+        let (status, disposition, _) = season_response("t1", &[]).await;
+        assert_eq!((status, disposition.as_str()), (StatusCode::OK, ""));
+
+        let (status, _, body) = season_response("t9", &[("format", "csv")]).await;
+        assert_eq!(status, StatusCode::NOT_FOUND);
+        assert_eq!(body, "no trolley \"t9\"");
+
+        let (status, _, _) = season_response("t1", &[("format", "xml")]).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST);
+    }
+
+    #[test]
+    fn a_download_name_keeps_only_plain_characters() {
+        assert_eq!(download_name("t1", "season.csv"), "t1-season.csv");
+        assert_eq!(download_name("a\"b/c\n", "season.csv"), "a_b_c_-season.csv");
     }
 }

@@ -157,7 +157,8 @@ fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String
     out.push_str(&format!(
         "\nIdentity over consecutive visits: precision {:.3}, recall {:.3}, F1 {:.3} ({} correct of {} links made, {} possible; per trial F1 {}).\n\
          Growth: {} correct links of growing fruit, |ΔV_est − ΔV_true| / ΔV_true median {:.2}, {} within {:.0} %.\n\
-         Time to 95 % on a revisit against the first visit: {} ({} revisits that reached 95 % after a first visit that did).\n         Time to 95 % of what the first visit found, a revisit against the first visit: {} ({} revisits; median {:.2}).\n\n",
+         Time to 95 % on a revisit against the first visit: {} ({} revisits that reached 95 % after a first visit that did).\n\
+         Time to 95 % of what the first visit found, a revisit against the first visit: {} ({} revisits; median {:.2}).\n\n",
         identity.precision(),
         identity.recall(),
         identity.f1(),

@@ -1568,14 +1568,7 @@ fn perform_writes(
 
 /// The fruit ids `actions` publish last.
 fn fruit_ids(actions: &[PlannerAction]) -> Vec<u32> {
-    let fruits = actions.iter().rev().find_map(|a| match a {
-        PlannerAction::Publish {
-            output: TrolleyOutput::Fruits(f),
-            ..
-        } => Some(f),
-        _ => None,
-    });
-    fruits.map_or_else(Vec::new, |f| f.fruits.iter().map(|f| f.id).collect())
+    published_fruits(actions).map_or_else(Vec::new, |f| f.fruits.iter().map(|f| f.id).collect())
 }
 
 #[test]
@@ -1778,4 +1771,94 @@ fn a_restored_copy_answers_under_its_epoch_and_a_newer_terms_snapshot_wins() {
     assert!(again.term("t1").unwrap() > term + 1);
     drop(store);
     let _ = std::fs::remove_file(&path);
+}
+
+/// The fruits `actions` publish last.
+fn published_fruits(actions: &[PlannerAction]) -> Option<FruitEstimates> {
+    actions.iter().rev().find_map(|a| match a {
+        PlannerAction::Publish {
+            output: TrolleyOutput::Fruits(f),
+            ..
+        } => Some(f.clone()),
+        _ => None,
+    })
+}
+
+#[test]
+fn a_later_visit_starts_every_copy_on_the_prior_and_the_fruits_keep_their_histories() {
+    let (info, clouds) = trolley_clouds(4);
+    let (mut owner, mut replica) = informed_owner_and_replica(&info);
+    let mut first_visit = None;
+    for cloud in &clouds {
+        first_visit = published_fruits(&feed(&mut owner, cloud_event(cloud))).or(first_visit);
+        feed(&mut replica, cloud_event(cloud));
+    }
+    let first_visit = first_visit.expect("fruits on the first visit");
+    assert_eq!(first_visit.visit, 0);
+    assert!(!first_visit.fruits.is_empty());
+    assert_eq!(first_visit.history.len(), first_visit.fruits.len());
+    // The trolley comes back: both copies start visit 1 on the same prior.
+    let back = TrolleyInfo {
+        visit: 1,
+        ..info.clone()
+    };
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(&back));
+        assert_eq!(n.planner("t1").unwrap().visit(), 1);
+        assert_eq!(n.planner("t1").unwrap().last_frame(), None);
+    }
+    assert!(same_map(&owner, &replica, "t1"));
+    // An older visit's info changes nothing.
+    owner.handle(info_event(&info));
+    assert_eq!(owner.planner("t1").unwrap().visit(), 1);
+    // The revisit's first frame: its fruits carry the first visit's season ids.
+    let revisit = published_fruits(&feed(&mut owner, cloud_event(&clouds[3])))
+        .expect("fruits on the revisit");
+    assert_eq!(revisit.visit, 1);
+    let season_ids = |f: &FruitEstimates| -> Vec<u32> {
+        f.history
+            .iter()
+            .filter(|h| h.fruit_id != 0)
+            .map(|h| h.season_id)
+            .collect()
+    };
+    let seen_again: Vec<_> = season_ids(&revisit)
+        .into_iter()
+        .filter(|id| season_ids(&first_visit).contains(id))
+        .collect();
+    assert!(!seen_again.is_empty(), "{revisit:?}");
+    for h in revisit
+        .history
+        .iter()
+        .filter(|h| seen_again.contains(&h.season_id))
+    {
+        let visits: Vec<u32> = h.visits.iter().map(|v| v.visit).collect();
+        assert_eq!(visits, [0, 1]);
+    }
+}
+
+#[test]
+fn an_owner_with_a_store_keeps_a_new_visit_as_a_full_checkpoint() {
+    let (info, clouds) = trolley_clouds(3);
+    let mut p1 = node("p1").with_store(rules(8));
+    p1.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p1.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: None,
+    });
+    p1.handle(info_event(&info));
+    for cloud in &clouds {
+        feed(&mut p1, cloud_event(cloud));
+    }
+    let actions = p1.handle(info_event(&TrolleyInfo { visit: 1, ..info }));
+    let full: Vec<_> = store_writes(&actions)
+        .into_iter()
+        .filter_map(|w| match w {
+            StoreWrite::Checkpoint {
+                full: true, copy, ..
+            } => Some(copy.meta.visit),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(full, [1], "{actions:?}");
 }

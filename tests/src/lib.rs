@@ -358,6 +358,18 @@ pub async fn snapshot_at_last_cloud(
     pid: &str,
     tid: &str,
 ) -> SnapshotAtLastCloud {
+    snapshot_at_last_cloud_of(observer, &[clouds_sub], pid, tid).await
+}
+
+/// [`snapshot_at_last_cloud`] with the clouds of several subscriptions (one cloud each, in
+/// frame order): an observer whose link moves between routers can miss a cloud another
+/// session on the router that stays sees.
+pub async fn snapshot_at_last_cloud_of(
+    observer: &Session,
+    clouds_subs: &[&glasshouse_bus::Subscriber<RoiCloud>],
+    pid: &str,
+    tid: &str,
+) -> SnapshotAtLastCloud {
     let key = glasshouse_proto::keys::planner_snapshot(pid, tid).expect("key");
     let mut clouds = Vec::new();
     within(
@@ -365,9 +377,15 @@ pub async fn snapshot_at_last_cloud(
         "the planner's snapshot at the last observed cloud",
         async {
             loop {
-                while let Some(received) = clouds_sub.try_recv() {
-                    clouds.push(received.message);
+                for sub in clouds_subs {
+                    while let Some(received) = sub.try_recv() {
+                        let frame = received.message.source_frame();
+                        if !clouds.iter().any(|c: &RoiCloud| c.source_frame() == frame) {
+                            clouds.push(received.message);
+                        }
+                    }
                 }
+                clouds.sort_by_key(RoiCloud::source_frame);
                 let last = clouds.iter().map(RoiCloud::source_frame).max();
                 match glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
                     Ok((_, s)) => {

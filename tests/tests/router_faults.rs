@@ -10,7 +10,7 @@ use glasshouse_bus::BusArgs;
 use glasshouse_proto::{keys, TrolleyStatus};
 use glasshouse_tests::procs::{build_binaries, Proc};
 use glasshouse_tests::{
-    assert_holds_every_cloud, free_port, observe, open, snapshot_at_last_cloud, within,
+    assert_holds_every_cloud, free_port, observe, open, snapshot_at_last_cloud_of, within,
 };
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -92,6 +92,16 @@ async fn router_lost_and_back(fault: RouterFault) {
     .await;
     let status_sub = observe(&observer, &keys::status("t1").expect("key")).await;
     let clouds_sub = observe(&observer, &keys::roi_from_any("t1").expect("key")).await;
+    // The observer's link moves with the clients in a failover and can miss a cloud meanwhile:
+    // a second session on the router that stays sees the ones after the fault.
+    let stays = open(&BusArgs {
+        connect: vec![endpoints.last().expect("a router").clone()],
+        mode: Some(glasshouse_bus::Mode::Client),
+        lease_ms: Some(1000),
+        ..BusArgs::default()
+    })
+    .await;
+    let clouds_stays = observe(&stays, &keys::roi_from_any("t1").expect("key")).await;
     let _detector = start("detector", "detector-service", &[]);
     let _p1 = start("planner-p1", "planner-service", &["--planner-id", "p1"]);
     let _p2 = start("planner-p2", "planner-service", &["--planner-id", "p2"]);
@@ -156,8 +166,10 @@ async fn router_lost_and_back(fault: RouterFault) {
         .max_by_key(|t| t.owner_epoch)
         .map(|t| t.planner_id.clone())
         .expect("an owner");
-    let at_last = snapshot_at_last_cloud(&observer, &clouds_sub, &owner, "t1").await;
+    let subs = [&clouds_sub, &clouds_stays];
+    let at_last = snapshot_at_last_cloud_of(&observer, &subs, &owner, "t1").await;
     assert_holds_every_cloud(&at_last.map, &at_last.clouds, &format!("{owner}'s"));
     let _ = observer.close().await;
+    let _ = stays.close().await;
     let _ = std::fs::remove_dir_all(&logs);
 }

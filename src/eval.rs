@@ -128,6 +128,11 @@ pub struct EvalArgs {
     /// to compare the two.
     #[arg(long)]
     pub revisit_from_empty: bool,
+    /// With `--days`: how far below the ROI threshold (log-odds, > 0) a revisit's prior keeps
+    /// the previous visit's fruit voxels; 0.05 (the default) makes one observation of fruit a
+    /// fruit again, above the ROI hit (0.85) two are needed, as in a new map.
+    #[arg(long, value_name = "LOGODDS", default_value_t = PriorRules::default().fruit_below_threshold_logodds)]
+    pub prior_fruit_below: f32,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -586,6 +591,7 @@ mod tests {
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,
+            prior_fruit_below: PriorRules::default().fruit_below_threshold_logodds,
             perception: PerceptionArgs::default(),
         }
     }

@@ -36,9 +36,16 @@ pub(super) fn run(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<
     eprintln!("{} visits per trial on days {days:?}, {start}", days.len());
     let trials_dir = prepare_out(&args.out)?;
     let configs = configs(args, plan, days)?;
+    let prior = PriorRules {
+        fruit_below_threshold_logodds: args.prior_fruit_below,
+        ..PriorRules::default()
+    };
+    prior
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--prior-fruit-below: {e}"))?;
     let season = Season {
         visits: days.len(),
-        prior: (!args.revisit_from_empty).then(PriorRules::default),
+        prior: (!args.revisit_from_empty).then_some(prior),
     };
     let results = run_trials(&configs, plan, args.budget_s, season)?;
     let mut per_trial: Vec<Vec<glasshouse_eval::TrialResult>> = Vec::new();

@@ -263,6 +263,10 @@ pub struct PlanningContext<'a> {
     /// Which poses the robot can reach; candidates it rejects are dropped before scoring and
     /// never ranked. `None`: every pose in the camera workspace counts as reachable.
     pub reach: Option<&'a ReachPredicate<'a>>,
+    /// Where the previous visit's fruit were (a revisit's prior hints,
+    /// [`RoiMap::unobserved_hints`]): ROI-targeted sampling aims at those no scan of this visit
+    /// has touched yet as at the ROI frontier. Empty on a first visit.
+    pub remembered_fruit: &'a [VoxelKey],
 }
 
 impl fmt::Debug for PlanningContext<'_> {
@@ -273,6 +277,7 @@ impl fmt::Debug for PlanningContext<'_> {
             .field("camera_workspace", &self.camera_workspace)
             .field("sampling_region", &self.sampling_region)
             .field("reach", &self.reach.map(|_| "predicate"))
+            .field("remembered_fruit", &self.remembered_fruit.len())
             .finish()
     }
 }
@@ -716,6 +721,16 @@ fn rank(views: &[ScoredView], config: &PlannerConfig) -> Vec<ScoredView> {
     }
 }
 
+/// The ROI frontier in the sampling region, then the remembered fruit in it that no scan of
+/// this visit has touched.
+fn roi_targets_of(ctx: &PlanningContext) -> Vec<VoxelKey> {
+    let mut targets = ctx.map.roi_frontier(&ctx.sampling_region);
+    targets.extend(ctx.remembered_fruit.iter().copied().filter(|&k| {
+        ctx.sampling_region.contains(&ctx.map.centre_of(k)) && ctx.map.is_unobserved_hint(k)
+    }));
+    targets
+}
+
 /// One planning call: sample, score and rank candidate views (see the crate docs).
 pub fn plan_views(
     ctx: &PlanningContext,
@@ -743,7 +758,7 @@ pub fn plan_views(
     let evaluator = GainEvaluator::new(ctx.map, config);
 
     let (roi_targets, roi_views) = if config.method.uses_roi_sampling() {
-        let targets = ctx.map.roi_frontier(&ctx.sampling_region);
+        let targets = roi_targets_of(ctx);
         let poses = sample_roi_views(ctx, config, &targets, &mut rng_stream(seed, 0));
         let views = score(poses, ViewKind::Roi, &evaluator, &camera_in_world, config);
         (targets.len(), views)

@@ -62,6 +62,7 @@ fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
         camera_workspace: aabb([-0.4, -0.6, 0.6], [0.4, -0.2, 1.4]),
         sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
         reach: None,
+        remembered_fruit: &[],
     }
 }
 
@@ -276,6 +277,7 @@ fn exploration_when_there_is_no_roi() {
         camera_workspace: aabb([-0.6, -0.7, 0.5], [0.6, -0.1, 1.5]),
         sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
         reach: None,
+        remembered_fruit: &[],
     };
     for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
         let config = PlannerConfig {
@@ -306,6 +308,7 @@ fn never_empty_on_an_empty_map() {
         camera_workspace: aabb([-0.5, -0.5, 0.5], [0.5, 0.0, 1.5]),
         sampling_region: aabb([-1.0, 0.2, 0.0], [1.0, 0.8, 2.0]),
         reach: None,
+        remembered_fruit: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {
@@ -437,6 +440,7 @@ fn a_reach_predicate_drops_the_poses_it_rejects() {
     let left_only = |pose: &Isometry3<f64>| pose.translation.vector.x < 0.0;
     let ctx = PlanningContext {
         reach: Some(&left_only),
+        remembered_fruit: &[],
         ..blob_context(&map)
     };
     for method in Method::ALL {
@@ -463,6 +467,7 @@ fn an_accepting_predicate_changes_nothing() {
     let accept = |_: &Isometry3<f64>| true;
     let with = PlanningContext {
         reach: Some(&accept),
+        remembered_fruit: &[],
         ..blob_context(&map)
     };
     let without = blob_context(&map);
@@ -490,6 +495,7 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         camera_workspace: aabb([-0.5, -0.5, 0.5], [0.5, 0.0, 1.5]),
         sampling_region: aabb([-1.0, 0.2, 0.0], [1.0, 0.8, 2.0]),
         reach: Some(&reject),
+        remembered_fruit: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {

@@ -301,6 +301,8 @@ pub struct TrolleyPlanner {
     /// The trolley's visit of its row this copy is on, and the fruits of the visits before it.
     pub(crate) visit: u32,
     pub(crate) season: SeasonTracker,
+    /// The prior's fruit hints a plan aims at until a scan touches them (empty on a first visit).
+    remembered_fruit: Vec<VoxelKey>,
 }
 
 impl TrolleyPlanner {
@@ -327,6 +329,7 @@ impl TrolleyPlanner {
             alignment_counts: AlignmentCounts::default(),
             visit: 0,
             season: SeasonTracker::default(),
+            remembered_fruit: Vec::new(),
         })
     }
 
@@ -419,6 +422,8 @@ impl TrolleyPlanner {
         };
         // Which fruit this view saw, from where: the fruit evidence's directions.
         self.note_view(&origin, &points, &cloud.roi);
+        let map = &self.map;
+        self.remembered_fruit.retain(|&k| map.is_unobserved_hint(k));
         self.order.integrated(frame);
         Ok(verdict)
     }
@@ -632,6 +637,7 @@ impl TrolleyPlanner {
             camera_workspace: info.camera_workspace,
             sampling_region: info.sampling_region,
             reach: None,
+            remembered_fruit: &self.remembered_fruit,
         })
     }
 
@@ -747,7 +753,16 @@ impl TrolleyPlanner {
     /// A planner starting a new visit of its trolley's row on `prior` (the previous visit's map
     /// made into a prior, [`glasshouse_roimap::RoiMap::prior`]): no fruit ids, no frame yet.
     pub fn on_prior(settings: PlanningSettings, prior: RoiMap) -> Result<Self, PlanningError> {
-        Self::with_map(settings, prior)
+        let remembered_fruit = prior.unobserved_hints();
+        let mut planner = Self::with_map(settings, prior)?;
+        planner.remembered_fruit = remembered_fruit;
+        Ok(planner)
+    }
+
+    /// The previous visit's fruit voxels a plan still aims at (no scan of this visit has
+    /// touched them).
+    pub fn remembered_fruit(&self) -> &[VoxelKey] {
+        &self.remembered_fruit
     }
 
     /// The map, given up (the experiments keep a visit's map for the next one's prior).
@@ -786,6 +801,10 @@ impl TrolleyPlanner {
         let last = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
         planner.order = FrameOrder::starting_at((last != FrameId::default()).then_some(last));
         planner.set_season(snapshot.visit, &snapshot.season);
+        if snapshot.visit > 0 {
+            // A later visit's copy: its map still holds the hints no scan has touched.
+            planner.remembered_fruit = planner.map.unobserved_hints();
+        }
         Ok(planner)
     }
 }

@@ -96,6 +96,31 @@ impl RoiMap {
     }
 }
 
+impl RoiMap {
+    /// Whether `key` is a prior's fruit hint no scan of this visit has touched: known, its
+    /// occupancy log-odds still exactly the prior's 0 (any hit or miss moves it), its ROI
+    /// log-odds above 0 and under the threshold.
+    pub fn is_unobserved_hint(&self, key: VoxelKey) -> bool {
+        self.get(key).is_some_and(|v| {
+            v.occupancy_logodds == 0.0
+                && v.roi_logodds > 0.0
+                && v.roi_logodds < self.config.roi_threshold_logodds
+        })
+    }
+
+    /// Every [`RoiMap::is_unobserved_hint`] voxel, sorted: where the previous visit's fruit
+    /// were and this visit has not looked yet (a walk over the whole map).
+    pub fn unobserved_hints(&self) -> Vec<VoxelKey> {
+        let mut hints: Vec<VoxelKey> = self
+            .iter()
+            .map(|(k, _)| k)
+            .filter(|&k| self.is_unobserved_hint(k))
+            .collect();
+        hints.sort_unstable();
+        hints
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -192,6 +217,24 @@ mod tests {
             .insert_scan(&Point3::origin(), &middle, &vec![true; middle.len()])
             .unwrap();
         assert!(fresh.roi_voxels().is_empty());
+    }
+
+    #[test]
+    fn a_hint_stays_unobserved_until_a_scan_touches_it() {
+        let map = seen_map();
+        let mut prior = map.prior(&PriorRules::default());
+        assert_eq!(prior.unobserved_hints().len(), 36);
+        assert!(
+            map.unobserved_hints().is_empty(),
+            "a visit's own map has none"
+        );
+        let middle = wall(1);
+        prior
+            .insert_scan(&Point3::origin(), &middle, &vec![false; middle.len()])
+            .unwrap();
+        let seen = map.key_of(&Point3::new(1.005, 0.005, 0.005));
+        assert!(!prior.is_unobserved_hint(seen));
+        assert_eq!(prior.unobserved_hints().len(), 36 - 9);
     }
 
     #[test]

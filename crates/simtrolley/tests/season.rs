@@ -74,3 +74,34 @@ fn a_new_visit_starts_on_a_prior_and_keeps_the_fruits_histories() {
     assert!(planner.start_visit(2, &bad).is_err());
     assert_eq!(planner.visit(), 1);
 }
+
+#[test]
+fn a_revisit_aims_at_the_previous_visits_fruit_until_a_scan_looks_there() {
+    let (mut planner, _) = planner_with_fruit();
+    let roi_voxels = planner.map().roi_voxels().len();
+    planner.start_visit(1, &PriorRules::default()).unwrap();
+    let remembered = planner.remembered_fruit().len();
+    assert_eq!(remembered, roi_voxels, "every fruit voxel is remembered");
+    let mut trolley = SimTrolley::new(SimTrolleySettings::new(
+        ScenarioKind::Two,
+        3,
+        (320, 240),
+        1.0,
+    ))
+    .unwrap();
+    // The map is empty but for the hints: the plan aims at them.
+    let pose = trolley.world_from_camera();
+    let plan = planner.plan(&pose, 1).unwrap().unwrap();
+    assert!(plan.roi_targets > 0, "no remembered fruit in the region");
+    assert_eq!(plan.used_kind, glasshouse_nbv::ViewKind::Roi);
+    // A copy of the visit made from a snapshot remembers the same.
+    let snapshot = planner.snapshot("t1", "p1").unwrap();
+    let copy = TrolleyPlanner::from_snapshot(planner.settings().clone(), &snapshot).unwrap();
+    assert_eq!(copy.remembered_fruit(), planner.remembered_fruit());
+    // A scan of the same view touches the fruit it sees: those are no longer targets.
+    let frame = trolley.capture(1).unwrap().unwrap();
+    let cloud = detect_frame(&frame, FrameId::new(0, 1), "d", &DetectorConfig::default()).unwrap();
+    planner.integrate(&cloud, 0).unwrap();
+    let left = planner.remembered_fruit().len();
+    assert!(left < remembered / 2, "{left} of {remembered} left");
+}

@@ -228,6 +228,9 @@ pub struct PlannerStats {
     pub stale_epoch: u64,
     /// Terms this planner gave up on seeing a newer epoch for a trolley it owned.
     pub stepped_down: u64,
+    /// Snapshots not loaded after a step-down because this planner's own copy held more
+    /// ([`holds_more`]).
+    pub kept_own_copy: u64,
 }
 
 /// What follows a cloud's insert ([`PlannerNode::integrate_then`]).
@@ -1031,6 +1034,13 @@ impl PlannerNode {
         let snapshot = snapshot.filter(|s| !slot.holds_newer_than(s));
         if let Some(snapshot) = snapshot {
             match TrolleyPlanner::from_snapshot(self.planning.clone(), &snapshot) {
+                // A copy restored from the store yields to a newer term's snapshot (above).
+                Ok(loaded) if slot.restored_epoch == 0 && holds_more(&slot.planner, &loaded) => {
+                    tracing::warn!(planner = %pid, trolley = %tid, from = %snapshot.planner_id,
+                        own_scans = slot.planner.map().scans_inserted(), their_scans = loaded.map().scans_inserted(),
+                        "kept its own copy: it holds every frame of the snapshot's and more scans");
+                    self.stats.kept_own_copy += 1;
+                }
                 Ok(mut loaded) => {
                     tracing::info!(planner = %pid, trolley = %tid, from = %snapshot.planner_id, seq = snapshot.based_on_seq, epoch_ns = snapshot.based_on_epoch_ns, voxels = loaded.map().len(), "snapshot loaded");
                     if let Some(info) = slot.planner.info() {
@@ -1432,6 +1442,19 @@ fn note_insert(
         Ok(FrameVerdict::Fresh | FrameVerdict::Repeat) => {}
     }
     true
+}
+
+/// Whether a copy of one trolley holds more than `other`: at least as late a frame and at
+/// least as many scans, more of one of them. Copies of one trolley take frames of the same
+/// stream in order, so such a copy holds every scan the other does (unless each missed a
+/// different cloud) and more. A planner that stepped down keeps its own copy then: the newer
+/// owner may have taken over from a replica that missed a cloud while its link moved.
+fn holds_more(own: &TrolleyPlanner, other: &TrolleyPlanner) -> bool {
+    let (own_scans, other_scans) = (own.map().scans_inserted(), other.map().scans_inserted());
+    let (own_last, other_last) = (own.last_frame(), other.last_frame());
+    own_last >= other_last
+        && own_scans >= other_scans
+        && (own_last, own_scans) != (other_last, other_scans)
 }
 
 #[cfg(test)]

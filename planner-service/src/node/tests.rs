@@ -1862,3 +1862,37 @@ fn an_owner_with_a_store_keeps_a_new_visit_as_a_full_checkpoint() {
         .collect();
     assert_eq!(full, [1], "{actions:?}");
 }
+
+#[test]
+fn an_owner_that_steps_down_keeps_its_copy_when_the_new_owners_missed_a_cloud() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut a, mut b) = informed_owner_and_replica(&info);
+    let a_id = a.pid.clone();
+    // Frame 1 reaches both; frame 2 only the owner (the replica's link was moving).
+    let published = a.handle(cloud_event(&clouds[0]));
+    b.handle(cloud_event(&clouds[0]));
+    hear_fruits(&mut b, &published);
+    a.handle(cloud_event(&clouds[1]));
+    // Each loses the other's token: b takes over under a newer term on its copy without frame
+    // 2, a goes on owning in its own view. Frame 3 reaches both.
+    let taken = b.handle(PlannerEvent::PlannerLeft(a_id.clone()));
+    settle(&mut b, taken);
+    let term_b = b.term("t1").expect("b's term");
+    a.handle(PlannerEvent::PlannerLeft(b.pid.clone()));
+    a.handle(cloud_event(&clouds[2]));
+    b.handle(cloud_event(&clouds[2]));
+    assert_eq!((scans(&a), scans(&b)), (3, 2));
+    // The links are back: a hears b's term and steps down, and b's copy lacks frame 2.
+    b.handle(PlannerEvent::PlannerJoined(a_id));
+    a.handle(info_under(&info, term_b, &b.pid));
+    assert!(a.is_loading("t1"));
+    let resumed = a.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot_from(&mut b)),
+    });
+    // a keeps its own copy (every frame), begins a newer term and plans frame 3 on it.
+    assert_eq!(scans(&a), 3, "a took b's copy, which lacks frame 2");
+    assert_eq!(a.stats().kept_own_copy, 1);
+    assert!(a.term("t1").expect("a new term") > term_b);
+    assert_eq!(views_of(&resumed)[0].based_on_seq, 3);
+}

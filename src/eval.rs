@@ -133,6 +133,10 @@ pub struct EvalArgs {
     /// fruit again, above the ROI hit (0.85) two are needed, as in a new map.
     #[arg(long, value_name = "LOGODDS", default_value_t = PriorRules::default().fruit_below_threshold_logodds)]
     pub prior_fruit_below: f32,
+    /// With `--days`: plan a revisit without aiming at the previous visit's fruit (the prior's
+    /// hints only), to compare.
+    #[arg(long)]
+    pub no_revisit_aim: bool,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -300,6 +304,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 roi_evidence: args.roi_evidence,
                 roi_targets: args.roi_targets,
                 registration: args.registration,
+                revisit_aim: !args.no_revisit_aim,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -592,6 +597,7 @@ mod tests {
             visit_every_days: 3.5,
             revisit_from_empty: false,
             prior_fruit_below: PriorRules::default().fruit_below_threshold_logodds,
+            no_revisit_aim: false,
             perception: PerceptionArgs::default(),
         }
     }

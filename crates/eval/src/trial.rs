@@ -82,6 +82,9 @@ pub struct TrialConfig {
     pub roi_targets: RoiTargets,
     /// Align each scan to the map before inserting it (the planner's default: off).
     pub registration: bool,
+    /// A revisit's plans aim at the previous visit's fruit
+    /// (`PlanningSettings::aim_at_remembered_fruit`).
+    pub revisit_aim: bool,
 }
 
 impl TrialConfig {
@@ -101,6 +104,7 @@ impl TrialConfig {
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
             registration: false,
+            revisit_aim: true,
         }
     }
 
@@ -144,6 +148,7 @@ impl TrialConfig {
             ..PlanningSettings::default()
         };
         settings.registration.enabled = self.registration;
+        settings.aim_at_remembered_fruit = self.revisit_aim;
         settings
     }
 

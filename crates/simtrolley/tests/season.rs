@@ -104,4 +104,15 @@ fn a_revisit_aims_at_the_previous_visits_fruit_until_a_scan_looks_there() {
     planner.integrate(&cloud, 0).unwrap();
     let left = planner.remembered_fruit().len();
     assert!(left < remembered / 2, "{left} of {remembered} left");
+    // None is left inside a fruit found again (its grown surface hides the old one).
+    let found = planner.fruits();
+    assert!(!found.is_empty());
+    let inside = |k: &glasshouse_roimap::VoxelKey, f: &glasshouse_geom::FruitEstimate| {
+        let p = planner.map().centre_of(*k);
+        (0..3).all(|i| f.min[i] <= p[i] && p[i] <= f.max[i])
+    };
+    assert!(!planner
+        .remembered_fruit()
+        .iter()
+        .any(|k| found.iter().any(|f| inside(k, f))));
 }

@@ -80,7 +80,9 @@ fn synthetic_cloud(frame: FrameId) -> RoiCloud {
             )
         })
         .collect();
-    let roi = (0..points.len()).map(|i| i % 17 == 0).collect();
+    let roi: Vec<bool> = (0..points.len()).map(|i| i % 17 == 0).collect();
+    // Red fruit points, as a detector sends them.
+    let roi_rgb = [190, 35, 25].repeat(roi.iter().filter(|&&r| r).count());
     RoiCloud {
         points_in_world: points,
         roi,
@@ -91,6 +93,7 @@ fn synthetic_cloud(frame: FrameId) -> RoiCloud {
         invalid_pixels: 0,
         detector_id: "bench".into(),
         roi_confidence: Vec::new(),
+        roi_rgb,
     }
 }
 

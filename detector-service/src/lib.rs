@@ -278,7 +278,7 @@ impl Driver {
         .context("detection task failed")?;
         Ok(DetectorInput::Detected {
             header,
-            result: result.map_err(|e| e.to_string()),
+            result: result.map(Box::new).map_err(|e| e.to_string()),
             detect_ms: started.elapsed().as_secs_f64() * 1e3,
         })
     }

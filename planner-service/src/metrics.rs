@@ -156,6 +156,12 @@ fn from_status(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings 
             "ROI clouds refused: not from the detector serving the trolley",
             &[],
             s(|st| st.unassigned_clouds as f64),
+        )
+        .counter(
+            "clouds_colourless",
+            "ROI clouds integrated without colour: roi_rgb not 3 bytes per ROI point",
+            &[],
+            s(|st| st.colourless_clouds as f64),
         );
     verdicts.into_iter().fold(readings, |r, (verdict, read)| {
         r.counter(

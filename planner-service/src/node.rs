@@ -46,7 +46,7 @@ use glasshouse_proto::keys;
 use glasshouse_proto::FrameId;
 use glasshouse_proto::{
     FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus, RankedViews,
-    RegistrationTotals, RoiCloud, StageTimes, TrolleyInfo,
+    RegistrationTotals, RoiCloud, RoiColours, StageTimes, TrolleyInfo,
 };
 use glasshouse_roimap::PriorRules;
 
@@ -214,6 +214,8 @@ pub struct PlannerStats {
     pub clouds_unassigned: u64,
     /// Clouds of frames older than the map's last one (not integrated).
     pub clouds_stale: u64,
+    /// Clouds integrated without colour: their `roi_rgb` was not one colour per ROI point.
+    pub clouds_colourless: u64,
     pub views_published: u64,
     pub last_planning_time_ms: f32,
     pub total_planning_time_ms: f64,
@@ -1171,6 +1173,15 @@ impl PlannerNode {
             actions.extend(store_cloud(self.store, slot, tid, &received, &verdict));
         }
         self.stats.clouds_integrated += 1;
+        if let RoiColours::WrongLength { bytes, roi_points } = cloud.roi_colours() {
+            note_colourless(
+                &mut self.stats,
+                &mut self.logged_refusals,
+                tid,
+                bytes,
+                roi_points,
+            );
+        }
         let camera = cloud.world_from_camera;
         let header = received.header.clone();
         slot.last_cloud = Some(received);
@@ -1381,6 +1392,7 @@ impl PlannerNode {
             stale_epoch: s.stale_epoch,
             stepped_down: s.stepped_down,
             unassigned_clouds: s.clouds_unassigned,
+            colourless_clouds: s.clouds_colourless,
         };
         let header = Header {
             seq: self.status_seq,
@@ -1400,6 +1412,22 @@ impl PlannerNode {
             actions.push(PlannerAction::PublishFleet { header, fruits });
         }
         actions
+    }
+}
+
+/// Counts a cloud of trolley `tid` taken without colour, `bytes` colour bytes for `roi_points`
+/// ROI points (logged once per trolley).
+fn note_colourless(
+    stats: &mut PlannerStats,
+    logged: &mut BTreeSet<String>,
+    tid: &str,
+    bytes: usize,
+    roi_points: usize,
+) {
+    stats.clouds_colourless += 1;
+    if logged.insert(format!("colourless {tid}")) {
+        tracing::warn!(trolley = %tid, bytes, roi_points,
+            "cloud taken without colour: its roi_rgb is not 3 bytes per ROI point (logged once per trolley)");
     }
 }
 

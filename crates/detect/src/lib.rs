@@ -183,6 +183,9 @@ pub struct LabelledCloud {
     /// Each point's fruit confidence in [0, 1] (a colour rule gives 0 or 1); `roi` is
     /// confidence >= [`ROI_CONFIDENCE_THRESHOLD`].
     pub confidence: Vec<f32>,
+    /// Each point's colour: the integer mean of its pixels' RGB8 colours, what the colour rule
+    /// judges.
+    pub rgb: Vec<[u8; 3]>,
     /// Camera centre in the world: the origin of every ray for the map update.
     pub sensor_origin_in_world: Point3<f64>,
     /// Pixels skipped for zero or out-of-range depth.
@@ -461,6 +464,7 @@ pub fn detect_with(
     let mut points_in_world = Vec::with_capacity(cells.len());
     let mut roi = Vec::with_capacity(cells.len());
     let mut confidence = Vec::with_capacity(cells.len());
+    let mut colours = Vec::with_capacity(cells.len());
     for sum in cells.iter().filter_map(|&(_, i)| sums.get(i as usize)) {
         let n = sum.count.max(1);
         let mean = sum.position_m.map(|c| (c / n as f64) as f32);
@@ -480,11 +484,13 @@ pub fn detect_with(
         };
         roi.push(c >= ROI_CONFIDENCE_THRESHOLD);
         confidence.push(c);
+        colours.push(mean_rgb);
     }
     Ok(LabelledCloud {
         points_in_world,
         roi,
         confidence,
+        rgb: colours,
         sensor_origin_in_world: Point3::from(t),
         invalid_pixels,
     })
@@ -783,17 +789,19 @@ mod tests {
         }
         assert_eq!(cloud.invalid_pixels, invalid);
         assert_eq!(cloud.points_in_world.len(), reference.len());
-        for (((p, &roi), &voted_roi), (sum, colour, n, k)) in cloud
+        for ((((p, &roi), &voted_roi), rgb), (sum, colour, n, k)) in cloud
             .points_in_world
             .iter()
             .zip(&cloud.roi)
             .zip(&voted.roi)
+            .zip(&cloud.rgb)
             .zip(reference.values())
         {
             let mean = sum / *n as f64;
             assert!((p.coords.cast::<f64>() - mean).norm() < 1e-5);
             let c = colour.map(|c| (c / n) as u8);
             assert_eq!(roi, config.rule.is_roi(c[0], c[1], c[2]));
+            assert_eq!(*rgb, c, "the point's colour is its pixels' mean");
             assert_eq!(voted_roi, (*k as f32 + 1.0) / (*n as f32 + 3.0) >= 0.5);
         }
     }

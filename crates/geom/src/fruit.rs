@@ -11,7 +11,7 @@ use std::collections::HashSet;
 use nalgebra::{Point3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::Aabb;
+use crate::{Aabb, Rgb};
 
 /// How a [`FruitSolid`] was obtained.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -71,6 +71,10 @@ pub struct FruitEstimate {
     pub view_directions: u32,
     /// The fitted whole-fruit solid; `None` when no fit was made.
     pub solid: Option<FruitSolid>,
+    /// The mean colour of the detector's fruit points that fell in the fruit's voxels on this
+    /// visit; `None` when none carried a colour (an older detector, or not seen yet).
+    #[serde(default)]
+    pub colour: Option<Rgb>,
 }
 
 impl FruitEstimate {
@@ -86,6 +90,7 @@ impl FruitEstimate {
             confidence: 0.0,
             view_directions: 0,
             solid: None,
+            colour: None,
         }
     }
 

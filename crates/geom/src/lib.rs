@@ -1,5 +1,5 @@
 //! Shared geometry for Glasshouse: camera intrinsics, boxes, poses in named frames, and the one
-//! fruit estimate with its covered-volume rule ([`fruit`]).
+//! fruit estimate with its covered-volume rule ([`fruit`]), observed colour ([`colour`]).
 //!
 //! Conventions used by every crate:
 //! - The world frame is right-handed with `z` up; lengths are metres.
@@ -7,11 +7,13 @@
 //! - A pose named `world_from_camera` maps a point in the camera frame to the world frame, so
 //!   `world_from_camera * point_in_camera` reads right to left.
 
+pub mod colour;
 pub mod fruit;
 
 use nalgebra::{Isometry3, Point3, Rotation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+pub use colour::{Rgb, RgbSum};
 pub use fruit::{box_voxel_keys, covered_volume, FruitEstimate, FruitSolid, SolidKind};
 
 /// Pinhole intrinsics of a depth/colour camera, in pixels.

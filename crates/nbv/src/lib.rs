@@ -978,6 +978,8 @@ impl FruitTracker {
                     confidence: fruit_confidence(cluster),
                     view_directions,
                     solid: None,
+                    // The pipeline adds the colours of the scans' fruit points.
+                    colour: None,
                 }
             })
             .collect();

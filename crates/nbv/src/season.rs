@@ -13,9 +13,10 @@
 //! visit's frame. A known fruit that no estimate of a visit matches is closed
 //! (harvested, or hidden this time: it may be matched again on a later visit, up to
 //! [`SeasonRules::reopen_visits`] visits after it was last seen); an estimate that matches no known fruit is a new
-//! fruit with a new id. Each fruit keeps its history: centre, size and volume per visit.
+//! fruit with a new id. Each fruit keeps its history: centre, size, volume and observed colour
+//! per visit.
 
-use glasshouse_geom::FruitEstimate;
+use glasshouse_geom::{FruitEstimate, Rgb};
 use nalgebra::{Point3, Vector3};
 use serde::Serialize;
 
@@ -53,6 +54,8 @@ pub struct VisitRecord {
     pub volume_m3: f64,
     /// The estimate's id within that visit.
     pub visit_fruit_id: u32,
+    /// Its mean observed colour on that visit ([`FruitEstimate::colour`]); `None`: unknown.
+    pub colour: Option<Rgb>,
 }
 
 /// A fruit over the season.
@@ -250,6 +253,7 @@ fn record(visit: usize, e: &FruitEstimate, offset: &Vector3<f64>) -> VisitRecord
         size_m: e.max - e.min,
         volume_m3: estimate_volume_m3(e),
         visit_fruit_id: e.id,
+        colour: e.colour,
     }
 }
 
@@ -284,6 +288,28 @@ mod tests {
         assert_eq!(one.history.len(), 2);
         assert_eq!(one.on(1).map(|r| r.visit_fruit_id), Some(9));
         assert!(season.fruits()[1].on(1).is_none(), "harvested");
+    }
+
+    #[test]
+    fn each_visit_keeps_the_fruits_colour_then() {
+        let mut season = SeasonTracker::new(SeasonRules::default());
+        let green = Rgb::new(90, 140, 40);
+        let red = Rgb::new(185, 40, 30);
+        let with = |f: FruitEstimate, colour| FruitEstimate { colour, ..f };
+        season.observe(&[with(fruit(1, 0.0, 0.03), Some(green)), fruit(2, 0.3, 0.03)]);
+        season.observe(&[
+            with(fruit(4, 0.002, 0.032), Some(red)),
+            fruit(5, 0.3, 0.031),
+        ]);
+        let colours = |i: usize| -> Vec<_> {
+            season.fruits()[i]
+                .history
+                .iter()
+                .map(|r| r.colour)
+                .collect()
+        };
+        assert_eq!(colours(0), [Some(green), Some(red)]);
+        assert_eq!(colours(1), [None, None], "no colour seen, none made up");
     }
 
     #[test]

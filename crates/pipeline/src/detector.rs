@@ -28,11 +28,11 @@ pub enum DetectorInput {
         header: Header,
         frame: Box<RgbdFrame>,
     },
-    /// The outcome of a `Detect`: the cloud or why the frame could not be processed, and how
-    /// long the detection took.
+    /// The outcome of a `Detect`: the cloud (boxed: the other inputs are small) or why the
+    /// frame could not be processed, and how long the detection took.
     Detected {
         header: Header,
-        result: Result<RoiCloud, String>,
+        result: Result<Box<RoiCloud>, String>,
         detect_ms: f64,
     },
     /// Time to publish the status; `dropped_messages` are the driver's bus drops so far.
@@ -168,11 +168,11 @@ impl DetectorNode {
     fn on_detected(
         &mut self,
         header: Header,
-        result: Result<RoiCloud, String>,
+        result: Result<Box<RoiCloud>, String>,
         detect_ms: f64,
     ) -> Vec<DetectorAction> {
         let cloud = match result {
-            Ok(cloud) => cloud,
+            Ok(cloud) => *cloud,
             Err(reason) => return vec![self.reject(&header, reason)],
         };
         self.counts.frames_processed += 1;

@@ -126,7 +126,7 @@ fn a_frame_is_detected_and_its_cloud_published_under_the_detectors_id_and_epoch(
     let cloud = samples::roi_cloud();
     let actions = node.handle(DetectorInput::Detected {
         header,
-        result: Ok(cloud.clone()),
+        result: Ok(Box::new(cloud.clone())),
         detect_ms: 12.0,
     });
     let [DetectorAction::PublishCloud {
@@ -184,7 +184,7 @@ fn the_status_counts_frames_drops_and_the_mean_detection_time() {
     for (seq, ms) in [(1, 10.0), (2, 30.0)] {
         node.handle(DetectorInput::Detected {
             header: frame_header("t1", seq),
-            result: Ok(samples::roi_cloud()),
+            result: Ok(Box::new(samples::roi_cloud())),
             detect_ms: ms,
         });
     }

@@ -15,6 +15,7 @@
 //! simulator is not here: the simulated trolley (`glasshouse-simtrolley`) is one
 //! [`TrolleySource`] among others, and nothing a real trolley runs links it.
 
+mod colour;
 mod detection;
 mod detector;
 mod edge;

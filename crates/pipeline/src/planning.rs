@@ -25,6 +25,7 @@ use glasshouse_roimap::{
 use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
+use crate::colour::FruitColours;
 use crate::fits::{FitCache, SplitCache};
 use crate::published::PublishedSolid;
 use crate::{FrameOrder, FrameVerdict, ReachFilter};
@@ -288,6 +289,8 @@ pub struct TrolleyPlanner {
     /// The fruit clusters: the ROI clusters with touching fruits split apart.
     clusters: Vec<RoiCluster>,
     estimates: Vec<FruitEstimate>,
+    /// Each tracked fruit's colour samples (its estimate's mean colour).
+    colours: FruitColours,
     /// The fitted shape of each cluster, and the fits kept between frames.
     fits: Vec<FruitSolid>,
     fit_cache: FitCache,
@@ -323,6 +326,7 @@ impl TrolleyPlanner {
             order: FrameOrder::default(),
             clusters: Vec::new(),
             estimates: Vec::new(),
+            colours: FruitColours::default(),
             fits: Vec::new(),
             fit_cache: FitCache::default(),
             fits_stale: false,
@@ -426,6 +430,7 @@ impl TrolleyPlanner {
         };
         // Which fruit this view saw, from where: the fruit evidence's directions.
         self.note_view(&origin, &points, &cloud.roi);
+        self.colours.note_cloud(&self.map, &points, cloud);
         let map = &self.map;
         self.remembered_fruit.retain(|&k| map.is_unobserved_hint(k));
         self.order.integrated(frame);
@@ -472,9 +477,10 @@ impl TrolleyPlanner {
     }
 
     /// The fruit ids of the clusters after [`TrolleyPlanner::cluster`], with the view
-    /// directions of the clouds noted since ([`TrolleyPlanner::note_view`]).
+    /// directions of the clouds noted since ([`TrolleyPlanner::note_view`]) and their colours.
     pub fn track(&mut self) {
         self.estimates = self.tracker.update(&self.clusters);
+        self.colours.update(&self.clusters, &mut self.estimates);
         self.fits_stale = true;
         self.forget_found_again();
     }
@@ -708,6 +714,7 @@ impl TrolleyPlanner {
         let tracked_fruits = tracked.into_iter().map(|(id, c)| TrackedFruit {
             id,
             centre_in_world: c.cast(),
+            colour: self.colours.sum_of(id),
         });
         Ok(MapSnapshot {
             trolley_id: tid.to_owned(),
@@ -743,6 +750,7 @@ impl TrolleyPlanner {
         let tracked_fruits = tracked.into_iter().map(|(id, c)| TrackedFruit {
             id,
             centre_in_world: c.cast(),
+            colour: self.colours.sum_of(id),
         });
         let meta = MapSnapshot {
             trolley_id: tid.to_owned(),
@@ -823,6 +831,7 @@ impl TrolleyPlanner {
             tracked.map(|f| (f.id, f.centre_in_world.cast())).collect(),
             snapshot.next_fruit_id,
         );
+        planner.colours = FruitColours::from_tracked(&snapshot.tracked_fruits);
         let last = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
         planner.order = FrameOrder::starting_at((last != FrameId::default()).then_some(last));
         planner.set_season(snapshot.visit, &snapshot.season);

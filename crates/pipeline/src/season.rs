@@ -82,6 +82,7 @@ fn wire_record(r: &VisitRecord) -> FruitVisit {
         centre: r.centre,
         size_m: r.size_m,
         volume_m3: r.volume_m3,
+        colour: r.colour,
     }
 }
 
@@ -92,5 +93,6 @@ fn tracker_record(r: &FruitVisit) -> VisitRecord {
         size_m: r.size_m,
         volume_m3: r.volume_m3,
         visit_fruit_id: 0,
+        colour: r.colour,
     }
 }

@@ -1,6 +1,8 @@
 //! Small, valid example messages of every kind, for tests and for fault injection.
 
-use glasshouse_geom::{look_at, Aabb, CameraIntrinsics, FruitEstimate, FruitSolid, SolidKind};
+use glasshouse_geom::{
+    look_at, Aabb, CameraIntrinsics, FruitEstimate, FruitSolid, Rgb, RgbSum, SolidKind,
+};
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::*;
@@ -117,6 +119,8 @@ pub fn roi_cloud() -> RoiCloud {
         invalid_pixels: 5,
         detector_id: "d1".into(),
         roi_confidence: vec![230, 40, 0],
+        // The one ROI point's colour.
+        roi_rgb: vec![200, 30, 20],
     }
 }
 
@@ -147,19 +151,24 @@ pub fn ranked_views() -> RankedViews {
     }
 }
 
-/// A fruit seen on visits 0 and 2 (`fruit_id` its estimate on the current one, 0: none).
+/// A fruit seen on visits 0 and 2 (`fruit_id` its estimate on the current one, 0: none),
+/// green on the first and red on the last.
 pub fn fruit_histories(fruit_id: u32) -> Vec<FruitHistory> {
-    let record = |visit: u32, grown: f64| FruitVisit {
+    let record = |visit: u32, grown: f64, colour: Rgb| FruitVisit {
         visit,
         centre: Point3::new(0.25, -0.5, 1.0),
         // Values a wire f32 holds exactly, so that a round trip compares equal.
         size_m: Vector3::new(0.0625, 0.078125, 0.09375) * grown,
         volume_m3: 2f64.powi(-13) * grown.powi(3),
+        colour: Some(colour),
     };
     vec![FruitHistory {
         season_id: 5,
         fruit_id,
-        visits: vec![record(0, 1.0), record(2, 1.25)],
+        visits: vec![
+            record(0, 1.0, Rgb::new(110, 150, 40)),
+            record(2, 1.25, Rgb::new(190, 35, 25)),
+        ],
     }]
 }
 
@@ -256,6 +265,7 @@ pub fn planner_status() -> PlannerStatus {
         stale_epoch: 2,
         stepped_down: 1,
         unassigned_clouds: 3,
+        colourless_clouds: 1,
     }
 }
 
@@ -309,6 +319,12 @@ pub fn map_snapshot() -> MapSnapshot {
         tracked_fruits: vec![TrackedFruit {
             id: 3,
             centre_in_world: Point3::new(0.1, 0.2, 0.9),
+            colour: RgbSum {
+                r: 1900,
+                g: 350,
+                b: 250,
+                samples: 10,
+            },
         }],
         next_fruit_id: 4,
         owner_epoch: SAMPLE_OWNER_EPOCH,
@@ -358,5 +374,6 @@ fn sample_fruit() -> FruitEstimate {
             confidence: 0.75,
             rms_residual_m: f64::from(0.002f32),
         }),
+        colour: Some(Rgb::new(190, 35, 25)),
     }
 }

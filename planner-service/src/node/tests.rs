@@ -449,6 +449,36 @@ fn bad_clouds_are_counted_and_leave_the_map_alone() {
 }
 
 #[test]
+fn a_cloud_whose_colours_are_not_one_per_roi_point_is_taken_without_colour_and_counted() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut owner, _) = roles(pair());
+    owner.handle(info_event(&info));
+    let mut broken = clouds[0].clone();
+    assert!(!broken.roi_rgb.is_empty(), "the detector sends colours");
+    broken.roi_rgb.pop();
+    let actions = owner.handle(cloud_event(&broken));
+    assert_eq!(views_of(&actions).len(), 1, "planned on as any cloud");
+    let fruits = published_fruits(&actions).expect("fruits");
+    assert!(
+        fruits.fruits.iter().all(|f| f.colour.is_none()),
+        "{fruits:?}"
+    );
+    assert_eq!(owner.stats().clouds_colourless, 1);
+    assert_eq!(
+        status_of(&owner.handle(status_tick(NOW_NS))).colourless_clouds,
+        1
+    );
+    // The next clouds' colours are taken.
+    owner.handle(cloud_event(&clouds[1]));
+    let fruits = published_fruits(&owner.handle(cloud_event(&clouds[2]))).expect("fruits");
+    assert!(
+        fruits.fruits.iter().any(|f| f.colour.is_some()),
+        "{fruits:?}"
+    );
+    assert_eq!(owner.stats().clouds_colourless, 1);
+}
+
+#[test]
 fn the_status_lists_owned_and_standby_trolleys() {
     let (owner, replica) = roles(pair());
     for (mut n, owned) in [(owner, true), (replica, false)] {
@@ -1571,6 +1601,14 @@ fn fruit_ids(actions: &[PlannerAction]) -> Vec<u32> {
     published_fruits(actions).map_or_else(Vec::new, |f| f.fruits.iter().map(|f| f.id).collect())
 }
 
+/// Each published fruit's id and colour.
+fn fruit_colours(actions: &[PlannerAction]) -> Vec<(u32, Option<glasshouse_geom::Rgb>)> {
+    let fruits = published_fruits(actions)
+        .map(|f| f.fruits)
+        .unwrap_or_default();
+    fruits.iter().map(|f| (f.id, f.colour)).collect()
+}
+
 #[test]
 fn an_owner_stores_a_full_checkpoint_then_its_clouds_then_the_changed_blocks() {
     let (info, clouds) = trolley_clouds(5);
@@ -1660,6 +1698,10 @@ fn a_planner_restarted_from_its_store_goes_on_with_the_same_map_and_fruit_ids() 
         let restarted = perform_writes(&mut p1, &store, cloud_event(cloud));
         let through = feed(&mut uninterrupted, cloud_event(cloud));
         assert_eq!(fruit_ids(&restarted), fruit_ids(&through));
+        // The colours too: the checkpoint carried each fruit's samples so far.
+        let colours = fruit_colours(&restarted);
+        assert!(colours.iter().any(|(_, c)| c.is_some()), "{colours:?}");
+        assert_eq!(colours, fruit_colours(&through));
         assert_eq!(views_of(&restarted)[0].views, views_of(&through)[0].views);
     }
     assert!(same_map(&p1, &uninterrupted, "t1"));
@@ -1834,6 +1876,11 @@ fn a_later_visit_starts_every_copy_on_the_prior_and_the_fruits_keep_their_histor
     {
         let visits: Vec<u32> = h.visits.iter().map(|v| v.visit).collect();
         assert_eq!(visits, [0, 1]);
+        // A colour per visit: the fruit's red as seen on each.
+        for v in &h.visits {
+            let colour = v.colour.expect("a colour per visit");
+            assert!(colour.is_red_dominant(30), "{h:?}");
+        }
     }
 }
 

@@ -1862,6 +1862,359 @@ impl<'a> Box3 {
 
 }
 
+/// An 8-bit sRGB colour as the camera delivers it.
+// struct Rgb, aligned to 1
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct Rgb(pub [u8; 3]);
+impl Default for Rgb { 
+  fn default() -> Self { 
+    Self([0; 3])
+  }
+}
+impl ::core::fmt::Debug for Rgb {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("Rgb")
+      .field("r", &self.r())
+      .field("g", &self.g())
+      .field("b", &self.b())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for Rgb {}
+impl<'a> ::flatbuffers::Follow<'a> for Rgb {
+  type Inner = &'a Rgb;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a Rgb>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a Rgb {
+  type Inner = &'a Rgb;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<Rgb>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for Rgb {
+    type Output = Rgb;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const Rgb as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(1)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for Rgb {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> Rgb {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    r: u8,
+    g: u8,
+    b: u8,
+  ) -> Self {
+    let mut s = Self([0; 3]);
+    s.set_r(r);
+    s.set_g(g);
+    s.set_b(b);
+    s
+  }
+
+  pub fn r(&self) -> u8 {
+    let mut mem = ::core::mem::MaybeUninit::<<u8 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_r(&mut self, x: u8) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<u8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn g(&self) -> u8 {
+    let mut mem = ::core::mem::MaybeUninit::<<u8 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[1..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_g(&mut self, x: u8) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[1..].as_mut_ptr(),
+        ::core::mem::size_of::<<u8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn b(&self) -> u8 {
+    let mut mem = ::core::mem::MaybeUninit::<<u8 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[2..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_b(&mut self, x: u8) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[2..].as_mut_ptr(),
+        ::core::mem::size_of::<<u8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
+/// Running sums of colour samples: a fruit's observed colour is each sum / samples. Integers,
+/// so that two planners adding the same samples hold the same sums.
+// struct RgbSum, aligned to 8
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct RgbSum(pub [u8; 32]);
+impl Default for RgbSum { 
+  fn default() -> Self { 
+    Self([0; 32])
+  }
+}
+impl ::core::fmt::Debug for RgbSum {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("RgbSum")
+      .field("r", &self.r())
+      .field("g", &self.g())
+      .field("b", &self.b())
+      .field("samples", &self.samples())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for RgbSum {}
+impl<'a> ::flatbuffers::Follow<'a> for RgbSum {
+  type Inner = &'a RgbSum;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a RgbSum>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a RgbSum {
+  type Inner = &'a RgbSum;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<RgbSum>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for RgbSum {
+    type Output = RgbSum;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const RgbSum as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(8)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for RgbSum {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> RgbSum {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    r: u64,
+    g: u64,
+    b: u64,
+    samples: u64,
+  ) -> Self {
+    let mut s = Self([0; 32]);
+    s.set_r(r);
+    s.set_g(g);
+    s.set_b(b);
+    s.set_samples(samples);
+    s
+  }
+
+  pub fn r(&self) -> u64 {
+    let mut mem = ::core::mem::MaybeUninit::<<u64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_r(&mut self, x: u64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn g(&self) -> u64 {
+    let mut mem = ::core::mem::MaybeUninit::<<u64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[8..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_g(&mut self, x: u64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[8..].as_mut_ptr(),
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn b(&self) -> u64 {
+    let mut mem = ::core::mem::MaybeUninit::<<u64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[16..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_b(&mut self, x: u64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[16..].as_mut_ptr(),
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn samples(&self) -> u64 {
+    let mut mem = ::core::mem::MaybeUninit::<<u64 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[24..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_samples(&mut self, x: u64) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[24..].as_mut_ptr(),
+        ::core::mem::size_of::<<u64 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
 // struct View, aligned to 8
 #[repr(transparent)]
 #[derive(Clone, Copy, PartialEq)]
@@ -3679,6 +4032,7 @@ impl<'a> RoiCloud<'a> {
   pub const VT_WORLD_FROM_CAMERA: ::flatbuffers::VOffsetT = 16;
   pub const VT_SOURCE_FRAME_EPOCH_NS: ::flatbuffers::VOffsetT = 18;
   pub const VT_ROI_CONFIDENCE: ::flatbuffers::VOffsetT = 20;
+  pub const VT_ROI_RGB: ::flatbuffers::VOffsetT = 22;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3692,6 +4046,7 @@ impl<'a> RoiCloud<'a> {
     let mut builder = RoiCloudBuilder::new(_fbb);
     builder.add_source_frame_epoch_ns(args.source_frame_epoch_ns);
     builder.add_source_frame_seq(args.source_frame_seq);
+    if let Some(x) = args.roi_rgb { builder.add_roi_rgb(x); }
     if let Some(x) = args.roi_confidence { builder.add_roi_confidence(x); }
     if let Some(x) = args.world_from_camera { builder.add_world_from_camera(x); }
     if let Some(x) = args.detector_id { builder.add_detector_id(x); }
@@ -3771,6 +4126,17 @@ impl<'a> RoiCloud<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(RoiCloud::VT_ROI_CONFIDENCE, None)}
   }
+  /// The colour of each ROI point (roi[i] != 0), in the order of the ROI points, 3 bytes (R, G,
+  /// B) each: the mean of the pixels the point stands for. Empty or absent: not sent (an older
+  /// detector). Any other length than 3 × the ROI points is a broken sender: planners take the
+  /// cloud without colour and count it (PlannerStatus.colourless_clouds).
+  #[inline]
+  pub fn roi_rgb(&self) -> Option<::flatbuffers::Vector<'a, u8>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(RoiCloud::VT_ROI_RGB, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for RoiCloud<'_> {
@@ -3788,6 +4154,7 @@ impl ::flatbuffers::Verifiable for RoiCloud<'_> {
      .visit_field::<Pose>("world_from_camera", Self::VT_WORLD_FROM_CAMERA, false)?
      .visit_field::<u64>("source_frame_epoch_ns", Self::VT_SOURCE_FRAME_EPOCH_NS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("roi_confidence", Self::VT_ROI_CONFIDENCE, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("roi_rgb", Self::VT_ROI_RGB, false)?
      .finish();
     Ok(())
   }
@@ -3802,6 +4169,7 @@ pub struct RoiCloudArgs<'a> {
     pub world_from_camera: Option<&'a Pose>,
     pub source_frame_epoch_ns: u64,
     pub roi_confidence: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
+    pub roi_rgb: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
 }
 impl<'a> Default for RoiCloudArgs<'a> {
   #[inline]
@@ -3816,6 +4184,7 @@ impl<'a> Default for RoiCloudArgs<'a> {
       world_from_camera: None,
       source_frame_epoch_ns: 0,
       roi_confidence: None,
+      roi_rgb: None,
     }
   }
 }
@@ -3862,6 +4231,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> RoiCloudBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RoiCloud::VT_ROI_CONFIDENCE, roi_confidence);
   }
   #[inline]
+  pub fn add_roi_rgb(&mut self, roi_rgb: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , u8>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(RoiCloud::VT_ROI_RGB, roi_rgb);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> RoiCloudBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     RoiCloudBuilder {
@@ -3888,6 +4261,7 @@ impl ::core::fmt::Debug for RoiCloud<'_> {
       ds.field("world_from_camera", &self.world_from_camera());
       ds.field("source_frame_epoch_ns", &self.source_frame_epoch_ns());
       ds.field("roi_confidence", &self.roi_confidence());
+      ds.field("roi_rgb", &self.roi_rgb());
       ds.finish()
   }
 }
@@ -4416,6 +4790,7 @@ impl<'a> Fruit<'a> {
   pub const VT_CONFIDENCE: ::flatbuffers::VOffsetT = 14;
   pub const VT_FITTED: ::flatbuffers::VOffsetT = 16;
   pub const VT_VIEW_DIRECTIONS: ::flatbuffers::VOffsetT = 18;
+  pub const VT_COLOUR: ::flatbuffers::VOffsetT = 20;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4427,6 +4802,7 @@ impl<'a> Fruit<'a> {
     args: &'args FruitArgs<'args>
   ) -> ::flatbuffers::WIPOffset<Fruit<'bldr>> {
     let mut builder = FruitBuilder::new(_fbb);
+    if let Some(x) = args.colour { builder.add_colour(x); }
     builder.add_view_directions(args.view_directions);
     if let Some(x) = args.fitted { builder.add_fitted(x); }
     builder.add_confidence(args.confidence);
@@ -4498,6 +4874,15 @@ impl<'a> Fruit<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u32>(Fruit::VT_VIEW_DIRECTIONS, Some(0)).unwrap()}
   }
+  /// The mean colour of the detector's fruit points (RoiCloud.roi_rgb) that fell in the fruit's
+  /// voxels on this visit; absent: unknown (no coloured point yet, an older sender).
+  #[inline]
+  pub fn colour(&self) -> Option<&'a Rgb> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Rgb>(Fruit::VT_COLOUR, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for Fruit<'_> {
@@ -4514,6 +4899,7 @@ impl ::flatbuffers::Verifiable for Fruit<'_> {
      .visit_field::<f32>("confidence", Self::VT_CONFIDENCE, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<FittedEllipsoid>>("fitted", Self::VT_FITTED, false)?
      .visit_field::<u32>("view_directions", Self::VT_VIEW_DIRECTIONS, false)?
+     .visit_field::<Rgb>("colour", Self::VT_COLOUR, false)?
      .finish();
     Ok(())
   }
@@ -4527,6 +4913,7 @@ pub struct FruitArgs<'a> {
     pub confidence: f32,
     pub fitted: Option<::flatbuffers::WIPOffset<FittedEllipsoid<'a>>>,
     pub view_directions: u32,
+    pub colour: Option<&'a Rgb>,
 }
 impl<'a> Default for FruitArgs<'a> {
   #[inline]
@@ -4540,6 +4927,7 @@ impl<'a> Default for FruitArgs<'a> {
       confidence: 0.0,
       fitted: None,
       view_directions: 0,
+      colour: None,
     }
   }
 }
@@ -4582,6 +4970,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitBuilder<'a, 'b, A> {
     self.fbb_.push_slot::<u32>(Fruit::VT_VIEW_DIRECTIONS, view_directions, 0);
   }
   #[inline]
+  pub fn add_colour(&mut self, colour: &Rgb) {
+    self.fbb_.push_slot_always::<&Rgb>(Fruit::VT_COLOUR, colour);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FruitBuilder {
@@ -4607,6 +4999,7 @@ impl ::core::fmt::Debug for Fruit<'_> {
       ds.field("confidence", &self.confidence());
       ds.field("fitted", &self.fitted());
       ds.field("view_directions", &self.view_directions());
+      ds.field("colour", &self.colour());
       ds.finish()
   }
 }
@@ -4632,6 +5025,8 @@ impl<'a> FruitHistory<'a> {
   pub const VT_SEASON_ID: ::flatbuffers::VOffsetT = 4;
   pub const VT_FRUIT_ID: ::flatbuffers::VOffsetT = 6;
   pub const VT_VISITS: ::flatbuffers::VOffsetT = 8;
+  pub const VT_COLOURS: ::flatbuffers::VOffsetT = 10;
+  pub const VT_COLOUR_KNOWN: ::flatbuffers::VOffsetT = 12;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4643,6 +5038,8 @@ impl<'a> FruitHistory<'a> {
     args: &'args FruitHistoryArgs<'args>
   ) -> ::flatbuffers::WIPOffset<FruitHistory<'bldr>> {
     let mut builder = FruitHistoryBuilder::new(_fbb);
+    if let Some(x) = args.colour_known { builder.add_colour_known(x); }
+    if let Some(x) = args.colours { builder.add_colours(x); }
     if let Some(x) = args.visits { builder.add_visits(x); }
     builder.add_fruit_id(args.fruit_id);
     builder.add_season_id(args.season_id);
@@ -4671,6 +5068,24 @@ impl<'a> FruitHistory<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, FruitVisit>>>(FruitHistory::VT_VISITS, None)}
   }
+  /// The fruit's colour on each visit (Fruit.colour), parallel to visits; empty when no visit's
+  /// colour is known (and in older messages).
+  #[inline]
+  pub fn colours(&self) -> Option<::flatbuffers::Vector<'a, Rgb>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, Rgb>>>(FruitHistory::VT_COLOURS, None)}
+  }
+  /// Parallel to colours when some visit's colour is unknown (its colours entry is then 0, 0, 0
+  /// and means nothing); empty when every entry of colours is known.
+  #[inline]
+  pub fn colour_known(&self) -> Option<::flatbuffers::Vector<'a, bool>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, bool>>>(FruitHistory::VT_COLOUR_KNOWN, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for FruitHistory<'_> {
@@ -4682,6 +5097,8 @@ impl ::flatbuffers::Verifiable for FruitHistory<'_> {
      .visit_field::<u32>("season_id", Self::VT_SEASON_ID, false)?
      .visit_field::<u32>("fruit_id", Self::VT_FRUIT_ID, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, FruitVisit>>>("visits", Self::VT_VISITS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, Rgb>>>("colours", Self::VT_COLOURS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, bool>>>("colour_known", Self::VT_COLOUR_KNOWN, false)?
      .finish();
     Ok(())
   }
@@ -4690,6 +5107,8 @@ pub struct FruitHistoryArgs<'a> {
     pub season_id: u32,
     pub fruit_id: u32,
     pub visits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, FruitVisit>>>,
+    pub colours: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, Rgb>>>,
+    pub colour_known: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, bool>>>,
 }
 impl<'a> Default for FruitHistoryArgs<'a> {
   #[inline]
@@ -4698,6 +5117,8 @@ impl<'a> Default for FruitHistoryArgs<'a> {
       season_id: 0,
       fruit_id: 0,
       visits: None,
+      colours: None,
+      colour_known: None,
     }
   }
 }
@@ -4720,6 +5141,14 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitHistoryBuilder<'a, 'b, A
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitHistory::VT_VISITS, visits);
   }
   #[inline]
+  pub fn add_colours(&mut self, colours: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , Rgb>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitHistory::VT_COLOURS, colours);
+  }
+  #[inline]
+  pub fn add_colour_known(&mut self, colour_known: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , bool>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitHistory::VT_COLOUR_KNOWN, colour_known);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitHistoryBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FruitHistoryBuilder {
@@ -4740,6 +5169,8 @@ impl ::core::fmt::Debug for FruitHistory<'_> {
       ds.field("season_id", &self.season_id());
       ds.field("fruit_id", &self.fruit_id());
       ds.field("visits", &self.visits());
+      ds.field("colours", &self.colours());
+      ds.field("colour_known", &self.colour_known());
       ds.finish()
   }
 }
@@ -5569,6 +6000,7 @@ impl<'a> PlannerStatus<'a> {
   pub const VT_STALE_EPOCH: ::flatbuffers::VOffsetT = 36;
   pub const VT_STEPPED_DOWN: ::flatbuffers::VOffsetT = 38;
   pub const VT_UNASSIGNED_CLOUDS: ::flatbuffers::VOffsetT = 40;
+  pub const VT_COLOURLESS_CLOUDS: ::flatbuffers::VOffsetT = 42;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5580,6 +6012,7 @@ impl<'a> PlannerStatus<'a> {
     args: &'args PlannerStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<PlannerStatus<'bldr>> {
     let mut builder = PlannerStatusBuilder::new(_fbb);
+    builder.add_colourless_clouds(args.colourless_clouds);
     builder.add_unassigned_clouds(args.unassigned_clouds);
     builder.add_stepped_down(args.stepped_down);
     builder.add_stale_epoch(args.stale_epoch);
@@ -5747,6 +6180,14 @@ impl<'a> PlannerStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(PlannerStatus::VT_UNASSIGNED_CLOUDS, Some(0)).unwrap()}
   }
+  /// RoiClouds integrated without colour because their roi_rgb was not 3 bytes per ROI point.
+  #[inline]
+  pub fn colourless_clouds(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_COLOURLESS_CLOUDS, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
@@ -5774,6 +6215,7 @@ impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
      .visit_field::<u64>("stale_epoch", Self::VT_STALE_EPOCH, false)?
      .visit_field::<u64>("stepped_down", Self::VT_STEPPED_DOWN, false)?
      .visit_field::<u64>("unassigned_clouds", Self::VT_UNASSIGNED_CLOUDS, false)?
+     .visit_field::<u64>("colourless_clouds", Self::VT_COLOURLESS_CLOUDS, false)?
      .finish();
     Ok(())
   }
@@ -5798,6 +6240,7 @@ pub struct PlannerStatusArgs<'a> {
     pub stale_epoch: u64,
     pub stepped_down: u64,
     pub unassigned_clouds: u64,
+    pub colourless_clouds: u64,
 }
 impl<'a> Default for PlannerStatusArgs<'a> {
   #[inline]
@@ -5822,6 +6265,7 @@ impl<'a> Default for PlannerStatusArgs<'a> {
       stale_epoch: 0,
       stepped_down: 0,
       unassigned_clouds: 0,
+      colourless_clouds: 0,
     }
   }
 }
@@ -5908,6 +6352,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> PlannerStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(PlannerStatus::VT_UNASSIGNED_CLOUDS, unassigned_clouds, 0);
   }
   #[inline]
+  pub fn add_colourless_clouds(&mut self, colourless_clouds: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_COLOURLESS_CLOUDS, colourless_clouds, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> PlannerStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     PlannerStatusBuilder {
@@ -5944,6 +6392,7 @@ impl ::core::fmt::Debug for PlannerStatus<'_> {
       ds.field("stale_epoch", &self.stale_epoch());
       ds.field("stepped_down", &self.stepped_down());
       ds.field("unassigned_clouds", &self.unassigned_clouds());
+      ds.field("colourless_clouds", &self.colourless_clouds());
       ds.finish()
   }
 }
@@ -6541,6 +6990,7 @@ impl<'a> MapSnapshot<'a> {
   pub const VT_OWNER_EPOCH: ::flatbuffers::VOffsetT = 18;
   pub const VT_VISIT: ::flatbuffers::VOffsetT = 20;
   pub const VT_SEASON: ::flatbuffers::VOffsetT = 22;
+  pub const VT_TRACKED_COLOURS: ::flatbuffers::VOffsetT = 24;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -6555,6 +7005,7 @@ impl<'a> MapSnapshot<'a> {
     builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_epoch_ns(args.based_on_epoch_ns);
     builder.add_based_on_seq(args.based_on_seq);
+    if let Some(x) = args.tracked_colours { builder.add_tracked_colours(x); }
     if let Some(x) = args.season { builder.add_season(x); }
     builder.add_visit(args.visit);
     builder.add_next_fruit_id(args.next_fruit_id);
@@ -6642,6 +7093,15 @@ impl<'a> MapSnapshot<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory>>>>(MapSnapshot::VT_SEASON, None)}
   }
+  /// Each tracked fruit's colour samples so far on this visit, parallel to tracked_fruits;
+  /// empty in older snapshots (no samples).
+  #[inline]
+  pub fn tracked_colours(&self) -> Option<::flatbuffers::Vector<'a, RgbSum>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, RgbSum>>>(MapSnapshot::VT_TRACKED_COLOURS, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
@@ -6660,6 +7120,7 @@ impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
      .visit_field::<u64>("owner_epoch", Self::VT_OWNER_EPOCH, false)?
      .visit_field::<u32>("visit", Self::VT_VISIT, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<FruitHistory>>>>("season", Self::VT_SEASON, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, RgbSum>>>("tracked_colours", Self::VT_TRACKED_COLOURS, false)?
      .finish();
     Ok(())
   }
@@ -6675,6 +7136,7 @@ pub struct MapSnapshotArgs<'a> {
     pub owner_epoch: u64,
     pub visit: u32,
     pub season: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory<'a>>>>>,
+    pub tracked_colours: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, RgbSum>>>,
 }
 impl<'a> Default for MapSnapshotArgs<'a> {
   #[inline]
@@ -6690,6 +7152,7 @@ impl<'a> Default for MapSnapshotArgs<'a> {
       owner_epoch: 0,
       visit: 0,
       season: None,
+      tracked_colours: None,
     }
   }
 }
@@ -6740,6 +7203,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapSnapshotBuilder<'a, 'b, A>
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_SEASON, season);
   }
   #[inline]
+  pub fn add_tracked_colours(&mut self, tracked_colours: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , RgbSum>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_TRACKED_COLOURS, tracked_colours);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapSnapshotBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     MapSnapshotBuilder {
@@ -6767,6 +7234,7 @@ impl ::core::fmt::Debug for MapSnapshot<'_> {
       ds.field("owner_epoch", &self.owner_epoch());
       ds.field("visit", &self.visit());
       ds.field("season", &self.season());
+      ds.field("tracked_colours", &self.tracked_colours());
       ds.finish()
   }
 }

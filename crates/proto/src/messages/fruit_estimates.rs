@@ -1,7 +1,7 @@
 //! FruitEstimates: one trolley's fruits, owning planner → dashboard (also the simulator's truth).
 
 use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
-use glasshouse_geom::{FruitEstimate, FruitSolid, SolidKind};
+use glasshouse_geom::{FruitEstimate, FruitSolid, Rgb, SolidKind};
 use nalgebra::{Point3, Quaternion, UnitQuaternion, Vector3};
 
 use super::convert::{content, payload, string_or_empty, unit_rotation};
@@ -33,6 +33,8 @@ pub struct FruitVisit {
     pub size_m: Vector3<f64>,
     /// The fitted solid's volume, else the box's.
     pub volume_m3: f64,
+    /// Its mean observed colour on that visit ([`FruitEstimate::colour`]); `None`: unknown.
+    pub colour: Option<Rgb>,
 }
 
 /// A fruit over the visits of its row: its season id, its estimate's id on the current visit
@@ -68,12 +70,15 @@ pub(super) fn write_histories<'a>(
                 })
                 .collect();
             let visits = fbb.create_vector(&visits);
+            let (colours, colour_known) = write_visit_colours(fbb, &h.visits);
             fb::FruitHistory::create(
                 fbb,
                 &fb::FruitHistoryArgs {
                     season_id: h.season_id,
                     fruit_id: h.fruit_id,
                     visits: Some(visits),
+                    colours,
+                    colour_known,
                 },
             )
         })
@@ -81,7 +86,68 @@ pub(super) fn write_histories<'a>(
     fbb.create_vector(&tables)
 }
 
-/// Reads fruit histories; a record with a non-finite value is an error.
+type ColourVectors<'a> = (
+    Option<WIPOffset<flatbuffers::Vector<'a, fb::Rgb>>>,
+    Option<WIPOffset<flatbuffers::Vector<'a, bool>>>,
+);
+
+/// A history's colours, parallel to its visits: none when no visit's colour is known, the mask
+/// only when some visit's is not.
+fn write_visit_colours<'a>(
+    fbb: &mut FlatBufferBuilder<'a>,
+    visits: &[FruitVisit],
+) -> ColourVectors<'a> {
+    if visits.iter().all(|v| v.colour.is_none()) {
+        return (None, None);
+    }
+    let colours: Vec<fb::Rgb> = visits
+        .iter()
+        .map(|v| rgb_to_fb(&v.colour.unwrap_or_default()))
+        .collect();
+    let colours = fbb.create_vector(&colours);
+    let known: Vec<bool> = visits.iter().map(|v| v.colour.is_some()).collect();
+    let known = known.contains(&false).then(|| fbb.create_vector(&known));
+    (Some(colours), known)
+}
+
+/// Each visit's colour of a history of `visits` records: the colours, when present, must be one
+/// per visit, and so must the mask.
+fn read_visit_colours(
+    kind: MessageKind,
+    h: &fb::FruitHistory<'_>,
+    visits: usize,
+) -> Result<Vec<Option<Rgb>>> {
+    let Some(colours) = h.colours().filter(|c| !c.is_empty()) else {
+        return Ok(vec![None; visits]);
+    };
+    let known = h.colour_known().filter(|k| !k.is_empty());
+    let known_len = known.map_or(colours.len(), |k| k.len());
+    if colours.len() != visits || known_len != visits {
+        return Err(content(
+            kind,
+            format!(
+                "a fruit history of {visits} visits holds {} colours",
+                colours.len()
+            ),
+        ));
+    }
+    let is_known = |i: usize| known.is_none_or(|k| k.get(i));
+    let read = colours.iter().enumerate();
+    Ok(read
+        .map(|(i, c)| is_known(i).then(|| rgb_from_fb(c)))
+        .collect())
+}
+
+pub(super) fn rgb_to_fb(c: &Rgb) -> fb::Rgb {
+    fb::Rgb::new(c.r, c.g, c.b)
+}
+
+pub(super) fn rgb_from_fb(c: &fb::Rgb) -> Rgb {
+    Rgb::new(c.r(), c.g(), c.b())
+}
+
+/// Reads fruit histories; a record with a non-finite value, or colours that are not one per
+/// visit, are an error.
 pub(super) fn read_histories(
     kind: MessageKind,
     histories: Option<HistoryVector<'_>>,
@@ -93,14 +159,21 @@ pub(super) fn read_histories(
         .iter()
         .map(|h| {
             let visits = h.visits().map(|vs| vs.iter().collect::<Vec<_>>());
-            let visits = visits.unwrap_or_default().into_iter().map(|v| {
+            let visits = visits.unwrap_or_default();
+            let colours = read_visit_colours(kind, &h, visits.len())?;
+            let visits = visits.into_iter().zip(colours).map(|(v, colour)| {
                 let record = FruitVisit {
                     visit: v.visit(),
                     centre: point(v.centre()),
                     size_m: vector(v.size()),
                     volume_m3: v.volume_m3().into(),
+                    colour,
                 };
-                let finite = record.centre.iter().chain(record.size_m.iter()).all(|x| x.is_finite())
+                let finite = record
+                    .centre
+                    .iter()
+                    .chain(record.size_m.iter())
+                    .all(|x| x.is_finite())
                     && record.volume_m3.is_finite();
                 match finite {
                     true => Ok(record),
@@ -205,6 +278,7 @@ pub(super) fn write_fruit<'a>(
             },
         )
     });
+    let colour = f.colour.as_ref().map(rgb_to_fb);
     fb::Fruit::create(
         fbb,
         &fb::FruitArgs {
@@ -216,6 +290,7 @@ pub(super) fn write_fruit<'a>(
             confidence: f.confidence as f32,
             fitted,
             view_directions: f.view_directions,
+            colour: colour.as_ref(),
         },
     )
 }
@@ -285,6 +360,7 @@ pub(super) fn read_fruit(kind: MessageKind, f: fb::Fruit<'_>) -> Result<FruitEst
         confidence: f.confidence().into(),
         view_directions: f.view_directions(),
         solid,
+        colour: f.colour().map(rgb_from_fb),
     })
 }
 
@@ -295,8 +371,9 @@ mod tests {
     use super::*;
     use crate::{decode_typed, encode, samples, Message};
 
-    /// A planner from before the solid's rotation, exponents, taper, box and residual and the
-    /// fruit's view directions: it wrote only the first fields of each table.
+    /// A planner from before the solid's rotation, exponents, taper, box and residual, the
+    /// fruit's view directions and colours: it wrote only the first fields of each table (and
+    /// histories without colours).
     #[derive(Clone, Debug)]
     struct OldSender(FruitEstimates);
 
@@ -344,16 +421,45 @@ mod tests {
                 .collect();
             let fruits = fbb.create_vector(&fruits);
             let planner = fbb.create_string(&m.planner_id);
+            let history = old_histories(fbb, &m.history);
             let mut t = fb::FruitEstimatesBuilder::new(fbb);
             t.add_fruits(fruits);
             t.add_based_on_seq(m.based_on_seq);
             t.add_planner_id(planner);
+            t.add_history(history);
             t.finish().as_union_value()
         }
 
         fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self> {
             FruitEstimates::read_payload(envelope).map(OldSender)
         }
+    }
+
+    /// Histories as a planner from before the colours wrote them: `visits` and no more.
+    fn old_histories<'a>(
+        fbb: &mut FlatBufferBuilder<'a>,
+        histories: &[FruitHistory],
+    ) -> WIPOffset<HistoryVector<'a>> {
+        let tables: Vec<_> = histories
+            .iter()
+            .map(|h| {
+                let visits: Vec<fb::FruitVisit> = h
+                    .visits
+                    .iter()
+                    .map(|v| {
+                        let (c, size) = (vec3(&v.centre.coords), vec3(&v.size_m));
+                        fb::FruitVisit::new(v.visit, &c, &size, v.volume_m3 as f32)
+                    })
+                    .collect();
+                let visits = fbb.create_vector(&visits);
+                let mut t = fb::FruitHistoryBuilder::new(fbb);
+                t.add_season_id(h.season_id);
+                t.add_fruit_id(h.fruit_id);
+                t.add_visits(visits);
+                t.finish()
+            })
+            .collect();
+        fbb.create_vector(&tables)
     }
 
     fn round_trip(m: &FruitEstimates) -> FruitEstimates {
@@ -388,6 +494,17 @@ mod tests {
             (was.voxel_count, was.confidence)
         );
         assert_eq!(f.view_directions, 0);
+        assert_eq!((f.colour, was.colour.is_some()), (None, true));
+        // The histories read whole, every visit's colour unknown.
+        assert_eq!(read.history.len(), sample.history.len());
+        for (h, h_was) in read.history.iter().zip(&sample.history) {
+            assert_eq!(
+                (h.season_id, h.visits.len()),
+                (h_was.season_id, h_was.visits.len())
+            );
+            assert!(h.visits.iter().all(|v| v.colour.is_none()), "{h:?}");
+            assert!(h_was.visits.iter().all(|v| v.colour.is_some()));
+        }
         let (s, s_was) = (f.solid.unwrap(), was.solid.unwrap());
         let half = (s_was.box_max - s_was.box_min) / 2.0;
         assert_eq!(s.kind, SolidKind::Ellipsoid);
@@ -401,5 +518,96 @@ mod tests {
             (s_was.volume_m3, s_was.confidence)
         );
         assert!(s.rms_residual_m.is_nan());
+    }
+}
+
+#[cfg(test)]
+mod colour_tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use crate::{decode_typed, encode, samples, ProtoError};
+
+    #[test]
+    fn the_fruits_colour_and_each_visits_round_trip() {
+        let sample = samples::fruit_estimates();
+        let read = decode_typed::<FruitEstimates>(&encode(&samples::header(3), &sample))
+            .unwrap()
+            .1;
+        assert_eq!(read.fruits[0].colour, Some(Rgb::new(190, 35, 25)));
+        let colours: Vec<_> = read.history[0].visits.iter().map(|v| v.colour).collect();
+        assert_eq!(
+            colours,
+            [Some(Rgb::new(110, 150, 40)), Some(Rgb::new(190, 35, 25))]
+        );
+        assert_eq!(read, sample);
+    }
+
+    #[test]
+    fn a_history_with_some_visits_colour_unknown_keeps_which() {
+        let mut sample = samples::fruit_estimates();
+        sample.history[0].visits[0].colour = None;
+        let read = decode_typed::<FruitEstimates>(&encode(&samples::header(3), &sample))
+            .unwrap()
+            .1;
+        assert_eq!(read.history, sample.history);
+        // Every colour unknown: nothing written, none read.
+        sample.history[0].visits[1].colour = None;
+        let read = decode_typed::<FruitEstimates>(&encode(&samples::header(3), &sample))
+            .unwrap()
+            .1;
+        assert_eq!(read.history, sample.history);
+    }
+
+    /// A sender whose one history has two visits and one colour.
+    #[derive(Clone, Debug)]
+    struct BrokenSender;
+
+    impl From<BrokenSender> for crate::Message {
+        fn from(_: BrokenSender) -> Self {
+            crate::Message::FruitEstimates(samples::fruit_estimates())
+        }
+    }
+
+    impl Wire for BrokenSender {
+        const KIND: MessageKind = MessageKind::FruitEstimates;
+
+        fn write_payload(&self, fbb: &mut FlatBufferBuilder<'_>) -> WIPOffset<UnionWIPOffset> {
+            let v = fb::Vec3::new(0.1, 0.2, 0.3);
+            let visits = fbb.create_vector(&[
+                fb::FruitVisit::new(0, &v, &v, 1e-4),
+                fb::FruitVisit::new(1, &v, &v, 2e-4),
+            ]);
+            let colours = fbb.create_vector(&[fb::Rgb::new(200, 30, 20)]);
+            let history = fb::FruitHistory::create(
+                fbb,
+                &fb::FruitHistoryArgs {
+                    season_id: 1,
+                    fruit_id: 0,
+                    visits: Some(visits),
+                    colours: Some(colours),
+                    colour_known: None,
+                },
+            );
+            let history = fbb.create_vector(&[history]);
+            let mut t = fb::FruitEstimatesBuilder::new(fbb);
+            t.add_history(history);
+            t.finish().as_union_value()
+        }
+
+        fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self> {
+            FruitEstimates::read_payload(envelope).map(|_| BrokenSender)
+        }
+    }
+
+    #[test]
+    fn colours_that_are_not_one_per_visit_are_a_content_error() {
+        let bytes = encode(&samples::header(3), &BrokenSender);
+        let err = decode_typed::<FruitEstimates>(&bytes).unwrap_err();
+        assert!(matches!(err, ProtoError::Content { .. }), "{err}");
+        assert!(
+            err.to_string().contains("2 visits holds 1 colours"),
+            "{err}"
+        );
     }
 }

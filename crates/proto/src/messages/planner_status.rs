@@ -35,6 +35,9 @@ pub struct PlannerStatus {
     /// RoiClouds refused because the detector that sent them (the id its key ends in) does not
     /// serve their trolley by the detectors' ranking, or their header names another source.
     pub unassigned_clouds: u64,
+    /// RoiClouds integrated without colour: their `roi_rgb` was not 3 bytes per ROI point
+    /// ([`crate::RoiColours::WrongLength`]).
+    pub colourless_clouds: u64,
 }
 
 /// Clouds registered to their maps, by verdict (see [`crate::RegistrationVerdict`]).
@@ -147,6 +150,7 @@ impl Wire for PlannerStatus {
                 stale_epoch: self.stale_epoch,
                 stepped_down: self.stepped_down,
                 unassigned_clouds: self.unassigned_clouds,
+                colourless_clouds: self.colourless_clouds,
             },
         )
         .as_union_value()
@@ -179,6 +183,7 @@ impl Wire for PlannerStatus {
             stale_epoch: m.stale_epoch(),
             stepped_down: m.stepped_down(),
             unassigned_clouds: m.unassigned_clouds(),
+            colourless_clouds: m.colourless_clouds(),
         })
     }
 }
@@ -242,11 +247,12 @@ mod tests {
 
     #[test]
     fn a_status_from_a_sender_without_registration_totals_reads_zero() {
-        // Nor the fencing counts and the unassigned clouds, which came later.
+        // Nor the fencing counts, the unassigned and the colourless clouds, which came later.
         let sample = PlannerStatus {
             stale_epoch: 0,
             stepped_down: 0,
             unassigned_clouds: 0,
+            colourless_clouds: 0,
             ..samples::planner_status()
         };
         let old = encode(&samples::header(2), &OldSender(sample.clone()));

@@ -7,6 +7,7 @@ from flatbuffers.compat import import_numpy
 from typing import Any
 from glasshouse.wire.Box3 import Box3
 from glasshouse.wire.FittedEllipsoid import FittedEllipsoid
+from glasshouse.wire.Rgb import Rgb
 from glasshouse.wire.Vec3 import Vec3
 from typing import Optional
 np = import_numpy()
@@ -101,8 +102,20 @@ class Fruit(object):
             return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
         return 0
 
+    # The mean colour of the detector's fruit points (RoiCloud.roi_rgb) that fell in the fruit's
+    # voxels on this visit; absent: unknown (no coloured point yet, an older sender).
+    # Fruit
+    def Colour(self) -> Optional[Rgb]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
+        if o != 0:
+            x = o + self._tab.Pos
+            obj = Rgb()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
 def FruitStart(builder: flatbuffers.Builder):
-    builder.StartObject(8)
+    builder.StartObject(9)
 
 def Start(builder: flatbuffers.Builder):
     FruitStart(builder)
@@ -154,6 +167,12 @@ def FruitAddViewDirections(builder: flatbuffers.Builder, viewDirections: int):
 
 def AddViewDirections(builder: flatbuffers.Builder, viewDirections: int):
     FruitAddViewDirections(builder, viewDirections)
+
+def FruitAddColour(builder: flatbuffers.Builder, colour: Any):
+    builder.PrependStructSlot(8, flatbuffers.number_types.UOffsetTFlags.py_type(colour), 0)
+
+def AddColour(builder: flatbuffers.Builder, colour: Any):
+    FruitAddColour(builder, colour)
 
 def FruitEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

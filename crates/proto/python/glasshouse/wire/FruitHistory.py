@@ -6,6 +6,7 @@ import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
 from glasshouse.wire.FruitVisit import FruitVisit
+from glasshouse.wire.Rgb import Rgb
 from typing import Optional
 np = import_numpy()
 
@@ -71,8 +72,62 @@ class FruitHistory(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(8))
         return o == 0
 
+    # The fruit's colour on each visit (Fruit.colour), parallel to visits; empty when no visit's
+    # colour is known (and in older messages).
+    # FruitHistory
+    def Colours(self, j: int) -> Optional[Rgb]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 3
+            obj = Rgb()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # FruitHistory
+    def ColoursLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # FruitHistory
+    def ColoursIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(10))
+        return o == 0
+
+    # Parallel to colours when some visit's colour is unknown (its colours entry is then 0, 0, 0
+    # and means nothing); empty when every entry of colours is known.
+    # FruitHistory
+    def ColourKnown(self, j: int):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.BoolFlags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 1))
+        return 0
+
+    # FruitHistory
+    def ColourKnownAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.BoolFlags, o)
+        return 0
+
+    # FruitHistory
+    def ColourKnownLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # FruitHistory
+    def ColourKnownIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
+        return o == 0
+
 def FruitHistoryStart(builder: flatbuffers.Builder):
-    builder.StartObject(3)
+    builder.StartObject(5)
 
 def Start(builder: flatbuffers.Builder):
     FruitHistoryStart(builder)
@@ -100,6 +155,30 @@ def FruitHistoryStartVisitsVector(builder, numElems: int) -> int:
 
 def StartVisitsVector(builder, numElems: int) -> int:
     return FruitHistoryStartVisitsVector(builder, numElems)
+
+def FruitHistoryAddColours(builder: flatbuffers.Builder, colours: int):
+    builder.PrependUOffsetTRelativeSlot(3, flatbuffers.number_types.UOffsetTFlags.py_type(colours), 0)
+
+def AddColours(builder: flatbuffers.Builder, colours: int):
+    FruitHistoryAddColours(builder, colours)
+
+def FruitHistoryStartColoursVector(builder, numElems: int) -> int:
+    return builder.StartVector(3, numElems, 1)
+
+def StartColoursVector(builder, numElems: int) -> int:
+    return FruitHistoryStartColoursVector(builder, numElems)
+
+def FruitHistoryAddColourKnown(builder: flatbuffers.Builder, colourKnown: int):
+    builder.PrependUOffsetTRelativeSlot(4, flatbuffers.number_types.UOffsetTFlags.py_type(colourKnown), 0)
+
+def AddColourKnown(builder: flatbuffers.Builder, colourKnown: int):
+    FruitHistoryAddColourKnown(builder, colourKnown)
+
+def FruitHistoryStartColourKnownVector(builder, numElems: int) -> int:
+    return builder.StartVector(1, numElems, 1)
+
+def StartColourKnownVector(builder, numElems: int) -> int:
+    return FruitHistoryStartColourKnownVector(builder, numElems)
 
 def FruitHistoryEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -6,6 +6,7 @@ import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
 from glasshouse.wire.FruitHistory import FruitHistory
+from glasshouse.wire.RgbSum import RgbSum
 from glasshouse.wire.TrackedFruit import TrackedFruit
 from typing import Optional
 np = import_numpy()
@@ -164,8 +165,33 @@ class MapSnapshot(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
         return o == 0
 
+    # Each tracked fruit's colour samples so far on this visit, parallel to tracked_fruits;
+    # empty in older snapshots (no samples).
+    # MapSnapshot
+    def TrackedColours(self, j: int) -> Optional[RgbSum]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 32
+            obj = RgbSum()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # MapSnapshot
+    def TrackedColoursLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # MapSnapshot
+    def TrackedColoursIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        return o == 0
+
 def MapSnapshotStart(builder: flatbuffers.Builder):
-    builder.StartObject(10)
+    builder.StartObject(11)
 
 def Start(builder: flatbuffers.Builder):
     MapSnapshotStart(builder)
@@ -247,6 +273,18 @@ def MapSnapshotStartSeasonVector(builder, numElems: int) -> int:
 
 def StartSeasonVector(builder, numElems: int) -> int:
     return MapSnapshotStartSeasonVector(builder, numElems)
+
+def MapSnapshotAddTrackedColours(builder: flatbuffers.Builder, trackedColours: int):
+    builder.PrependUOffsetTRelativeSlot(10, flatbuffers.number_types.UOffsetTFlags.py_type(trackedColours), 0)
+
+def AddTrackedColours(builder: flatbuffers.Builder, trackedColours: int):
+    MapSnapshotAddTrackedColours(builder, trackedColours)
+
+def MapSnapshotStartTrackedColoursVector(builder, numElems: int) -> int:
+    return builder.StartVector(32, numElems, 8)
+
+def StartTrackedColoursVector(builder, numElems: int) -> int:
+    return MapSnapshotStartTrackedColoursVector(builder, numElems)
 
 def MapSnapshotEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

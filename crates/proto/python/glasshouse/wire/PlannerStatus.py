@@ -204,8 +204,16 @@ class PlannerStatus(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # RoiClouds integrated without colour because their roi_rgb was not 3 bytes per ROI point.
+    # PlannerStatus
+    def ColourlessClouds(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(42))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def PlannerStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(19)
+    builder.StartObject(20)
 
 def Start(builder: flatbuffers.Builder):
     PlannerStatusStart(builder)
@@ -335,6 +343,12 @@ def PlannerStatusAddUnassignedClouds(builder: flatbuffers.Builder, unassignedClo
 
 def AddUnassignedClouds(builder: flatbuffers.Builder, unassignedClouds: int):
     PlannerStatusAddUnassignedClouds(builder, unassignedClouds)
+
+def PlannerStatusAddColourlessClouds(builder: flatbuffers.Builder, colourlessClouds: int):
+    builder.PrependUint64Slot(19, colourlessClouds, 0)
+
+def AddColourlessClouds(builder: flatbuffers.Builder, colourlessClouds: int):
+    PlannerStatusAddColourlessClouds(builder, colourlessClouds)
 
 def PlannerStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -164,8 +164,39 @@ class RoiCloud(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
         return o == 0
 
+    # The colour of each ROI point (roi[i] != 0), in the order of the ROI points, 3 bytes (R, G,
+    # B) each: the mean of the pixels the point stands for. Empty or absent: not sent (an older
+    # detector). Any other length than 3 × the ROI points is a broken sender: planners take the
+    # cloud without colour and count it (PlannerStatus.colourless_clouds).
+    # RoiCloud
+    def RoiRgb(self, j: int):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 1))
+        return 0
+
+    # RoiCloud
+    def RoiRgbAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Uint8Flags, o)
+        return 0
+
+    # RoiCloud
+    def RoiRgbLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # RoiCloud
+    def RoiRgbIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        return o == 0
+
 def RoiCloudStart(builder: flatbuffers.Builder):
-    builder.StartObject(9)
+    builder.StartObject(10)
 
 def Start(builder: flatbuffers.Builder):
     RoiCloudStart(builder)
@@ -241,6 +272,18 @@ def RoiCloudStartRoiConfidenceVector(builder, numElems: int) -> int:
 
 def StartRoiConfidenceVector(builder, numElems: int) -> int:
     return RoiCloudStartRoiConfidenceVector(builder, numElems)
+
+def RoiCloudAddRoiRgb(builder: flatbuffers.Builder, roiRgb: int):
+    builder.PrependUOffsetTRelativeSlot(9, flatbuffers.number_types.UOffsetTFlags.py_type(roiRgb), 0)
+
+def AddRoiRgb(builder: flatbuffers.Builder, roiRgb: int):
+    RoiCloudAddRoiRgb(builder, roiRgb)
+
+def RoiCloudStartRoiRgbVector(builder, numElems: int) -> int:
+    return builder.StartVector(1, numElems, 1)
+
+def StartRoiRgbVector(builder, numElems: int) -> int:
+    return RoiCloudStartRoiRgbVector(builder, numElems)
 
 def RoiCloudEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -4,8 +4,8 @@
 //! - `GET /api/fleet`: trolleys, planners, detectors, the Rerun viewer link;
 //! - `GET /api/trolleys/{id}/fruits` (`?format=csv` for CSV): one trolley's fruit estimates;
 //! - `GET /api/trolleys/{id}/season` (`?format=csv` for CSV, `?download=1` to save the JSON):
-//!   every fruit of one trolley's row over the visits (centre, size, volume per visit) and
-//!   whether it was seen on the current visit;
+//!   every fruit of one trolley's row over the visits (centre, size, volume and observed colour
+//!   per visit) and whether it was seen on the current visit;
 //! - `GET /api/season`: a row per trolley: its visit, fruits seen now and known this season,
 //!   fruits not seen or new on this visit, mean volume now and on the previous visit;
 //! - `GET /healthz`: `ok`.
@@ -21,6 +21,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
+use glasshouse_geom::Rgb;
 use glasshouse_proto::{FrameRegistration, FruitHistory, FruitVisit, RigidCorrection};
 use serde::Serialize;
 
@@ -128,6 +129,8 @@ pub struct PlannerRow {
     pub registration_kept_as_sent: u64,
     pub registration_rejected: u64,
     pub registration_skipped: u64,
+    /// Clouds taken without colour (their colours not one per ROI point).
+    pub colourless_clouds: u64,
 }
 
 #[derive(Serialize, Debug, Clone, PartialEq)]
@@ -165,6 +168,8 @@ pub struct FruitDoc {
     pub fitted_volume_m3: Option<f32>,
     /// Share of the fitted surface observed.
     pub fitted_confidence: Option<f32>,
+    /// Mean observed colour, `#rrggbb`; null when unknown.
+    pub colour: Option<String>,
 }
 
 /// Builds the fleet document from the state at `now`.
@@ -262,6 +267,7 @@ impl PlannerRow {
             registration_kept_as_sent: p.registrations.kept_as_sent,
             registration_rejected: p.registrations.rejected,
             registration_skipped: p.registrations.skipped,
+            colourless_clouds: p.colourless_clouds,
         }
     }
 }
@@ -281,6 +287,7 @@ pub fn fruit_docs(fleet: &FleetState, tid: &str) -> Option<Vec<FruitDoc>> {
                 confidence: f.confidence as f32,
                 fitted_volume_m3: f.solid.as_ref().map(|e| e.volume_m3 as f32),
                 fitted_confidence: f.solid.as_ref().map(|e| e.confidence as f32),
+                colour: f.colour.as_ref().map(Rgb::hex),
             })
             .collect(),
     )
@@ -289,11 +296,11 @@ pub fn fruit_docs(fleet: &FleetState, tid: &str) -> Option<Vec<FruitDoc>> {
 /// CSV of fruit estimates with a header line.
 pub fn fruits_csv(fruits: &[FruitDoc]) -> String {
     let mut out = String::from(
-        "id,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_m3,voxel_count,confidence,fitted_volume_m3,fitted_confidence\n",
+        "id,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_m3,voxel_count,confidence,fitted_volume_m3,fitted_confidence,colour\n",
     );
     for f in fruits {
         out.push_str(&format!(
-            "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.8},{},{:.3},{},{}\n",
+            "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.8},{},{:.3},{},{},{}\n",
             f.id,
             f.centre_m[0],
             f.centre_m[1],
@@ -308,6 +315,7 @@ pub fn fruits_csv(fruits: &[FruitDoc]) -> String {
                 .map_or_else(String::new, |v| format!("{v:.8}")),
             f.fitted_confidence
                 .map_or_else(String::new, |c| format!("{c:.3}")),
+            f.colour.as_deref().unwrap_or_default(),
         ));
     }
     out
@@ -341,7 +349,7 @@ pub struct SeasonFruitDoc {
 }
 
 /// One fruit on one visit.
-#[derive(Serialize, Debug, Clone, Copy, PartialEq)]
+#[derive(Serialize, Debug, Clone, PartialEq)]
 pub struct SeasonVisitDoc {
     pub visit: u32,
     /// World frame (the first visit's), metres.
@@ -350,6 +358,8 @@ pub struct SeasonVisitDoc {
     pub size_m: [f64; 3],
     /// The fitted solid's volume, else the box's.
     pub volume_cm3: f64,
+    /// Its mean observed colour on that visit, `#rrggbb`; null when unknown.
+    pub colour: Option<String>,
 }
 
 impl SeasonVisitDoc {
@@ -360,6 +370,7 @@ impl SeasonVisitDoc {
             centre_m: v.centre.coords.into(),
             size_m: v.size_m.into(),
             volume_cm3: v.volume_m3 * 1e6,
+            colour: v.colour.as_ref().map(Rgb::hex),
         };
         let values = doc.centre_m.iter().chain(&doc.size_m);
         let finite = values.chain([&doc.volume_cm3]).all(|x| x.is_finite());
@@ -398,21 +409,23 @@ pub fn season_doc(fleet: &FleetState, tid: &str) -> Option<SeasonDoc> {
     })
 }
 
-/// CSV of a season: a header line, then a line per fruit and visit.
+/// CSV of a season: a header line, then a line per fruit and visit (`colour`: `#rrggbb`, empty
+/// when unknown).
 pub fn season_csv(season: &SeasonDoc) -> String {
     let mut out = String::from(
-        "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit\n",
+        "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour\n",
     );
     for f in &season.fruits {
         for v in &f.visits {
             let [cx, cy, cz] = v.centre_m;
             let [sx, sy, sz] = v.size_m;
             out.push_str(&format!(
-                "{},{},{cx:.4},{cy:.4},{cz:.4},{sx:.4},{sy:.4},{sz:.4},{:.3},{}\n",
+                "{},{},{cx:.4},{cy:.4},{cz:.4},{sx:.4},{sy:.4},{sz:.4},{:.3},{},{}\n",
                 f.season_id,
                 v.visit,
                 v.volume_cm3,
                 f.seen(),
+                v.colour.as_deref().unwrap_or_default(),
             ));
         }
     }
@@ -710,8 +723,9 @@ mod tests {
         }
     }
 
-    /// The sample's season (visit 2; fruit 5 seen on visits 0 and 2) plus fruit 6, seen on
-    /// visit 1 only, fruit 7, new on visit 2, and fruit 8, whose one record holds a NaN.
+    /// The sample's season (visit 2; fruit 5 seen on visits 0 and 2, green then red) plus fruit
+    /// 6, seen on visit 1 only and of unknown colour, fruit 7, new on visit 2, and fruit 8,
+    /// whose one record holds a NaN.
     fn season_fleet() -> FleetState {
         let mut estimates = samples::fruit_estimates();
         let record = estimates.history[0].visits[0];
@@ -724,7 +738,10 @@ mod tests {
             FruitHistory {
                 season_id: 6,
                 fruit_id: 0,
-                visits: vec![on(1, 2e-4)],
+                visits: vec![FruitVisit {
+                    colour: None,
+                    ..on(1, 2e-4)
+                }],
             },
             FruitHistory {
                 season_id: 7,
@@ -768,10 +785,14 @@ mod tests {
         assert_eq!(sample.fruit_id, samples::fruit_estimates().fruits[0].id);
         let visits: Vec<_> = sample.visits.iter().map(|v| v.visit).collect();
         assert_eq!(visits, [0, 2]);
-        let (last, sent) = (sample.visits[1], sample_record(1));
+        let (last, sent) = (&sample.visits[1], sample_record(1));
         assert!(near(last.volume_cm3, sent.volume_m3 * 1e6), "{last:?}");
         assert_eq!(last.size_m, <[f64; 3]>::from(sent.size_m));
         assert_eq!(last.centre_m, <[f64; 3]>::from(sent.centre.coords));
+        // Its colour on each visit: green, then red; fruit 6's unknown.
+        let colours: Vec<_> = sample.visits.iter().map(|v| v.colour.as_deref()).collect();
+        assert_eq!(colours, [Some("#6e9628"), Some("#be2319")]);
+        assert_eq!(doc.fruits[1].visits[0].colour, None);
         // The NaN record is left out, so the document is valid JSON.
         assert!(doc.fruits[3].visits.is_empty());
         let json = serde_json::to_string(&doc).expect("json");
@@ -779,6 +800,8 @@ mod tests {
             json.contains("\"status\":\"not seen this visit\""),
             "{json}"
         );
+        assert!(json.contains("\"colour\":\"#be2319\""), "{json}");
+        assert!(json.contains("\"colour\":null"), "{json}");
         assert!(season_doc(&fleet, "t2").is_none());
     }
 
@@ -789,14 +812,14 @@ mod tests {
         let lines: Vec<_> = csv.lines().collect();
         assert_eq!(
             lines[0],
-            "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit"
+            "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour"
         );
         // Fruit 5's two visits, fruit 6's and fruit 7's one each; fruit 8's NaN left out.
         assert_eq!(lines.len(), 1 + 4, "{csv}");
         let r = sample_record(1);
         let (c, size) = (r.centre, r.size_m);
         let expected = format!(
-            "5,2,{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},true",
+            "5,2,{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},true,#be2319",
             c.x,
             c.y,
             c.z,
@@ -806,8 +829,28 @@ mod tests {
             r.volume_m3 * 1e6
         );
         assert_eq!(lines[2], expected);
-        assert!(lines[3].starts_with("6,1,") && lines[3].ends_with(",200.000,false"));
-        assert!(lines.iter().all(|l| l.split(',').count() == 10), "{csv}");
+        assert!(lines[1].ends_with(",true,#6e9628"), "{csv}");
+        // Fruit 6's colour is unknown: an empty field.
+        assert!(lines[3].starts_with("6,1,") && lines[3].ends_with(",200.000,false,"));
+        assert!(lines.iter().all(|l| l.split(',').count() == 11), "{csv}");
+    }
+
+    #[test]
+    fn the_fruits_document_and_csv_carry_each_fruits_colour() {
+        let fleet = season_fleet();
+        let docs = fruit_docs(&fleet, "t1").expect("t1 is known");
+        assert_eq!(docs[0].colour.as_deref(), Some("#be2319"));
+        let csv = fruits_csv(&docs);
+        let lines: Vec<_> = csv.lines().collect();
+        assert!(lines[0].ends_with(",fitted_confidence,colour"), "{csv}");
+        assert!(lines[1].ends_with(",#be2319"), "{csv}");
+        let mut unknown = docs[0].clone();
+        unknown.colour = None;
+        let csv = fruits_csv(&[unknown]);
+        assert!(
+            csv.lines().nth(1).is_some_and(|l| l.ends_with(',')),
+            "{csv}"
+        );
     }
 
     #[test]

@@ -1,8 +1,9 @@
 //! The fleet web page in a real headless browser (Debian's `chromium`): after a run, the page's
 //! fleet table shows the trolley with fruits, its plan view draws the trolley's row, camera and
 //! one dot per fruit, its fruit table shows the fitted volumes, its season table shows the
-//! trolley's fruits of the season and its chart a line per fruit, the season CSV downloads with
-//! its header, and a screenshot is saved as a CI artifact.
+//! trolley's fruits of the season, its chart a line per fruit and its history table each fruit's
+//! observed colour (a red swatch: the simulated fruit are red), the season CSV downloads with
+//! its header and a colour per record, and a screenshot is saved as a CI artifact.
 
 use std::io::{Read, Write};
 use std::net::SocketAddr;
@@ -84,6 +85,24 @@ fn season_lines_in_dom(dom: &str) -> usize {
     chart.matches("<polyline class=\"season-fruit").count()
 }
 
+/// The colours of the swatches in the season's history table, from the rendered DOM.
+fn season_swatches_in_dom(dom: &str) -> Vec<[u8; 3]> {
+    let Some(start) = dom.find("<table id=\"season-history\">") else {
+        return Vec::new();
+    };
+    let table = &dom[start..];
+    let table = &table[..table.find("</table>").unwrap_or(table.len())];
+    let hex = |rest: &str| {
+        let byte = |i: usize| u8::from_str_radix(rest.get(i..i + 2)?, 16).ok();
+        Some([byte(0)?, byte(2)?, byte(4)?])
+    };
+    table
+        .split("data-colour=\"#")
+        .skip(1)
+        .filter_map(hex)
+        .collect()
+}
+
 /// Whether the page shows t1 with fruits in its fleet table, and in its season table as many
 /// known fruits as its season chart draws lines (both change while late estimates arrive).
 fn page_shows_t1_and_its_season(dom: &str) -> bool {
@@ -148,16 +167,25 @@ async fn check_season_downloads(addr: SocketAddr) {
     let mut lines = csv.lines();
     assert_eq!(
         lines.next(),
-        Some("season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit"),
+        Some("season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour"),
         "season CSV: {csv}"
     );
     let records: Vec<_> = lines.collect();
     assert!(!records.is_empty(), "season CSV has no record: {csv}");
+    let mut coloured = 0;
     for record in records {
         let fields: Vec<_> = record.split(',').collect();
-        assert_eq!(fields.len(), 10, "season CSV line {record:?}");
+        assert_eq!(fields.len(), 11, "season CSV line {record:?}");
         assert!(fields[9] == "true" || fields[9] == "false", "{record:?}");
+        // The fruit's colour on the visit, `#rrggbb`, or empty when unknown.
+        let colour = fields[10];
+        assert!(
+            colour.is_empty() || colour.len() == 7 && colour.starts_with('#'),
+            "{record:?}"
+        );
+        coloured += usize::from(!colour.is_empty());
     }
+    assert!(coloured > 0, "no record with a colour: {csv}");
     let (head, body) = http_get(addr, "/api/trolleys/nope/season?format=csv").await;
     assert!(head.starts_with("http/1.1 404"), "unknown trolley: {head}");
     assert_eq!(body, "no trolley \"nope\"");
@@ -243,6 +271,17 @@ async fn fleet_page_shows_the_trolley_with_fruits_in_a_real_browser() {
         let href = format!("href=\"/api/trolleys/t1/season{link}\"");
         assert!(dom.contains(&href), "no season download {href}");
     }
+    // The history table: a swatch of each fruit's colour on the visit, red as the fruit are.
+    let swatches = season_swatches_in_dom(&dom);
+    assert!(
+        !swatches.is_empty(),
+        "no colour swatch in the season history; DOM:\n{dom}"
+    );
+    let red = |[r, g, b]: &[u8; 3]| r > g && r > b;
+    assert!(
+        swatches.iter().all(red),
+        "a swatch that is not red: {swatches:?}"
+    );
 
     let shot = artifacts_dir().join("dashboard-page.png");
     let shot_arg = format!("--screenshot={}", shot.display());

@@ -44,6 +44,10 @@ pub struct BenchReplicaArgs {
     /// Also write the results as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Replay the clouds without their ROI points' colours (as an older detector sends them):
+    /// what the fruits' colours cost per frame is the difference to a run with them.
+    #[arg(long)]
+    without_colours: bool,
 }
 
 /// One replica setting's figures (times in ms on this thread).
@@ -79,7 +83,10 @@ pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
         compute_time: ComputeTime::Fixed { ms: 100.0 },
         ..TrialConfig::new(args.scenario, Method::OursUu, args.seed)
     };
-    let (info, clouds) = record_stream(&config, args.frames)?;
+    let (info, mut clouds) = record_stream(&config, args.frames)?;
+    if args.without_colours {
+        clouds.iter_mut().for_each(|c| c.roi_rgb.clear());
+    }
     let mut runs = Vec::new();
     for &refresh in &args.refresh {
         let run = replay(&config, args.window, refresh, &info, &clouds)?;

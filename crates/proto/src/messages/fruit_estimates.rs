@@ -49,6 +49,15 @@ pub struct FruitHistory {
 type HistoryVector<'a> =
     flatbuffers::Vector<'a, flatbuffers::ForwardsUOffset<fb::FruitHistory<'a>>>;
 
+/// A history's visit records as the wire's structs.
+fn fb_visits(visits: &[FruitVisit]) -> Vec<fb::FruitVisit> {
+    let record = |v: &FruitVisit| {
+        let (centre, size) = (vec3(&v.centre.coords), vec3(&v.size_m));
+        fb::FruitVisit::new(v.visit, &centre, &size, v.volume_m3 as f32)
+    };
+    visits.iter().map(record).collect()
+}
+
 /// Writes fruit histories (FruitEstimates' and MapSnapshot's).
 pub(super) fn write_histories<'a>(
     fbb: &mut FlatBufferBuilder<'a>,
@@ -57,18 +66,7 @@ pub(super) fn write_histories<'a>(
     let tables: Vec<_> = histories
         .iter()
         .map(|h| {
-            let visits: Vec<fb::FruitVisit> = h
-                .visits
-                .iter()
-                .map(|v| {
-                    fb::FruitVisit::new(
-                        v.visit,
-                        &vec3(&v.centre.coords),
-                        &vec3(&v.size_m),
-                        v.volume_m3 as f32,
-                    )
-                })
-                .collect();
+            let visits = fb_visits(&h.visits);
             let visits = fbb.create_vector(&visits);
             let (colours, colour_known) = write_visit_colours(fbb, &h.visits);
             fb::FruitHistory::create(
@@ -443,14 +441,7 @@ mod tests {
         let tables: Vec<_> = histories
             .iter()
             .map(|h| {
-                let visits: Vec<fb::FruitVisit> = h
-                    .visits
-                    .iter()
-                    .map(|v| {
-                        let (c, size) = (vec3(&v.centre.coords), vec3(&v.size_m));
-                        fb::FruitVisit::new(v.visit, &c, &size, v.volume_m3 as f32)
-                    })
-                    .collect();
+                let visits = fb_visits(&h.visits);
                 let visits = fbb.create_vector(&visits);
                 let mut t = fb::FruitHistoryBuilder::new(fbb);
                 t.add_season_id(h.season_id);

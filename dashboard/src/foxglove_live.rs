@@ -6,17 +6,20 @@
 //!
 //! Conversion runs on its own thread behind a bounded queue (a full queue is a counted drop),
 //! and only for channels a client subscribes to: with nobody watching, the server costs the
-//! dashboard a channel lookup per message. A channel's latest message that found no subscriber
-//! is kept and sent once one subscribes (a channel is advertised with its first message, so a
-//! client subscribes only after that one went by: without this a trolley's fruits, sent once per
-//! plan, could be missed until the next).
+//! dashboard a channel lookup per message. Each channel's latest message that found no
+//! subscriber is kept and sent once one subscribes (a channel is advertised with its first
+//! message, so a client subscribes only after that one went by: without this a trolley's fruits,
+//! sent once per plan, could be missed until the next). Kept per channel: a client subscribes to
+//! each channel when it reads its advertisement, so a key's flatbuffer channel may be watched
+//! while the JSON channels made from the same message are not yet.
 
 use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::Arc;
 use std::thread::JoinHandle;
+use std::time::Duration;
 
 use anyhow::Context as _;
 use foxglove_sdk::{Context, PartialMetadata, RawChannel, Schema, WebSocketServer};
@@ -156,14 +159,26 @@ impl FoxgloveLive {
     }
 }
 
+/// How often the converter looks for new subscribers of kept messages when no message arrives.
+const PENDING_POLL: Duration = Duration::from_millis(100);
+
+/// A channel's latest message that reached no subscriber.
+struct Pending {
+    channel: Arc<RawChannel>,
+    bytes: Vec<u8>,
+    log_time_ns: u64,
+}
+
 /// The converter: channels by topic, created as keys first appear.
 struct Channels {
     context: Arc<Context>,
     by_topic: HashMap<String, Arc<RawChannel>>,
     /// The Foxglove topics each key's messages convert to.
     json_topics: HashMap<String, Vec<String>>,
-    /// Per key, its latest entry that reached no subscriber.
-    unsent: HashMap<String, Entry>,
+    /// Per channel (by topic), its latest message that reached no subscriber. Kept per channel,
+    /// not per key: a client subscribes to each advertised channel on its own, so one key's
+    /// flatbuffer channel can be watched while its JSON channels are not yet.
+    pending: HashMap<String, Pending>,
     summary: FoxgloveLiveSummary,
 }
 
@@ -173,18 +188,21 @@ impl Channels {
             context,
             by_topic: HashMap::new(),
             json_topics: HashMap::new(),
-            unsent: HashMap::new(),
+            pending: HashMap::new(),
             summary: FoxgloveLiveSummary::default(),
         }
     }
 
     fn run(mut self, rx: Receiver<Entry>) -> FoxgloveLiveSummary {
-        for entry in rx {
-            self.send_unsent();
-            match self.send(&entry) {
-                true => self.unsent.remove(&entry.key),
-                false => self.unsent.insert(entry.key.clone(), entry),
-            };
+        loop {
+            match rx.recv_timeout(PENDING_POLL) {
+                Ok(entry) => {
+                    self.send_pending();
+                    self.send(&entry);
+                }
+                Err(RecvTimeoutError::Timeout) => self.send_pending(),
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
         }
         self.summary
     }
@@ -212,68 +230,156 @@ impl Channels {
         }
     }
 
-    /// Sends to the channel's subscribers; false when it has none.
-    fn log(&mut self, channel: &RawChannel, bytes: &[u8], log_time_ns: u64) -> bool {
+    /// Sends to the channel's subscribers, or keeps the message until one subscribes.
+    fn log(&mut self, channel: Arc<RawChannel>, bytes: &[u8], log_time_ns: u64) {
+        let topic = channel.topic().to_string();
         if !channel.has_sinks() {
-            return false;
+            let pending = Pending {
+                channel,
+                bytes: bytes.to_vec(),
+                log_time_ns,
+            };
+            self.pending.insert(topic, pending);
+            return;
         }
         channel.log_with_meta(bytes, PartialMetadata::with_log_time(log_time_ns));
+        self.pending.remove(&topic);
         self.summary.sent += 1;
-        true
     }
 
-    /// Whether any of the channels `key`'s messages go to has a subscriber.
-    fn watched(&self, key: &str) -> bool {
-        let subscribed = |topic: &str| self.by_topic.get(topic).is_some_and(|c| c.has_sinks());
-        subscribed(key)
-            || self
-                .json_topics
-                .get(key)
-                .is_some_and(|topics| topics.iter().any(|t| subscribed(t)))
-    }
-
-    /// Sends the kept entries whose channels have a subscriber now.
-    fn send_unsent(&mut self) {
+    /// Sends the kept messages whose channels have a subscriber now.
+    fn send_pending(&mut self) {
         let ready: Vec<String> = self
-            .unsent
-            .keys()
-            .filter(|key| self.watched(key))
-            .cloned()
+            .pending
+            .iter()
+            .filter(|(_, p)| p.channel.has_sinks())
+            .map(|(topic, _)| topic.clone())
             .collect();
-        for key in ready {
-            if let Some(entry) = self.unsent.remove(&key) {
-                self.send(&entry);
+        for topic in ready {
+            if let Some(p) = self.pending.remove(&topic) {
+                p.channel
+                    .log_with_meta(&p.bytes, PartialMetadata::with_log_time(p.log_time_ns));
+                self.summary.sent += 1;
             }
         }
     }
 
-    /// Converts and sends `entry`; false when it reached no subscriber.
-    fn send(&mut self, entry: &Entry) -> bool {
+    /// Whether `topic` has a subscriber.
+    fn subscribed(&self, topic: &str) -> bool {
+        self.by_topic.get(topic).is_some_and(|c| c.has_sinks())
+    }
+
+    /// Converts and sends `entry` (kept per channel when it reaches no subscriber).
+    fn send(&mut self, entry: &Entry) {
         let flat = Schema::new(SCHEMA_ROOT_NAME, "flatbuffer", SCHEMA_BFBS);
-        let mut sent = false;
         if let Some(channel) = self.channel(&entry.key, "flatbuffer", flat) {
-            sent |= self.log(&channel, &entry.payload, entry.log_time_ns);
+            self.log(channel, &entry.payload, entry.log_time_ns);
         }
         // Converting costs (images become base64 JSON): only for a first advertisement or a
-        // subscribed channel.
+        // subscribed channel (an unwatched one keeps the message it was advertised with).
         let wanted = match self.json_topics.get(&entry.key) {
             None => true,
-            Some(topics) => topics
-                .iter()
-                .any(|t| self.by_topic.get(t).is_some_and(|c| c.has_sinks())),
+            Some(topics) => topics.iter().any(|t| self.subscribed(t)),
         };
         if !wanted {
-            return sent;
+            return;
         }
         let messages = foxglove_messages(&entry.key, &entry.payload);
-        let topics = messages.iter().map(|m| m.topic.clone()).collect();
-        self.json_topics.insert(entry.key.clone(), topics);
+        if !messages.is_empty() {
+            let topics = messages.iter().map(|m| m.topic.clone()).collect();
+            self.json_topics.insert(entry.key.clone(), topics);
+        }
         for m in messages {
             let schema = Schema::new(m.schema, "jsonschema", json_schema(m.schema));
             if let Some(channel) = self.channel(&m.topic, "json", schema) {
-                sent |= self.log(&channel, &m.json, entry.log_time_ns);
+                self.log(channel, &m.json, entry.log_time_ns);
             }
         }
-        sent
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Mutex;
+
+    use foxglove_sdk::{ChannelId, FoxgloveError, Metadata, Sink, SinkId};
+    use glasshouse_proto::{encode, samples};
+
+    use super::*;
+
+    /// A client that subscribes to the flatbuffer channels when they are advertised and to
+    /// the JSON ones only when told: a Foxglove client reads advertisements one at a time.
+    struct SlowClient {
+        id: SinkId,
+        received: Mutex<Vec<String>>,
+    }
+
+    impl Sink for SlowClient {
+        fn id(&self) -> SinkId {
+            self.id
+        }
+
+        fn log(&self, channel: &RawChannel, _: &[u8], _: &Metadata) -> Result<(), FoxgloveError> {
+            self.received
+                .lock()
+                .expect("lock")
+                .push(channel.topic().to_string());
+            Ok(())
+        }
+
+        fn add_channels(&self, channels: &[&Arc<RawChannel>]) -> Option<Vec<ChannelId>> {
+            let flat = channels
+                .iter()
+                .filter(|c| c.message_encoding() == "flatbuffer");
+            Some(flat.map(|c| c.id()).collect())
+        }
+
+        fn auto_subscribe(&self) -> bool {
+            false
+        }
+    }
+
+    /// Detector `d1`'s clouds of trolley `t1`.
+    const ROI_KEY: &str = "gh/trolley/t1/roi/d1";
+
+    fn roi_entry(seq: u64) -> Entry {
+        Entry {
+            key: ROI_KEY.into(),
+            payload: encode(&samples::header(seq), &samples::roi_cloud()),
+            log_time_ns: seq,
+        }
+    }
+
+    #[test]
+    fn a_json_channel_subscribed_after_its_flatbuffer_channel_still_gets_the_kept_message() {
+        let context = Context::new();
+        let client = Arc::new(SlowClient {
+            id: SinkId::next(),
+            received: Mutex::new(Vec::new()),
+        });
+        context.add_sink(client.clone());
+        let mut channels = Channels::new(context.clone());
+        channels.send(&roi_entry(1));
+        channels.send(&roi_entry(2));
+        let received = |topic: &str| {
+            let all = client.received.lock().expect("lock");
+            all.iter().filter(|t| t.as_str() == topic).count()
+        };
+        assert_eq!(received(ROI_KEY), 2, "both envelopes");
+        assert_eq!(received("/t1/roi"), 0, "nobody watches the point cloud yet");
+
+        let cloud = channels.by_topic["/t1/roi"].id();
+        context.subscribe_channels(client.id, &[cloud]);
+        channels.send_pending();
+        assert_eq!(
+            received("/t1/roi"),
+            1,
+            "the kept point cloud, once subscribed"
+        );
+        channels.send_pending();
+        assert_eq!(received("/t1/roi"), 1, "sent once");
+        channels.send(&roi_entry(3));
+        assert_eq!(received("/t1/roi"), 2);
+        assert_eq!(received(ROI_KEY), 3);
     }
 }

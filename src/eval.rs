@@ -133,6 +133,10 @@ pub struct EvalArgs {
     /// fruit again, above the ROI hit (0.85) two are needed, as in a new map.
     #[arg(long, value_name = "LOGODDS", default_value_t = PriorRules::default().fruit_below_threshold_logodds)]
     pub prior_fruit_below: f32,
+    /// With `--days`: the share (0 to 1) of the log-odds of the previous visit's free voxels a
+    /// revisit's prior keeps (0, the default: none; the free voxels beside a fruit never).
+    #[arg(long, value_name = "SHARE", default_value_t = PriorRules::default().free_share)]
+    pub prior_free_share: f32,
     /// With `--days`: plan a revisit without aiming at the previous visit's fruit (the prior's
     /// hints only), to compare.
     #[arg(long)]
@@ -597,6 +601,7 @@ mod tests {
             visit_every_days: 3.5,
             revisit_from_empty: false,
             prior_fruit_below: PriorRules::default().fruit_below_threshold_logodds,
+            prior_free_share: PriorRules::default().free_share,
             no_revisit_aim: false,
             perception: PerceptionArgs::default(),
         }

@@ -38,11 +38,11 @@ pub(super) fn run(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<
     let configs = configs(args, plan, days)?;
     let prior = PriorRules {
         fruit_below_threshold_logodds: args.prior_fruit_below,
-        ..PriorRules::default()
+        free_share: args.prior_free_share,
     };
     prior
         .validate()
-        .map_err(|e| anyhow::anyhow!("--prior-fruit-below: {e}"))?;
+        .map_err(|e| anyhow::anyhow!("--prior-fruit-below / --prior-free-share: {e}"))?;
     let season = Season {
         visits: days.len(),
         prior: (!args.revisit_from_empty).then_some(prior),

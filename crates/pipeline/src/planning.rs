@@ -302,6 +302,9 @@ pub struct TrolleyPlanner {
     /// Voxels last published as occupied or ROI: MapUpdate carries solid voxels and the ones
     /// that stopped being solid, not every newly freed voxel (those would dominate the traffic).
     pub(crate) published_solid: PublishedSolid,
+    /// The next map update replaces what a dashboard holds (`MapUpdate::full`): set when a new
+    /// visit starts, whose map no longer holds the last visit's solid voxels.
+    pub(crate) publish_full: bool,
     /// The registration of the last cloud taken, and how every registration so far ended.
     last_alignment: Option<Alignment>,
     pub(crate) alignment_counts: AlignmentCounts,
@@ -333,6 +336,7 @@ impl TrolleyPlanner {
             last_refits: 0,
             map_seq: 0,
             published_solid: PublishedSolid::default(),
+            publish_full: false,
             last_alignment: None,
             alignment_counts: AlignmentCounts::default(),
             visit: 0,
@@ -672,7 +676,8 @@ impl TrolleyPlanner {
         })
     }
 
-    /// The solid voxels changed since the last call (and the ones that stopped being solid).
+    /// The solid voxels changed since the last call (and the ones that stopped being solid);
+    /// the first after a new visit starts is `full`: every solid voxel of the visit's map.
     pub fn map_update(&mut self, based_on_seq: u64, pid: &str) -> MapUpdate {
         self.map_seq += 1;
         let mut voxels = Vec::new();
@@ -695,7 +700,7 @@ impl TrolleyPlanner {
             resolution_m: self.settings.resolution_m as f32,
             map_seq: self.map_seq,
             based_on_seq,
-            full: false,
+            full: std::mem::take(&mut self.publish_full),
             voxels,
             planner_id: pid.to_owned(),
             registration: None,

@@ -8,6 +8,7 @@ use glasshouse_nbv::season::{SeasonFruit, SeasonRules, SeasonTracker, VisitRecor
 use glasshouse_proto::{FruitHistory, FruitVisit};
 use glasshouse_roimap::PriorRules;
 
+use crate::published::PublishedSolid;
 use crate::{PlanningError, TrolleyPlanner};
 
 impl TrolleyPlanner {
@@ -32,9 +33,11 @@ impl TrolleyPlanner {
         next.info = self.info.take();
         next.reach = self.reach.take();
         next.alignment_counts = self.alignment_counts;
-        // Dashboards hold what was published; the voxels forgotten stay published until seen
-        // again (then they are published as what they are now).
-        next.published_solid = std::mem::take(&mut self.published_solid);
+        // A prior holds no solid voxel (its fruit hints and kept free space are free by the
+        // occupancy rule), so the visit's first update, every voxel solid since, is its whole
+        // map: sent as `full`, it clears the last visit's voxels from the dashboards.
+        next.published_solid = PublishedSolid::default();
+        next.publish_full = true;
         next.season = std::mem::take(&mut self.season);
         next.visit = visit;
         *self = next;

@@ -116,3 +116,46 @@ fn a_revisit_aims_at_the_previous_visits_fruit_until_a_scan_looks_there() {
         .iter()
         .any(|k| found.iter().any(|f| inside(k, f))));
 }
+
+#[test]
+fn a_visits_first_map_update_replaces_the_last_visits_voxels() {
+    use glasshouse_proto::VoxelState;
+    use glasshouse_roimap::{Occupancy, VoxelKey};
+    let (mut planner, _) = planner_with_fruit();
+    let first = planner.map_update(3, "p1");
+    assert!(!first.full && first.voxels.iter().any(|v| v.state == VoxelState::Roi));
+    planner.start_visit(1, &PriorRules::default()).unwrap();
+    let solid_cells = planner
+        .map()
+        .solid_blocks()
+        .filter(|(_, m)| m.iter().any(|&w| w != 0));
+    assert_eq!(solid_cells.count(), 0, "a prior holds no solid voxel");
+    let mut trolley = SimTrolley::new(SimTrolleySettings::new(
+        ScenarioKind::Two,
+        3,
+        (320, 240),
+        1.0,
+    ))
+    .unwrap();
+    let frame = trolley.capture(1).unwrap().unwrap();
+    let cloud = detect_frame(&frame, FrameId::new(0, 1), "d", &DetectorConfig::default()).unwrap();
+    planner.integrate(&cloud, 0).unwrap();
+    // The visit's first update is the whole map: every solid voxel, nothing else.
+    let update = planner.map_update(1, "p1");
+    assert!(update.full);
+    let mut sent: Vec<[i32; 3]> = update.voxels.iter().map(|v| v.key).collect();
+    assert!(update.voxels.iter().all(|v| v.state != VoxelState::Free));
+    let map = planner.map();
+    let mut solid: Vec<[i32; 3]> = map
+        .iter()
+        .map(|(k, _)| k)
+        .filter(|&k| map.occupancy(k) == Occupancy::Occupied || map.is_roi(k))
+        .map(|k: VoxelKey| [k.x, k.y, k.z])
+        .collect();
+    sent.sort_unstable();
+    solid.sort_unstable();
+    assert!(!solid.is_empty());
+    assert_eq!(sent, solid);
+    // The next ones are changes again.
+    assert!(!planner.map_update(2, "p1").full);
+}

@@ -244,6 +244,8 @@ enum Then {
     Plan,
     /// The views at once, the rest on [`PlannerEvent::Finish`] (a trolley taken over).
     ViewsFirst,
+    /// Clusters, fruit ids and fits, no views (the last cloud a takeover planned past).
+    Fit,
 }
 
 /// A cloud planned on before its clusters, fruit ids and fits were made: what its map update
@@ -735,7 +737,9 @@ impl PlannerNode {
                 pending.push(received);
                 actions.extend(self.catch_up(&tid, latest));
             }
-            Stage::Owning { .. } => actions.extend(self.integrate(&tid, received, latest)),
+            Stage::CatchingUp { .. } | Stage::Owning { .. } => {
+                actions.extend(self.integrate(&tid, received, latest))
+            }
         }
         actions
     }
@@ -793,12 +797,25 @@ impl PlannerNode {
         let decode_ms = started.elapsed().as_secs_f64() * 1e3;
         let last = slot.last_cloud.clone();
         let n = pending.len();
+        let pending = match plan_last && n > 0 {
+            // A takeover plans on the copy as it is and integrates the kept clouds after: the
+            // views of the trolleys taken over wait on their decodes only.
+            true => match self.views_before_clouds(tid, pending, started) {
+                Ok(planned) => {
+                    actions.extend(planned);
+                    Vec::new()
+                }
+                Err(pending) => pending,
+            },
+            false => pending,
+        };
         let then = |planned| match planned {
             true => Then::ViewsFirst,
             false => Then::Track,
         };
+        let left = pending.len();
         for (i, received) in pending.into_iter().enumerate() {
-            actions.extend(self.integrate_then(tid, received, then(plan_last && i + 1 == n)));
+            actions.extend(self.integrate_then(tid, received, then(plan_last && i + 1 == left)));
         }
         if let (0, true, Some(last)) = (n, plan_last, last) {
             actions.extend(self.integrate_then(tid, last, Then::ViewsFirst));
@@ -809,6 +826,34 @@ impl PlannerNode {
             tracing::info!(planner = %self.pid, trolley = %tid, decode_ms, clouds = n, total_ms, "caught up");
         }
         actions
+    }
+
+    /// Views planned on the copy as it is, for the last of `clouds` (the frame the edge waits
+    /// on); the clouds are integrated, in order, on [`PlannerEvent::Finish`]. The clouds come
+    /// back when the copy is no up-to-date owner's.
+    fn views_before_clouds(
+        &mut self,
+        tid: &str,
+        clouds: Vec<ReceivedCloud>,
+        started: Instant,
+    ) -> Result<Vec<PlannerAction>, Vec<ReceivedCloud>> {
+        let Some(last) = clouds.last() else {
+            return Err(clouds);
+        };
+        let (header, camera) = (last.header.clone(), last.cloud.world_from_camera);
+        let frame = last.cloud.source_frame();
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Err(clouds);
+        };
+        slot.defer(clouds)?;
+        let views = self.plan_views(tid, &camera, frame, started);
+        let mut laps = Laps::start();
+        let mut actions = self.publish(tid, &header, views, None, None);
+        self.stats.stages.publish_ms += laps.lap_ms();
+        actions.push(PlannerAction::Finish {
+            tid: tid.to_owned(),
+        });
+        Ok(actions)
     }
 
     /// The owner's snapshot for a standby replica: it becomes the copy (kept encoded), and the
@@ -1190,9 +1235,10 @@ impl PlannerNode {
             frame,
             registration,
         };
-        let plan = then == Then::Plan;
         if then != Then::ViewsFirst {
-            actions.extend(self.track_and_publish(tid, unfinished, (plan, plan), started));
+            let plan = then == Then::Plan;
+            let fit = plan || then == Then::Fit;
+            actions.extend(self.track_and_publish(tid, unfinished, (fit, plan), started));
             return actions;
         }
         // Planning reads only the map: the views go out now, the clusters, fruit ids and fits
@@ -1215,10 +1261,32 @@ impl PlannerNode {
     /// What a cloud's views were planned without: its clusters, fruit ids, fits, and the
     /// fruits and map update they publish (none while the trolley is no longer this planner's).
     fn finish(&mut self, tid: &str) -> Vec<PlannerAction> {
+        let deferred = self
+            .slots
+            .get_mut(tid)
+            .map(Slot::take_deferred)
+            .unwrap_or_default();
+        if !deferred.is_empty() {
+            return self.integrate_deferred(tid, deferred);
+        }
         let Some(unfinished) = self.slots.get_mut(tid).and_then(|s| s.unfinished.take()) else {
             return Vec::new();
         };
         self.track_and_publish(tid, unfinished, (true, false), Instant::now())
+    }
+
+    /// The clouds a takeover planned past, integrated in order; the last one's clusters,
+    /// fruit ids and fits are made and published.
+    fn integrate_deferred(&mut self, tid: &str, clouds: Vec<ReceivedCloud>) -> Vec<PlannerAction> {
+        let started = Instant::now();
+        let n = clouds.len();
+        let mut actions = Vec::new();
+        for (i, received) in clouds.into_iter().enumerate() {
+            let then = if i + 1 == n { Then::Fit } else { Then::Track };
+            actions.extend(self.integrate_then(tid, received, then));
+        }
+        self.stats.catch_up_ms += started.elapsed().as_secs_f64() * 1e3;
+        actions
     }
 
     /// Clusters and tracks the cloud just integrated and publishes its map update; with `fit`

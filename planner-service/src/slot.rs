@@ -10,7 +10,7 @@ use glasshouse_pipeline::TrolleyPlanner;
 use glasshouse_proto::{FrameId, Header, MapSnapshot, RoiCloud};
 
 /// A cloud with the receiver's wall clock at its arrival.
-#[derive(Clone)]
+#[derive(Clone, Debug)]
 pub(crate) struct ReceivedCloud {
     pub header: Header,
     pub cloud: RoiCloud,
@@ -40,6 +40,13 @@ pub(crate) enum Stage {
         term: u64,
         held: Option<Box<MapSnapshot>>,
         pending: Vec<ReceivedCloud>,
+    },
+    /// An owner that took over and sent views planned on its copy before integrating the
+    /// clouds the copy kept (`deferred`, in arrival order): they are integrated, in order,
+    /// before anything else the trolley brings (the node's `finish`).
+    CatchingUp {
+        term: u64,
+        deferred: Vec<ReceivedCloud>,
     },
     /// An owner with an up-to-date copy, planning under its term.
     Owning { term: u64 },
@@ -104,7 +111,9 @@ impl Slot {
         match &self.stage {
             Stage::Loading { role, .. } => *role,
             Stage::Standby { .. } => Role::Replica,
-            Stage::TakingOver { .. } | Stage::Owning { .. } => Role::Owner,
+            Stage::TakingOver { .. } | Stage::CatchingUp { .. } | Stage::Owning { .. } => {
+                Role::Owner
+            }
         }
     }
 
@@ -112,7 +121,9 @@ impl Slot {
     /// owner whose copy is still loading.
     pub fn term(&self) -> u64 {
         match &self.stage {
-            Stage::TakingOver { term, .. } | Stage::Owning { term } => *term,
+            Stage::TakingOver { term, .. }
+            | Stage::CatchingUp { term, .. }
+            | Stage::Owning { term } => *term,
             Stage::Loading { .. } | Stage::Standby { .. } => 0,
         }
     }
@@ -126,6 +137,7 @@ impl Slot {
     pub fn pending_len(&self) -> usize {
         match &self.stage {
             Stage::Standby { pending, .. } | Stage::TakingOver { pending, .. } => pending.len(),
+            Stage::CatchingUp { deferred, .. } => deferred.len(),
             Stage::Loading { .. } | Stage::Owning { .. } => 0,
         }
     }
@@ -141,6 +153,11 @@ impl Slot {
             Stage::TakingOver { held, pending, .. } => Stage::Standby {
                 held,
                 pending,
+                refresh_asked: false,
+            },
+            Stage::CatchingUp { deferred, .. } => Stage::Standby {
+                held: None,
+                pending: deferred,
                 refresh_asked: false,
             },
             Stage::Owning { .. } => Stage::standby(),
@@ -183,6 +200,7 @@ impl Slot {
         let term = self.term();
         let (held, pending) = match std::mem::replace(&mut self.stage, Stage::standby()) {
             Stage::TakingOver { held, pending, .. } => (held, pending),
+            Stage::CatchingUp { deferred, .. } => (None, deferred),
             Stage::Owning { .. } => (None, Vec::new()),
             other => {
                 self.stage = other;
@@ -251,6 +269,38 @@ impl Slot {
                 self.stage = Stage::Owning { term: *term };
                 Some(backlog)
             }
+            Stage::CatchingUp { term, deferred } => {
+                let backlog = (None, std::mem::take(deferred));
+                self.stage = Stage::Owning { term: *term };
+                Some(backlog)
+            }
+        }
+    }
+
+    /// An owner leaves `clouds` to integrate after the views it plans now (a takeover);
+    /// given back unless the copy is an up-to-date owner's.
+    pub fn defer(&mut self, clouds: Vec<ReceivedCloud>) -> Result<(), Vec<ReceivedCloud>> {
+        match self.stage {
+            Stage::Owning { term } => {
+                self.stage = Stage::CatchingUp {
+                    term,
+                    deferred: clouds,
+                };
+                Ok(())
+            }
+            _ => Err(clouds),
+        }
+    }
+
+    /// The clouds an owner deferred, taken to be integrated in order (none for any other copy).
+    pub fn take_deferred(&mut self) -> Vec<ReceivedCloud> {
+        match &mut self.stage {
+            Stage::CatchingUp { term, deferred } => {
+                let clouds = std::mem::take(deferred);
+                self.stage = Stage::Owning { term: *term };
+                clouds
+            }
+            _ => Vec::new(),
         }
     }
 
@@ -397,5 +447,35 @@ mod tests {
         };
         assert_eq!((*role, seqs(buffered)), (Role::Owner, vec![8]));
         assert_eq!(s.term(), 0);
+    }
+
+    #[test]
+    fn an_owners_deferred_clouds_are_kept_until_taken_and_survive_a_hand_over() {
+        let mut s = slot(Role::Replica);
+        s.end_loading(Stage::standby());
+        let refused = s
+            .defer(vec![cloud(1)])
+            .expect_err("a replica defers nothing");
+        assert_eq!(seqs(&refused), [1]);
+        s.take_over(|| 4);
+        s.take_backlog();
+        s.defer(vec![cloud(2), cloud(3)]).expect("an owner defers");
+        assert_eq!((s.role(), s.term(), s.pending_len()), (Role::Owner, 4, 2));
+        assert_eq!(seqs(&s.take_deferred()), [2, 3]);
+        assert!(matches!(s.stage, Stage::Owning { term: 4 }));
+        assert!(s.take_deferred().is_empty());
+        // Handed over before they were integrated: they stay pending on the standby copy.
+        s.defer(vec![cloud(5)]).expect("an owner defers");
+        s.become_replica();
+        assert_eq!((s.role(), s.pending_len()), (Role::Replica, 1));
+        // Or stepped down: they wait for the snapshot with the clouds to come.
+        s.take_over(|| 6);
+        s.take_backlog();
+        s.defer(vec![cloud(7)]).expect("an owner defers");
+        assert_eq!(s.step_down("p1", "t1"), 6);
+        let Stage::Loading { buffered, .. } = &s.stage else {
+            panic!("stepped down to loading");
+        };
+        assert_eq!(seqs(buffered), [7]);
     }
 }

@@ -938,12 +938,15 @@ fn a_standby_replica_takes_over_with_the_owners_map_and_plans_at_once() {
         let actions = replica.handle(cloud_event(cloud));
         answer_refreshes(&mut owner, &mut replica, actions);
     }
-    // Frames 4 and 5 are pending: integrated at the takeover, the last one planned on.
+    // Frames 4 and 5 are pending: the last one planned on at the takeover, both integrated
+    // after the views.
     let actions = replica.handle(PlannerEvent::PlannerLeft(owner.pid.clone()));
     assert_eq!(replica.role("t1"), Some(Role::Owner));
     let views = views_of(&actions);
     assert_eq!(views.len(), 1, "{actions:?}");
     assert_eq!(views[0].based_on_seq, 5);
+    assert_eq!(replica.stats().clouds_integrated, 0);
+    settle(&mut replica, actions);
     assert_eq!(replica.stats().clouds_integrated, 2);
     assert!(same_map(&replica, &owner, "t1"));
     let ids = |p: &PlannerNode| {
@@ -1068,7 +1071,7 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
             }
         }
     }
-    let actions = a.handle(PlannerEvent::PlannerLeft("p2".into()));
+    let actions = feed(&mut a, PlannerEvent::PlannerLeft("p2".into()));
     let deferred: Vec<String> = actions
         .iter()
         .filter_map(|x| match x {
@@ -1079,13 +1082,16 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
     // One trolley is planned on at once, the other two wait for their own event.
     assert_eq!(views_of(&actions).len(), 1);
     assert_eq!(deferred.len(), 2);
-    let caught = a.handle(PlannerEvent::CatchUp {
-        tid: deferred[0].clone(),
-    });
+    let caught = feed(
+        &mut a,
+        PlannerEvent::CatchUp {
+            tid: deferred[0].clone(),
+        },
+    );
     assert_eq!(views_of(&caught).len(), 1);
     // A cloud of the last one catches it up first; its CatchUp then finds nothing to do.
     let (_, later) = trolley_clouds(3);
-    let planned = a.handle(cloud_for(&deferred[1], &later[2]));
+    let planned = feed(&mut a, cloud_for(&deferred[1], &later[2]));
     assert_eq!(views_of(&planned)[0].based_on_seq, 3);
     let copy = a.planner(&deferred[1]).unwrap();
     assert_eq!(copy.map().scans_inserted(), 3);
@@ -1137,8 +1143,14 @@ fn a_new_standby_replica_keeps_the_snapshot_encoded() {
         "frame 3 came after the snapshot"
     );
     assert!(p1.planner("t1").unwrap().map().is_empty());
+    // The views for frame 3 go out planned on the snapshot; frame 3 is integrated after them.
     let actions = p1.handle(PlannerEvent::PlannerLeft("p2".into()));
     assert_eq!(views_of(&actions)[0].based_on_seq, 3);
+    assert_eq!(p1.planner("t1").unwrap().map().scans_inserted(), 2);
+    assert_eq!(p1.pending_clouds("t1"), 1, "frame 3 deferred, not lost");
+    let finished = settle(&mut p1, actions);
+    assert_eq!(outputs_for(&finished, "t1"), (1, 1, 1), "{finished:?}");
+    assert_eq!(p1.pending_clouds("t1"), 0);
     assert!(same_map(&p1, &p2, "t1"));
 }
 

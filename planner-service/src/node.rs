@@ -991,6 +991,9 @@ impl PlannerNode {
             return actions;
         }
         let mut caught_up = false;
+        // The first catch-up's rest (its kept clouds, clusters and fits) goes after the other
+        // trolleys' catch-ups, whose views wait on nothing but their own decode.
+        let mut finishes = Vec::new();
         for change in changes {
             let pid = &self.pid;
             let tid = change.trolley.clone();
@@ -1017,7 +1020,12 @@ impl PlannerNode {
                     // The first trolley taken over catches up at once, the others one event each.
                     if term.is_some() && !caught_up {
                         caught_up = true;
-                        actions.extend(self.catch_up(&tid, true));
+                        let (rest, now): (Vec<_>, Vec<_>) = self
+                            .catch_up(&tid, true)
+                            .into_iter()
+                            .partition(|a| matches!(a, PlannerAction::Finish { .. }));
+                        actions.extend(now);
+                        finishes.extend(rest);
                     } else if term.is_some() {
                         actions.push(PlannerAction::CatchUp { tid });
                     }
@@ -1025,6 +1033,7 @@ impl PlannerNode {
                 (Some(role), None) => actions.extend(self.take_on(change, role)),
             }
         }
+        actions.extend(finishes);
         actions
     }
 

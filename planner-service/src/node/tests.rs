@@ -1071,7 +1071,19 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
             }
         }
     }
-    let actions = feed(&mut a, PlannerEvent::PlannerLeft("p2".into()));
+    let actions = a.handle(PlannerEvent::PlannerLeft("p2".into()));
+    let is_finish = |x: &PlannerAction| matches!(x, PlannerAction::Finish { .. });
+    let is_catch_up = |x: &PlannerAction| matches!(x, PlannerAction::CatchUp { .. });
+    let finish_at = actions
+        .iter()
+        .position(is_finish)
+        .expect("the first one's rest");
+    let last_catch_up = actions.iter().rposition(is_catch_up).expect("two more");
+    assert!(
+        last_catch_up < finish_at,
+        "the first trolley's rest waits for the others' catch-ups: {actions:?}"
+    );
+    let actions = settle(&mut a, actions);
     let deferred: Vec<String> = actions
         .iter()
         .filter_map(|x| match x {

@@ -180,9 +180,7 @@ pub(super) async fn detector_attempts(
     let tid = setup.victim.as_str();
     let watch = Victim::watch(observer, tid).await?;
     let deadline = Instant::now() + setup.link_timeout;
-    // The detector serving the victim: the one its clouds come from.
-    let cloud = next(&watch.clouds, deadline, "a cloud of the victim").await?;
-    let serving = keys::sender(&cloud.key).unwrap_or_default().to_owned();
+    let serving = serving_detector(&watch, deadline).await?;
     let ((_, control_config), (rogue, rogue_config)) =
         pick(&setup.detectors, &serving, "detector")?;
     let (owner, refusals_before) = owner_refusals(&watch, tid, deadline).await?;
@@ -218,6 +216,30 @@ pub(super) async fn detector_attempts(
         accepted: seen.contains(&(PROBE_SEQ + n)),
     });
     Ok(attempts.collect())
+}
+
+/// Clouds in a row from one detector before the probe takes it as the victim's: while a
+/// fleet settles, two detectors can both send clouds for a trolley for a moment.
+const SETTLED_CLOUDS: usize = 3;
+
+/// The detector serving the victim: the one its last [`SETTLED_CLOUDS`] clouds came from.
+async fn serving_detector(watch: &Victim, deadline: Instant) -> Result<String, ProbeError> {
+    let (mut sender, mut in_a_row) = (String::new(), 0);
+    while in_a_row < SETTLED_CLOUDS {
+        let cloud = next(
+            &watch.clouds,
+            deadline,
+            "clouds of the victim from one detector",
+        )
+        .await?;
+        let from = keys::sender(&cloud.key).unwrap_or_default();
+        if from == sender {
+            in_a_row += 1;
+        } else {
+            (sender, in_a_row) = (from.to_owned(), 1);
+        }
+    }
+    Ok(sender)
 }
 
 fn cloud_header(tid: &str, source: &str) -> Header {

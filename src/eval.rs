@@ -113,6 +113,11 @@ pub struct EvalArgs {
     /// default, as in the planner), for a side-by-side run.
     #[arg(long)]
     pub registration: bool,
+    /// Do not estimate the trolley's hand-eye calibration error (the planner's default
+    /// estimates it across its first scans and undoes it before each scan goes into the map),
+    /// for a side-by-side run.
+    #[arg(long)]
+    pub no_hand_eye: bool,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
     /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
     /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
@@ -247,6 +252,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "roi_evidence": args.roi_evidence,
         "roi_targets": args.roi_targets,
         "registration": args.registration,
+        "hand_eye": !args.no_hand_eye,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -308,6 +314,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 roi_evidence: args.roi_evidence,
                 roi_targets: args.roi_targets,
                 registration: args.registration,
+                hand_eye: !args.no_hand_eye,
                 revisit_aim: !args.no_revisit_aim,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
@@ -597,6 +604,7 @@ mod tests {
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::Patches,
             registration: false,
+            no_hand_eye: false,
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,

@@ -45,8 +45,9 @@ use glasshouse_pipeline::{
 use glasshouse_proto::keys;
 use glasshouse_proto::FrameId;
 use glasshouse_proto::{
-    FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus, RankedViews,
-    RegistrationTotals, RoiCloud, RoiColours, StageTimes, TrolleyInfo,
+    FleetFruits, FrameRegistration, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus,
+    RankedViews, RegistrationTotals, RigidCorrection, RoiCloud, RoiColours, StageTimes,
+    TrolleyInfo,
 };
 use glasshouse_roimap::PriorRules;
 
@@ -149,7 +150,7 @@ pub enum PlannerEvent {
 pub enum TrolleyOutput {
     Views(RankedViews),
     Fruits(FruitEstimates),
-    Map(MapUpdate),
+    Map(Box<MapUpdate>),
 }
 
 /// What the driver must do, in order.
@@ -1216,7 +1217,13 @@ impl PlannerNode {
         let registration = (*slot.planner.alignment_counts() != registered_before)
             .then(|| slot.planner.last_alignment())
             .flatten()
-            .map(|alignment| frame_registration(frame, alignment));
+            .map(|alignment| FrameRegistration {
+                hand_eye_correction: slot
+                    .planner
+                    .last_hand_eye_correction()
+                    .map(RigidCorrection::from_isometry),
+                ..frame_registration(frame, alignment)
+            });
         self.stats.stages.integrate_ms += laps.lap_ms();
         let verdict = inserted.as_ref().ok().cloned();
         let (stats, refusals) = (&mut self.stats, &mut self.logged_refusals);
@@ -1421,7 +1428,7 @@ impl PlannerNode {
             outputs.push(TrolleyOutput::Views(views));
         }
         outputs.extend(fruits.map(TrolleyOutput::Fruits));
-        outputs.extend(map.map(TrolleyOutput::Map));
+        outputs.extend(map.map(|m| TrolleyOutput::Map(Box::new(m))));
         let publish = |output| PlannerAction::Publish {
             tid: tid.to_owned(),
             header: header.clone(),

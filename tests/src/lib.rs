@@ -16,6 +16,7 @@ use glasshouse_bus::{BusArgs, Shutdown, ShutdownTrigger};
 use glasshouse_dashboard::{DashboardCounters, DashboardSettings, FleetState};
 use glasshouse_detector::{DetectorCounters, DetectorSettings};
 use glasshouse_edge::{EdgeConfig, EdgeCounters, EdgeEvent};
+use glasshouse_pipeline::TrolleyPlanner;
 use glasshouse_planner::{PlannerCounters, PlannerSettings};
 use glasshouse_proto::RoiCloud;
 use glasshouse_roimap::RoiMap;
@@ -310,19 +311,19 @@ pub fn script(name: &str, args: &[&str]) -> String {
 }
 
 /// The map a planner with default settings builds from these clouds of one edge run, integrating
-/// each frame once, in arrival order (the planner's rule for an honest stream).
+/// each frame once, in arrival order (the planner's rule for an honest stream), each corrected by
+/// the hand-eye estimate its planner makes as it goes.
 pub fn rebuild(clouds: &[RoiCloud]) -> RoiMap {
     let settings = PlannerSettings::default();
-    let mut map = RoiMap::new(settings.planning.map_config()).expect("map config");
-    let mut last = None;
+    let mut planner = TrolleyPlanner::new(settings.planning).expect("planning settings");
+    // Later than every frame's stamp: no frame is judged to come from the future.
+    let now_ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(u64::MAX, |d| d.as_nanos() as u64);
     for c in clouds {
-        if last.is_none_or(|l| c.source_frame() > l) {
-            map.insert_scan(&c.sensor_origin_in_world, &c.points_in_world, &c.roi)
-                .expect("cloud integrates");
-            last = Some(c.source_frame());
-        }
+        planner.insert(c, now_ns).expect("cloud integrates");
     }
-    map
+    planner.into_map()
 }
 
 /// A map's voxels (key, occupancy and ROI log-odds bits), sorted: equal lists, equal maps.

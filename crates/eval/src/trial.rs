@@ -82,6 +82,9 @@ pub struct TrialConfig {
     pub roi_targets: RoiTargets,
     /// Align each scan to the map before inserting it (the planner's default: off).
     pub registration: bool,
+    /// Estimate the trolley's hand-eye error across its scans and undo it before each scan
+    /// goes in (`PlanningSettings::hand_eye`; the planner's default: on).
+    pub hand_eye: bool,
     /// A revisit's plans aim at the previous visit's fruit
     /// (`PlanningSettings::aim_at_remembered_fruit`).
     pub revisit_aim: bool,
@@ -104,6 +107,7 @@ impl TrialConfig {
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
             registration: false,
+            hand_eye: true,
             revisit_aim: true,
         }
     }
@@ -148,6 +152,7 @@ impl TrialConfig {
             ..PlanningSettings::default()
         };
         settings.registration.enabled = self.registration;
+        settings.hand_eye.enabled = self.hand_eye;
         settings.aim_at_remembered_fruit = self.revisit_aim;
         settings
     }

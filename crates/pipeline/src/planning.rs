@@ -13,11 +13,12 @@ use glasshouse_nbv::{
     PlanningContext, ReachPredicate,
 };
 use glasshouse_proto::{
-    FrameId, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud, TrackedFruit, TrolleyInfo,
-    ViewKind, VoxelChange, VoxelState,
+    FrameId, HandEye, HandEyeScan, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
+    TrackedFruit, TrolleyInfo, ViewKind, VoxelChange, VoxelState,
 };
 use glasshouse_register::{
-    align_scan, corrected_points, Alignment, AlignmentCounts, RegisterSettings, ScanInWorld,
+    align_scan, corrected_points, Alignment, AlignmentCounts, HandEyeEstimator, HandEyeSettings,
+    HandEyeState, KeyScan, RegisterSettings, ScanInWorld, Surfel,
 };
 use glasshouse_roimap::{
     Clusters, MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey,
@@ -68,6 +69,9 @@ pub struct PlanningSettings {
     /// alignment fails the checks is not inserted. On by default: in a perfect world the
     /// corrections found are below what the map can tell and are not applied.
     pub registration: RegisterSettings,
+    /// The trolley's hand-eye calibration error, estimated across its scans and undone before
+    /// each scan is registered and inserted ([`HandEyeEstimator`]).
+    pub hand_eye: HandEyeSettings,
     /// On a revisit, ROI-targeted sampling also aims at the previous visit's fruit voxels no
     /// scan has touched and no fruit found again covers ([`TrolleyPlanner::remembered_fruit`]).
     pub aim_at_remembered_fruit: bool,
@@ -157,6 +161,7 @@ impl Default for PlanningSettings {
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
             registration: RegisterSettings::default(),
+            hand_eye: HandEyeSettings::default(),
             aim_at_remembered_fruit: true,
         }
     }
@@ -174,6 +179,8 @@ impl PlanningSettings {
         self.planner_config().validate()?;
         let registration = self.registration.validate();
         registration.map_err(|e| PlanningError::Settings(e.to_string()))?;
+        let hand_eye = self.hand_eye.validate();
+        hand_eye.map_err(|e| PlanningError::Settings(e.to_string()))?;
         Ok(())
     }
 
@@ -308,6 +315,10 @@ pub struct TrolleyPlanner {
     /// The registration of the last cloud taken, and how every registration so far ended.
     last_alignment: Option<Alignment>,
     pub(crate) alignment_counts: AlignmentCounts,
+    /// The hand-eye error estimated from the clouds taken so far.
+    pub(crate) hand_eye: HandEyeEstimator,
+    /// The hand-eye correction applied to the last cloud registered (world frame).
+    last_hand_eye_correction: Option<Isometry3<f64>>,
     /// The trolley's visit of its row this copy is on, and the fruits of the visits before it.
     pub(crate) visit: u32,
     pub(crate) season: SeasonTracker,
@@ -322,6 +333,8 @@ impl TrolleyPlanner {
             map: RoiMap::new(settings.map_config())?,
             roi_clusters: Clusters::new(settings.min_cluster_voxels),
             split_cache: SplitCache::default(),
+            hand_eye: HandEyeEstimator::new(settings.hand_eye.clone()),
+            last_hand_eye_correction: None,
             settings,
             tracker: FruitTracker::default(),
             info: None,
@@ -444,26 +457,67 @@ impl TrolleyPlanner {
     /// The cloud's sensor origin and points aligned to the map (as sent when the alignment was
     /// skipped or its correction not applied); None when the alignment was rejected.
     fn register<'c>(&mut self, cloud: &'c RoiCloud) -> Option<RegisteredScan<'c>> {
+        let calibrated = self.undo_hand_eye_error(cloud);
+        self.last_hand_eye_correction = calibrated.as_ref().map(|(c, _)| *c);
+        let calibrated = calibrated.map(|(_, scan)| scan);
+        let (origin, points) = match &calibrated {
+            Some(scan) => (scan.origin, scan.points.as_ref()),
+            None => (
+                cloud.sensor_origin_in_world,
+                cloud.points_in_world.as_slice(),
+            ),
+        };
         let scan = ScanInWorld {
-            sensor_origin_in_world: &cloud.sensor_origin_in_world,
-            points_in_world: &cloud.points_in_world,
+            sensor_origin_in_world: &origin,
+            points_in_world: points,
         };
         let alignment = align_scan(&self.map, scan, &self.settings.registration);
         self.alignment_counts.record(&alignment);
-        let origin = cloud.sensor_origin_in_world;
         let registered = match (alignment.inserts(), alignment.correction_to_apply()) {
             (false, _) => None,
-            (true, None) => Some(RegisteredScan {
+            (true, None) => Some(calibrated.unwrap_or(RegisteredScan {
                 origin,
                 points: Cow::Borrowed(cloud.points_in_world.as_slice()),
-            }),
+            })),
             (true, Some(world_correction)) => Some(RegisteredScan {
                 origin: world_correction * origin,
-                points: Cow::Owned(corrected_points(world_correction, &cloud.points_in_world)),
+                points: Cow::Owned(corrected_points(world_correction, points)),
             }),
         };
         self.last_alignment = Some(alignment);
         registered
+    }
+
+    /// The cloud moved to where the hand-eye estimate says its camera really was, once the
+    /// estimator (which takes the cloud first) has one; None when off or not yet estimated.
+    fn undo_hand_eye_error<'c>(
+        &mut self,
+        cloud: &RoiCloud,
+    ) -> Option<(Isometry3<f64>, RegisteredScan<'c>)> {
+        if !self.settings.hand_eye.enabled {
+            return None;
+        }
+        let world_from_camera = &cloud.world_from_camera;
+        self.hand_eye
+            .add_scan(world_from_camera, &cloud.points_in_world);
+        let world_correction = self.hand_eye.world_correction(world_from_camera)?;
+        let scan = RegisteredScan {
+            origin: world_correction * cloud.sensor_origin_in_world,
+            points: Cow::Owned(corrected_points(&world_correction, &cloud.points_in_world)),
+        };
+        Some((world_correction, scan))
+    }
+
+    /// The hand-eye correction (world frame) applied to the last cloud registered; None when
+    /// it went in without one.
+    pub fn last_hand_eye_correction(&self) -> Option<&Isometry3<f64>> {
+        self.last_hand_eye_correction.as_ref()
+    }
+
+    /// The hand-eye error estimated so far: the camera's true pose in the frame the trolley
+    /// believes it in (identity while off).
+    pub fn hand_eye(&self) -> &HandEyeEstimator {
+        &self.hand_eye
     }
 
     /// The fruit clusters after an insert: the ROI clusters (regrown only where the scan changed
@@ -733,7 +787,54 @@ impl TrolleyPlanner {
             owner_epoch: glasshouse_fleet::NO_EPOCH,
             visit: self.visit,
             season: self.season_histories(&[]),
+            hand_eye: self.hand_eye_on_the_wire(),
         })
+    }
+
+    /// The hand-eye estimator as a snapshot carries it (None while it is off).
+    fn hand_eye_on_the_wire(&self) -> Option<HandEye> {
+        if !self.settings.hand_eye.enabled {
+            return None;
+        }
+        let state = self.hand_eye.state();
+        let scans = state.scans.into_iter().map(|scan| HandEyeScan {
+            world_from_camera: scan.world_from_camera,
+            points_in_camera: scan.surface.iter().map(|s| s.point.into()).collect(),
+            normals_in_camera: scan.surface.iter().map(|s| s.normal).collect(),
+        });
+        Some(HandEye {
+            camera_believed_from_true: state.camera_believed_from_true,
+            scans_seen: state.scans_seen,
+            scans: scans.collect(),
+        })
+    }
+
+    /// The hand-eye estimator a snapshot carried (a fresh one when it carried none).
+    fn hand_eye_from_the_wire(
+        settings: &HandEyeSettings,
+        wire: Option<&HandEye>,
+    ) -> HandEyeEstimator {
+        let Some(wire) = wire else {
+            return HandEyeEstimator::new(settings.clone());
+        };
+        let scans = wire.scans.iter().map(|scan| KeyScan {
+            world_from_camera: scan.world_from_camera,
+            surface: scan
+                .points_in_camera
+                .iter()
+                .zip(&scan.normals_in_camera)
+                .map(|(p, n)| Surfel {
+                    point: p.coords,
+                    normal: *n,
+                })
+                .collect(),
+        });
+        let state = HandEyeState {
+            camera_believed_from_true: wire.camera_believed_from_true,
+            scans_seen: wire.scans_seen,
+            scans: scans.collect(),
+        };
+        HandEyeEstimator::from_state(settings.clone(), state)
     }
 
     /// A planner continuing from another planner's snapshot: its map, fruit ids and last
@@ -768,6 +869,7 @@ impl TrolleyPlanner {
             owner_epoch: glasshouse_fleet::NO_EPOCH,
             visit: self.visit,
             season: self.season_histories(&[]),
+            hand_eye: self.hand_eye_on_the_wire(),
         };
         StoredCopy {
             meta,
@@ -840,6 +942,8 @@ impl TrolleyPlanner {
         let last = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
         planner.order = FrameOrder::starting_at((last != FrameId::default()).then_some(last));
         planner.set_season(snapshot.visit, &snapshot.season);
+        planner.hand_eye =
+            Self::hand_eye_from_the_wire(&planner.settings.hand_eye, snapshot.hand_eye.as_ref());
         if snapshot.visit > 0 {
             // A later visit's copy: its map still holds the hints no scan has touched.
             planner.remembered_fruit = planner.map.unobserved_hints();
@@ -944,6 +1048,20 @@ mod settings_tests {
 
     #[test]
     fn bad_registration_settings_are_refused() {
+        let mut hand_eye = PlanningSettings::default();
+        hand_eye.hand_eye.min_normal_agreement = 2.0;
+        assert!(matches!(
+            hand_eye.validate(),
+            Err(PlanningError::Settings(_))
+        ));
+        hand_eye.hand_eye = HandEyeSettings {
+            query_points: 5000,
+            ..HandEyeSettings::default()
+        };
+        assert!(matches!(
+            hand_eye.validate(),
+            Err(PlanningError::Settings(_))
+        ));
         let mut settings = PlanningSettings::default();
         settings.registration.max_rotation_deg = -1.0;
         assert!(matches!(

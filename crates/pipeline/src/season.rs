@@ -33,6 +33,7 @@ impl TrolleyPlanner {
         next.info = self.info.take();
         next.reach = self.reach.take();
         next.alignment_counts = self.alignment_counts;
+        next.hand_eye = self.hand_eye.for_next_visit();
         // A prior holds no solid voxel (its fruit hints and kept free space are free by the
         // occupancy rule), so the visit's first update, every voxel solid since, is its whole
         // map: sent as `full`, it clears the last visit's voxels from the dashboards.

@@ -230,6 +230,10 @@ pub fn frame_registration() -> FrameRegistration {
         inlier_share: Some(0.86),
         unconstrained_directions: Some(0),
         iterations: Some(5),
+        hand_eye_correction: Some(RigidCorrection {
+            translation_m: nalgebra::Vector3::new(0.002, 0.003, -0.001),
+            rotation_vector_rad: nalgebra::Vector3::new(0.004, 0.0, -0.002),
+        }),
         ..FrameRegistration::default()
     }
 }
@@ -330,6 +334,15 @@ pub fn map_snapshot() -> MapSnapshot {
         owner_epoch: SAMPLE_OWNER_EPOCH,
         visit: 2,
         season: fruit_histories(0),
+        hand_eye: Some(HandEye {
+            camera_believed_from_true: Isometry3::translation(0.004, -0.002, 0.001),
+            scans_seen: 3,
+            scans: vec![HandEyeScan {
+                world_from_camera: Isometry3::translation(0.5, 0.0, 1.2),
+                points_in_camera: vec![Point3::new(0.1, 0.0, 0.8), Point3::new(0.0, 0.1, 0.9)],
+                normals_in_camera: vec![Vector3::new(0.0, 0.0, -1.0), Vector3::new(0.0, 0.6, -0.8)],
+            }],
+        }),
     }
 }
 

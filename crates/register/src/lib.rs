@@ -33,6 +33,7 @@
 //! voxel for the call. No I/O, no clocks, no randomness: the scan is subsampled with a fixed
 //! stride.
 
+mod hand_eye;
 mod icp;
 mod memo;
 mod surface;
@@ -41,6 +42,9 @@ use glasshouse_roimap::RoiMap;
 use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
+pub use crate::hand_eye::{
+    HandEyeEstimator, HandEyeFigures, HandEyeSettings, HandEyeState, KeyScan, Surfel,
+};
 use crate::icp::Registration;
 
 /// How scans are registered and when an alignment is accepted. Every length is in metres,

@@ -1296,7 +1296,7 @@ fn a_rejected_cloud_is_reported_on_a_map_update_without_voxels() {
             PlannerAction::Publish {
                 output: TrolleyOutput::Map(m),
                 ..
-            } => Some(m),
+            } => Some(&**m),
             _ => None,
         })
         .collect();

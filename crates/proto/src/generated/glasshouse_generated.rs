@@ -5395,6 +5395,7 @@ impl<'a> FrameRegistration<'a> {
   pub const VT_NEAR_SURFACE_POINTS: ::flatbuffers::VOffsetT = 32;
   pub const VT_CONTRADICTING_POINTS: ::flatbuffers::VOffsetT = 34;
   pub const VT_LAST_STEP_M: ::flatbuffers::VOffsetT = 36;
+  pub const VT_HAND_EYE_CORRECTION: ::flatbuffers::VOffsetT = 38;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5408,6 +5409,7 @@ impl<'a> FrameRegistration<'a> {
     let mut builder = FrameRegistrationBuilder::new(_fbb);
     builder.add_frame_seq(args.frame_seq);
     builder.add_frame_epoch_ns(args.frame_epoch_ns);
+    if let Some(x) = args.hand_eye_correction { builder.add_hand_eye_correction(x); }
     if let Some(x) = args.last_step_m { builder.add_last_step_m(x); }
     if let Some(x) = args.contradicting_points { builder.add_contradicting_points(x); }
     if let Some(x) = args.near_surface_points { builder.add_near_surface_points(x); }
@@ -5560,6 +5562,15 @@ impl<'a> FrameRegistration<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<f32>(FrameRegistration::VT_LAST_STEP_M, None)}
   }
+  /// The trolley's hand-eye estimate as applied to this cloud before the registration above
+  /// (world frame); absent while the planner has no estimate or does not make one.
+  #[inline]
+  pub fn hand_eye_correction(&self) -> Option<&'a RigidCorrection> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<RigidCorrection>(FrameRegistration::VT_HAND_EYE_CORRECTION, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for FrameRegistration<'_> {
@@ -5585,6 +5596,7 @@ impl ::flatbuffers::Verifiable for FrameRegistration<'_> {
      .visit_field::<u32>("near_surface_points", Self::VT_NEAR_SURFACE_POINTS, false)?
      .visit_field::<u32>("contradicting_points", Self::VT_CONTRADICTING_POINTS, false)?
      .visit_field::<f32>("last_step_m", Self::VT_LAST_STEP_M, false)?
+     .visit_field::<RigidCorrection>("hand_eye_correction", Self::VT_HAND_EYE_CORRECTION, false)?
      .finish();
     Ok(())
   }
@@ -5607,6 +5619,7 @@ pub struct FrameRegistrationArgs<'a> {
     pub near_surface_points: Option<u32>,
     pub contradicting_points: Option<u32>,
     pub last_step_m: Option<f32>,
+    pub hand_eye_correction: Option<&'a RigidCorrection>,
 }
 impl<'a> Default for FrameRegistrationArgs<'a> {
   #[inline]
@@ -5629,6 +5642,7 @@ impl<'a> Default for FrameRegistrationArgs<'a> {
       near_surface_points: None,
       contradicting_points: None,
       last_step_m: None,
+      hand_eye_correction: None,
     }
   }
 }
@@ -5707,6 +5721,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FrameRegistrationBuilder<'a, 
     self.fbb_.push_slot_always::<f32>(FrameRegistration::VT_LAST_STEP_M, last_step_m);
   }
   #[inline]
+  pub fn add_hand_eye_correction(&mut self, hand_eye_correction: &RigidCorrection) {
+    self.fbb_.push_slot_always::<&RigidCorrection>(FrameRegistration::VT_HAND_EYE_CORRECTION, hand_eye_correction);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FrameRegistrationBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FrameRegistrationBuilder {
@@ -5741,6 +5759,7 @@ impl ::core::fmt::Debug for FrameRegistration<'_> {
       ds.field("near_surface_points", &self.near_surface_points());
       ds.field("contradicting_points", &self.contradicting_points());
       ds.field("last_step_m", &self.last_step_m());
+      ds.field("hand_eye_correction", &self.hand_eye_correction());
       ds.finish()
   }
 }
@@ -6961,12 +6980,277 @@ impl ::core::fmt::Debug for DetectorStatus<'_> {
       ds.finish()
   }
 }
-pub enum MapSnapshotOffset {}
+pub enum HandEyeScanOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
 /// One planner's copy of a trolley's state, the reply to a snapshot query: a planner that
 /// becomes the trolley's replica (or owner without a map) loads it and follows the RoiCloud
 /// stream after based_on_seq.
+/// A scan the hand-eye estimate is made over: its believed camera pose, and surface points with
+/// their normals in its camera frame.
+pub struct HandEyeScan<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for HandEyeScan<'a> {
+  type Inner = HandEyeScan<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> HandEyeScan<'a> {
+  pub const VT_WORLD_FROM_CAMERA: ::flatbuffers::VOffsetT = 4;
+  pub const VT_POINTS_IN_CAMERA: ::flatbuffers::VOffsetT = 6;
+  pub const VT_NORMALS_IN_CAMERA: ::flatbuffers::VOffsetT = 8;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    HandEyeScan { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args HandEyeScanArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<HandEyeScan<'bldr>> {
+    let mut builder = HandEyeScanBuilder::new(_fbb);
+    if let Some(x) = args.normals_in_camera { builder.add_normals_in_camera(x); }
+    if let Some(x) = args.points_in_camera { builder.add_points_in_camera(x); }
+    if let Some(x) = args.world_from_camera { builder.add_world_from_camera(x); }
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn world_from_camera(&self) -> Option<&'a Pose> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Pose>(HandEyeScan::VT_WORLD_FROM_CAMERA, None)}
+  }
+  #[inline]
+  pub fn points_in_camera(&self) -> Option<::flatbuffers::Vector<'a, Vec3>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, Vec3>>>(HandEyeScan::VT_POINTS_IN_CAMERA, None)}
+  }
+  #[inline]
+  pub fn normals_in_camera(&self) -> Option<::flatbuffers::Vector<'a, Vec3>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, Vec3>>>(HandEyeScan::VT_NORMALS_IN_CAMERA, None)}
+  }
+}
+
+impl ::flatbuffers::Verifiable for HandEyeScan<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<Pose>("world_from_camera", Self::VT_WORLD_FROM_CAMERA, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, Vec3>>>("points_in_camera", Self::VT_POINTS_IN_CAMERA, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, Vec3>>>("normals_in_camera", Self::VT_NORMALS_IN_CAMERA, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct HandEyeScanArgs<'a> {
+    pub world_from_camera: Option<&'a Pose>,
+    pub points_in_camera: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, Vec3>>>,
+    pub normals_in_camera: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, Vec3>>>,
+}
+impl<'a> Default for HandEyeScanArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    HandEyeScanArgs {
+      world_from_camera: None,
+      points_in_camera: None,
+      normals_in_camera: None,
+    }
+  }
+}
+
+pub struct HandEyeScanBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> HandEyeScanBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_world_from_camera(&mut self, world_from_camera: &Pose) {
+    self.fbb_.push_slot_always::<&Pose>(HandEyeScan::VT_WORLD_FROM_CAMERA, world_from_camera);
+  }
+  #[inline]
+  pub fn add_points_in_camera(&mut self, points_in_camera: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , Vec3>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(HandEyeScan::VT_POINTS_IN_CAMERA, points_in_camera);
+  }
+  #[inline]
+  pub fn add_normals_in_camera(&mut self, normals_in_camera: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , Vec3>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(HandEyeScan::VT_NORMALS_IN_CAMERA, normals_in_camera);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> HandEyeScanBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    HandEyeScanBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<HandEyeScan<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for HandEyeScan<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("HandEyeScan");
+      ds.field("world_from_camera", &self.world_from_camera());
+      ds.field("points_in_camera", &self.points_in_camera());
+      ds.field("normals_in_camera", &self.normals_in_camera());
+      ds.finish()
+  }
+}
+pub enum HandEyeOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
+/// A trolley's hand-eye calibration error as its planner estimates it across scans: the camera's
+/// true pose in the frame the trolley believes it in, the scans seen, and the window of scans
+/// (none once the estimate is final).
+pub struct HandEye<'a> {
+  pub _tab: ::flatbuffers::Table<'a>,
+}
+
+impl<'a> ::flatbuffers::Follow<'a> for HandEye<'a> {
+  type Inner = HandEye<'a>;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    Self { _tab: unsafe { ::flatbuffers::Table::new(buf, loc) } }
+  }
+}
+
+impl<'a> HandEye<'a> {
+  pub const VT_CAMERA_BELIEVED_FROM_TRUE: ::flatbuffers::VOffsetT = 4;
+  pub const VT_SCANS_SEEN: ::flatbuffers::VOffsetT = 6;
+  pub const VT_SCANS: ::flatbuffers::VOffsetT = 8;
+
+  #[inline]
+  pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
+    HandEye { _tab: table }
+  }
+  #[allow(unused_mut)]
+  pub fn create<'bldr: 'args, 'args: 'mut_bldr, 'mut_bldr, A: ::flatbuffers::Allocator + 'bldr>(
+    _fbb: &'mut_bldr mut ::flatbuffers::FlatBufferBuilder<'bldr, A>,
+    args: &'args HandEyeArgs<'args>
+  ) -> ::flatbuffers::WIPOffset<HandEye<'bldr>> {
+    let mut builder = HandEyeBuilder::new(_fbb);
+    if let Some(x) = args.scans { builder.add_scans(x); }
+    builder.add_scans_seen(args.scans_seen);
+    if let Some(x) = args.camera_believed_from_true { builder.add_camera_believed_from_true(x); }
+    builder.finish()
+  }
+
+
+  #[inline]
+  pub fn camera_believed_from_true(&self) -> Option<&'a Pose> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<Pose>(HandEye::VT_CAMERA_BELIEVED_FROM_TRUE, None)}
+  }
+  #[inline]
+  pub fn scans_seen(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(HandEye::VT_SCANS_SEEN, Some(0)).unwrap()}
+  }
+  #[inline]
+  pub fn scans(&self) -> Option<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<HandEyeScan<'a>>>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<HandEyeScan>>>>(HandEye::VT_SCANS, None)}
+  }
+}
+
+impl ::flatbuffers::Verifiable for HandEye<'_> {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.visit_table(pos)?
+     .visit_field::<Pose>("camera_believed_from_true", Self::VT_CAMERA_BELIEVED_FROM_TRUE, false)?
+     .visit_field::<u32>("scans_seen", Self::VT_SCANS_SEEN, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<HandEyeScan>>>>("scans", Self::VT_SCANS, false)?
+     .finish();
+    Ok(())
+  }
+}
+pub struct HandEyeArgs<'a> {
+    pub camera_believed_from_true: Option<&'a Pose>,
+    pub scans_seen: u32,
+    pub scans: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<HandEyeScan<'a>>>>>,
+}
+impl<'a> Default for HandEyeArgs<'a> {
+  #[inline]
+  fn default() -> Self {
+    HandEyeArgs {
+      camera_believed_from_true: None,
+      scans_seen: 0,
+      scans: None,
+    }
+  }
+}
+
+pub struct HandEyeBuilder<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> {
+  fbb_: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>,
+  start_: ::flatbuffers::WIPOffset<::flatbuffers::TableUnfinishedWIPOffset>,
+}
+impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> HandEyeBuilder<'a, 'b, A> {
+  #[inline]
+  pub fn add_camera_believed_from_true(&mut self, camera_believed_from_true: &Pose) {
+    self.fbb_.push_slot_always::<&Pose>(HandEye::VT_CAMERA_BELIEVED_FROM_TRUE, camera_believed_from_true);
+  }
+  #[inline]
+  pub fn add_scans_seen(&mut self, scans_seen: u32) {
+    self.fbb_.push_slot::<u32>(HandEye::VT_SCANS_SEEN, scans_seen, 0);
+  }
+  #[inline]
+  pub fn add_scans(&mut self, scans: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , ::flatbuffers::ForwardsUOffset<HandEyeScan<'b >>>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(HandEye::VT_SCANS, scans);
+  }
+  #[inline]
+  pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> HandEyeBuilder<'a, 'b, A> {
+    let start = _fbb.start_table();
+    HandEyeBuilder {
+      fbb_: _fbb,
+      start_: start,
+    }
+  }
+  #[inline]
+  pub fn finish(self) -> ::flatbuffers::WIPOffset<HandEye<'a>> {
+    let o = self.fbb_.end_table(self.start_);
+    ::flatbuffers::WIPOffset::new(o.value())
+  }
+}
+
+impl ::core::fmt::Debug for HandEye<'_> {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+    let mut ds = f.debug_struct("HandEye");
+      ds.field("camera_believed_from_true", &self.camera_believed_from_true());
+      ds.field("scans_seen", &self.scans_seen());
+      ds.field("scans", &self.scans());
+      ds.finish()
+  }
+}
+pub enum MapSnapshotOffset {}
+#[derive(Copy, Clone, PartialEq)]
+
 pub struct MapSnapshot<'a> {
   pub _tab: ::flatbuffers::Table<'a>,
 }
@@ -6991,6 +7275,7 @@ impl<'a> MapSnapshot<'a> {
   pub const VT_VISIT: ::flatbuffers::VOffsetT = 20;
   pub const VT_SEASON: ::flatbuffers::VOffsetT = 22;
   pub const VT_TRACKED_COLOURS: ::flatbuffers::VOffsetT = 24;
+  pub const VT_HAND_EYE: ::flatbuffers::VOffsetT = 26;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -7005,6 +7290,7 @@ impl<'a> MapSnapshot<'a> {
     builder.add_owner_epoch(args.owner_epoch);
     builder.add_based_on_epoch_ns(args.based_on_epoch_ns);
     builder.add_based_on_seq(args.based_on_seq);
+    if let Some(x) = args.hand_eye { builder.add_hand_eye(x); }
     if let Some(x) = args.tracked_colours { builder.add_tracked_colours(x); }
     if let Some(x) = args.season { builder.add_season(x); }
     builder.add_visit(args.visit);
@@ -7102,6 +7388,14 @@ impl<'a> MapSnapshot<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, RgbSum>>>(MapSnapshot::VT_TRACKED_COLOURS, None)}
   }
+  /// The hand-eye estimate; absent when the planner does not estimate it (or an older one).
+  #[inline]
+  pub fn hand_eye(&self) -> Option<HandEye<'a>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<HandEye>>(MapSnapshot::VT_HAND_EYE, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
@@ -7121,6 +7415,7 @@ impl ::flatbuffers::Verifiable for MapSnapshot<'_> {
      .visit_field::<u32>("visit", Self::VT_VISIT, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, ::flatbuffers::ForwardsUOffset<FruitHistory>>>>("season", Self::VT_SEASON, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, RgbSum>>>("tracked_colours", Self::VT_TRACKED_COLOURS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<HandEye>>("hand_eye", Self::VT_HAND_EYE, false)?
      .finish();
     Ok(())
   }
@@ -7137,6 +7432,7 @@ pub struct MapSnapshotArgs<'a> {
     pub visit: u32,
     pub season: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, ::flatbuffers::ForwardsUOffset<FruitHistory<'a>>>>>,
     pub tracked_colours: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, RgbSum>>>,
+    pub hand_eye: Option<::flatbuffers::WIPOffset<HandEye<'a>>>,
 }
 impl<'a> Default for MapSnapshotArgs<'a> {
   #[inline]
@@ -7153,6 +7449,7 @@ impl<'a> Default for MapSnapshotArgs<'a> {
       visit: 0,
       season: None,
       tracked_colours: None,
+      hand_eye: None,
     }
   }
 }
@@ -7207,6 +7504,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> MapSnapshotBuilder<'a, 'b, A>
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(MapSnapshot::VT_TRACKED_COLOURS, tracked_colours);
   }
   #[inline]
+  pub fn add_hand_eye(&mut self, hand_eye: ::flatbuffers::WIPOffset<HandEye<'b >>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<HandEye>>(MapSnapshot::VT_HAND_EYE, hand_eye);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> MapSnapshotBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     MapSnapshotBuilder {
@@ -7235,6 +7536,7 @@ impl ::core::fmt::Debug for MapSnapshot<'_> {
       ds.field("visit", &self.visit());
       ds.field("season", &self.season());
       ds.field("tracked_colours", &self.tracked_colours());
+      ds.field("hand_eye", &self.hand_eye());
       ds.finish()
   }
 }

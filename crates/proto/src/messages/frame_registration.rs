@@ -229,6 +229,9 @@ pub struct FrameRegistration {
     pub contradicting_points: Option<u32>,
     /// How far the last iteration still moved the scan (`NotConverged`).
     pub last_step_m: Option<f32>,
+    /// The trolley's hand-eye estimate as applied to the cloud before the registration above
+    /// (world frame); `None` without an estimate.
+    pub hand_eye_correction: Option<RigidCorrection>,
 }
 
 impl FrameRegistration {
@@ -242,6 +245,7 @@ impl FrameRegistration {
         fbb: &mut FlatBufferBuilder<'a>,
     ) -> WIPOffset<fb::FrameRegistration<'a>> {
         let correction = self.world_correction.map(RigidCorrection::to_fb);
+        let hand_eye = self.hand_eye_correction.map(RigidCorrection::to_fb);
         fb::FrameRegistration::create(
             fbb,
             &fb::FrameRegistrationArgs {
@@ -262,6 +266,7 @@ impl FrameRegistration {
                 near_surface_points: self.near_surface_points,
                 contradicting_points: self.contradicting_points,
                 last_step_m: self.last_step_m,
+                hand_eye_correction: hand_eye.as_ref(),
             },
         )
     }
@@ -287,6 +292,10 @@ impl FrameRegistration {
             near_surface_points: r.near_surface_points(),
             contradicting_points: r.contradicting_points(),
             last_step_m: r.last_step_m(),
+            hand_eye_correction: r
+                .hand_eye_correction()
+                .map(RigidCorrection::from_fb)
+                .transpose()?,
         })
     }
 }

@@ -2,9 +2,11 @@
 
 use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
 use glasshouse_geom::RgbSum;
-use nalgebra::Point3;
+use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::convert::{content, payload, point3f, string_or_empty, vec3f};
+use super::convert::{
+    content, payload, point3f, pose_from_fb, pose_to_fb, string_or_empty, vec3f,
+};
 use super::fruit_estimates::{read_histories, write_histories, FruitHistory};
 use crate::{fb, MessageKind, Result, Wire};
 
@@ -16,6 +18,26 @@ pub struct TrackedFruit {
     pub centre_in_world: Point3<f32>,
     /// No samples in older snapshots.
     pub colour: RgbSum,
+}
+
+/// A scan the hand-eye estimate is made over: its believed camera pose, and surface points
+/// with their normals in its camera frame (parallel).
+#[derive(Clone, Debug, PartialEq)]
+pub struct HandEyeScan {
+    pub world_from_camera: Isometry3<f64>,
+    pub points_in_camera: Vec<Point3<f32>>,
+    pub normals_in_camera: Vec<Vector3<f32>>,
+}
+
+/// A trolley's hand-eye calibration error as its planner estimates it, carried in
+/// [`MapSnapshot`] so that a copy restored from it corrects the next scans as the owner does.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HandEye {
+    /// The camera's true pose in the frame the trolley believes it in.
+    pub camera_believed_from_true: Isometry3<f64>,
+    pub scans_seen: u32,
+    /// The window of scans, oldest first; none once the estimate is final.
+    pub scans: Vec<HandEyeScan>,
 }
 
 /// One planner's copy of a trolley's state (reply to a snapshot query).
@@ -37,6 +59,8 @@ pub struct MapSnapshot {
     /// The trolley's visit the map is from, and the fruits of the visits before it.
     pub visit: u32,
     pub season: Vec<FruitHistory>,
+    /// The hand-eye estimate; None when the planner does not make one.
+    pub hand_eye: Option<HandEye>,
 }
 
 impl Wire for MapSnapshot {
@@ -63,6 +87,7 @@ impl Wire for MapSnapshot {
         };
         let colours = any_colour.then(|| fbb.create_vector(&colours));
         let season = write_histories(fbb, &self.season);
+        let hand_eye = self.hand_eye.as_ref().map(|h| write_hand_eye(fbb, h));
         fb::MapSnapshot::create(
             fbb,
             &fb::MapSnapshotArgs {
@@ -77,6 +102,7 @@ impl Wire for MapSnapshot {
                 visit: self.visit,
                 season: Some(season),
                 tracked_colours: colours,
+                hand_eye,
             },
         )
         .as_union_value()
@@ -96,8 +122,83 @@ impl Wire for MapSnapshot {
             owner_epoch: m.owner_epoch(),
             visit: m.visit(),
             season: read_histories(Self::KIND, m.season())?,
+            hand_eye: m.hand_eye().map(|h| read_hand_eye(&h)).transpose()?,
         })
     }
+}
+
+fn write_hand_eye<'a>(
+    fbb: &mut FlatBufferBuilder<'a>,
+    hand_eye: &HandEye,
+) -> WIPOffset<fb::HandEye<'a>> {
+    let scans: Vec<_> = hand_eye
+        .scans
+        .iter()
+        .map(|scan| {
+            let points: Vec<fb::Vec3> = scan.points_in_camera.iter().map(vec3f).collect();
+            let normals: Vec<fb::Vec3> = scan
+                .normals_in_camera
+                .iter()
+                .map(|n| vec3f(&Point3::from(*n)))
+                .collect();
+            let args = fb::HandEyeScanArgs {
+                world_from_camera: Some(&pose_to_fb(&scan.world_from_camera)),
+                points_in_camera: Some(fbb.create_vector(&points)),
+                normals_in_camera: Some(fbb.create_vector(&normals)),
+            };
+            fb::HandEyeScan::create(fbb, &args)
+        })
+        .collect();
+    let args = fb::HandEyeArgs {
+        camera_believed_from_true: Some(&pose_to_fb(&hand_eye.camera_believed_from_true)),
+        scans_seen: hand_eye.scans_seen,
+        scans: Some(fbb.create_vector(&scans)),
+    };
+    fb::HandEye::create(fbb, &args)
+}
+
+/// The hand-eye estimate: its poses whole and finite, every point with a finite normal.
+fn read_hand_eye(h: &fb::HandEye<'_>) -> Result<HandEye> {
+    let kind = MessageKind::MapSnapshot;
+    let field = "hand_eye.camera_believed_from_true";
+    let estimate = pose_from_fb(kind, field, h.camera_believed_from_true())?;
+    let scans = h.scans().into_iter().flatten().map(|s| read_hand_eye_scan(&s));
+    Ok(HandEye {
+        camera_believed_from_true: estimate,
+        scans_seen: h.scans_seen(),
+        scans: scans.collect::<Result<_>>()?,
+    })
+}
+
+fn read_hand_eye_scan(scan: &fb::HandEyeScan<'_>) -> Result<HandEyeScan> {
+    let kind = MessageKind::MapSnapshot;
+    let field = "hand_eye.scans.world_from_camera";
+    let world_from_camera = pose_from_fb(kind, field, scan.world_from_camera())?;
+    let points: Vec<Point3<f32>> = scan
+        .points_in_camera()
+        .into_iter()
+        .flatten()
+        .map(point3f)
+        .collect();
+    let normals: Vec<Vector3<f32>> = scan
+        .normals_in_camera()
+        .into_iter()
+        .flatten()
+        .map(|n| point3f(n).coords)
+        .collect();
+    if points.len() != normals.len() {
+        let (p, n) = (points.len(), normals.len());
+        return Err(content(kind, format!("hand_eye scan with {p} points but {n} normals")));
+    }
+    let finite = |v: &Vector3<f32>| v.iter().all(|c| c.is_finite());
+    if !points.iter().all(|p| finite(&p.coords)) || !normals.iter().all(finite) {
+        return Err(content(kind, "hand_eye scan with a point or normal not finite"));
+    }
+    Ok(HandEyeScan {
+        world_from_camera,
+        points_in_camera: points,
+        normals_in_camera: normals,
+    })
 }
 
 fn rgb_sum_to_fb(c: &RgbSum) -> fb::RgbSum {

@@ -169,8 +169,20 @@ class FrameRegistration(object):
             return self._tab.Get(flatbuffers.number_types.Float32Flags, o + self._tab.Pos)
         return None
 
+    # The trolley's hand-eye estimate as applied to this cloud before the registration above
+    # (world frame); absent while the planner has no estimate or does not make one.
+    # FrameRegistration
+    def HandEyeCorrection(self) -> Optional[RigidCorrection]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(38))
+        if o != 0:
+            x = o + self._tab.Pos
+            obj = RigidCorrection()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
 def FrameRegistrationStart(builder: flatbuffers.Builder):
-    builder.StartObject(17)
+    builder.StartObject(18)
 
 def Start(builder: flatbuffers.Builder):
     FrameRegistrationStart(builder)
@@ -276,6 +288,12 @@ def FrameRegistrationAddLastStepM(builder: flatbuffers.Builder, lastStepM: float
 
 def AddLastStepM(builder: flatbuffers.Builder, lastStepM: float):
     FrameRegistrationAddLastStepM(builder, lastStepM)
+
+def FrameRegistrationAddHandEyeCorrection(builder: flatbuffers.Builder, handEyeCorrection: Any):
+    builder.PrependStructSlot(17, flatbuffers.number_types.UOffsetTFlags.py_type(handEyeCorrection), 0)
+
+def AddHandEyeCorrection(builder: flatbuffers.Builder, handEyeCorrection: Any):
+    FrameRegistrationAddHandEyeCorrection(builder, handEyeCorrection)
 
 def FrameRegistrationEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -6,14 +6,12 @@ import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
 from glasshouse.wire.FruitHistory import FruitHistory
+from glasshouse.wire.HandEye import HandEye
 from glasshouse.wire.RgbSum import RgbSum
 from glasshouse.wire.TrackedFruit import TrackedFruit
 from typing import Optional
 np = import_numpy()
 
-# One planner's copy of a trolley's state, the reply to a snapshot query: a planner that
-# becomes the trolley's replica (or owner without a map) loads it and follows the RoiCloud
-# stream after based_on_seq.
 class MapSnapshot(object):
     __slots__ = ['_tab']
 
@@ -190,8 +188,19 @@ class MapSnapshot(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
         return o == 0
 
+    # The hand-eye estimate; absent when the planner does not estimate it (or an older one).
+    # MapSnapshot
+    def HandEye(self) -> Optional[HandEye]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        if o != 0:
+            x = self._tab.Indirect(o + self._tab.Pos)
+            obj = HandEye()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
 def MapSnapshotStart(builder: flatbuffers.Builder):
-    builder.StartObject(11)
+    builder.StartObject(12)
 
 def Start(builder: flatbuffers.Builder):
     MapSnapshotStart(builder)
@@ -285,6 +294,12 @@ def MapSnapshotStartTrackedColoursVector(builder, numElems: int) -> int:
 
 def StartTrackedColoursVector(builder, numElems: int) -> int:
     return MapSnapshotStartTrackedColoursVector(builder, numElems)
+
+def MapSnapshotAddHandEye(builder: flatbuffers.Builder, handEye: int):
+    builder.PrependUOffsetTRelativeSlot(11, flatbuffers.number_types.UOffsetTFlags.py_type(handEye), 0)
+
+def AddHandEye(builder: flatbuffers.Builder, handEye: int):
+    MapSnapshotAddHandEye(builder, handEye)
 
 def MapSnapshotEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -328,7 +328,8 @@ fn log_planner_status(rec: &RecordingStream, pid: &str, s: &PlannerStatus) -> Lo
 }
 
 /// The correction the planner applied to a registered cloud (zero when it applied none: the
-/// cloud went in as sent, or not at all), mm at the camera and degrees.
+/// cloud went in as sent, or not at all), mm at the camera and degrees, and the hand-eye
+/// estimate's rotation applied before it.
 fn log_registration(rec: &RecordingStream, tid: &str, r: &FrameRegistration) -> LogResult {
     let applied = r.verdict == RegistrationVerdict::Applied;
     let (mm, deg) = match applied {
@@ -345,6 +346,15 @@ fn log_registration(rec: &RecordingStream, tid: &str, r: &FrameRegistration) -> 
     rec.log(
         format!("trolleys/{tid}/registration/applied_correction_deg"),
         &rerun::Scalars::single(deg),
+    )?;
+    // The hand-eye estimate's rotation as applied to the cloud (0 while there is none).
+    let hand_eye_deg = r
+        .hand_eye_correction
+        .as_ref()
+        .map_or(0.0, |c| c.angle_deg());
+    rec.log(
+        format!("trolleys/{tid}/registration/hand_eye_correction_deg"),
+        &rerun::Scalars::single(hand_eye_deg),
     )
 }
 

@@ -83,6 +83,9 @@ pub struct RegistrationDoc {
     /// scan went in.
     pub inlier_share: Option<f32>,
     pub rms_mm: Option<f64>,
+    /// The trolley's hand-eye estimate as applied to the cloud before: its rotation, degrees;
+    /// absent while its planner has none.
+    pub hand_eye_deg: Option<f64>,
 }
 
 impl RegistrationDoc {
@@ -99,6 +102,10 @@ impl RegistrationDoc {
                 .or_else(|| estimate.map(RigidCorrection::angle_deg)),
             inlier_share: r.inlier_share,
             rms_mm: r.rms_after_m.map(|m| f64::from(m) * 1e3),
+            hand_eye_deg: r
+                .hand_eye_correction
+                .as_ref()
+                .map(RigidCorrection::angle_deg),
         }
     }
 }
@@ -650,6 +657,7 @@ mod tests {
         assert!(near(r.correction_mm, 6.5), "{r:?}");
         assert!(near(r.correction_deg, 0.5), "{r:?}");
         assert!(near(r.rms_mm, 1.8), "{r:?}");
+        assert!(near(r.hand_eye_deg, 0.2562), "{r:?}");
         let p = &doc.planners[0];
         let totals = (
             p.registration_applied,
@@ -674,6 +682,7 @@ mod tests {
         let doc = RegistrationDoc::new(&rejected);
         assert_eq!((doc.verdict, doc.reason), ("rejected", "contradicts_map"));
         assert_eq!((doc.correction_mm, doc.correction_deg), (None, None));
+        assert_eq!(doc.hand_eye_deg, None);
     }
 
     #[test]

@@ -22,25 +22,7 @@ fn settings(registration: bool) -> PlanningSettings {
 /// The clouds of a perfect simulated trolley's first `frames` views (each view planned on
 /// the clouds before it, without registration: the same clouds for every test).
 fn clouds(frames: u64) -> Vec<RoiCloud> {
-    let sim = SimTrolleySettings::new(ScenarioKind::Two, 3, (320, 240), 1.0);
-    let mut trolley = SimTrolley::new(sim).unwrap();
-    let mut planner = TrolleyPlanner::new(settings(false)).unwrap();
-    planner.set_info(trolley.info()).unwrap();
-    let mut out = Vec::new();
-    for seq in 1..=frames {
-        let frame = trolley.capture(seq).unwrap().unwrap();
-        let id = FrameId::new(0, seq);
-        let cloud = detect_frame(&frame, id, "d1", &DetectorConfig::default()).unwrap();
-        planner.integrate(&cloud, 0).unwrap();
-        let plan = planner
-            .plan(&frame.world_from_camera, seq)
-            .unwrap()
-            .unwrap();
-        let goals: Vec<_> = plan.views.iter().map(|v| v.world_from_camera).collect();
-        trolley.execute(&goals);
-        out.push(cloud);
-    }
-    out
+    clouds_in(WorldSettings::default(), 3, frames).0
 }
 
 fn planner_with(registration: bool, clouds: &[RoiCloud]) -> TrolleyPlanner {

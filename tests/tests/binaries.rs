@@ -99,7 +99,7 @@ async fn real_binaries_close_the_loop() {
         &args.iter().map(String::as_str).collect::<Vec<_>>(),
         &logs,
     );
-    let (planner_metrics, _) = metrics_of("planner");
+    let (planner_metrics, planner_port) = metrics_of("planner");
     let args = with(&["--metrics", &planner_metrics]);
     let planner = Proc::start(
         "planner",
@@ -136,8 +136,10 @@ async fn real_binaries_close_the_loop() {
         &logs,
     );
 
-    // The edge exits by itself once its six views are done: scraped after its second view.
+    // The edge exits by itself once its six views are done: scraped after its second view, and
+    // the planner with it, while it still owns the trolley (once the edge has left, it does not).
     let mut edge_text = None;
+    let mut planner_text = None;
     let done = within(240, "edge to finish six views", async {
         loop {
             match status_sub.recv().await {
@@ -146,6 +148,7 @@ async fn real_binaries_close_the_loop() {
                 }
                 Some(received) if received.message.views_done >= 2 && edge_text.is_none() => {
                     edge_text = Some(scrape(edge_port));
+                    planner_text = Some(scrape(planner_port));
                 }
                 Some(_) => {}
                 None => panic!("status subscriber closed"),
@@ -187,6 +190,7 @@ async fn real_binaries_close_the_loop() {
     for (kind, port) in &metrics {
         let text = match *kind {
             "edge" => edge_text.clone().expect("the edge was scraped"),
+            "planner" => planner_text.clone().expect("the planner was scraped"),
             _ => scrape(*port),
         };
         let file = logs.join(format!("{kind}.metrics"));

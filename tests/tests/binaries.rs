@@ -30,6 +30,19 @@ fn scrape(port: u16) -> String {
     body.to_string()
 }
 
+/// Whether a planner's metrics text says it owns one trolley.
+fn owns_one(text: &str) -> bool {
+    text.lines().any(|line| {
+        line.starts_with("glasshouse_planner_trolleys{")
+            && line.contains("role=\"owner\"")
+            && line
+                .split_whitespace()
+                .last()
+                .and_then(|v| v.parse::<f64>().ok())
+                == Some(1.0)
+    })
+}
+
 /// The value of `sample` (with `labels`, a subset) in a check-metrics family; None if absent.
 fn sample(
     families: &serde_json::Value,
@@ -100,7 +113,10 @@ async fn real_binaries_close_the_loop() {
         &logs,
     );
     let (planner_metrics, planner_port) = metrics_of("planner");
-    let args = with(&["--metrics", &planner_metrics]);
+    let planner_config = logs.join("planner.json5");
+    std::fs::write(&planner_config, "{ status_period_ms: 100 }").expect("planner config");
+    let planner_config = planner_config.to_string_lossy().into_owned();
+    let args = with(&["--metrics", &planner_metrics, "-c", &planner_config]);
     let planner = Proc::start(
         "planner",
         "planner-service",
@@ -136,8 +152,9 @@ async fn real_binaries_close_the_loop() {
         &logs,
     );
 
-    // The edge exits by itself once its six views are done: scraped after its second view, and
-    // the planner with it, while it still owns the trolley (once the edge has left, it does not).
+    // The edge exits by itself once its six views are done: scraped after its second view. The
+    // planner is scraped from then on until a status of its (every 100 ms) says it owns the
+    // trolley; once the edge has left, it no longer does.
     let mut edge_text = None;
     let mut planner_text = None;
     let done = within(240, "edge to finish six views", async {
@@ -146,9 +163,11 @@ async fn real_binaries_close_the_loop() {
                 Some(received) if received.message.state == TrolleyState::Done => {
                     return received.message
                 }
-                Some(received) if received.message.views_done >= 2 && edge_text.is_none() => {
-                    edge_text = Some(scrape(edge_port));
-                    planner_text = Some(scrape(planner_port));
+                Some(received) if received.message.views_done >= 2 => {
+                    edge_text.get_or_insert_with(|| scrape(edge_port));
+                    if planner_text.is_none() {
+                        planner_text = Some(scrape(planner_port)).filter(|t| owns_one(t));
+                    }
                 }
                 Some(_) => {}
                 None => panic!("status subscriber closed"),
@@ -190,7 +209,9 @@ async fn real_binaries_close_the_loop() {
     for (kind, port) in &metrics {
         let text = match *kind {
             "edge" => edge_text.clone().expect("the edge was scraped"),
-            "planner" => planner_text.clone().expect("the planner was scraped"),
+            "planner" => planner_text
+                .clone()
+                .expect("no planner status said it owned the trolley while the edge ran"),
             _ => scrape(*port),
         };
         let file = logs.join(format!("{kind}.metrics"));

@@ -287,12 +287,13 @@ impl HandEyeEstimator {
         if !self.settings.enabled || self.is_final() {
             return;
         }
-        let surface = surface_of(&self.settings, world_from_camera, points_in_world);
         self.scans_seen += 1;
         if self.is_final() {
+            // The last scan counted: the estimate stands as it is, the window is let go.
             self.scans.clear();
             return;
         }
+        let surface = surface_of(&self.settings, world_from_camera, points_in_world);
         if surface.is_empty() {
             return;
         }

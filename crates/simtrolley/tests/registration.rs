@@ -185,14 +185,8 @@ fn the_hand_eye_error_is_estimated_across_scans() {
     let mut doubled = WorldSettings::realistic();
     doubled.pose.hand_eye_error_deg = 1.0;
     doubled.pose.hand_eye_error_mm = 10.0;
-    let seeds: Vec<(WorldSettings, u64)> = match std::env::var("HE_SEEDS") {
-        Ok(v) => v
-            .split(',')
-            .map(|s| (WorldSettings::realistic(), s.parse().unwrap()))
-            .collect(),
-        Err(_) => vec![(WorldSettings::realistic(), 3), (doubled, 5)],
-    };
-    for (world, seed) in seeds {
+    // Seeds the estimator's settings were not chosen on (those were 3, 5, 7 and 9).
+    for (world, seed) in [(WorldSettings::realistic(), 11), (doubled, 13)] {
         let (clouds, truth) = clouds_in(world, seed, 32);
         let mut estimator = HandEyeEstimator::new(HandEyeSettings {
             enabled: true,
@@ -211,10 +205,9 @@ fn the_hand_eye_error_is_estimated_across_scans() {
             estimator.figures(),
             spent.as_secs_f64() * 1e3 / clouds.len() as f64
         );
-        if std::env::var("HE_SEEDS").is_err() {
-            assert!(left.0 < 0.3 * before.0, "{before:?} -> {left:?}");
-            assert!(left.1 < 0.5 * before.1, "{before:?} -> {left:?}");
-        }
+        // On seeds 11-19 the rotation left was 0.08-0.33 of the error, the offset 0.02-0.22.
+        assert!(left.0 < 0.4 * before.0, "{before:?} -> {left:?}");
+        assert!(left.1 < 0.3 * before.1, "{before:?} -> {left:?}");
     }
 }
 

@@ -118,6 +118,10 @@ pub struct EvalArgs {
     /// for a side-by-side run.
     #[arg(long)]
     pub no_hand_eye: bool,
+    /// Rank views by utility less this much per second the robot takes to reach them (the
+    /// planner's default); 0 ranks by the paper's utility alone, for a side-by-side run.
+    #[arg(long, value_name = "W", default_value_t = glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S)]
+    pub motion_cost_per_s: f64,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
     /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
     /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
@@ -253,6 +257,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "roi_targets": args.roi_targets,
         "registration": args.registration,
         "hand_eye": !args.no_hand_eye,
+        "motion_cost_per_s": args.motion_cost_per_s,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -315,6 +320,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 roi_targets: args.roi_targets,
                 registration: args.registration,
                 hand_eye: !args.no_hand_eye,
+                motion_cost_per_s: args.motion_cost_per_s,
                 revisit_aim: !args.no_revisit_aim,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
@@ -605,6 +611,7 @@ mod tests {
             roi_targets: RoiTargets::Patches,
             registration: false,
             no_hand_eye: false,
+            motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,

@@ -246,4 +246,44 @@ mod tests {
             .expect("the current pose is reachable");
         assert!(motion.duration_s < 1e-6, "{}", motion.duration_s);
     }
+
+    #[test]
+    fn the_estimated_motion_time_is_the_executed_one() {
+        // The gantry moves the mount as well as the arm: the estimate must place both as a
+        // motion does.
+        let robot = Robot::scenario_two();
+        let settings = ExecuteSettings::default();
+        let from_goal = look_at(&Point3::new(0.2, -0.3, 1.0), &Point3::new(0.2, 0.2, 0.9));
+        let from = robot.pose_guess(&from_goal).expect("a placement");
+        let here = robot
+            .world_from_camera(&from.joints, &from.mount)
+            .expect("fk");
+        assert!(
+            here.translation
+                .vector
+                .metric_distance(&from_goal.translation.vector)
+                < 1e-6
+        );
+        let mut compared = 0;
+        for (x, z) in [(-0.4, 0.8), (0.5, 1.2), (0.0, 0.6), (0.6, 0.9)] {
+            let goal = look_at(&Point3::new(x, -0.35, z), &Point3::new(x * 0.5, 0.2, 0.9));
+            let Ok(motion) = robot.motion_to(&from, &goal, &[], &settings) else {
+                continue;
+            };
+            let estimate = robot
+                .motion_time_to(&from, &goal, &settings.limits)
+                .expect("reachable, so estimated");
+            assert!(
+                (estimate - motion.duration_s).abs() < 1e-9,
+                "{estimate} {motion:?}"
+            );
+            assert!(estimate > 0.1, "a real move: {estimate}");
+            compared += 1;
+        }
+        assert!(compared >= 3, "only {compared} goals reachable");
+        let nowhere = Isometry3::translation(f64::NAN, 0.0, 1.0);
+        assert!(robot
+            .motion_time_to(&from, &nowhere, &settings.limits)
+            .is_err());
+    }
 }

@@ -9,6 +9,7 @@ use crate::collision::{
 use crate::error::{ensure_finite, invalid, ArmError, Result};
 use crate::kinematics::{joint_distance, ArmModel, JointVector, JOINT_COUNT};
 use crate::mount::{Interval, Mount, MountState};
+use crate::{ArmPose, MotionLimits};
 
 /// Largest accepted collision margin, metres (bounds the voxel sampling work).
 pub const MAX_MARGIN_M: f64 = 1.0;
@@ -93,6 +94,29 @@ impl Robot {
             .ik_camera(&(base.inverse() * world_from_camera_goal), Some(current))?;
         out.sort_by(|a, b| joint_distance(current, a).total_cmp(&joint_distance(current, b)));
         Ok(out)
+    }
+
+    /// Where the robot would be with its camera at `world_from_camera`, as the edge places it
+    /// from nowhere ([`Robot::place_mount_for`], the first solution): a guess of its pose for
+    /// [`Robot::motion_time_to`] when only the camera pose is known.
+    pub fn pose_guess(&self, world_from_camera: &Isometry3<f64>) -> Result<ArmPose> {
+        let (mount, solutions) = self.place_mount_for(world_from_camera, None)?;
+        let joints = *solutions.first().ok_or(ArmError::Unreachable)?;
+        Ok(ArmPose { joints, mount })
+    }
+
+    /// How long the arm and mount take from `from` to the camera at `goal`, placed as the edge
+    /// places them (the mount state it tries first, the joint solution closest to `from`), no
+    /// path checked: what a view costs in time.
+    pub fn motion_time_to(
+        &self,
+        from: &ArmPose,
+        goal: &Isometry3<f64>,
+        limits: &MotionLimits,
+    ) -> Result<f64> {
+        let (mount, solutions) = self.place_mount_for(goal, Some(&from.joints))?;
+        let joints = solutions.first().ok_or(ArmError::Unreachable)?;
+        limits.motion_time(&self.mount, (&from.joints, &from.mount), (joints, &mount))
     }
 
     /// Heuristic mount states to try for a camera goal, best guess first (clamped to the ranges,

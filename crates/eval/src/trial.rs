@@ -88,6 +88,9 @@ pub struct TrialConfig {
     /// A revisit's plans aim at the previous visit's fruit
     /// (`PlanningSettings::aim_at_remembered_fruit`).
     pub revisit_aim: bool,
+    /// The ranking's cost per second of robot motion (`PlanningSettings::cost_weight_per_s`;
+    /// 0: the paper's ranking).
+    pub motion_cost_per_s: f64,
 }
 
 impl TrialConfig {
@@ -109,6 +112,7 @@ impl TrialConfig {
             registration: false,
             hand_eye: true,
             revisit_aim: true,
+            motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
         }
     }
 
@@ -154,6 +158,7 @@ impl TrialConfig {
         settings.registration.enabled = self.registration;
         settings.hand_eye.enabled = self.hand_eye;
         settings.aim_at_remembered_fruit = self.revisit_aim;
+        settings.cost_weight_per_s = self.motion_cost_per_s;
         settings
     }
 

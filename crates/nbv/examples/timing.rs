@@ -84,6 +84,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         camera_workspace: Aabb::new(Point3::new(-1.0, -0.6, 0.4), Point3::new(1.0, 0.1, 1.6)),
         sampling_region: Aabb::new(Point3::new(-1.1, -0.2, 0.3), Point3::new(1.1, 0.8, 1.7)),
         reach: None,
+        motion_time: None,
         remembered_fruit: &[],
     };
     for method in Method::ALL {

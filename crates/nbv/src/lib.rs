@@ -164,6 +164,9 @@ pub struct PlannerConfig {
     pub gain_ray_range_m: f64,
     /// Utility lost per metre of camera travel (α).
     pub cost_weight_per_m: f64,
+    /// Utility lost per second the robot takes to reach the view, when the context knows it
+    /// ([`PlanningContext::motion_time`]; 0: the paper's distance cost alone).
+    pub cost_weight_per_s: f64,
     /// ROI views are used when the best beats this; views at or below it are not ranked unless
     /// nothing else is left.
     pub utility_threshold: f64,
@@ -192,6 +195,7 @@ impl Default for PlannerConfig {
             vertical_fov_rad: 2.0 * (40f64.to_radians().tan() * 0.75).atan(),
             gain_ray_range_m: 1.0,
             cost_weight_per_m: 0.2,
+            cost_weight_per_s: 0.0,
             utility_threshold: 0.2,
             proximity_max_dist_m: 0.3,
             occlusion_occupancy_logodds: (0.6f32 / 0.4).ln(),
@@ -227,6 +231,9 @@ impl PlannerConfig {
         if !(self.cost_weight_per_m.is_finite() && self.cost_weight_per_m >= 0.0) {
             return bad("cost_weight_per_m must be finite and >= 0");
         }
+        if !(self.cost_weight_per_s.is_finite() && self.cost_weight_per_s >= 0.0) {
+            return bad("cost_weight_per_s must be finite and >= 0");
+        }
         if !self.utility_threshold.is_finite() {
             return bad("utility_threshold must be finite");
         }
@@ -250,6 +257,10 @@ impl PlannerConfig {
 /// that passed the samplers' own checks, so it should be cheap (microseconds).
 pub type ReachPredicate<'a> = dyn Fn(&Isometry3<f64>) -> bool + Sync + 'a;
 
+/// How many seconds the robot takes from where it is to a `world_from_camera` pose (`None`:
+/// unknown, e.g. no placement found). Called once per scored candidate.
+pub type MotionTime<'a> = dyn Fn(&Isometry3<f64>) -> Option<f64> + Sync + 'a;
+
 /// Everything a planning call looks at.
 #[derive(Clone, Copy)]
 pub struct PlanningContext<'a> {
@@ -263,6 +274,9 @@ pub struct PlanningContext<'a> {
     /// Which poses the robot can reach; candidates it rejects are dropped before scoring and
     /// never ranked. `None`: every pose in the camera workspace counts as reachable.
     pub reach: Option<&'a ReachPredicate<'a>>,
+    /// The robot's motion time to a pose, charged at [`PlannerConfig::cost_weight_per_s`]
+    /// (`None`: only the distance is charged).
+    pub motion_time: Option<&'a MotionTime<'a>>,
     /// Where the previous visit's fruit were (a revisit's prior hints,
     /// [`RoiMap::unobserved_hints`]): ROI-targeted sampling aims at those no scan of this visit
     /// has touched yet as at the ROI frontier. Empty on a first visit.
@@ -277,6 +291,7 @@ impl fmt::Debug for PlanningContext<'_> {
             .field("camera_workspace", &self.camera_workspace)
             .field("sampling_region", &self.sampling_region)
             .field("reach", &self.reach.map(|_| "predicate"))
+            .field("motion_time", &self.motion_time.map(|_| "function"))
             .field("remembered_fruit", &self.remembered_fruit.len())
             .finish()
     }
@@ -293,11 +308,18 @@ impl PlanningContext<'_> {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ScoredView {
     pub world_from_camera: Isometry3<f64>,
-    /// gain − cost_weight · cost.
+    /// gain − cost_weight · cost: the paper's utility, which the threshold is applied to.
     pub utility: f64,
+    /// The utility less the motion time's cost ([`PlannerConfig::cost_weight_per_s`]): what
+    /// the views of a list are ranked by (the utility when the time is not known).
+    #[serde(default)]
+    pub rank_utility: f64,
     pub gain: f64,
     /// Straight-line distance from the current camera position.
     pub cost_m: f64,
+    /// The robot's motion time to the view, when the planning context knows it.
+    #[serde(default)]
+    pub motion_s: Option<f64>,
     pub kind: ViewKind,
 }
 
@@ -655,17 +677,23 @@ fn score(
     poses: Vec<Isometry3<f64>>,
     kind: ViewKind,
     evaluator: &GainEvaluator,
-    camera_in_world: &Point3<f64>,
+    ctx: &PlanningContext,
     config: &PlannerConfig,
 ) -> Vec<ScoredView> {
+    let camera_in_world = Point3::from(ctx.world_from_camera.translation.vector);
+    let timed = ctx.motion_time.filter(|_| config.cost_weight_per_s > 0.0);
     let score_one = |pose: &Isometry3<f64>| {
         let gain = evaluator.gain(pose);
         let cost_m = (Point3::from(pose.translation.vector) - camera_in_world).norm();
+        let motion_s = timed.and_then(|time| time(pose));
+        let utility = gain - config.cost_weight_per_m * cost_m;
         ScoredView {
             world_from_camera: *pose,
-            utility: gain - config.cost_weight_per_m * cost_m,
+            utility,
+            rank_utility: utility - motion_s.map_or(0.0, |t| config.cost_weight_per_s * t),
             gain,
             cost_m,
+            motion_s,
             kind,
         }
     };
@@ -695,7 +723,7 @@ fn score(
         })
     };
     // Stable sort: equal utilities keep their (seeded) generation order.
-    views.sort_by(|a, b| b.utility.total_cmp(&a.utility));
+    views.sort_by(|a, b| b.rank_utility.total_cmp(&a.rank_utility));
     views
 }
 
@@ -706,7 +734,7 @@ const MIN_CANDIDATES_PER_THREAD: usize = 16;
 fn rank(views: &[ScoredView], config: &PlannerConfig) -> Vec<ScoredView> {
     let above: Vec<ScoredView> = views
         .iter()
-        .filter(|v| v.utility > config.utility_threshold)
+        .filter(|v| v.rank_utility > config.utility_threshold)
         .take(config.max_ranked_views)
         .cloned()
         .collect();
@@ -754,30 +782,24 @@ pub fn plan_views(
     {
         return Err(PlanError::NonFinitePose);
     }
-    let camera_in_world = Point3::from(pose.translation.vector);
     let evaluator = GainEvaluator::new(ctx.map, config);
 
     let (roi_targets, roi_views) = if config.method.uses_roi_sampling() {
         let targets = roi_targets_of(ctx);
         let poses = sample_roi_views(ctx, config, &targets, &mut rng_stream(seed, 0));
-        let views = score(poses, ViewKind::Roi, &evaluator, &camera_in_world, config);
+        let views = score(poses, ViewKind::Roi, &evaluator, ctx, config);
         (targets.len(), views)
     } else {
         (0, Vec::new())
     };
     let frontier = ctx.map.exploration_frontier(&ctx.sampling_region);
     let poses = sample_exploration_views(ctx, config, &frontier, &mut rng_stream(seed, 1));
-    let exploration_views = score(
-        poses,
-        ViewKind::Exploration,
-        &evaluator,
-        &camera_in_world,
-        config,
-    );
+    let exploration_views = score(poses, ViewKind::Exploration, &evaluator, ctx, config);
     let mut candidates_scored = roi_views.len() + exploration_views.len();
 
-    let roi_best = roi_views.first().map(|v| v.utility);
-    let use_roi = roi_best.is_some_and(|u| u > config.utility_threshold);
+    let use_roi = roi_views
+        .iter()
+        .any(|v| v.utility > config.utility_threshold);
     let (views, used_kind) = if use_roi {
         (rank(&roi_views, config), ViewKind::Roi)
     } else if !exploration_views.is_empty() {
@@ -787,13 +809,7 @@ pub fn plan_views(
         (rank(&roi_views, config), ViewKind::Roi)
     } else {
         let poses = sample_fallback_views(ctx, config, &mut rng_stream(seed, 2));
-        let views = score(
-            poses,
-            ViewKind::Exploration,
-            &evaluator,
-            &camera_in_world,
-            config,
-        );
+        let views = score(poses, ViewKind::Exploration, &evaluator, ctx, config);
         candidates_scored += views.len();
         (rank(&views, config), ViewKind::Exploration)
     };

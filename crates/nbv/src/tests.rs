@@ -62,6 +62,7 @@ fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
         camera_workspace: aabb([-0.4, -0.6, 0.6], [0.4, -0.2, 1.4]),
         sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
         reach: None,
+        motion_time: None,
         remembered_fruit: &[],
     }
 }
@@ -277,6 +278,7 @@ fn exploration_when_there_is_no_roi() {
         camera_workspace: aabb([-0.6, -0.7, 0.5], [0.6, -0.1, 1.5]),
         sampling_region: aabb([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5]),
         reach: None,
+        motion_time: None,
         remembered_fruit: &[],
     };
     for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
@@ -308,6 +310,7 @@ fn never_empty_on_an_empty_map() {
         camera_workspace: aabb([-0.5, -0.5, 0.5], [0.5, 0.0, 1.5]),
         sampling_region: aabb([-1.0, 0.2, 0.0], [1.0, 0.8, 2.0]),
         reach: None,
+        motion_time: None,
         remembered_fruit: &[],
     };
     for method in Method::ALL {
@@ -495,6 +498,7 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         camera_workspace: aabb([-0.5, -0.5, 0.5], [0.5, 0.0, 1.5]),
         sampling_region: aabb([-1.0, 0.2, 0.0], [1.0, 0.8, 2.0]),
         reach: Some(&reject),
+        motion_time: None,
         remembered_fruit: &[],
     };
     for method in Method::ALL {
@@ -506,4 +510,56 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         assert!(plan.views.is_empty());
         assert_eq!(plan.candidates_scored, 0);
     }
+}
+
+#[test]
+fn a_motion_time_ranks_quicker_views_first_and_leaves_the_choice_of_list_alone() {
+    let map = blob_map();
+    // Views on the left (x near -0.3) are quick to reach, the others take up to 3.5 s.
+    let seconds = |pose: &Isometry3<f64>| Some((pose.translation.vector.x + 0.3).abs() * 5.0);
+    let timed = PlanningContext {
+        motion_time: Some(&seconds),
+        ..blob_context(&map)
+    };
+    let untimed = blob_context(&map);
+    let config = PlannerConfig {
+        cost_weight_per_s: 1.5,
+        ..PlannerConfig::default()
+    };
+    let first_s = |plan: &Plan| seconds(&plan.views[0].world_from_camera).unwrap_or(f64::NAN);
+    let mut quicker = 0;
+    for seed in 0..4 {
+        let a = plan_views(&timed, &config, seed).expect("valid plan");
+        let b = plan_views(&untimed, &config, seed).expect("valid plan");
+        assert_eq!(
+            a.used_kind, b.used_kind,
+            "the list is chosen by the utility"
+        );
+        assert_eq!(a.candidates_scored, b.candidates_scored);
+        for w in a.views.windows(2) {
+            assert!(w[0].rank_utility >= w[1].rank_utility, "ranked by time too");
+        }
+        for v in &a.views {
+            let t = v.motion_s.expect("timed");
+            assert!(
+                (v.rank_utility - (v.utility - 1.5 * t)).abs() < 1e-12,
+                "{v:?}"
+            );
+            assert!((v.utility - (v.gain - config.cost_weight_per_m * v.cost_m)).abs() < 1e-12);
+        }
+        assert!(b.views.iter().all(|v| v.motion_s.is_none()));
+        assert!(first_s(&a) <= first_s(&b), "seed {seed}");
+        quicker += usize::from(first_s(&a) < first_s(&b));
+    }
+    assert!(quicker > 0, "the time changed the first view of some plan");
+    // A weight of 0 gives the paper's plans.
+    let paper = PlannerConfig::default();
+    let (a, b) = (
+        plan_views(&timed, &paper, 3),
+        plan_views(&untimed, &paper, 3),
+    );
+    assert_eq!(
+        views_of(&a.expect("valid plan")),
+        views_of(&b.expect("valid plan"))
+    );
 }

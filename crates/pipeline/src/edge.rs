@@ -456,7 +456,13 @@ impl EdgeNode {
         if max > 0 && self.status.views_done >= max {
             return self.finish();
         }
-        let best_utility = views.views.first().map_or(f32::NEG_INFINITY, |v| v.utility);
+        // The best utility of the list, wherever it is ranked: a planner may rank a quicker
+        // view first.
+        let best_utility = views
+            .views
+            .iter()
+            .map(|v| v.utility)
+            .fold(f32::NEG_INFINITY, f32::max);
         if f64::from(best_utility) <= self.settings.segment_done_utility {
             self.phase = Phase::MovingSegment(views);
             return vec![EdgeAction::MoveToNextSegment];

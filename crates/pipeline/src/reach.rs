@@ -3,8 +3,8 @@
 use std::sync::Arc;
 
 use glasshouse_arm::{
-    shared_reachability_map, ArmError, ReachCheck, ReachabilityParams, Robot, ViewReachability,
-    ARM_CLEARANCE_M, CAMERA_CLEARANCE_M,
+    shared_reachability_map, ArmError, ArmPose, MotionLimits, ReachCheck, ReachabilityParams,
+    Robot, ViewReachability, ARM_CLEARANCE_M, CAMERA_CLEARANCE_M,
 };
 use glasshouse_roimap::{Occupancy, RoiMap};
 use nalgebra::{Isometry3, Point3};
@@ -31,6 +31,19 @@ impl ReachFilter {
 
     pub fn robot(&self) -> &Robot {
         self.reach.robot()
+    }
+
+    /// Where the robot is guessed to be with its camera at `world_from_camera` (`None`: no
+    /// placement found), for [`ReachFilter::motion_time_s`].
+    pub fn pose_guess(&self, world_from_camera: &Isometry3<f64>) -> Option<ArmPose> {
+        self.robot().pose_guess(world_from_camera).ok()
+    }
+
+    /// Seconds the robot takes from `from` to the camera at `goal` with the default motion
+    /// limits (the edge's own may differ; the ranking only needs the order).
+    pub fn motion_time_s(&self, from: &ArmPose, goal: &Isometry3<f64>) -> Option<f64> {
+        let limits = MotionLimits::default();
+        self.robot().motion_time_to(from, goal, &limits).ok()
     }
 
     /// Can the camera be placed at `world_from_camera` given what `map` knows?

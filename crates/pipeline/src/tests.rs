@@ -431,6 +431,18 @@ fn low_utility_moves_to_the_next_segment() {
 }
 
 #[test]
+fn a_quicker_view_ranked_before_a_better_one_does_not_end_the_segment() {
+    let mut node = waiting(settings());
+    // The planner ranked a quick view of low utility first; the list still holds one above
+    // the segment's threshold (0.2).
+    let actions = node.handle(views_for(1, &[0.1, 0.5]));
+    assert!(
+        matches!(actions[0], EdgeAction::Execute { .. }),
+        "{actions:?}"
+    );
+}
+
+#[test]
 fn at_the_row_end_low_views_are_still_executed_and_none_finishes() {
     let mut node = waiting(settings());
     node.handle(views_for(1, &[0.1]));

@@ -98,6 +98,12 @@ fn the_steps_capture_detect_integrate_plan_and_fit() {
     assert_eq!(planner.map().len(), known);
     let plan = planner.plan(&frame.world_from_camera, 1).unwrap().unwrap();
     assert!(!plan.views.is_empty());
+    // The trolley's robot is known, so every view is ranked by the time it takes too.
+    let timed = |t: Option<f64>| t.is_some_and(|t| t.is_finite() && t >= 0.0);
+    assert!(plan.views.iter().all(|v| timed(v.motion_s)), "{plan:?}");
+    for w in plan.views.windows(2) {
+        assert!(w[0].rank_utility >= w[1].rank_utility);
+    }
     // Seeded: the same plan again.
     let again = planner.plan(&frame.world_from_camera, 1).unwrap().unwrap();
     let poses = |p: &glasshouse_nbv::Plan| {

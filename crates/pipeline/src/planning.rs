@@ -1099,4 +1099,21 @@ mod settings_tests {
             RegisterSettings::default().max_scan_points
         );
     }
+
+    #[test]
+    fn a_motion_cost_is_read_from_settings_and_a_negative_one_refused() {
+        let paper: PlanningSettings =
+            serde_json::from_str(r#"{ "cost_weight_per_s": 0 }"#).unwrap();
+        assert_eq!(paper.planner_config().cost_weight_per_s, 0.0);
+        let default = PlanningSettings::default().planner_config();
+        assert_eq!(default.cost_weight_per_s, DEFAULT_COST_WEIGHT_PER_S);
+        for bad in [-1.0, f64::NAN, f64::INFINITY] {
+            let settings = PlanningSettings {
+                cost_weight_per_s: bad,
+                ..PlanningSettings::default()
+            };
+            let error = settings.validate().unwrap_err().to_string();
+            assert!(error.contains("cost_weight_per_s"), "{error}");
+        }
+    }
 }

@@ -20,6 +20,10 @@
 //!   otherwise the exploration list; Explo methods always explore. The result is ranked best first
 //!   and never empty when the workspace is a valid box: if nothing beats the threshold the best views
 //!   are returned anyway, and with no candidates at all random fallback views are scored.
+//! - **Ranking by time** (not the paper's): with a [`PlanningContext::motion_time`] and
+//!   `cost_weight_per_s` > 0, the chosen list is ranked by the utility less that weight per
+//!   second the robot takes to reach each view (`ScoredView::rank_utility`); which list is
+//!   chosen still follows the utility. With no motion time, or a weight of 0, the paper's plan.
 //! - **Reach**: with a predicate in [`PlanningContext::reach`] (the robot's reachability, e.g.
 //!   `glasshouse_arm::ViewReachability`), every sampler (ROI, exploration, fallback) drops the
 //!   poses it rejects before scoring, so an unreachable view is never ranked. A rejected pose is

@@ -700,7 +700,9 @@ impl TrolleyPlanner {
         if reach.is_some() {
             ctx.reach = Some(&accepts as &ReachPredicate<'_>);
         }
-        let from = reach.and_then(|r| Some((r, r.pose_guess(world_from_camera)?)));
+        // The robot's pose is placed only when the ranking charges its time.
+        let timed = reach.filter(|_| self.settings.cost_weight_per_s > 0.0);
+        let from = timed.and_then(|r| Some((r, r.pose_guess(world_from_camera)?)));
         let motion_time = move |pose: &Isometry3<f64>| {
             let (reach, from) = from.as_ref()?;
             reach.motion_time_s(from, pose)

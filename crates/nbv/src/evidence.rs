@@ -91,7 +91,7 @@ pub struct EvidenceConfig {
     /// tens; a curled leaf smeared by the stereo noise one or two.
     pub min_unknown_inside: u32,
     /// Let a round cluster pass the inside test whatever its solid hides (module docs, "Round
-    /// bodies"): for pose errors the hand-eye estimate is not there to undo.
+    /// bodies"): for pose errors no hand-eye estimate undoes (the row's rail error, say).
     pub round_bodies: bool,
     /// A round cluster's third extent is at least this share of its first ...
     pub round_depth_ratio: f64,

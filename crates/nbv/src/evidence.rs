@@ -88,7 +88,8 @@ pub struct EvidenceConfig {
     pub min_bulge: f64,
     /// Fewer unknown voxels than this inside the fitted solid (deeper than half a voxel) is a
     /// sheet, not a fruit (module docs); 0 turns the test off. A fruit seen all round hides
-    /// tens; a curled leaf smeared by the stereo noise one or two.
+    /// tens; a curled leaf smeared by the stereo noise one or two. A count, not a share of the
+    /// solid, so a young fruit (a season's first visit) clears it less often (docs/seasons.md).
     pub min_unknown_inside: u32,
     /// Let a round cluster pass the inside test whatever its solid hides (module docs, "Round
     /// bodies"): for pose errors no hand-eye estimate undoes (the row's rail error, say).

@@ -405,3 +405,34 @@ fn thresholds_and_switch() {
     );
     assert!(ClusterShape::of(&[], 0.01).verdict(&config) != Verdict::Fruit);
 }
+
+/// The default bar: a solid hiding two unknown voxels is a sheet (a curled leaf smeared by the
+/// stereo noise hides one or two), three passes; a round shape no longer lets a solid hiding
+/// nothing through unless round bodies are allowed.
+#[test]
+fn a_solid_must_hide_three_unknown_voxels_by_default() {
+    let config = EvidenceConfig::default();
+    let cap = ClusterShape {
+        extents_m: Vector3::new(0.08, 0.07, 0.03),
+        bulge: 0.5,
+    };
+    let round = ClusterShape {
+        extents_m: Vector3::new(0.08, 0.07, 0.06),
+        bulge: 0.8,
+    };
+    let hiding = |unknown| Interior {
+        unknown,
+        free: 10,
+        occupied: 40,
+    };
+    assert!(!interior_holds(&hiding(2), &cap, &config));
+    assert!(interior_holds(&hiding(3), &cap, &config));
+    assert!(round.is_round(&config));
+    assert!(!interior_holds(&hiding(0), &round, &config));
+    let round_bodies = EvidenceConfig {
+        round_bodies: true,
+        ..config
+    };
+    assert!(interior_holds(&hiding(0), &round, &round_bodies));
+    assert!(!interior_holds(&hiding(0), &cap, &round_bodies));
+}

@@ -420,10 +420,12 @@ fn a_solid_must_hide_three_unknown_voxels_by_default() {
         extents_m: Vector3::new(0.08, 0.07, 0.06),
         bulge: 0.8,
     };
+    // A third of the known voxels inside free: a leaf's solid, never a filled body.
     let hiding = |unknown| Interior {
         unknown,
-        free: 10,
-        occupied: 40,
+        free: 15,
+        occupied: 30,
+        occupied_roi: 0,
     };
     assert!(!interior_holds(&hiding(2), &cap, &config));
     assert!(interior_holds(&hiding(3), &cap, &config));
@@ -435,4 +437,38 @@ fn a_solid_must_hide_three_unknown_voxels_by_default() {
     };
     assert!(interior_holds(&hiding(0), &round, &round_bodies));
     assert!(!interior_holds(&hiding(0), &cap, &round_bodies));
+}
+
+/// A filled body: a solid hiding no unknown voxel passes when few of its deep voxels are free
+/// and the cluster is deep and bulging like a fruit (a young fruit smeared by the depth noise);
+/// the same solid with the air a curled leaf encloses, or the same interior on a flat cap, is a
+/// sheet.
+#[test]
+fn a_filled_round_solid_passes_without_unknown_voxels() {
+    let config = EvidenceConfig::default();
+    let young_fruit = ClusterShape {
+        extents_m: Vector3::new(0.05, 0.045, 0.035),
+        bulge: 0.6,
+    };
+    let flat_cap = ClusterShape {
+        extents_m: Vector3::new(0.05, 0.045, 0.02),
+        bulge: 0.6,
+    };
+    let shallow_bulge = ClusterShape {
+        bulge: 0.3,
+        ..young_fruit
+    };
+    let inside = |free, occupied| Interior {
+        unknown: 0,
+        free,
+        occupied,
+        occupied_roi: occupied,
+    };
+    assert!(young_fruit.is_full(&config) && !flat_cap.is_full(&config));
+    assert!(interior_holds(&inside(2, 22), &young_fruit, &config));
+    assert!(interior_holds(&inside(5, 20), &young_fruit, &config));
+    assert!(!interior_holds(&inside(6, 19), &young_fruit, &config));
+    assert!(!interior_holds(&inside(2, 22), &flat_cap, &config));
+    assert!(!interior_holds(&inside(2, 22), &shallow_bulge, &config));
+    assert!(!interior_holds(&inside(0, 0), &young_fruit, &config));
 }

@@ -368,12 +368,16 @@ fn the_tracker_counts_distinct_directions_and_keeps_them_with_the_id() {
     assert_eq!(copy.update(&m.clusters(10))[0].view_directions, 0);
 }
 
-#[test]
-fn thresholds_and_switch() {
-    let shape = |extents: [f64; 3], bulge: f64| ClusterShape {
+/// A cluster shape of these extents (metres, longest first) and bulge.
+fn shape(extents: [f64; 3], bulge: f64) -> ClusterShape {
+    ClusterShape {
         extents_m: Vector3::from(extents),
         bulge,
-    };
+    }
+}
+
+#[test]
+fn thresholds_and_switch() {
     let config = EvidenceConfig::default();
     assert_eq!(
         shape([0.08, 0.07, 0.04], 0.4).verdict(&config),
@@ -412,14 +416,8 @@ fn thresholds_and_switch() {
 #[test]
 fn a_solid_must_hide_three_unknown_voxels_by_default() {
     let config = EvidenceConfig::default();
-    let cap = ClusterShape {
-        extents_m: Vector3::new(0.08, 0.07, 0.03),
-        bulge: 0.5,
-    };
-    let round = ClusterShape {
-        extents_m: Vector3::new(0.08, 0.07, 0.06),
-        bulge: 0.8,
-    };
+    let cap = shape([0.08, 0.07, 0.03], 0.5);
+    let round = shape([0.08, 0.07, 0.06], 0.8);
     // A third of the known voxels inside free: a leaf's solid, never a filled body.
     let hiding = |unknown| Interior {
         unknown,
@@ -446,25 +444,16 @@ fn a_solid_must_hide_three_unknown_voxels_by_default() {
 #[test]
 fn a_filled_round_solid_passes_without_unknown_voxels() {
     let config = EvidenceConfig::default();
-    let young_fruit = ClusterShape {
-        extents_m: Vector3::new(0.05, 0.045, 0.035),
-        bulge: 0.6,
-    };
-    let flat_cap = ClusterShape {
-        extents_m: Vector3::new(0.05, 0.045, 0.02),
-        bulge: 0.6,
-    };
-    let shallow_bulge = ClusterShape {
-        bulge: 0.3,
-        ..young_fruit
-    };
+    let young_fruit = shape([0.05, 0.045, 0.035], 0.6);
+    let flat_cap = shape([0.05, 0.045, 0.02], 0.6);
+    let shallow_bulge = shape([0.05, 0.045, 0.035], 0.3);
     let inside = |free, occupied| Interior {
         unknown: 0,
         free,
         occupied,
         occupied_roi: occupied,
     };
-    assert!(young_fruit.is_full(&config) && !flat_cap.is_full(&config));
+    assert!(young_fruit.is_full_bodied(&config) && !flat_cap.is_full_bodied(&config));
     assert!(interior_holds(&inside(2, 22), &young_fruit, &config));
     assert!(interior_holds(&inside(5, 20), &young_fruit, &config));
     assert!(!interior_holds(&inside(6, 19), &young_fruit, &config));

@@ -232,16 +232,12 @@ fn take_over(replica: &mut PlannerNode, owner_pid: String) -> (f64, f64, bool) {
         )
     });
     let started = Instant::now();
-    finish(replica, &actions);
-    (to_views_ms, ms_since(started), plans)
-}
-
-/// Feeds back the `Finish` events `actions` ask for, as the driver does (it takes them
-/// before the next cloud at the latest).
-fn finish(node: &mut PlannerNode, actions: &[PlannerAction]) {
-    for tid in actions.iter().filter_map(PlannerAction::finishes) {
-        node.handle(PlannerEvent::Finish { tid: tid.into() });
+    for action in actions {
+        if let PlannerAction::Finish { tid } = action {
+            replica.handle(PlannerEvent::Finish { tid });
+        }
     }
+    (to_views_ms, ms_since(started), plans)
 }
 
 pub(crate) fn ms_since(started: Instant) -> f64 {
@@ -271,8 +267,7 @@ fn replay(
             stages_at.1 = pair.owner.stats().stages;
         }
         let started = Instant::now();
-        let actions = pair.owner.handle(cloud_event(seq, cloud));
-        finish(&mut pair.owner, &actions);
+        pair.owner.handle(cloud_event(seq, cloud));
         owner_ms.push(ms_since(started));
         let started = Instant::now();
         let actions = pair.replica.handle(cloud_event(seq, cloud));

@@ -190,8 +190,10 @@ fn owner(config: &TrialConfig, rules: StoreRules, info: &TrolleyInfo) -> Planner
 /// The `Finish` events `actions` ask for, fed back as the driver does; what they give.
 fn finish(node: &mut PlannerNode, actions: &[PlannerAction]) -> Vec<PlannerAction> {
     let mut more = Vec::new();
-    for tid in actions.iter().filter_map(PlannerAction::finishes) {
-        more.extend(node.handle(PlannerEvent::Finish { tid: tid.into() }));
+    for action in actions {
+        if let PlannerAction::Finish { tid } = action {
+            more.extend(node.handle(PlannerEvent::Finish { tid: tid.clone() }));
+        }
     }
     more
 }

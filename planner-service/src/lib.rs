@@ -30,7 +30,7 @@ mod registration;
 mod slot;
 pub mod storage;
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -171,8 +171,6 @@ struct Inputs {
     next_query: u64,
     /// Events from tasks the driver started (snapshot answers).
     events: tokio::sync::mpsc::UnboundedReceiver<PlannerEvent>,
-    /// The node's `FinishWhenIdle` events: taken once no cloud waits.
-    idle: VecDeque<PlannerEvent>,
     status_tick: tokio::time::Interval,
 }
 
@@ -202,7 +200,6 @@ impl Inputs {
             queries: HashMap::new(),
             next_query: 0,
             events,
-            idle: VecDeque::new(),
             status_tick: tokio::time::interval(period),
         })
     }
@@ -218,18 +215,6 @@ impl Inputs {
         // over back by their integration, about 0.75 s each on a loaded two-core machine).
         if let Ok(event) = self.events.try_recv() {
             return Some(event);
-        }
-        // Then the clouds that wait, before a cloud's fits that were left for later: another
-        // trolley's views need only its own integration and planning. Whatever else waits (an
-        // info, a membership change, a query) is quick and can wait one cloud's fits.
-        if let Some(finish) = self.idle.pop_front() {
-            return Some(match self.clouds.try_recv() {
-                Some(received) => {
-                    self.idle.push_front(finish);
-                    self.cloud_batch(received)
-                }
-                None => finish,
-            });
         }
         loop {
             let event = tokio::select! {
@@ -260,30 +245,20 @@ impl Inputs {
                     let Received { header, message, .. } = r?;
                     PlannerEvent::Info { header, info: message }
                 }
-                r = self.clouds.recv() => self.cloud_batch(r?),
+                r = self.clouds.recv() => {
+                    // Clouds that queued up while the node was busy go in as one batch: each is
+                    // integrated, each trolley planned once, on its latest.
+                    let mut clouds = vec![keyed(r?)];
+                    while let Some(received) = self.clouds.try_recv() {
+                        clouds.push(keyed(received));
+                    }
+                    PlannerEvent::Clouds {
+                        clouds,
+                        received_ns: wall_clock_ns(),
+                    }
+                }
             };
             return Some(event);
-        }
-    }
-
-    /// Clouds that queued up while the node was busy go in as one batch, `first` first: each is
-    /// integrated, each trolley planned once, on its latest.
-    fn cloud_batch(&mut self, first: Received<RoiCloud>) -> PlannerEvent {
-        let mut clouds = vec![keyed(first)];
-        while let Some(received) = self.clouds.try_recv() {
-            clouds.push(keyed(received));
-        }
-        PlannerEvent::Clouds {
-            clouds,
-            received_ns: wall_clock_ns(),
-        }
-    }
-
-    /// Keeps a `Finish` for when no cloud waits; one per trolley is enough.
-    fn finish_when_idle(&mut self, tid: String) {
-        let queued = |e: &PlannerEvent| matches!(e, PlannerEvent::Finish { tid: t } if *t == tid);
-        if !self.idle.iter().any(queued) {
-            self.idle.push_back(PlannerEvent::Finish { tid });
         }
     }
 }
@@ -476,7 +451,6 @@ async fn perform(
         PlannerAction::Finish { tid } => {
             let _ = out.events.send(PlannerEvent::Finish { tid });
         }
-        PlannerAction::FinishWhenIdle { tid } => inputs.finish_when_idle(tid),
         PlannerAction::Store(write) => {
             if let Some(store) = &out.store {
                 store.write(write).await;

@@ -197,26 +197,8 @@ pub enum PlannerAction {
     Finish {
         tid: String,
     },
-    /// Feed `PlannerEvent::Finish { tid }` back once no cloud waits: an owner's views go out as
-    /// soon as they are planned, and the clusters, fruit ids, fits and map update of their cloud
-    /// are made when the planner has nothing more urgent, or before the trolley's next cloud,
-    /// snapshot or catch-up, whichever comes first (one `Finish` of several asked finishes
-    /// what is left; the others find nothing).
-    FinishWhenIdle {
-        tid: String,
-    },
     /// Write to the planner's store before performing the actions after this one.
     Store(StoreWrite),
-}
-
-impl PlannerAction {
-    /// The trolley whose `Finish` this action asks to feed back (`Finish`, `FinishWhenIdle`).
-    pub fn finishes(&self) -> Option<&str> {
-        match self {
-            PlannerAction::Finish { tid } | PlannerAction::FinishWhenIdle { tid } => Some(tid),
-            _ => None,
-        }
-    }
 }
 
 /// Counts the driver mirrors into its counters.
@@ -261,21 +243,10 @@ enum Then {
     Track,
     /// Also the fits and the views.
     Plan,
-    /// The views at once, the rest on [`PlannerEvent::Finish`], asked for as `rest` says.
-    ViewsFirst(Rest),
+    /// The views at once, the rest on [`PlannerEvent::Finish`] (a trolley taken over).
+    ViewsFirst,
     /// Clusters, fruit ids and fits, no views (the last cloud a takeover planned past).
     Fit,
-}
-
-/// When the rest of a cloud planned on first (its clusters, fruit ids, fits and map update) is
-/// made.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Rest {
-    /// After the catch-ups queued before it ([`PlannerAction::Finish`]): a trolley taken over.
-    AfterCatchUps,
-    /// Once no cloud waits ([`PlannerAction::FinishWhenIdle`]): an owner's cloud, whose views
-    /// read only the map, so a cloud of another trolley need not wait for this one's fits.
-    WhenIdle,
 }
 
 /// A cloud planned on before its clusters, fruit ids and fits were made: what its map update
@@ -767,10 +738,6 @@ impl PlannerNode {
                 pending.push(received);
                 actions.extend(self.catch_up(&tid, latest));
             }
-            Stage::Owning { .. } if latest => {
-                let then = Then::ViewsFirst(Rest::WhenIdle);
-                actions.extend(self.integrate_then(&tid, received, then))
-            }
             Stage::CatchingUp { .. } | Stage::Owning { .. } => {
                 actions.extend(self.integrate(&tid, received, latest))
             }
@@ -844,7 +811,7 @@ impl PlannerNode {
             false => pending,
         };
         let then = |planned| match planned {
-            true => Then::ViewsFirst(Rest::AfterCatchUps),
+            true => Then::ViewsFirst,
             false => Then::Track,
         };
         let left = pending.len();
@@ -852,7 +819,7 @@ impl PlannerNode {
             actions.extend(self.integrate_then(tid, received, then(plan_last && i + 1 == left)));
         }
         if let (0, true, Some(last)) = (n, plan_last, last) {
-            actions.extend(self.integrate_then(tid, last, Then::ViewsFirst(Rest::AfterCatchUps)));
+            actions.extend(self.integrate_then(tid, last, Then::ViewsFirst));
         }
         if decoded.is_some() {
             let total_ms = started.elapsed().as_secs_f64() * 1e3;
@@ -1284,12 +1251,12 @@ impl PlannerNode {
             frame,
             registration,
         };
-        let Then::ViewsFirst(rest) = then else {
+        if then != Then::ViewsFirst {
             let plan = then == Then::Plan;
             let fit = plan || then == Then::Fit;
             actions.extend(self.track_and_publish(tid, unfinished, (fit, plan), started));
             return actions;
-        };
+        }
         // Planning reads only the map: the views go out now, the clusters, fruit ids and fits
         // once the other trolleys taken over have theirs.
         let views = self.plan_views(tid, &camera, frame, started);
@@ -1301,10 +1268,8 @@ impl PlannerNode {
         let mut laps = Laps::start();
         actions.extend(self.publish(tid, &header, views, None, None));
         self.stats.stages.publish_ms += laps.lap_ms();
-        let tid = tid.to_owned();
-        actions.push(match rest {
-            Rest::AfterCatchUps => PlannerAction::Finish { tid },
-            Rest::WhenIdle => PlannerAction::FinishWhenIdle { tid },
+        actions.push(PlannerAction::Finish {
+            tid: tid.to_owned(),
         });
         actions
     }
@@ -1312,11 +1277,6 @@ impl PlannerNode {
     /// What a cloud's views were planned without: its clusters, fruit ids, fits, and the
     /// fruits and map update they publish (none while the trolley is no longer this planner's).
     fn finish(&mut self, tid: &str) -> Vec<PlannerAction> {
-        // A copy being loaded (a planner that stepped down) finishes once it is loaded: under
-        // no term until then, and a snapshot that replaces the copy replaces what is left.
-        if self.slots.get(tid).is_some_and(Slot::is_loading) {
-            return Vec::new();
-        }
         let deferred = self
             .slots
             .get_mut(tid)

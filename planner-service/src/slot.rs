@@ -207,10 +207,9 @@ impl Slot {
                 return 0;
             }
         };
-        // What is left of its last cloud is finished once the copy is loaded: on the copy if it
-        // is kept, not at all if a snapshot replaces it.
+        // The copy is replaced by a snapshot: what was left of its last cloud goes with it.
+        self.unfinished = None;
         if let Some(held) = held {
-            self.unfinished = None;
             if let Err(e) = self.planner.restore(&held) {
                 tracing::warn!(planner = %pid, trolley = %tid, error = %e, "held snapshot not restored");
             }

@@ -332,8 +332,7 @@ impl Pipeline {
             println!("run finished; still serving (Ctrl-C to stop)");
             let _ = (&mut self.ctrl_c).await;
         }
-        // The planner answered the last frame before the edge finished; let the dashboard catch up.
-        tokio::time::sleep(Duration::from_millis(300)).await;
+        wait_for_last_fruits(&self.state, &self.tid).await;
         self.trigger.fire();
         for (name, task) in [
             ("planner", self.planner),
@@ -361,6 +360,30 @@ impl Pipeline {
             })
             .unwrap_or_default())
     }
+}
+
+/// How long the demo waits at the end for the fruits of the last frame planned on.
+const LAST_FRUITS_WAIT: Duration = Duration::from_secs(10);
+
+/// Waits until the dashboard holds trolley `tid`'s fruits of the frame its last views were
+/// planned on: the planner publishes them after the views, once no input waits. Gives up after
+/// `LAST_FRUITS_WAIT` (the table then shows an earlier frame's fruits, and a warning says so).
+async fn wait_for_last_fruits(state: &Mutex<FleetState>, tid: &str) {
+    let caught_up = || {
+        let state = state.lock().ok()?;
+        let trolley = state.trolleys.get(tid)?;
+        let planned = trolley.last_views.as_ref()?.based_on_seq;
+        Some(trolley.fruits_based_on_seq >= planned)
+    };
+    let started = Instant::now();
+    while started.elapsed() < LAST_FRUITS_WAIT {
+        // No views at all: nothing to wait for.
+        if caught_up().unwrap_or(true) {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    tracing::warn!(trolley = %tid, "the fruits of the last frame did not arrive: the table shows an earlier frame's");
 }
 
 fn dashboard_settings(args: &DemoArgs) -> DashboardSettings {

@@ -366,7 +366,8 @@ impl Pipeline {
 const LAST_FRUITS_WAIT: Duration = Duration::from_secs(10);
 
 /// Waits until the dashboard holds trolley `tid`'s fruits of the frame its last views were
-/// planned on: the planner publishes them after the views, once no input waits. Gives up after
+/// planned on: the planner publishes them beside the views, on a key and publisher of their
+/// own, so they may arrive after the edge has taken the views and finished. Gives up after
 /// `LAST_FRUITS_WAIT` (the table then shows an earlier frame's fruits, and a warning says so).
 async fn wait_for_last_fruits(state: &Mutex<FleetState>, tid: &str) {
     let caught_up = || {

@@ -81,6 +81,15 @@ fn queries(c: &mut Criterion) {
         b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &fan, 1.5))
     });
     simd::set_cap(simd::detected());
+    // The planner scores each candidate view with a fan this small: what a fan costs beyond
+    // its rays' walk (setting up, the planes) dominates here.
+    let (origin, small_fan) = w.planner_gain_fan();
+    g.bench_function("gain_fan_8x6", |b| {
+        b.iter(|| unobserved_gain(&m, black_box(&origin), &small_fan, 1.0))
+    });
+    g.bench_function("gain_fan_8x6/batch", |b| {
+        b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &small_fan, 1.0))
+    });
     let region = Aabb::new(Point3::new(0.3, -1.0, -1.0), Point3::new(1.6, 1.0, 1.0));
     g.bench_function("frontiers/incremental_query", |b| {
         b.iter(|| {

@@ -250,6 +250,15 @@ impl Workload {
         );
         (origin, fan)
     }
+
+    /// The planner's gain fan from the same view: 8×6 rays over 80°×62° (a 4:3 image), as
+    /// `PlannerConfig::default` scores each candidate view with (rays of 1 m).
+    pub fn planner_gain_fan(&self) -> (Point3<f64>, Vec<Vector3<f64>>) {
+        let (origin, target) = self.gain_view();
+        let hfov_rad = 80f64.to_radians();
+        let vfov_rad = 2.0 * ((hfov_rad / 2.0).tan() * 0.75).atan();
+        (origin, ray_fan(&origin, &target, 8, 6, hfov_rad, vfov_rad))
+    }
 }
 
 /// One averaged point per voxel of `resolution_m`, ROI by majority, sorted by voxel key.

@@ -114,8 +114,10 @@ impl RoiMap {
     /// The unobserved-voxel count of a ray fan (paper eq. 1's U_U terms): along each ray from
     /// `origin`, the voxels [`RoiMap::walk_ray`] visits up to and including the first occupied
     /// one, and how many of them are unknown. One entry per direction; equal to counting with
-    /// `walk_ray` ray by ray. The fan's known and occupied masks are first copied into two
-    /// dense bit planes over the box its rays span, so each voxel is two bit tests.
+    /// `walk_ray` ray by ray. When the fan is dense enough to pay for it (at most
+    /// `PLANE_VOXELS_PER_STEP` box voxels per walk step), its known and occupied masks are first
+    /// copied into two dense bit planes over the box its rays span, so each voxel is two bit
+    /// tests; a sparse fan looks its voxels up through the block cache.
     pub fn count_unknown_until_occupied(
         &self,
         origin: &Point3<f64>,
@@ -406,8 +408,11 @@ mod tests {
             let setups = m.fan_setups(&origin, &directions, range_m, |_, _| {});
             let built = FanPlanes::new(&m, &setups);
             assert_eq!(!built.known.is_empty(), planes, "{} rays", directions.len());
+            let ray_by_ray = unobserved_gain(&m, &origin, &directions, range_m);
+            // Neither all unknown nor all known: the walks meet the map's surface.
+            assert!(ray_by_ray > 0.0 && ray_by_ray < 1.0, "gain {ray_by_ray}");
             assert_eq!(
-                unobserved_gain(&m, &origin, &directions, range_m).to_bits(),
+                ray_by_ray.to_bits(),
                 unobserved_gain_batch(&m, &origin, &directions, range_m).to_bits()
             );
         }

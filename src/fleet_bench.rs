@@ -18,6 +18,7 @@ mod cost;
 mod fault;
 mod lost;
 mod sweep;
+mod tail;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -106,6 +107,10 @@ pub struct FleetBenchArgs {
     /// asks the owner for a snapshot (planner default 8); 0: replicas integrate every cloud.
     #[arg(long)]
     pub replica_refresh_clouds: Option<usize>,
+    /// Every planner's `--takeover-decode-threads`: snapshots of trolleys taken over together
+    /// decoded at once (planner default 8); 1: each at its own catch-up, one after another.
+    #[arg(long)]
+    pub takeover_decode_threads: Option<usize>,
     /// Every planner keeps its trolleys in a store, DIR/<planner>.redb (`planner-service
     /// --store`), and the report gives what the stores wrote per frame. `--fault restart-all`
     /// uses stores in the logs folder when this is not given.
@@ -251,6 +256,8 @@ struct Report {
     realtime: bool,
     /// The planners' `--replica-refresh-clouds` (None: their default).
     replica_refresh_clouds: Option<usize>,
+    /// The planners' `--takeover-decode-threads` (None: their default).
+    takeover_decode_threads: Option<usize>,
     width: u32,
     fps_per_trolley_max: f64,
     measured_s: f64,
@@ -260,6 +267,8 @@ struct Report {
     frame_to_cloud_ms_p99: Option<f64>,
     frame_to_views_ms_p50: Option<f64>,
     frame_to_views_ms_p99: Option<f64>,
+    /// The same latency by the planner that answered, and before, around and after the fault.
+    frame_to_views_tail: tail::TailReport,
     messages_dropped: u64,
     observer_corrupt: u64,
     /// The fault injected, every trolley it moved and their maps (`fault`).
@@ -618,6 +627,9 @@ impl Fleet {
             let mut extra = vec!["--planner-id".into(), format!("p{i}")];
             if let Some(n) = args.replica_refresh_clouds {
                 extra.extend(["--replica-refresh-clouds".into(), n.to_string()]);
+            }
+            if let Some(n) = args.takeover_decode_threads {
+                extra.extend(["--takeover-decode-threads".into(), n.to_string()]);
             }
             if let Some(dir) = self.store_dir(args) {
                 let file = dir.join(format!("p{i}.redb"));
@@ -1177,6 +1189,7 @@ fn build_report(
         transport: if args.secure { "mtls+acl" } else { "tcp" },
         realtime: args.realtime,
         replica_refresh_clouds: args.replica_refresh_clouds,
+        takeover_decode_threads: args.takeover_decode_threads,
         width: args.width,
         fps_per_trolley_max: args.fps,
         measured_s: elapsed_s,
@@ -1186,6 +1199,7 @@ fn build_report(
         frame_to_cloud_ms_p99: percentile(&all_cloud, 99.0),
         frame_to_views_ms_p50: percentile(&all_views, 50.0),
         frame_to_views_ms_p99: percentile(&all_views, 99.0),
+        frame_to_views_tail: tail::report(&o.trolleys, m.fault.as_ref().map(|f| f.at)),
         messages_dropped: dropped,
         observer_corrupt: o.corrupt,
         fault: m.fault.as_ref().map(|f| fault::report(o, f, m.started)),
@@ -1244,6 +1258,7 @@ fn print_throughput(r: &Report) {
         ms(r.frame_to_views_ms_p50),
         ms(r.frame_to_views_ms_p99)
     );
+    println!("{}", tail::text(&r.frame_to_views_tail));
     println!(
         "  messages dropped     {} (services' counters) + {} corrupt at the observer",
         r.messages_dropped, r.observer_corrupt

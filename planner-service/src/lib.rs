@@ -62,6 +62,9 @@ pub struct PlannerSettings {
     /// A replica stands by with this many of the trolley's clouds before it asks the owner for
     /// a snapshot (a takeover integrates at most this many); 0: it integrates every cloud.
     pub replica_refresh_clouds: usize,
+    /// Snapshots of trolleys taken over together (a lost planner's) decoded at once, a thread
+    /// each, before the first is planned on; 1 decodes each at its own catch-up.
+    pub takeover_decode_threads: usize,
     /// Method, seed, map and fit settings (the experiments use the same defaults).
     pub planning: PlanningSettings,
     /// Where the planner keeps the trolleys it owns, so that they outlive it (none: in memory
@@ -108,6 +111,7 @@ impl PlannerSettings {
             planner_id: planner_id.to_owned(),
             status_period_ms: 1000,
             replica_refresh_clouds: node::REPLICA_REFRESH_CLOUDS,
+            takeover_decode_threads: node::TAKEOVER_DECODE_THREADS,
             planning: PlanningSettings::default(),
             store: None,
         }
@@ -116,6 +120,10 @@ impl PlannerSettings {
     pub fn validate(&self) -> anyhow::Result<()> {
         keys::validate_id(&self.planner_id)?;
         self.planning.validate()?;
+        anyhow::ensure!(
+            self.takeover_decode_threads > 0,
+            "takeover_decode_threads: at least 1 (1 decodes each trolley taken over in turn)"
+        );
         if let Some(store) = &self.store {
             anyhow::ensure!(
                 !store.path.as_os_str().is_empty(),
@@ -508,7 +516,8 @@ pub async fn run(
     let _alive = declare_alive(&session, MemberKind::Planner, &pid).await?;
     let epoch_ns = wall_clock_ns();
     let node = PlannerNode::new(&pid, settings.planning.clone(), epoch_ns)
-        .with_replica_refresh(settings.replica_refresh_clouds);
+        .with_replica_refresh(settings.replica_refresh_clouds)
+        .with_takeover_decode_threads(settings.takeover_decode_threads);
     let mut node = Box::new(node);
     if let Some(store) = &settings.store {
         let (restored, opened) = open_store(store, node, &pid).await?;
@@ -610,5 +619,19 @@ pub fn fleet_fruits(latest: &BTreeMap<String, FruitEstimates>, pid: &str) -> Fle
         fruits,
         planner_id: pid.to_owned(),
         trolleys: latest.len() as u32,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn settings_refuse_zero_takeover_decode_threads() {
+        let mut s = PlannerSettings::new("p1");
+        assert!(s.validate().is_ok());
+        s.takeover_decode_threads = 0;
+        let e = s.validate().unwrap_err().to_string();
+        assert!(e.contains("takeover_decode_threads"), "{e}");
     }
 }

@@ -10,7 +10,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 /// fruit estimates.
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
-/// replica_refresh_clouds, `store: { path, checkpoint_clouds, settle_ms }` and
+/// replica_refresh_clouds, takeover_decode_threads, `store: { path, checkpoint_clouds, settle_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
 /// scoring_threads }`), then the flags below.
 ///
@@ -32,6 +32,11 @@ struct Cli {
     /// takeover integrates at most this many); 0 makes replicas integrate every cloud.
     #[arg(long)]
     replica_refresh_clouds: Option<usize>,
+    /// Snapshots of trolleys taken over together (a lost planner's) decoded at once, a thread
+    /// each, before the first is planned on (default 8); 1 decodes each trolley at its own
+    /// catch-up, one after another.
+    #[arg(long)]
+    takeover_decode_threads: Option<usize>,
     /// Keep every trolley this planner owns in this store file (created if missing; one per
     /// planner), so that maps and fruit ids survive a restart of every planner. Without it maps
     /// live in memory only. The planner then waits `store.settle_ms` (3 s) for its peers
@@ -50,6 +55,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.planning.method, cli.method);
     set_flag(&mut s.planning.seed, cli.seed);
     set_flag(&mut s.replica_refresh_clouds, cli.replica_refresh_clouds);
+    set_flag(&mut s.takeover_decode_threads, cli.takeover_decode_threads);
     if let Some(path) = cli.store {
         s.store = Some(StoreSettings {
             path,

@@ -52,6 +52,7 @@ use glasshouse_proto::{
 use glasshouse_roimap::PriorRules;
 
 mod persist;
+mod takeover;
 
 pub(crate) use persist::StoredMark;
 use persist::{store_cloud, store_term_start, store_visit_start, Restored};
@@ -311,6 +312,8 @@ pub struct PlannerNode {
     queued_clouds: BTreeMap<String, usize>,
     /// See [`PlannerNode::with_replica_refresh`]; 0: a hot replica.
     replica_refresh_clouds: usize,
+    /// See [`PlannerNode::with_takeover_decode_threads`].
+    takeover_decode_threads: usize,
     /// See [`PlannerNode::with_store`]; None: no store.
     store: Option<StoreRules>,
     /// How a new visit's prior is made from the previous visit's map.
@@ -325,11 +328,18 @@ pub struct PlannerNode {
     restored: BTreeMap<String, Restored>,
     /// Trolleys whose latest fruits changed since they were last stored.
     fruits_to_store: BTreeSet<String>,
+    /// Copies taken over whose held snapshot was decoded ahead of their catch-up, with the ms
+    /// the decode took (see `takeover.rs`).
+    decoded_ahead: BTreeMap<String, f64>,
 }
 
 /// Clouds a standby replica holds before it asks its owner for a snapshot (the default of
 /// [`PlannerNode::with_replica_refresh`]): a takeover integrates at most this many.
 pub const REPLICA_REFRESH_CLOUDS: usize = 8;
+
+/// Snapshots of trolleys taken over together decoded at once (the default of
+/// [`PlannerNode::with_takeover_decode_threads`]).
+pub const TAKEOVER_DECODE_THREADS: usize = 8;
 
 fn describe(a: &Option<Assignment>) -> String {
     match a {
@@ -378,6 +388,7 @@ impl PlannerNode {
             status_seq: 0,
             queued_clouds: BTreeMap::new(),
             replica_refresh_clouds: REPLICA_REFRESH_CLOUDS,
+            takeover_decode_threads: TAKEOVER_DECODE_THREADS,
             store: None,
             revisit_prior: PriorRules::default(),
             settle_until_ns: epoch_ns,
@@ -386,6 +397,7 @@ impl PlannerNode {
             settle_infos: BTreeMap::new(),
             restored: BTreeMap::new(),
             fruits_to_store: BTreeSet::new(),
+            decoded_ahead: BTreeMap::new(),
         }
     }
 
@@ -395,6 +407,14 @@ impl PlannerNode {
     /// integrates the ones left. With 0 it is hot: it integrates every cloud as the owner does.
     pub fn with_replica_refresh(mut self, clouds: usize) -> Self {
         self.replica_refresh_clouds = clouds;
+        self
+    }
+
+    /// How many of the snapshots held for trolleys taken over together are decoded at once,
+    /// before the first of them is planned on (`takeover.rs`); 1 decodes each at its own
+    /// catch-up, one after another.
+    pub fn with_takeover_decode_threads(mut self, threads: usize) -> Self {
+        self.takeover_decode_threads = threads.max(1);
         self
     }
 
@@ -783,6 +803,7 @@ impl PlannerNode {
     /// it).
     fn catch_up(&mut self, tid: &str, plan_last: bool) -> Vec<PlannerAction> {
         let mut actions = self.finish(tid);
+        let decoded_ahead_ms = self.decoded_ahead.remove(tid);
         let Some(slot) = self.slots.get_mut(tid) else {
             return actions;
         };
@@ -795,7 +816,7 @@ impl PlannerNode {
             tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
                 "the owner's snapshot does not load: the kept clouds go on the copy as it is");
         }
-        let decode_ms = started.elapsed().as_secs_f64() * 1e3;
+        let decode_ms = decoded_ahead_ms.unwrap_or_else(|| started.elapsed().as_secs_f64() * 1e3);
         let last = slot.last_cloud.clone();
         let n = pending.len();
         let pending = match plan_last && n > 0 {
@@ -821,10 +842,11 @@ impl PlannerNode {
         if let (0, true, Some(last)) = (n, plan_last, last) {
             actions.extend(self.integrate_then(tid, last, Then::ViewsFirst));
         }
-        if decoded.is_some() {
+        if decoded.is_some() || decoded_ahead_ms.is_some() {
             let total_ms = started.elapsed().as_secs_f64() * 1e3;
             self.stats.catch_up_ms += total_ms;
-            tracing::info!(planner = %self.pid, trolley = %tid, decode_ms, clouds = n, total_ms, "caught up");
+            let ahead = decoded_ahead_ms.is_some();
+            tracing::info!(planner = %self.pid, trolley = %tid, decode_ms, decoded_ahead = ahead, clouds = n, total_ms, "caught up");
         }
         actions
     }
@@ -991,10 +1013,8 @@ impl PlannerNode {
         if !self.settled {
             return actions;
         }
-        let mut caught_up = false;
-        // The first catch-up's rest (its kept clouds, clusters and fits) goes after the other
-        // trolleys' catch-ups, whose views wait on nothing but their own decode.
-        let mut finishes = Vec::new();
+        // Trolleys whose standby copy this planner now owns, in the order of the changes.
+        let mut taken_over = Vec::new();
         for change in changes {
             let pid = &self.pid;
             let tid = change.trolley.clone();
@@ -1004,6 +1024,7 @@ impl PlannerNode {
             match (after, self.slots.get_mut(&tid)) {
                 (None, Some(_)) => {
                     self.slots.remove(&tid);
+                    self.decoded_ahead.remove(&tid);
                     tracing::info!(planner = %pid, trolley = %tid, "trolley released");
                     actions.push(PlannerAction::Release { tid });
                 }
@@ -1018,23 +1039,14 @@ impl PlannerNode {
                     let (fence, clock_ns) = (&mut self.fence, self.clock_ns);
                     let term = slot.take_over(|| fence.begin_term(&tid, clock_ns));
                     tracing::info!(planner = %pid, trolley = %tid, term = term.unwrap_or(0), "took over as owner");
-                    // The first trolley taken over catches up at once, the others one event each.
-                    if term.is_some() && !caught_up {
-                        caught_up = true;
-                        let (rest, now): (Vec<_>, Vec<_>) = self
-                            .catch_up(&tid, true)
-                            .into_iter()
-                            .partition(|a| matches!(a, PlannerAction::Finish { .. }));
-                        actions.extend(now);
-                        finishes.extend(rest);
-                    } else if term.is_some() {
-                        actions.push(PlannerAction::CatchUp { tid });
+                    if term.is_some() {
+                        taken_over.push(tid);
                     }
                 }
                 (Some(role), None) => actions.extend(self.take_on(change, role)),
             }
         }
-        actions.extend(finishes);
+        actions.extend(self.catch_up_taken_over(taken_over));
         actions
     }
 

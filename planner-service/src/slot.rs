@@ -252,6 +252,16 @@ impl Slot {
         }
     }
 
+    /// The snapshot a copy taking over holds, taken out to be decoded elsewhere (the decoded
+    /// copy is then [`TrolleyPlanner::adopt`]ed): the copy stays taking over, its pending clouds
+    /// newer than the snapshot. None for any other copy.
+    pub fn take_held(&mut self) -> Option<Box<MapSnapshot>> {
+        match &mut self.stage {
+            Stage::TakingOver { held, .. } => held.take(),
+            _ => None,
+        }
+    }
+
     /// What the copy holds beyond its map, taken out to be integrated (the held snapshot, the
     /// pending clouds): an owner taking over owns from now on, a standby copy holds nothing more.
     /// None while loading.

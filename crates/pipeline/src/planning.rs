@@ -982,12 +982,19 @@ impl TrolleyPlanner {
     /// reach filter and registration counts (a standby replica catching up with its owner). On
     /// an error nothing changes.
     pub fn restore(&mut self, snapshot: &MapSnapshot) -> Result<(), PlanningError> {
-        let mut restored = Self::from_snapshot(self.settings.clone(), snapshot)?;
+        let restored = Self::from_snapshot(self.settings.clone(), snapshot)?;
+        self.adopt(restored);
+        Ok(())
+    }
+
+    /// Becomes `restored` (a copy [`TrolleyPlanner::from_snapshot`] decoded elsewhere, for
+    /// example on another thread), keeping the trolley's info, reach filter and registration
+    /// counts, as [`TrolleyPlanner::restore`] does.
+    pub fn adopt(&mut self, mut restored: TrolleyPlanner) {
         restored.info = self.info.take();
         restored.reach = self.reach.take();
         restored.alignment_counts = self.alignment_counts;
         *self = restored;
-        Ok(())
     }
 
     /// Whether a snapshot's map arrived whole (framing and checksum), without decoding it.

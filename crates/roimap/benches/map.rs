@@ -185,7 +185,8 @@ fn shifted(s: &Scan, dy_m: f64) -> Scan {
 
 /// Row workload: the ten filtered scans repeated segment by segment along a row (1 m apart, 8
 /// segments). Times the last scan of the first segment and of the last segment, each inserted
-/// into the map of everything before it, and prints memory and snapshot bytes per known voxel.
+/// into the map of everything before it, and prints memory and snapshot bytes per known voxel; times reading and writing that
+/// map's snapshot.
 fn row(c: &mut Criterion) {
     const SEGMENTS: usize = 8;
     let w = Workload::standard(SEED);
@@ -239,6 +240,21 @@ fn row(c: &mut Criterion) {
             )
         });
     }
+    // A trolley's map along a row, as a standby replica takes it over or an owner sends it.
+    g.bench_function("snapshot_read", |b| {
+        b.iter(|| {
+            RoiMap::read_snapshot(black_box(snap.as_slice()))
+                .expect("read")
+                .len()
+        })
+    });
+    g.bench_function("snapshot_write", |b| {
+        b.iter(|| {
+            let mut out = Vec::new();
+            full.write_snapshot(&mut out).expect("write");
+            out.len()
+        })
+    });
     g.finish();
 }
 

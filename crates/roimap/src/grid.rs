@@ -188,6 +188,13 @@ impl Storage {
         self.index.get(&b).map(|&i| &*self.blocks[i as usize])
     }
 
+    /// Room for `more` blocks (a snapshot being read states its count).
+    pub(crate) fn reserve(&mut self, more: usize) {
+        self.blocks.reserve(more);
+        self.coords.reserve(more);
+        self.index.reserve(more);
+    }
+
     pub(crate) fn get_or_create(&mut self, b: VoxelKey) -> usize {
         if let Some(&i) = self.index.get(&b) {
             return i as usize;

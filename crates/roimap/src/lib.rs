@@ -406,6 +406,12 @@ pub(crate) struct ChangeLog {
 }
 
 impl ChangeLog {
+    pub(crate) fn with_capacity(blocks: usize) -> Self {
+        Self {
+            blocks: HashMap::with_capacity_and_hasher(blocks, KeyBuildHasher::default()),
+        }
+    }
+
     pub(crate) fn note(&mut self, block: u32, state: &Mask, roi: &Mask) {
         if mask_is_empty(state) {
             return;

@@ -95,6 +95,21 @@ pub(crate) enum Values {
     Flat(Box<[f32; BLOCK_VOXELS]>),
 }
 
+/// The voxels of `known` for which `holds` is true (generic, so `holds` is inlined into the
+/// loop over each word's 64 voxels).
+#[inline]
+fn gather_bits(known: &Mask, holds: impl Fn(usize) -> bool) -> Mask {
+    let mut out = EMPTY;
+    for (w, (o, &k)) in out.iter_mut().zip(known).enumerate() {
+        if k == 0 {
+            continue;
+        }
+        let word = (0..64).fold(0u64, |acc, b| acc | u64::from(holds(w * 64 + b)) << b);
+        *o = word & k;
+    }
+    out
+}
+
 impl Default for Values {
     fn default() -> Self {
         Values::Uniform(0.0)
@@ -131,28 +146,25 @@ impl Values {
 
     /// Storage from a palette and the index of each voxel in `known` (in bit order); the other
     /// voxels hold 0. `None` when an index is out of the palette.
-    pub(crate) fn from_palette(
-        values: Vec<f32>,
-        known: &Mask,
-        mut index: impl FnMut() -> u8,
-    ) -> Option<Values> {
-        let mut p = Palette {
+    pub(crate) fn from_palette(values: Vec<f32>, known: &Mask, indices: &[u8]) -> Option<Values> {
+        let mut p = Box::new(Palette {
             values,
             idx: [0; BLOCK_VOXELS],
-        };
+        });
         let known_all = known.iter().all(|&w| w == u64::MAX);
         let zero = if known_all { 0 } else { p.find_or_push(0.0)? };
-        p.idx = [zero; BLOCK_VOXELS];
-        let mut bad = false;
-        crate::grid::for_each_bit(known, |l| {
-            let i = index();
-            bad |= usize::from(i) >= p.values.len();
-            p.idx[l] = i;
-        });
-        if bad {
+        if known_all && indices.len() == BLOCK_VOXELS {
+            p.idx.copy_from_slice(indices);
+        } else {
+            p.idx = [zero; BLOCK_VOXELS];
+            let mut next = indices.iter().copied();
+            crate::grid::for_each_bit(known, |l| p.idx[l] = next.next().unwrap_or(0));
+        }
+        let largest = p.idx.iter().copied().max().unwrap_or(0);
+        if usize::from(largest) >= p.values.len() {
             return None;
         }
-        let mut v = Values::Palette(Box::new(p));
+        let mut v = Values::Palette(p);
         v.collapse();
         Some(v)
     }
@@ -179,17 +191,6 @@ impl Values {
 
     /// The voxels of `known` whose value satisfies `pred`, each distinct value tested once.
     pub(crate) fn mask_where(&self, known: &Mask, pred: impl Fn(f32) -> bool) -> Mask {
-        let gather = |holds: &dyn Fn(usize) -> bool| {
-            let mut out = EMPTY;
-            for (w, (o, &k)) in out.iter_mut().zip(known).enumerate() {
-                if k == 0 {
-                    continue;
-                }
-                let word = (0..64).fold(0u64, |acc, b| acc | u64::from(holds(w * 64 + b)) << b);
-                *o = word & k;
-            }
-            out
-        };
         match self {
             Values::Uniform(v) => match pred(*v) {
                 true => *known,
@@ -200,9 +201,9 @@ impl Values {
                 for (h, &v) in holds.iter_mut().zip(&p.values) {
                     *h = pred(v);
                 }
-                gather(&|l| holds[usize::from(p.idx[l])])
+                gather_bits(known, |l| holds[usize::from(p.idx[l])])
             }
-            Values::Flat(a) => gather(&|l| pred(a[l])),
+            Values::Flat(a) => gather_bits(known, |l| pred(a[l])),
         }
     }
 
@@ -367,7 +368,7 @@ fn for_each_touched(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::grid::for_each_bit;
+    use crate::grid::{for_each_bit, mask_count};
 
     /// Masks with every word kind a block has: empty, full, sparse, dense.
     fn masks() -> Vec<Mask> {
@@ -406,7 +407,9 @@ mod tests {
     fn uniform_on_is_a_one_value_palette() {
         for known in masks() {
             for v in [0.0, -0.0, 0.85, -2.0] {
-                let slow = Values::from_palette(vec![v], &known, || 0).expect("index 0 fits");
+                let slow =
+                    Values::from_palette(vec![v], &known, &[0; BLOCK_VOXELS][..mask_count(&known)])
+                        .expect("index 0 fits");
                 assert!(
                     same(&Values::uniform_on(v, &known), &slow),
                     "{v} on {known:x?}"
@@ -419,12 +422,9 @@ mod tests {
     fn mask_where_tests_every_known_voxel() {
         let pred = |v: f32| v > 0.0;
         for known in masks() {
-            let mut value = 0u32;
-            let palette = Values::from_palette(vec![-0.4, 0.0, 0.85, 2.0], &known, || {
-                value += 1;
-                (value % 4) as u8
-            })
-            .expect("indices fit");
+            let indices: Vec<u8> = (1..=mask_count(&known)).map(|i| (i % 4) as u8).collect();
+            let palette = Values::from_palette(vec![-0.4, 0.0, 0.85, 2.0], &known, &indices)
+                .expect("indices fit");
             let mut x = -1.0f32;
             let flat = Values::from_known(&known, || {
                 x += 0.37;

@@ -1118,6 +1118,71 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
 }
 
 #[test]
+fn trolleys_taken_over_together_are_decoded_before_the_first_is_planned_on() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut a, mut b) = (node_with_refresh("p1", 2), node_with_refresh("p2", 2));
+    let tids: Vec<String> = (1..=8).map(|i| format!("t{i}")).collect();
+    for (n, other) in [(&mut a, "p2"), (&mut b, "p1")] {
+        n.handle(PlannerEvent::PlannerJoined(other.into()));
+        for tid in &tids {
+            n.handle(PlannerEvent::TrolleyJoined(tid.clone()));
+            n.handle(PlannerEvent::SnapshotLoaded {
+                tid: tid.clone(),
+                snapshot: None,
+            });
+        }
+    }
+    let owned: Vec<String> = tids
+        .iter()
+        .filter(|t| b.role(t) == Some(Role::Owner))
+        .take(3)
+        .cloned()
+        .collect();
+    assert_eq!(owned.len(), 3);
+    // p1 stands by with p2's snapshot after two clouds of each, the third pending.
+    for tid in &owned {
+        for n in [&mut a, &mut b] {
+            n.handle(PlannerEvent::Info {
+                header: header(tid, 0),
+                info: info.clone(),
+            });
+        }
+        for cloud in &clouds {
+            b.handle(cloud_for(tid, cloud));
+            let actions = a.handle(cloud_for(tid, cloud));
+            answer_refreshes(&mut b, &mut a, actions);
+        }
+        assert_eq!(
+            a.planner(tid).unwrap().map().scans_inserted(),
+            0,
+            "kept encoded"
+        );
+        assert_eq!(a.pending_clouds(tid), 1);
+    }
+    let actions = a.handle(PlannerEvent::PlannerLeft("p2".into()));
+    let actions = settle(&mut a, actions);
+    let deferred: Vec<String> = actions
+        .iter()
+        .filter_map(|x| match x {
+            PlannerAction::CatchUp { tid } => Some(tid.clone()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(deferred.len(), 2, "{actions:?}");
+    for tid in &deferred {
+        // Decoded with the first one, before its own catch-up: the held snapshot's two scans.
+        assert_eq!(a.planner(tid).unwrap().map().scans_inserted(), 2);
+        let caught = feed(&mut a, PlannerEvent::CatchUp { tid: tid.clone() });
+        assert_eq!(views_of(&caught).len(), 1);
+        assert_eq!(views_of(&caught)[0].based_on_seq, 3);
+    }
+    for tid in &owned {
+        assert!(same_map(&a, &b, tid), "{tid}");
+    }
+    assert_eq!(a.stats().clouds_integrated, 3, "only the pending clouds");
+}
+
+#[test]
 fn a_new_standby_replica_keeps_the_snapshot_encoded() {
     let (info, clouds) = trolley_clouds(3);
     // p2 alone owns t1 with two clouds; p1 joins and ranks second for t1: the new replica.

@@ -631,7 +631,9 @@ mod tests {
         let mut s = PlannerSettings::new("p1");
         assert!(s.validate().is_ok());
         s.takeover_decode_threads = 0;
-        let e = s.validate().unwrap_err().to_string();
-        assert!(e.contains("takeover_decode_threads"), "{e}");
+        let Err(e) = s.validate() else {
+            panic!("0 decode threads accepted")
+        };
+        assert!(e.to_string().contains("takeover_decode_threads"), "{e}");
     }
 }

@@ -90,7 +90,7 @@ pub(crate) fn frame(kind: u16, body: &[u8], w: &mut impl Write) -> Result<(), Sn
 /// Reads a whole framed file and returns its verified body.
 fn unframe(expected_kind: u16, bytes: &[u8]) -> Result<&[u8], SnapshotError> {
     if bytes.len() < 4 || &bytes[..4] != MAGIC {
-        if bytes.len() < 4 && MAGIC.starts_with(&bytes) {
+        if bytes.len() < 4 && MAGIC.starts_with(bytes) {
             return Err(SnapshotError::Truncated {
                 expected: HEADER_BYTES as u64 + 4,
                 actual: bytes.len() as u64,

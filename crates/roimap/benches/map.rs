@@ -112,20 +112,7 @@ fn queries(c: &mut Criterion) {
         snap.len(),
         snap.len() as f64 / m.len() as f64
     );
-    g.bench_function("snapshot_read", |b| {
-        b.iter(|| {
-            RoiMap::read_snapshot(black_box(snap.as_slice()))
-                .expect("read")
-                .len()
-        })
-    });
-    g.bench_function("snapshot_write", |b| {
-        b.iter(|| {
-            let mut out = Vec::new();
-            m.write_snapshot(&mut out).expect("write");
-            out.len()
-        })
-    });
+    bench_snapshot(&mut g, &m, &snap);
     g.finish();
 
     // Frontier upkeep per scan: a scan inserted with and without (apply_voxels of the same
@@ -241,21 +228,26 @@ fn row(c: &mut Criterion) {
         });
     }
     // A trolley's map along a row, as a standby replica takes it over or an owner sends it.
+    bench_snapshot(&mut g, &full, &snap);
+    g.finish();
+}
+
+/// `snapshot_read` (of `snap`, `map`'s snapshot) and `snapshot_write` (of `map`) in group `g`.
+fn bench_snapshot(
+    g: &mut criterion::BenchmarkGroup<criterion::measurement::WallTime>,
+    map: &RoiMap,
+    snap: &[u8],
+) {
     g.bench_function("snapshot_read", |b| {
-        b.iter(|| {
-            RoiMap::read_snapshot(black_box(snap.as_slice()))
-                .expect("read")
-                .len()
-        })
+        b.iter(|| RoiMap::read_snapshot(black_box(snap)).expect("read").len())
     });
     g.bench_function("snapshot_write", |b| {
         b.iter(|| {
             let mut out = Vec::new();
-            full.write_snapshot(&mut out).expect("write");
+            map.write_snapshot(&mut out).expect("write");
             out.len()
         })
     });
-    g.finish();
 }
 
 criterion_group!(benches, insertion, queries, row);

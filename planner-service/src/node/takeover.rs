@@ -5,8 +5,9 @@
 //! Decoded one after another, each further trolley's first views waited on every decode before
 //! its own: with six trolleys moved by a killed planner in the 16-trolley row, the last one was
 //! back on views 1.4 s after the kill, about a quarter of a second per trolley before it.
-//! Decoding is pure (a snapshot in, a copy out), so the decodes run on scoped threads and the
-//! slowest of them, not their sum, is what every trolley taken over waits for; the views then go
+//! Decoding is pure (a snapshot in, a copy out), so the decodes run on scoped threads: with a
+//! core per decode every trolley taken over waits for the slowest of them, on fewer cores for
+//! their sum over the cores, against the sum of those before its own; the views then go
 //! out one trolley after another as before, and each copy's kept clouds are integrated after
 //! all of them.
 

@@ -1037,10 +1037,13 @@ fn cloud_for(tid: &str, cloud: &RoiCloud) -> PlannerEvent {
     }
 }
 
-#[test]
-fn trolleys_taken_over_together_catch_up_one_event_each() {
-    let (info, clouds) = trolley_clouds(2);
-    let (mut a, mut b) = (node_with_refresh("p1", 8), node_with_refresh("p2", 8));
+/// Planners p1 and p2 (standby replicas refreshed every `refresh` clouds) with eight loaded
+/// trolleys, and three of the trolleys p2 owns (p1 their replica).
+fn two_planners_eight_trolleys(refresh: usize) -> (PlannerNode, PlannerNode, Vec<String>) {
+    let (mut a, mut b) = (
+        node_with_refresh("p1", refresh),
+        node_with_refresh("p2", refresh),
+    );
     let tids: Vec<String> = (1..=8).map(|i| format!("t{i}")).collect();
     for (n, other) in [(&mut a, "p2"), (&mut b, "p1")] {
         n.handle(PlannerEvent::PlannerJoined(other.into()));
@@ -1052,7 +1055,6 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
             });
         }
     }
-    // Three trolleys p2 owns and p1 stands by for, each with two clouds.
     let owned: Vec<String> = tids
         .iter()
         .filter(|t| b.role(t) == Some(Role::Owner))
@@ -1060,6 +1062,14 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
         .cloned()
         .collect();
     assert_eq!(owned.len(), 3, "rendezvous hashing gives p2 three of eight");
+    (a, b, owned)
+}
+
+#[test]
+fn trolleys_taken_over_together_catch_up_one_event_each() {
+    let (info, clouds) = trolley_clouds(2);
+    let (mut a, mut b, owned) = two_planners_eight_trolleys(8);
+    // Three trolleys p2 owns and p1 stands by for, each with two clouds.
     for tid in &owned {
         for n in [&mut a, &mut b] {
             n.handle(PlannerEvent::Info {
@@ -1120,25 +1130,7 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
 #[test]
 fn trolleys_taken_over_together_are_decoded_before_the_first_is_planned_on() {
     let (info, clouds) = trolley_clouds(3);
-    let (mut a, mut b) = (node_with_refresh("p1", 2), node_with_refresh("p2", 2));
-    let tids: Vec<String> = (1..=8).map(|i| format!("t{i}")).collect();
-    for (n, other) in [(&mut a, "p2"), (&mut b, "p1")] {
-        n.handle(PlannerEvent::PlannerJoined(other.into()));
-        for tid in &tids {
-            n.handle(PlannerEvent::TrolleyJoined(tid.clone()));
-            n.handle(PlannerEvent::SnapshotLoaded {
-                tid: tid.clone(),
-                snapshot: None,
-            });
-        }
-    }
-    let owned: Vec<String> = tids
-        .iter()
-        .filter(|t| b.role(t) == Some(Role::Owner))
-        .take(3)
-        .cloned()
-        .collect();
-    assert_eq!(owned.len(), 3);
+    let (mut a, mut b, owned) = two_planners_eight_trolleys(2);
     // p1 stands by with p2's snapshot after two clouds of each, the third pending.
     for tid in &owned {
         for n in [&mut a, &mut b] {

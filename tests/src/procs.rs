@@ -93,8 +93,24 @@ impl Drop for Proc {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        // A failing test shows what each of its processes said last (CI keeps no log files).
+        if std::thread::panicking() {
+            let text = self.log_text();
+            let lines: Vec<&str> = text.lines().collect();
+            let tail = &lines[lines.len().saturating_sub(LOG_TAIL_LINES)..];
+            eprintln!(
+                "--- the last {} lines of {} ({}):\n{}",
+                tail.len(),
+                self.name,
+                self.log.display(),
+                tail.join("\n")
+            );
+        }
     }
 }
+
+/// How much of a process's log a failing test prints.
+const LOG_TAIL_LINES: usize = 40;
 
 impl Proc {
     /// SIGKILL: the process gets no chance to say goodbye (a crashed or killed service).

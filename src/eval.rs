@@ -122,6 +122,11 @@ pub struct EvalArgs {
     /// planner's default); 0 ranks by the paper's utility alone, for a side-by-side run.
     #[arg(long, value_name = "W", default_value_t = glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S)]
     pub motion_cost_per_s: f64,
+    /// A cluster shaped like no fruit (flat, thin, too small) once scans from this many
+    /// directions hit it stops drawing ROI-targeted views, for a side-by-side run; 0 (the
+    /// planner's default) keeps every cluster a target, as in the paper.
+    #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS)]
+    pub clutter_settles_after: u32,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
     /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
     /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
@@ -258,6 +263,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "registration": args.registration,
         "hand_eye": !args.no_hand_eye,
         "motion_cost_per_s": args.motion_cost_per_s,
+        "clutter_settles_after": args.clutter_settles_after,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -321,6 +327,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 registration: args.registration,
                 hand_eye: !args.no_hand_eye,
                 motion_cost_per_s: args.motion_cost_per_s,
+                clutter_settles_after_views: args.clutter_settles_after,
                 revisit_aim: !args.no_revisit_aim,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
@@ -612,6 +619,7 @@ mod tests {
             registration: false,
             no_hand_eye: false,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
+            clutter_settles_after: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,

@@ -91,6 +91,9 @@ pub struct TrialConfig {
     /// The ranking's cost per second of robot motion (`PlanningSettings::cost_weight_per_s`;
     /// 0: the paper's ranking).
     pub motion_cost_per_s: f64,
+    /// Scan directions after which a cluster shaped like no fruit stops drawing ROI views
+    /// (`PlanningSettings::clutter_settles_after_views`; 0: never).
+    pub clutter_settles_after_views: u32,
 }
 
 impl TrialConfig {
@@ -113,6 +116,7 @@ impl TrialConfig {
             hand_eye: true,
             revisit_aim: true,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
+            clutter_settles_after_views: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
         }
     }
 
@@ -159,6 +163,7 @@ impl TrialConfig {
         settings.hand_eye.enabled = self.hand_eye;
         settings.aim_at_remembered_fruit = self.revisit_aim;
         settings.cost_weight_per_s = self.motion_cost_per_s;
+        settings.clutter_settles_after_views = self.clutter_settles_after_views;
         settings
     }
 

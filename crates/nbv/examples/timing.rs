@@ -86,6 +86,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
+        settled_clutter: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {

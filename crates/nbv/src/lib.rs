@@ -285,6 +285,10 @@ pub struct PlanningContext<'a> {
     /// [`RoiMap::unobserved_hints`]): ROI-targeted sampling aims at those no scan of this visit
     /// has touched yet as at the ROI frontier. Empty on a first visit.
     pub remembered_fruit: &'a [VoxelKey],
+    /// Boxes of ROI clusters judged not fruit by their shape after being seen from several
+    /// directions (a red leaf, a clip, a label, a stem): ROI-targeted sampling no longer aims at
+    /// the ROI frontier inside them. Their voxels stay ROI; only the views they drew are saved.
+    pub settled_clutter: &'a [Aabb],
 }
 
 impl fmt::Debug for PlanningContext<'_> {
@@ -297,6 +301,7 @@ impl fmt::Debug for PlanningContext<'_> {
             .field("reach", &self.reach.map(|_| "predicate"))
             .field("motion_time", &self.motion_time.map(|_| "function"))
             .field("remembered_fruit", &self.remembered_fruit.len())
+            .field("settled_clutter", &self.settled_clutter.len())
             .finish()
     }
 }
@@ -753,10 +758,16 @@ fn rank(views: &[ScoredView], config: &PlannerConfig) -> Vec<ScoredView> {
     }
 }
 
-/// The ROI frontier in the sampling region, then the remembered fruit in it that no scan of
+/// The ROI frontier in the sampling region outside settled clutter, then the remembered fruit in it that no scan of
 /// this visit has touched.
 fn roi_targets_of(ctx: &PlanningContext) -> Vec<VoxelKey> {
     let mut targets = ctx.map.roi_frontier(&ctx.sampling_region);
+    if !ctx.settled_clutter.is_empty() {
+        targets.retain(|&k| {
+            let p = ctx.map.centre_of(k);
+            !ctx.settled_clutter.iter().any(|b| b.contains(&p))
+        });
+    }
     targets.extend(ctx.remembered_fruit.iter().copied().filter(|&k| {
         ctx.sampling_region.contains(&ctx.map.centre_of(k)) && ctx.map.is_unobserved_hint(k)
     }));

@@ -64,6 +64,7 @@ fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
+        settled_clutter: &[],
     }
 }
 
@@ -115,6 +116,34 @@ fn default_config_is_the_papers_and_validated() {
         plan_views(&ctx, &c, 0),
         Err(PlanError::InvalidRegion { .. })
     ));
+}
+
+#[test]
+fn settled_clutter_draws_no_roi_targets_and_keeps_its_roi_voxels() {
+    let map = blob_map();
+    let config = PlannerConfig::default();
+    // A box around the blob, a voxel beyond it (the targets are the free voxels beside it).
+    let around_blob = [aabb([-0.035, -0.015, 0.965], [0.035, 0.055, 1.035])];
+    let settled = PlanningContext {
+        settled_clutter: &around_blob,
+        ..blob_context(&map)
+    };
+    let plan = plan_views(&settled, &config, 7).expect("valid plan");
+    assert_eq!(plan.roi_targets, 0);
+    assert_eq!(plan.used_kind, ViewKind::Exploration);
+    assert!(map.is_roi(map.key_of(&Point3::from(BLOB_CENTRE))));
+    // Clutter elsewhere leaves the blob's targets as they are.
+    let elsewhere = [aabb([0.3, 0.3, 1.3], [0.4, 0.4, 1.4])];
+    let other = PlanningContext {
+        settled_clutter: &elsewhere,
+        ..blob_context(&map)
+    };
+    assert_eq!(
+        plan_views(&other, &config, 7)
+            .expect("valid plan")
+            .roi_targets,
+        16
+    );
 }
 
 #[test]
@@ -280,6 +309,7 @@ fn exploration_when_there_is_no_roi() {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
+        settled_clutter: &[],
     };
     for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
         let config = PlannerConfig {
@@ -312,6 +342,7 @@ fn never_empty_on_an_empty_map() {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
+        settled_clutter: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {
@@ -444,6 +475,7 @@ fn a_reach_predicate_drops_the_poses_it_rejects() {
     let ctx = PlanningContext {
         reach: Some(&left_only),
         remembered_fruit: &[],
+        settled_clutter: &[],
         ..blob_context(&map)
     };
     for method in Method::ALL {
@@ -471,6 +503,7 @@ fn an_accepting_predicate_changes_nothing() {
     let with = PlanningContext {
         reach: Some(&accept),
         remembered_fruit: &[],
+        settled_clutter: &[],
         ..blob_context(&map)
     };
     let without = blob_context(&map);
@@ -500,6 +533,7 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         reach: Some(&reject),
         motion_time: None,
         remembered_fruit: &[],
+        settled_clutter: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {

@@ -84,21 +84,30 @@ async fn check_one(
     tid: &str,
     deadline: Instant,
 ) -> anyhow::Result<LostReport> {
+    // What each planner asked last answered: its snapshot's frame, or why it did not answer.
+    let mut answers = BTreeMap::new();
     loop {
         let (owners, clouds) = owners_and_clouds(observed, tid)?;
         let last = clouds.iter().map(RoiCloud::source_frame).max();
         for owner in owners {
             let key = keys::planner_snapshot(&owner, tid)?;
-            if let Ok((_, s)) = glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
-                if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last {
+            match glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
+                Ok((_, s)) if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last => {
                     let survivor = RoiMap::read_snapshot(s.map.as_slice())?;
                     return compare(owner, &survivor, &clouds);
                 }
-            }
+                Ok((_, s)) => {
+                    answers.insert(owner, format!("a snapshot at frame {}", s.based_on_seq))
+                }
+                Err(e) => answers.insert(owner, format!("no snapshot ({e})")),
+            };
         }
         anyhow::ensure!(
             Instant::now() < deadline,
-            "{tid}'s owner did not reach the last cloud observed within {} s",
+            "{tid}'s owner did not reach the last cloud observed (frame {}, {} clouds) within {} s; \
+             planners asked: {answers:?}",
+            last.map_or(0, |f| f.seq),
+            clouds.len(),
             SETTLE.as_secs()
         );
         tokio::time::sleep(Duration::from_millis(200)).await;

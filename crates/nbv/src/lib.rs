@@ -53,7 +53,7 @@ use std::fmt;
 use std::str::FromStr;
 
 use glasshouse_geom::{look_along, look_at, Aabb};
-use glasshouse_roimap::{KeyBuildHasher, Occupancy, RoiCluster, RoiMap, VoxelKey};
+use glasshouse_roimap::{KeyBuildHasher, Neighbourhood, Occupancy, RoiCluster, RoiMap, VoxelKey};
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -285,10 +285,11 @@ pub struct PlanningContext<'a> {
     /// [`RoiMap::unobserved_hints`]): ROI-targeted sampling aims at those no scan of this visit
     /// has touched yet as at the ROI frontier. Empty on a first visit.
     pub remembered_fruit: &'a [VoxelKey],
-    /// Boxes of ROI clusters judged not fruit by their shape after being seen from several
-    /// directions (a red leaf, a clip, a label, a stem): ROI-targeted sampling no longer aims at
-    /// the ROI frontier inside them. Their voxels stay ROI; only the views they drew are saved.
-    pub settled_clutter: &'a [Aabb],
+    /// The voxels, sorted, of ROI clusters judged not fruit by their shape after being seen
+    /// from several directions (a red leaf, a clip, a label, a stem): an ROI target whose every
+    /// ROI face neighbour is one of them is no target (a fruit touching the clutter keeps the
+    /// targets beside its own voxels). They stay ROI; only the views they drew are saved.
+    pub settled_clutter: &'a [VoxelKey],
 }
 
 impl fmt::Debug for PlanningContext<'_> {
@@ -758,14 +759,17 @@ fn rank(views: &[ScoredView], config: &PlannerConfig) -> Vec<ScoredView> {
     }
 }
 
-/// The ROI frontier in the sampling region outside settled clutter, then the remembered fruit in it that no scan of
-/// this visit has touched.
+/// The ROI frontier in the sampling region beside more than settled clutter, then the
+/// remembered fruit in it that no scan of this visit has touched.
 fn roi_targets_of(ctx: &PlanningContext) -> Vec<VoxelKey> {
     let mut targets = ctx.map.roi_frontier(&ctx.sampling_region);
     if !ctx.settled_clutter.is_empty() {
+        let settled = |n: &VoxelKey| ctx.settled_clutter.binary_search(n).is_ok();
         targets.retain(|&k| {
-            let p = ctx.map.centre_of(k);
-            !ctx.settled_clutter.iter().any(|b| b.contains(&p))
+            let mut roi_beside = k
+                .neighbours(Neighbourhood::Six)
+                .filter(|&n| ctx.map.is_roi(n));
+            !roi_beside.all(|n| settled(&n))
         });
     }
     targets.extend(ctx.remembered_fruit.iter().copied().filter(|&k| {

@@ -4,7 +4,6 @@
 use std::borrow::Cow;
 
 use glasshouse_arm::Robot;
-use glasshouse_geom::Aabb;
 use glasshouse_nbv::evidence::{interior_holds, ClusterShape, Interior, Verdict};
 use glasshouse_nbv::fit::{FitConfig, FruitSolid};
 use glasshouse_nbv::season::SeasonTracker;
@@ -84,10 +83,10 @@ pub struct PlanningSettings {
     pub cost_weight_per_s: f64,
     /// An ROI cluster whose shape says it is not a fruit (flat, thin or too small) once scans
     /// from this many directions have hit it is settled clutter: ROI-targeted sampling stops
-    /// aiming at the ROI frontier in its box (a red leaf's back is never seen, so its frontier
+    /// aiming at the ROI frontier beside it (a red leaf's back is never seen, so its frontier
     /// would draw views for ever). 0 (the default): every cluster stays a target, as in the
-    /// paper; 2 or 3 saved Ours 7-9 s to 95 % of the fruits on the tuning seeds, within their
-    /// spread (docs/results.md, "Settled clutter").
+    /// paper; 3 saved Ours 2 s to 95 % of the fruits on the tuning seeds, within their spread
+    /// (docs/results.md, "Settled clutter").
     pub clutter_settles_after_views: u32,
 }
 
@@ -350,8 +349,9 @@ pub struct TrolleyPlanner {
     pub(crate) season: SeasonTracker,
     /// The prior's fruit hints a plan aims at until a scan touches them (empty on a first visit).
     remembered_fruit: Vec<VoxelKey>,
-    /// Boxes of the latest clusters that are settled clutter ([`TrolleyPlanner::track`]).
-    settled_clutter: Vec<Aabb>,
+    /// The voxels, sorted, of the latest clusters that are settled clutter
+    /// ([`TrolleyPlanner::track`]).
+    settled_clutter: Vec<VoxelKey>,
 }
 
 impl TrolleyPlanner {
@@ -573,9 +573,8 @@ impl TrolleyPlanner {
         self.settle_clutter();
     }
 
-    /// The boxes of the latest clusters that are settled clutter
-    /// ([`PlanningSettings::clutter_settles_after_views`]), grown by a voxel: the ROI targets
-    /// are the free voxels beside a cluster's surface.
+    /// The voxels of the latest clusters that are settled clutter
+    /// ([`PlanningSettings::clutter_settles_after_views`]), sorted.
     fn settle_clutter(&mut self) {
         self.settled_clutter.clear();
         let after = self.settings.clutter_settles_after_views;
@@ -584,17 +583,17 @@ impl TrolleyPlanner {
         }
         let evidence = self.settings.fit.evidence;
         let shapes = self.fit_cache.shapes(&self.map, &self.clusters);
-        let margin = nalgebra::Vector3::repeat(self.settings.resolution_m);
-        for ((cluster, estimate), shape) in self.clusters.iter().zip(&self.estimates).zip(&shapes) {
+        let clusters = self.clusters.iter().zip(&self.estimates).zip(&shapes);
+        for ((cluster, estimate), shape) in clusters {
             let clutter = matches!(
                 shape.verdict(&evidence),
                 Verdict::Flat | Verdict::Thin | Verdict::TooSmall
             );
             if clutter && estimate.view_directions >= after {
-                let (min, max) = (cluster.min - margin, cluster.max + margin);
-                self.settled_clutter.push(Aabb::new(min, max));
+                self.settled_clutter.extend_from_slice(&cluster.voxels);
             }
         }
+        self.settled_clutter.sort_unstable();
     }
 
     /// Remembered fruit voxels inside a cluster's box stop being targets: that fruit is found
@@ -965,9 +964,9 @@ impl TrolleyPlanner {
         Ok(planner)
     }
 
-    /// The boxes of the latest clusters that are settled clutter: ROI-targeted sampling does
-    /// not aim inside them ([`PlanningSettings::clutter_settles_after_views`]).
-    pub fn settled_clutter(&self) -> &[Aabb] {
+    /// The voxels, sorted, of the latest clusters that are settled clutter: ROI-targeted
+    /// sampling does not aim beside them alone ([`PlanningSettings::clutter_settles_after_views`]).
+    pub fn settled_clutter(&self) -> &[VoxelKey] {
         &self.settled_clutter
     }
 

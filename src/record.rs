@@ -248,9 +248,7 @@ impl Player {
         }
         if !self.publishers.contains_key(key) {
             let delivery = match parsed {
-                ParsedKey::Trolley { topic, .. } if topic.qos() == keys::Qos::Stream => {
-                    Delivery::Stream
-                }
+                ParsedKey::Trolley { topic, .. } => topic.qos().into(),
                 _ => Delivery::Reliable,
             };
             let publisher =

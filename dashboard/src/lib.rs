@@ -604,7 +604,7 @@ async fn subscribe_all(
         .map(|topic| {
             let delivery = match topic.qos() {
                 Qos::Stream => Delivery::Stream,
-                Qos::Reliable => Delivery::Monitor,
+                Qos::Reliable | Qos::Recovered => Delivery::Monitor,
             };
             (keys::all_trolleys(topic), delivery)
         })

@@ -21,6 +21,7 @@ mod config;
 pub mod metrics;
 pub mod probe;
 mod queue;
+pub mod recovery;
 
 pub use config::{router_config, zenoh_config};
 
@@ -173,6 +174,9 @@ pub enum Delivery {
     /// A read-only observer (the dashboard): a deep queue that drops the oldest rather than
     /// ever pushing back on the fleet.
     Monitor,
+    /// Reliable, and a subscriber that missed a sample gets it again from the publisher's
+    /// cache, in order ([`recovery`]).
+    Recovered,
 }
 
 /// Counts of messages a process dropped, by cause.
@@ -186,6 +190,9 @@ pub struct DropCounters {
     /// service had seen for their trolley (a replaced owner's views, map updates, fruits or
     /// snapshots); counted by the service's state machine, mirrored here by its driver.
     pub stale_epoch: AtomicU64,
+    /// Samples of a [`Delivery::Recovered`] key that a subscriber saw it missed (a gap in the
+    /// publisher's numbers) and could not get again from the publisher's cache.
+    pub unrecovered: AtomicU64,
 }
 
 impl DropCounters {
@@ -193,6 +200,7 @@ impl DropCounters {
         self.corrupt.load(Ordering::Relaxed)
             + self.overflow.load(Ordering::Relaxed)
             + self.stale_epoch.load(Ordering::Relaxed)
+            + self.unrecovered.load(Ordering::Relaxed)
     }
 }
 
@@ -201,6 +209,7 @@ impl From<keys::Qos> for Delivery {
         match qos {
             keys::Qos::Stream => Delivery::Stream,
             keys::Qos::Reliable => Delivery::Reliable,
+            keys::Qos::Recovered => Delivery::Recovered,
         }
     }
 }
@@ -230,20 +239,19 @@ impl RawPublisher {
                 2,
                 Overflow::DropOldest,
             ),
-            Delivery::Reliable | Delivery::Monitor => {
+            Delivery::Reliable | Delivery::Monitor | Delivery::Recovered => {
                 (CongestionControl::Block, Priority::Data, 64, Overflow::Wait)
             }
         };
-        let publisher = session
-            .declare_publisher(key.to_owned())
-            .congestion_control(congestion)
-            .priority(priority)
-            .await
-            .map_err(|e| BusError::Declare {
-                what: "publisher",
-                key: key.to_owned(),
-                reason: e.to_string(),
-            })?;
+        let recovered = delivery == Delivery::Recovered;
+        let publisher =
+            recovery::ZenohPublisher::declare(session, key, (congestion, priority), recovered)
+                .await
+                .map_err(|e| BusError::Declare {
+                    what: "publisher",
+                    key: key.to_owned(),
+                    reason: e.to_string(),
+                })?;
         let queue = Arc::new(SampleQueue::new(capacity, overflow, counters));
         let task_queue = queue.clone();
         let task_key = key.to_owned();
@@ -337,7 +345,7 @@ pub struct Received<M> {
 struct Inbox {
     queue: Arc<SampleQueue<(String, Vec<u8>)>>,
     counters: Arc<DropCounters>,
-    _subscriber: zenoh::pubsub::Subscriber<()>,
+    _subscriber: recovery::ZenohSubscriber,
 }
 
 impl Inbox {
@@ -349,24 +357,30 @@ impl Inbox {
     ) -> Result<Self> {
         let (capacity, overflow) = match delivery {
             Delivery::Stream => (2, Overflow::DropOldest),
-            Delivery::Reliable => (256, Overflow::Wait),
+            Delivery::Reliable | Delivery::Recovered => (256, Overflow::Wait),
             Delivery::Monitor => (1024, Overflow::DropOldest),
         };
         let queue = Arc::new(SampleQueue::new(capacity, overflow, counters.clone()));
         let cb_queue = queue.clone();
-        let subscriber = session
-            .declare_subscriber(key_expr.to_owned())
-            .callback(move |sample| {
-                let key = sample.key_expr().as_str().to_owned();
-                let bytes = sample.payload().to_bytes().into_owned();
-                cb_queue.push_blocking((key, bytes));
-            })
-            .await
-            .map_err(|e| BusError::Declare {
-                what: "subscriber",
-                key: key_expr.to_owned(),
-                reason: e.to_string(),
-            })?;
+        let callback = move |sample: zenoh::sample::Sample| {
+            let key = sample.key_expr().as_str().to_owned();
+            let bytes = sample.payload().to_bytes().into_owned();
+            cb_queue.push_blocking((key, bytes));
+        };
+        let recovered = delivery == Delivery::Recovered;
+        let subscriber = recovery::ZenohSubscriber::declare(
+            session,
+            key_expr,
+            recovered,
+            counters.clone(),
+            callback,
+        )
+        .await
+        .map_err(|e| BusError::Declare {
+            what: "subscriber",
+            key: key_expr.to_owned(),
+            reason: e.to_string(),
+        })?;
         Ok(Self {
             queue,
             counters,

@@ -59,6 +59,10 @@ pub enum Qos {
     Stream,
     /// Results and control: never dropped.
     Reliable,
+    /// The maps' inputs (ROI clouds): never dropped, and a subscriber that misses one (its link
+    /// was moving to another router when it was put) gets it again, in order, from the
+    /// publisher's cache.
+    Recovered,
 }
 
 /// A key expression that carries messages of type `M`.
@@ -188,6 +192,7 @@ impl TrolleyTopic {
     pub fn qos(self) -> Qos {
         match self {
             TrolleyTopic::Rgbd | TrolleyTopic::Arm => Qos::Stream,
+            TrolleyTopic::Roi => Qos::Recovered,
             _ => Qos::Reliable,
         }
     }
@@ -649,7 +654,7 @@ mod tests {
         );
         assert_eq!(parsed_kind(&fleet_fruits()), Some(MessageKind::FleetFruits));
         assert_eq!(rgbd("t1").expect("valid").qos(), Qos::Stream);
-        assert_eq!(roi("t1", "d1").expect("valid").qos(), Qos::Reliable);
+        assert_eq!(roi("t1", "d1").expect("valid").qos(), Qos::Recovered);
         assert_eq!(all_roi().as_str(), "gh/trolley/*/roi/*");
         assert_eq!(all_planner_status().as_str(), "gh/planner/*/status");
         assert_eq!(all_detector_status().as_str(), "gh/detector/*/status");

@@ -173,6 +173,46 @@ fn trolley_grants(tid: &str) -> Vec<Grant> {
     grants
 }
 
+/// A recovered topic's cache queryables (`{key}/@adv/pub/{zid}/{eid}/_`, zenoh-ext's form) under
+/// `keys`, and the queries that name any sender (`{key}/@adv/*/{zid}/{eid}/**`).
+fn caches(keys: &[String]) -> Vec<String> {
+    keys.iter().map(|k| format!("{k}/@adv/**")).collect()
+}
+
+/// A detector's cache of its own clouds: declared, asked (the planners' queries name no sender),
+/// answered only with clouds under its own id.
+fn cloud_cache_grants(did: &str) -> Vec<Grant> {
+    let mine = every_from(&[TrolleyTopic::Roi], did);
+    let mut answers = mine.clone();
+    answers.extend(caches(&mine));
+    vec![
+        grant(
+            Flow::Ingress,
+            &[AclMessage::DeclareQueryable, AclMessage::Reply],
+            answers,
+        ),
+        grant(
+            Flow::Egress,
+            &[AclMessage::Query],
+            caches(&every(&[TrolleyTopic::Roi])),
+        ),
+    ]
+}
+
+/// A planner asking the detectors' caches for a cloud it missed, and their answers.
+fn cloud_recovery_grants() -> Vec<Grant> {
+    let clouds = every(&[TrolleyTopic::Roi]);
+    vec![
+        grant(Flow::Ingress, &[AclMessage::Query], caches(&clouds)),
+        grant(
+            Flow::Egress,
+            &[AclMessage::DeclareQueryable],
+            caches(&clouds),
+        ),
+        grant(Flow::Egress, &[AclMessage::Reply], clouds),
+    ]
+}
+
 fn detector_grants(did: &str) -> Vec<Grant> {
     let status = keys::detector_status(did).map(|k| k.as_str().to_owned());
     let mut writes = every_from(&[TrolleyTopic::Roi], did);
@@ -181,6 +221,7 @@ fn detector_grants(did: &str) -> Vec<Grant> {
     all.push(keys::all_detector_status().as_str().to_owned());
     let mut grants = publish(writes, all).to_vec();
     grants.extend(subscribe(every(&[TrolleyTopic::Rgbd])));
+    grants.extend(cloud_cache_grants(did));
     grants.extend(token(MemberKind::Detector, did));
     grants.extend(watch(&[MemberKind::Detector, MemberKind::Trolley]));
     grants
@@ -195,6 +236,7 @@ fn planner_grants(pid: &str) -> Vec<Grant> {
     all.push(FLEET_FRUITS.to_owned());
     let mut grants = publish(writes, all).to_vec();
     grants.extend(subscribe(every(&PLANNER_READS)));
+    grants.extend(cloud_recovery_grants());
     grants.extend(token(MemberKind::Planner, pid));
     // Clouds are taken only from live detectors.
     grants.extend(watch(&[
@@ -287,13 +329,30 @@ mod tests {
     use AclMessage::*;
     use Flow::*;
 
-    /// Key expression inclusion for the forms used here (`*` is one chunk, which `**` is not),
-    /// as Zenoh's ACL matches a message's key expression against a rule's.
+    /// Key expression inclusion for the forms used here (`*` is one chunk, which `**` is not;
+    /// `**` any number of chunks; neither stands for a verbatim `@` chunk), as Zenoh's ACL
+    /// matches a message's key expression against a rule's.
     fn includes(pattern: &str, key: &str) -> bool {
         let (p, k): (Vec<&str>, Vec<&str>) =
             (pattern.split('/').collect(), key.split('/').collect());
-        let chunk = |p: &str, k: &str| (p == "*" && k != "**") || p == k;
-        p.len() == k.len() && p.iter().zip(&k).all(|(p, k)| chunk(p, k))
+        chunks_include(&p, &k)
+    }
+
+    fn chunks_include(p: &[&str], k: &[&str]) -> bool {
+        let wild = |k: &str| !k.starts_with('@');
+        match (p.split_first(), k.split_first()) {
+            (None, None) => true,
+            (Some((&"**", p_rest)), _) => {
+                chunks_include(p_rest, k)
+                    || k.split_first()
+                        .is_some_and(|(k0, k_rest)| wild(k0) && chunks_include(p, k_rest))
+            }
+            (Some((p0, p_rest)), Some((k0, k_rest))) => {
+                let chunk = (*p0 == "*" && *k0 != "**" && wild(k0)) || p0 == k0;
+                chunk && chunks_include(p_rest, k_rest)
+            }
+            _ => false,
+        }
     }
 
     fn may(kind: Kind, id: &str, flow: Flow, message: AclMessage, key: &str) -> bool {
@@ -387,6 +446,44 @@ mod tests {
             + in declare_liveliness_subscriber gh/alive/trolley/*
             + out liveliness_token gh/alive/detector/d2
             - in query gh/planner/p1/snapshot/t1
+            ",
+        );
+    }
+
+    #[test]
+    fn a_detectors_cache_answers_only_with_its_own_clouds_and_planners_may_ask_it() {
+        check(
+            D,
+            "d1",
+            "
+            + in declare_queryable gh/trolley/t7/roi/d1/@adv/pub/zid/5/_
+            - in declare_queryable gh/trolley/t7/roi/d2/@adv/pub/zid/5/_
+            - in declare_queryable gh/trolley/t7/views/d1/@adv/pub/zid/5/_
+            + in reply gh/trolley/t7/roi/d1
+            - in reply gh/trolley/t7/roi/d2
+            - in reply gh/planner/p1/snapshot/t7
+            + out query gh/trolley/*/roi/*/@adv/*/zid/5/**
+            - in query gh/trolley/*/roi/*/@adv/*/zid/5/**
+            ",
+        );
+        check(
+            P,
+            "p1",
+            "
+            + in query gh/trolley/*/roi/*/@adv/*/zid/5/**
+            + out declare_queryable gh/trolley/t7/roi/d1/@adv/pub/zid/5/_
+            + out reply gh/trolley/t7/roi/d1
+            - in reply gh/trolley/t7/roi/d1
+            - in declare_queryable gh/trolley/t7/roi/p1/@adv/pub/zid/5/_
+            - in query gh/trolley/*/views/*/@adv/*/zid/5/**
+            ",
+        );
+        check(
+            T,
+            "t1",
+            "
+            - in declare_queryable gh/trolley/t1/roi/t1/@adv/pub/zid/5/_
+            - in query gh/trolley/*/roi/*/@adv/*/zid/5/**
             ",
         );
     }

@@ -38,14 +38,14 @@ pub async fn observe<M: glasshouse_proto::Wire>(
     key: &glasshouse_proto::keys::Key<M>,
 ) -> glasshouse_bus::Subscriber<M> {
     let drops = Arc::new(glasshouse_bus::DropCounters::default());
-    // An observer of clouds asks again for one its link missed, as a planner does.
-    let delivery = match key.qos() {
-        glasshouse_proto::keys::Qos::Recovered => glasshouse_bus::Delivery::Recovered,
-        _ => glasshouse_bus::Delivery::Monitor,
-    };
-    glasshouse_bus::Subscriber::declare_with(observer, key, delivery, drops)
-        .await
-        .expect("subscriber")
+    glasshouse_bus::Subscriber::declare_with(
+        observer,
+        key,
+        glasshouse_bus::Delivery::Monitor,
+        drops,
+    )
+    .await
+    .expect("subscriber")
 }
 
 /// Awaits `future` or fails the test after `secs` seconds.

@@ -81,12 +81,25 @@ pub struct FrameOrder {
     /// The newest frame the mark turned away, and how many in a row, each newer than the one
     /// before, it turned away.
     behind: Option<(FrameId, u32)>,
+    /// The mark of the snapshot the map was loaded from: frames of its epoch up to it are held.
+    held: Option<FrameId>,
 }
 
 impl FrameOrder {
-    /// An order whose last integrated frame is `last`.
+    /// The order of a map loaded from a snapshot whose last integrated frame is `last`: it
+    /// holds every frame of `last`'s epoch up to `last`.
     pub fn starting_at(last: Option<FrameId>) -> Self {
-        Self { last, behind: None }
+        Self {
+            last,
+            behind: None,
+            held: last,
+        }
+    }
+
+    /// Whether the map holds `frame` already, by the snapshot it was loaded from.
+    fn holds(&self, frame: FrameId) -> bool {
+        self.held
+            .is_some_and(|held| frame.epoch_ns == held.epoch_ns && frame.seq <= held.seq)
     }
 
     /// The last integrated frame.
@@ -117,6 +130,7 @@ impl FrameOrder {
                 self.behind = None;
                 return FrameVerdict::Repeat;
             }
+            None if self.holds(frame) => return FrameVerdict::Stale,
             None => FrameVerdict::Stale,
         };
         let run = match self.behind {
@@ -219,6 +233,27 @@ mod tests {
         );
         assert_eq!(order.last(), Some(at(13)));
         assert_eq!(feed(&mut order, at(14)), FrameVerdict::Fresh);
+    }
+
+    #[test]
+    fn frames_a_snapshot_holds_replayed_in_order_do_not_resync() {
+        let mut order = FrameOrder::starting_at(Some(at(7)));
+        for seq in 3..7 {
+            assert_eq!(feed(&mut order, at(seq)), FrameVerdict::Stale);
+        }
+        assert_eq!(feed(&mut order, at(7)), FrameVerdict::Repeat);
+        assert_eq!(feed(&mut order, at(8)), FrameVerdict::Fresh);
+        // Behind a mark taken from a cloud (it may be forged) the same run does resync.
+        let mut order = FrameOrder::starting_at(Some(at(2)));
+        let forged = FrameId::new(EPOCH, 9);
+        assert_eq!(feed(&mut order, forged), FrameVerdict::Fresh);
+        for seq in 3..5 {
+            assert_eq!(feed(&mut order, at(seq)), FrameVerdict::Stale);
+        }
+        assert_eq!(
+            feed(&mut order, at(5)),
+            FrameVerdict::Resync { mark: forged }
+        );
     }
 
     #[test]

@@ -832,6 +832,31 @@ fn buffered_clouds_the_snapshot_holds_are_not_inserted_again() {
     assert!(m1.len() == m2.len() && m1.iter().all(|(k, v)| m2.get(k) == Some(v)));
 }
 
+#[test]
+fn clouds_a_loaded_snapshot_holds_replayed_after_the_load_are_not_inserted_again() {
+    let (info, clouds) = trolley_clouds(7);
+    let mut p1 = alone_with(&info, &clouds[..6]);
+    let mut p2 = joining_p1();
+    p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p2.handle(info_event(&info));
+    let Ok((_, snapshot)) = p1.snapshot_of("t1") else {
+        panic!("p1 holds t1")
+    };
+    p2.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot),
+    });
+    // A detector's cloud cache answers the gap p2 saw while it was cut off: frames 2..=6 again,
+    // in order, after the snapshot that holds them (more than the resync run of a live stream).
+    for c in &clouds[1..6] {
+        p2.handle(cloud_event(c));
+    }
+    assert_eq!(p2.planner("t1").unwrap().map().scans_inserted(), 6);
+    p1.handle(cloud_event(&clouds[6]));
+    p2.handle(cloud_event(&clouds[6]));
+    assert!(same_map(&p1, &p2, "t1"));
+}
+
 /// Whether two planners hold the same map of `tid`: the same voxels, values and scan count.
 fn same_map(a: &PlannerNode, b: &PlannerNode, tid: &str) -> bool {
     let (a, b) = (a.planner(tid).unwrap().map(), b.planner(tid).unwrap().map());

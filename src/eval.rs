@@ -127,6 +127,11 @@ pub struct EvalArgs {
     /// planner's default) keeps every cluster a target, as in the paper.
     #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS)]
     pub clutter_settles_after: u32,
+    /// A cluster taken for a fruit, once scans from this many distinct directions hit it, stops
+    /// drawing ROI-targeted views (its hidden back; the planner's default); 0 keeps every found
+    /// fruit a target, as in the paper, for a side-by-side run.
+    #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS)]
+    pub fruit_settles_after: u32,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
     /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
     /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
@@ -264,6 +269,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "hand_eye": !args.no_hand_eye,
         "motion_cost_per_s": args.motion_cost_per_s,
         "clutter_settles_after": args.clutter_settles_after,
+        "fruit_settles_after": args.fruit_settles_after,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -328,6 +334,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 hand_eye: !args.no_hand_eye,
                 motion_cost_per_s: args.motion_cost_per_s,
                 clutter_settles_after_views: args.clutter_settles_after,
+                fruit_settles_after_views: args.fruit_settles_after,
                 revisit_aim: !args.no_revisit_aim,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
@@ -620,6 +627,7 @@ mod tests {
             no_hand_eye: false,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
+            fruit_settles_after: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,

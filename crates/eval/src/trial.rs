@@ -94,6 +94,9 @@ pub struct TrialConfig {
     /// Scan directions after which a cluster shaped like no fruit stops drawing ROI views
     /// (`PlanningSettings::clutter_settles_after_views`; 0: never).
     pub clutter_settles_after_views: u32,
+    /// Scan directions after which a cluster taken for a fruit stops drawing ROI views
+    /// (`PlanningSettings::fruit_settles_after_views`; 0: never).
+    pub fruit_settles_after_views: u32,
 }
 
 impl TrialConfig {
@@ -117,6 +120,7 @@ impl TrialConfig {
             revisit_aim: true,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
+            fruit_settles_after_views: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
         }
     }
 
@@ -164,6 +168,7 @@ impl TrialConfig {
         settings.aim_at_remembered_fruit = self.revisit_aim;
         settings.cost_weight_per_s = self.motion_cost_per_s;
         settings.clutter_settles_after_views = self.clutter_settles_after_views;
+        settings.fruit_settles_after_views = self.fruit_settles_after_views;
         settings
     }
 

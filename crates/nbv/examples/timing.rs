@@ -86,7 +86,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        settled_clutter: &[],
+        settled_voxels: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {

@@ -285,11 +285,13 @@ pub struct PlanningContext<'a> {
     /// [`RoiMap::unobserved_hints`]): ROI-targeted sampling aims at those no scan of this visit
     /// has touched yet as at the ROI frontier. Empty on a first visit.
     pub remembered_fruit: &'a [VoxelKey],
-    /// The voxels, sorted, of ROI clusters judged not fruit by their shape after being seen
-    /// from several directions (a red leaf, a clip, a label, a stem): an ROI target whose every
-    /// ROI face neighbour is one of them is no target (a fruit touching the clutter keeps the
-    /// targets beside its own voxels). They stay ROI; only the views they drew are saved.
-    pub settled_clutter: &'a [VoxelKey],
+    /// The voxels, sorted, of settled ROI clusters: judged not fruit by their shape after being
+    /// seen from several directions (a red leaf, a clip, a label, a stem), or found fruit seen
+    /// from enough directions (their backs, pressed against a leaf, are never seen). An ROI
+    /// target whose every ROI face neighbour is one of them is no target (a cluster touching
+    /// a settled one keeps the targets beside its own voxels). They stay ROI; only the views
+    /// they drew are saved.
+    pub settled_voxels: &'a [VoxelKey],
 }
 
 impl fmt::Debug for PlanningContext<'_> {
@@ -302,7 +304,7 @@ impl fmt::Debug for PlanningContext<'_> {
             .field("reach", &self.reach.map(|_| "predicate"))
             .field("motion_time", &self.motion_time.map(|_| "function"))
             .field("remembered_fruit", &self.remembered_fruit.len())
-            .field("settled_clutter", &self.settled_clutter.len())
+            .field("settled_voxels", &self.settled_voxels.len())
             .finish()
     }
 }
@@ -759,12 +761,12 @@ fn rank(views: &[ScoredView], config: &PlannerConfig) -> Vec<ScoredView> {
     }
 }
 
-/// The ROI frontier in the sampling region beside more than settled clutter, then the
+/// The ROI frontier in the sampling region beside more than settled voxels, then the
 /// remembered fruit in it that no scan of this visit has touched.
 fn roi_targets_of(ctx: &PlanningContext) -> Vec<VoxelKey> {
     let mut targets = ctx.map.roi_frontier(&ctx.sampling_region);
-    if !ctx.settled_clutter.is_empty() {
-        let settled = |n: &VoxelKey| ctx.settled_clutter.binary_search(n).is_ok();
+    if !ctx.settled_voxels.is_empty() {
+        let settled = |n: &VoxelKey| ctx.settled_voxels.binary_search(n).is_ok();
         targets.retain(|&k| {
             let mut roi_beside = k
                 .neighbours(Neighbourhood::Six)

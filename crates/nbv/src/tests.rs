@@ -64,7 +64,7 @@ fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        settled_clutter: &[],
+        settled_voxels: &[],
     }
 }
 
@@ -131,7 +131,7 @@ fn settled_clutter_draws_no_roi_targets_and_keeps_its_roi_voxels() {
     };
     let whole = blob_voxels(-2..=1);
     let settled = PlanningContext {
-        settled_clutter: &whole,
+        settled_voxels: &whole,
         ..blob_context(&map)
     };
     let plan = plan_views(&settled, &config, 7).expect("valid plan");
@@ -142,7 +142,7 @@ fn settled_clutter_draws_no_roi_targets_and_keeps_its_roi_voxels() {
     // the x = 2 face (4 x 4) included, stay; those beside the settled half alone go.
     let half = blob_voxels(-2..=-1);
     let touching = PlanningContext {
-        settled_clutter: &half,
+        settled_voxels: &half,
         ..blob_context(&map)
     };
     let kept = plan_views(&touching, &config, 7)
@@ -314,7 +314,7 @@ fn exploration_when_there_is_no_roi() {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        settled_clutter: &[],
+        settled_voxels: &[],
     };
     for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
         let config = PlannerConfig {
@@ -347,7 +347,7 @@ fn never_empty_on_an_empty_map() {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        settled_clutter: &[],
+        settled_voxels: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {
@@ -536,7 +536,7 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         reach: Some(&reject),
         motion_time: None,
         remembered_fruit: &[],
-        settled_clutter: &[],
+        settled_voxels: &[],
     };
     for method in Method::ALL {
         let config = PlannerConfig {

@@ -358,9 +358,9 @@ pub struct TrolleyPlanner {
     pub(crate) season: SeasonTracker,
     /// The prior's fruit hints a plan aims at until a scan touches them (empty on a first visit).
     remembered_fruit: Vec<VoxelKey>,
-    /// The voxels, sorted, of the latest clusters that are settled clutter
+    /// The voxels, sorted, of the latest clusters that are settled (clutter and found fruit)
     /// ([`TrolleyPlanner::track`]).
-    settled_clutter: Vec<VoxelKey>,
+    settled_voxels: Vec<VoxelKey>,
 }
 
 impl TrolleyPlanner {
@@ -392,7 +392,7 @@ impl TrolleyPlanner {
             visit: 0,
             season: SeasonTracker::default(),
             remembered_fruit: Vec::new(),
-            settled_clutter: Vec::new(),
+            settled_voxels: Vec::new(),
         })
     }
 
@@ -579,14 +579,14 @@ impl TrolleyPlanner {
         self.colours.update(&self.clusters, &mut self.estimates);
         self.fits_stale = true;
         self.forget_found_again();
-        self.settle_clutter();
+        self.settle_clusters();
     }
 
     /// The voxels of the latest clusters that are settled, sorted: clutter
     /// ([`PlanningSettings::clutter_settles_after_views`]) and found fruit
     /// ([`PlanningSettings::fruit_settles_after_views`]).
-    fn settle_clutter(&mut self) {
-        self.settled_clutter.clear();
+    fn settle_clusters(&mut self) {
+        self.settled_voxels.clear();
         let clutter_after = self.settings.clutter_settles_after_views;
         let fruit_after = self.settings.fruit_settles_after_views;
         if clutter_after == 0 && fruit_after == 0 {
@@ -602,10 +602,10 @@ impl TrolleyPlanner {
                 Verdict::TooLarge | Verdict::Sheet => 0,
             };
             if after > 0 && estimate.view_directions >= after {
-                self.settled_clutter.extend_from_slice(&cluster.voxels);
+                self.settled_voxels.extend_from_slice(&cluster.voxels);
             }
         }
-        self.settled_clutter.sort_unstable();
+        self.settled_voxels.sort_unstable();
     }
 
     /// Remembered fruit voxels inside a cluster's box stop being targets: that fruit is found
@@ -803,7 +803,7 @@ impl TrolleyPlanner {
                 true => &self.remembered_fruit,
                 false => &[],
             },
-            settled_clutter: &self.settled_clutter,
+            settled_voxels: &self.settled_voxels,
         })
     }
 
@@ -976,10 +976,11 @@ impl TrolleyPlanner {
         Ok(planner)
     }
 
-    /// The voxels, sorted, of the latest clusters that are settled clutter: ROI-targeted
-    /// sampling does not aim beside them alone ([`PlanningSettings::clutter_settles_after_views`]).
-    pub fn settled_clutter(&self) -> &[VoxelKey] {
-        &self.settled_clutter
+    /// The voxels, sorted, of the latest clusters that are settled: ROI-targeted sampling does
+    /// not aim beside them alone ([`PlanningSettings::clutter_settles_after_views`],
+    /// [`PlanningSettings::fruit_settles_after_views`]).
+    pub fn settled_voxels(&self) -> &[VoxelKey] {
+        &self.settled_voxels
     }
 
     /// The previous visit's fruit voxels a plan still aims at (no scan of this visit has

@@ -43,7 +43,7 @@ fn settled_after(
         trolley.execute(&goals);
     }
     (
-        planner.settled_clutter().to_vec(),
+        planner.settled_voxels().to_vec(),
         trolley.scene().fruits().to_vec(),
     )
 }

@@ -1169,20 +1169,24 @@ mod settings_tests {
     }
 
     #[test]
-    fn settled_clutter_is_off_by_default_and_read_from_settings() {
-        assert_eq!(PlanningSettings::default().clutter_settles_after_views, 0);
-        let json = r#"{ "clutter_settles_after_views": 3 }"#;
+    fn settling_is_off_for_clutter_and_after_four_directions_for_fruit_by_default() {
+        let default = PlanningSettings::default();
+        assert_eq!(
+            (
+                default.clutter_settles_after_views,
+                default.fruit_settles_after_views
+            ),
+            (0, 4)
+        );
+        let json = r#"{ "clutter_settles_after_views": 3, "fruit_settles_after_views": 0 }"#;
         let read: PlanningSettings = serde_json::from_str(json).unwrap();
-        assert_eq!(read.clutter_settles_after_views, 3);
-        assert!(read.validate().is_ok());
-    }
-
-    #[test]
-    fn found_fruit_settle_after_four_directions_by_default_and_the_paper_is_one_setting_away() {
-        assert_eq!(PlanningSettings::default().fruit_settles_after_views, 4);
-        let json = r#"{ "fruit_settles_after_views": 0 }"#;
-        let read: PlanningSettings = serde_json::from_str(json).unwrap();
-        assert_eq!(read.fruit_settles_after_views, 0);
+        assert_eq!(
+            (
+                read.clutter_settles_after_views,
+                read.fruit_settles_after_views
+            ),
+            (3, 0)
+        );
         assert!(read.validate().is_ok());
     }
 

@@ -128,8 +128,8 @@ pub struct EvalArgs {
     #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS)]
     pub clutter_settles_after: u32,
     /// A cluster taken for a fruit, once scans from this many distinct directions hit it, stops
-    /// drawing ROI-targeted views (its hidden back; the planner's default); 0 keeps every found
-    /// fruit a target, as in the paper, for a side-by-side run.
+    /// drawing ROI-targeted views (its hidden back), for a side-by-side run; 0 (the planner's
+    /// default) keeps every found fruit a target, as in the paper.
     #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS)]
     pub fruit_settles_after: u32,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:

@@ -21,7 +21,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
-use glasshouse_geom::Rgb;
+use glasshouse_geom::{volume_change_m3, Rgb};
 use glasshouse_proto::{FrameRegistration, FruitHistory, FruitVisit, RigidCorrection};
 use serde::Serialize;
 
@@ -367,17 +367,29 @@ pub struct SeasonVisitDoc {
     pub volume_cm3: f64,
     /// Its mean observed colour on that visit, `#rrggbb`; null when unknown.
     pub colour: Option<String>,
+    /// Its volume over the record before, measured on one shape; null when not measured.
+    pub volume_ratio: Option<f64>,
+    /// Its volume change since the record before: measured on one shape where the ratio was
+    /// (`glasshouse_geom::volume_change_m3`); null where it was not.
+    pub growth_cm3: Option<f64>,
 }
 
 impl SeasonVisitDoc {
-    /// The record in the page's units; `None` when a value is not finite.
-    fn new(v: &FruitVisit) -> Option<Self> {
+    /// The record in the page's units, `before` the fruit's record before it; `None` when a
+    /// value is not finite.
+    fn new(v: &FruitVisit, before: Option<&FruitVisit>) -> Option<Self> {
+        let growth_m3 = match (before, v.volume_ratio) {
+            (Some(b), Some(ratio)) => Some(volume_change_m3(b.volume_m3, v.volume_m3, ratio)),
+            _ => None,
+        };
         let doc = Self {
             visit: v.visit,
             centre_m: v.centre.coords.into(),
             size_m: v.size_m.into(),
             volume_cm3: v.volume_m3 * 1e6,
             colour: v.colour.as_ref().map(Rgb::hex),
+            volume_ratio: v.volume_ratio,
+            growth_cm3: growth_m3.map(|g| g * 1e6).filter(|g| g.is_finite()),
         };
         let values = doc.centre_m.iter().chain(&doc.size_m);
         let finite = values.chain([&doc.volume_cm3]).all(|x| x.is_finite());
@@ -391,7 +403,12 @@ impl SeasonFruitDoc {
             season_id: h.season_id,
             fruit_id: h.fruit_id,
             status: if h.fruit_id == 0 { NOT_SEEN } else { SEEN },
-            visits: h.visits.iter().filter_map(SeasonVisitDoc::new).collect(),
+            visits: (0..h.visits.len())
+                .filter_map(|i| {
+                    let before = i.checked_sub(1).map(|b| &h.visits[b]);
+                    SeasonVisitDoc::new(&h.visits[i], before)
+                })
+                .collect(),
         }
     }
 
@@ -420,19 +437,23 @@ pub fn season_doc(fleet: &FleetState, tid: &str) -> Option<SeasonDoc> {
 /// when unknown).
 pub fn season_csv(season: &SeasonDoc) -> String {
     let mut out = String::from(
-        "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour\n",
+        "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour,volume_ratio,growth_cm3\n",
     );
+    let optional =
+        |v: Option<f64>, digits: usize| v.map_or(String::new(), |v| format!("{v:.digits$}"));
     for f in &season.fruits {
         for v in &f.visits {
             let [cx, cy, cz] = v.centre_m;
             let [sx, sy, sz] = v.size_m;
             out.push_str(&format!(
-                "{},{},{cx:.4},{cy:.4},{cz:.4},{sx:.4},{sy:.4},{sz:.4},{:.3},{},{}\n",
+                "{},{},{cx:.4},{cy:.4},{cz:.4},{sx:.4},{sy:.4},{sz:.4},{:.3},{},{},{},{}\n",
                 f.season_id,
                 v.visit,
                 v.volume_cm3,
                 f.seen(),
                 v.colour.as_deref().unwrap_or_default(),
+                optional(v.volume_ratio, 4),
+                optional(v.growth_cm3, 3),
             ));
         }
     }
@@ -751,16 +772,19 @@ mod tests {
                     colour: None,
                     ..on(1, 2e-4)
                 }],
+                last_surface: None,
             },
             FruitHistory {
                 season_id: 7,
                 fruit_id: 9,
                 visits: vec![on(2, 1e-4)],
+                last_surface: None,
             },
             FruitHistory {
                 season_id: 8,
                 fruit_id: 0,
                 visits: vec![on(1, f64::NAN)],
+                last_surface: None,
             },
         ]);
         let mut fleet = FleetState::default();
@@ -821,14 +845,14 @@ mod tests {
         let lines: Vec<_> = csv.lines().collect();
         assert_eq!(
             lines[0],
-            "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour"
+            "season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour,volume_ratio,growth_cm3"
         );
         // Fruit 5's two visits, fruit 6's and fruit 7's one each; fruit 8's NaN left out.
         assert_eq!(lines.len(), 1 + 4, "{csv}");
         let r = sample_record(1);
         let (c, size) = (r.centre, r.size_m);
         let expected = format!(
-            "5,2,{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},true,#be2319",
+            "5,2,{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},true,#be2319,1.9531,116.348",
             c.x,
             c.y,
             c.z,
@@ -838,10 +862,11 @@ mod tests {
             r.volume_m3 * 1e6
         );
         assert_eq!(lines[2], expected);
-        assert!(lines[1].ends_with(",true,#6e9628"), "{csv}");
+        // The first visit has no growth to measure: empty fields.
+        assert!(lines[1].ends_with(",true,#6e9628,,"), "{csv}");
         // Fruit 6's colour is unknown: an empty field.
-        assert!(lines[3].starts_with("6,1,") && lines[3].ends_with(",200.000,false,"));
-        assert!(lines.iter().all(|l| l.split(',').count() == 11), "{csv}");
+        assert!(lines[3].starts_with("6,1,") && lines[3].ends_with(",200.000,false,,,"));
+        assert!(lines.iter().all(|l| l.split(',').count() == 13), "{csv}");
     }
 
     #[test]

@@ -167,7 +167,7 @@ async fn check_season_downloads(addr: SocketAddr) {
     let mut lines = csv.lines();
     assert_eq!(
         lines.next(),
-        Some("season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour"),
+        Some("season_id,visit,centre_x_m,centre_y_m,centre_z_m,size_x_m,size_y_m,size_z_m,volume_cm3,seen_this_visit,colour,volume_ratio,growth_cm3"),
         "season CSV: {csv}"
     );
     let records: Vec<_> = lines.collect();
@@ -175,7 +175,9 @@ async fn check_season_downloads(addr: SocketAddr) {
     let mut coloured = 0;
     for record in records {
         let fields: Vec<_> = record.split(',').collect();
-        assert_eq!(fields.len(), 11, "season CSV line {record:?}");
+        assert_eq!(fields.len(), 13, "season CSV line {record:?}");
+        // A first visit has no growth measured: no volume ratio, no growth.
+        assert_eq!((fields[11], fields[12]), ("", ""), "{record:?}");
         assert!(fields[9] == "true" || fields[9] == "false", "{record:?}");
         // The fruit's colour on the visit, `#rrggbb`, or empty when unknown.
         let colour = fields[10];

@@ -824,6 +824,7 @@ mod tests {
             frames_without_reachable_view: 0,
             compute_time_s: 0.002,
             fruits: Vec::new(),
+            fruit_surfaces: Vec::new(),
             clusters: Vec::new(),
             truths: Vec::new(),
             registration: Default::default(),

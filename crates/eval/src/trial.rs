@@ -226,6 +226,10 @@ pub struct TrialResult {
     pub compute_time_s: f64,
     /// The estimates at the end of the budget.
     pub fruits: Vec<FruitEstimate>,
+    /// The surface each of `fruits` was fitted to (its cluster's voxel centres, world frame),
+    /// in the same order; empty where the planner no longer holds the cluster.
+    #[serde(skip)]
+    pub fruit_surfaces: Vec<Vec<nalgebra::Point3<f64>>>,
     /// What became of every ROI cluster at the end of the budget (reported, or why not).
     #[serde(skip)]
     pub clusters: Vec<ClusterOutcome>,
@@ -574,6 +578,8 @@ impl<S: TrolleySource> Trial<S> {
         }
         progress(self.config.budget_s);
         let clusters = self.planner.cluster_outcomes();
+        let ids: Vec<u32> = self.published.fruits.iter().map(|f| f.id).collect();
+        let fruit_surfaces = self.planner.fruit_voxel_centres(&ids);
         let registration = *self.planner.alignment_counts();
         let result = TrialResult {
             config: self.config,
@@ -585,6 +591,7 @@ impl<S: TrolleySource> Trial<S> {
             frames_without_reachable_view: self.frames_without_reachable_view,
             compute_time_s: self.compute_time_s,
             fruits: self.published.fruits,
+            fruit_surfaces,
             clusters,
             truths: self.scene.fruits().to_vec(),
             registration,

@@ -16,6 +16,7 @@
 //!   world seldom finds 95 % of all the fruits, also the time of every visit to 95 % of what
 //!   the first visit found ([`SeasonFigures::first_visit_level`]).
 
+use glasshouse_geom::FruitEstimate;
 use glasshouse_nbv::season::{estimate_volume_m3, SeasonRules, SeasonTracker};
 use glasshouse_sim::FruitTruth;
 use nalgebra::Point3;
@@ -81,8 +82,13 @@ impl IdentityCounts {
 pub struct SeasonFigures {
     pub visits: Vec<VisitFigures>,
     pub identity: IdentityCounts,
-    /// `|ΔV_est − ΔV_true| / ΔV_true` of every correct link of a growing fruit.
+    /// `|ΔV_est − ΔV_true| / ΔV_true` of every correct link of a growing fruit, the change
+    /// measured on one shape ([`glasshouse_nbv::season::SeasonFruit::volume_change_m3`]; where it cannot be, the
+    /// difference of the two visits' volumes).
     pub growth_errors: Vec<f64>,
+    /// The same links' errors with the change taken as the difference of the two visits'
+    /// fitted volumes: the estimate before the change was measured on one shape, side by side.
+    pub differenced_growth_errors: Vec<f64>,
     /// Fruits the season tracker knows at the end.
     pub season_fruits: usize,
     /// 95 % of the share of true fruits the first visit detected by its end: the level every
@@ -96,6 +102,9 @@ struct Judged {
     season_id: u32,
     volume_m3: f64,
     truth: Option<usize>,
+    /// Its fruit's volume change since its record before this visit, as the season tracker
+    /// gives it ([`glasshouse_nbv::season::SeasonFruit::volume_change_m3`]).
+    change_m3: Option<f64>,
 }
 
 /// The figures of one trial's visits, in day order (`days[k]` the day of `visits[k]`).
@@ -106,7 +115,7 @@ pub fn season_figures(visits: &[TrialResult], days: &[f64], rules: SeasonRules) 
         .map(|result| judge(&mut tracker, result))
         .collect();
     let mut identity = IdentityCounts::default();
-    let mut growth_errors = Vec::new();
+    let (mut growth_errors, mut differenced_growth_errors) = (Vec::new(), Vec::new());
     for k in 1..visits.len() {
         let (before, after) = (&visits[k - 1], &visits[k]);
         let counts = links(
@@ -114,7 +123,7 @@ pub fn season_figures(visits: &[TrialResult], days: &[f64], rules: SeasonRules) 
             after,
             &judged[k - 1],
             &judged[k],
-            &mut growth_errors,
+            (&mut growth_errors, &mut differenced_growth_errors),
         );
         identity.add(&counts);
     }
@@ -129,24 +138,30 @@ pub fn season_figures(visits: &[TrialResult], days: &[f64], rules: SeasonRules) 
             .collect(),
         identity,
         growth_errors,
+        differenced_growth_errors,
         season_fruits: tracker.fruits().len(),
         first_visit_level,
     }
 }
 
 /// Where an estimate's fruit is: its fitted solid's centre, else its voxels' mean.
-fn centre_of(e: &glasshouse_geom::FruitEstimate) -> Point3<f64> {
+fn centre_of(e: &FruitEstimate) -> Point3<f64> {
     e.solid.as_ref().map_or(e.centre, |s| s.centre)
 }
 
 fn judge(tracker: &mut SeasonTracker, result: &TrialResult) -> Vec<Judged> {
-    let ids = tracker.observe(&result.fruits);
+    let visit = tracker.visits();
+    let ids = tracker.observe_visit_measured(visit, &result.fruits, &result.fruit_surfaces);
     let centres: Vec<Point3<f64>> = result.fruits.iter().map(centre_of).collect();
     let truths: Vec<Point3<f64>> = result.truths.iter().map(|t| t.body_centre).collect();
     let mut truth_of = vec![None; centres.len()];
     for m in greedy_match(&centres, &truths, NEAR_MATCH_DISTANCE_M) {
         truth_of[m.estimate] = Some(m.truth);
     }
+    let change_of = |season_id: u32| {
+        let fruit = tracker.fruits().iter().find(|f| f.id == season_id)?;
+        fruit.volume_change_m3(visit)
+    };
     result
         .fruits
         .iter()
@@ -156,6 +171,7 @@ fn judge(tracker: &mut SeasonTracker, result: &TrialResult) -> Vec<Judged> {
             season_id,
             volume_m3: estimate_volume_m3(e),
             truth,
+            change_m3: change_of(season_id),
         })
         .collect()
 }
@@ -166,7 +182,7 @@ fn links(
     after: &TrialResult,
     a: &[Judged],
     b: &[Judged],
-    growth_errors: &mut Vec<f64>,
+    (growth_errors, differenced_errors): (&mut Vec<f64>, &mut Vec<f64>),
 ) -> IdentityCounts {
     let true_id = |r: &TrialResult, j: &Judged| j.truth.map(|t| r.truths[t].id);
     let ids_a: Vec<u32> = a.iter().filter_map(|j| true_id(before, j)).collect();
@@ -197,8 +213,10 @@ fn links(
         counts.correct += 1;
         let true_change = fb.body_volume_m3 - fa.body_volume_m3;
         if true_change >= MIN_GROWTH_SHARE * fa.body_volume_m3 {
-            let estimated = jb.volume_m3 - ja.volume_m3;
-            growth_errors.push((estimated - true_change).abs() / true_change);
+            let differenced = jb.volume_m3 - ja.volume_m3;
+            let error = |estimated: f64| (estimated - true_change).abs() / true_change;
+            growth_errors.push(error(jb.change_m3.unwrap_or(differenced)));
+            differenced_errors.push(error(differenced));
         }
     }
     counts

@@ -124,6 +124,21 @@ impl FruitEstimate {
     }
 }
 
+/// A fruit's fitted solid on one visit with the surface it was fitted to (its cluster's voxel
+/// centres, world frame): what the next visit's growth is measured against.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FruitSurface {
+    pub solid: FruitSolid,
+    pub points_m: Vec<Point3<f64>>,
+}
+
+/// The volume change from a visit of volume `a_m3` to one of `b_m3` whose volumes' ratio was
+/// measured as `ratio` (on one shape, `glasshouse_nbv::growth::volume_ratio`): both fitted
+/// volumes brought to one base, `V_a' = √(V_a · V_b / r)`, and the change `V_a'·(r − 1)`.
+pub fn volume_change_m3(a_m3: f64, b_m3: f64, ratio: f64) -> f64 {
+    (a_m3 * b_m3 / ratio).sqrt() * (ratio - 1.0)
+}
+
 /// Boxes spanning more voxels than this along an axis cover none: no fruit is metres long, and
 /// a damaged or hostile box must not cost an unbounded loop.
 pub const MAX_BOX_VOXELS_PER_AXIS: i64 = 300;

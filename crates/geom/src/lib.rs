@@ -14,7 +14,10 @@ use nalgebra::{Isometry3, Point3, Rotation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 pub use colour::{Rgb, RgbSum};
-pub use fruit::{box_voxel_keys, covered_volume, FruitEstimate, FruitSolid, SolidKind};
+pub use fruit::{
+    box_voxel_keys, covered_volume, volume_change_m3, FruitEstimate, FruitSolid, FruitSurface,
+    SolidKind,
+};
 
 /// Pinhole intrinsics of a depth/colour camera, in pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -42,6 +42,7 @@
 
 pub mod evidence;
 pub mod fit;
+pub mod growth;
 pub mod season;
 pub mod split;
 pub mod superellipsoid;

@@ -16,9 +16,11 @@
 //! fruit with a new id. Each fruit keeps its history: centre, size, volume and observed colour
 //! per visit.
 
-use glasshouse_geom::{FruitEstimate, Rgb};
+use glasshouse_geom::{FruitEstimate, FruitSurface, Rgb};
 use nalgebra::{Point3, Vector3};
 use serde::Serialize;
+
+use crate::growth::{volume_change_m3, volume_ratio};
 
 /// How visits are matched.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
@@ -56,6 +58,10 @@ pub struct VisitRecord {
     pub visit_fruit_id: u32,
     /// Its mean observed colour on that visit ([`FruitEstimate::colour`]); `None`: unknown.
     pub colour: Option<Rgb>,
+    /// Its volume over the record before it, measured on one shape
+    /// ([`crate::growth::volume_ratio`]); `None`: not measured (the first record, a visit taken
+    /// without surfaces, a fit missing on either visit).
+    pub volume_ratio: Option<f64>,
 }
 
 /// A fruit over the season.
@@ -63,6 +69,10 @@ pub struct VisitRecord {
 pub struct SeasonFruit {
     pub id: u32,
     pub history: Vec<VisitRecord>,
+    /// The solid and surface of its last record, when that visit was taken with surfaces: what
+    /// the next visit's growth is measured against.
+    #[serde(skip)]
+    pub last_surface: Option<FruitSurface>,
 }
 
 impl SeasonFruit {
@@ -73,6 +83,18 @@ impl SeasonFruit {
     /// Whether it was seen on `visit`: its record then.
     pub fn on(&self, visit: usize) -> Option<&VisitRecord> {
         self.history.iter().find(|r| r.visit == visit)
+    }
+
+    /// Its volume change from its record before `visit` to `visit`'s: measured on one shape
+    /// where the ratio was ([`crate::growth::volume_change_m3`]), else the difference of the
+    /// two records' volumes; `None` without both records.
+    pub fn volume_change_m3(&self, visit: usize) -> Option<f64> {
+        let at = self.history.iter().position(|r| r.visit == visit)?;
+        let (before, now) = (self.history.get(at.checked_sub(1)?)?, &self.history[at]);
+        Some(match now.volume_ratio {
+            Some(ratio) => volume_change_m3(before.volume_m3, now.volume_m3, ratio),
+            None => now.volume_m3 - before.volume_m3,
+        })
     }
 }
 
@@ -136,7 +158,21 @@ impl SeasonTracker {
 
     /// Takes the estimates of visit `visit` (visits skipped before it saw nothing; an earlier
     /// visit than the next is taken as the next); returns each estimate's season id, in order.
+    /// No growth is measured ([`SeasonTracker::observe_visit_measured`]).
     pub fn observe_visit(&mut self, visit: usize, estimates: &[FruitEstimate]) -> Vec<u32> {
+        self.observe_visit_measured(visit, estimates, &[])
+    }
+
+    /// [`SeasonTracker::observe_visit`], with the surface each estimate's solid was fitted to
+    /// (`surfaces[i]` estimate `i`'s voxel centres; missing or empty: none): each fruit's
+    /// growth since its last record is measured on one shape ([`VisitRecord::volume_ratio`]),
+    /// and its surface kept for the next visit.
+    pub fn observe_visit_measured(
+        &mut self,
+        visit: usize,
+        estimates: &[FruitEstimate],
+        surfaces: &[Vec<Point3<f64>>],
+    ) -> Vec<u32> {
         let visit = visit.max(self.visits);
         self.visits = visit + 1;
         let open: Vec<usize> = (0..self.fruits.len())
@@ -155,15 +191,31 @@ impl SeasonTracker {
         let offset = self.offset_of(estimates, &coarse);
         let matched = self.matches(estimates, &open, offset, self.rules.max_distance_m);
         let mut ids: Vec<Option<u32>> = vec![None; estimates.len()];
+        let surface_of = |e: usize| {
+            let points = surfaces.get(e).filter(|p| !p.is_empty())?;
+            let solid = estimates[e].solid?;
+            Some(FruitSurface {
+                solid,
+                points_m: thinned(points),
+            })
+        };
         for (e, f) in matched {
             ids[e] = Some(self.fruits[f].id);
-            self.fruits[f]
-                .history
-                .push(record(visit, &estimates[e], &offset));
+            let fruit = &mut self.fruits[f];
+            let surface = surface_of(e);
+            let mut now = record(visit, &estimates[e], &offset);
+            if let (Some(before), Some(after)) = (&fruit.last_surface, &surface) {
+                now.volume_ratio = volume_ratio(before, after);
+            }
+            fruit.history.push(now);
+            fruit.last_surface = surface;
         }
         ids.iter()
+            .enumerate()
             .zip(estimates)
-            .map(|(id, estimate)| id.unwrap_or_else(|| self.open_new(visit, estimate, &offset)))
+            .map(|((e, id), estimate)| {
+                id.unwrap_or_else(|| self.open_new(visit, estimate, &offset, surface_of(e)))
+            })
             .collect()
     }
 
@@ -235,14 +287,35 @@ impl SeasonTracker {
         (d <= max_distance_m && plausible).then_some(d)
     }
 
-    fn open_new(&mut self, visit: usize, estimate: &FruitEstimate, offset: &Vector3<f64>) -> u32 {
+    fn open_new(
+        &mut self,
+        visit: usize,
+        estimate: &FruitEstimate,
+        offset: &Vector3<f64>,
+        surface: Option<FruitSurface>,
+    ) -> u32 {
         let id = self.fruits.len() as u32 + 1;
         self.fruits.push(SeasonFruit {
             id,
             history: vec![record(visit, estimate, offset)],
+            last_surface: surface,
         });
         id
     }
+}
+
+/// A fruit's surface keeps at most this many points (snapshots and the store carry it).
+pub const MAX_SURFACE_POINTS: usize = 128;
+
+/// `points`, every k-th kept so that at most [`MAX_SURFACE_POINTS`] remain.
+fn thinned(points: &[Point3<f64>]) -> Vec<Point3<f64>> {
+    let n = points.len();
+    if n <= MAX_SURFACE_POINTS {
+        return points.to_vec();
+    }
+    (0..MAX_SURFACE_POINTS)
+        .map(|i| points[i * n / MAX_SURFACE_POINTS])
+        .collect()
 }
 
 /// An estimate's record, its centre shifted back by its visit's `offset`.
@@ -254,12 +327,14 @@ fn record(visit: usize, e: &FruitEstimate, offset: &Vector3<f64>) -> VisitRecord
         volume_m3: estimate_volume_m3(e),
         visit_fruit_id: e.id,
         colour: e.colour,
+        volume_ratio: None,
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glasshouse_geom::FruitSolid;
 
     fn fruit(id: u32, x: f64, half_m: f64) -> FruitEstimate {
         let c = Point3::new(x, 0.0, 1.0);
@@ -341,6 +416,78 @@ mod tests {
         assert_eq!(
             season.observe(&[fruit(1, 0.005, 0.031), fruit(2, 0.3, 0.065)]),
             [1, 3]
+        );
+    }
+
+    /// A round fruit of radius `r_m` at `x` with a fitted sphere, and the voxel centres (5 mm)
+    /// of the half of its surface facing +x. (On the planner's 1 cm voxels the way the grid cuts
+    /// a small fruit's surface moves a scale by a few per cent; this test is of the tracker.)
+    fn round_fruit(id: u32, x: f64, r_m: f64) -> (FruitEstimate, Vec<Point3<f64>>) {
+        use crate::superellipsoid::Superellipsoid;
+        let c = Point3::new(x, 0.0, 1.0);
+        let sphere = Superellipsoid::sphere(c, r_m);
+        let mut keys = std::collections::BTreeSet::new();
+        for i in 0..60 {
+            for j in 0..120 {
+                let (theta, phi) = (std::f64::consts::PI * i as f64 / 59.0, 0.05 * j as f64);
+                let u = Vector3::new(
+                    theta.sin() * phi.cos(),
+                    theta.sin() * phi.sin(),
+                    theta.cos(),
+                );
+                let p = sphere.surface_point(&u);
+                if p.x > c.x {
+                    keys.insert([0, 1, 2].map(|k| (p[k] / 0.005).floor() as i64));
+                }
+            }
+        }
+        let points = keys
+            .iter()
+            .map(|k| Point3::from(k.map(|v| (v as f64 + 0.5) * 0.005)))
+            .collect();
+        let h = Vector3::repeat(r_m);
+        let mut estimate = FruitEstimate::from_box(id, c, c - h, c + h);
+        estimate.solid = Some(FruitSolid {
+            kind: glasshouse_geom::SolidKind::Ellipsoid,
+            volume_m3: sphere.volume_m3(),
+            ..estimate.solid_or_box()
+        });
+        (estimate, points)
+    }
+
+    #[test]
+    fn growth_is_measured_on_one_shape_when_a_visit_comes_with_its_surfaces() {
+        let mut season = SeasonTracker::new(SeasonRules::default());
+        let (monday, monday_surface) = round_fruit(1, 0.0, 0.03);
+        season.observe_visit_measured(0, &[monday], &[monday_surface]);
+        // Thursday's fit made it 30 % too large, but its surface says it grew 10 % in size.
+        let (mut thursday, thursday_surface) = round_fruit(4, 0.012, 0.033);
+        if let Some(solid) = &mut thursday.solid {
+            solid.volume_m3 *= 1.3;
+        }
+        season.observe_visit_measured(1, &[thursday], &[thursday_surface]);
+        let fruit = &season.fruits()[0];
+        let ratio = fruit.history[1].volume_ratio.expect("growth measured");
+        assert!((ratio / 1.1f64.powi(3) - 1.0).abs() < 0.08, "{ratio}");
+        let true_change = 4.0 / 3.0 * std::f64::consts::PI * (0.033f64.powi(3) - 0.03f64.powi(3));
+        let measured = fruit.volume_change_m3(1).expect("two records");
+        let differenced = fruit.history[1].volume_m3 - fruit.history[0].volume_m3;
+        let error = |v: f64| (v - true_change).abs() / true_change;
+        assert!(
+            error(measured) < 0.5 * error(differenced),
+            "{measured} {differenced}"
+        );
+        // Without surfaces no growth is measured: the difference of the volumes stands.
+        let mut plain = SeasonTracker::new(SeasonRules::default());
+        plain.observe(&[round_fruit(1, 0.0, 0.03).0]);
+        plain.observe(&[thursday]);
+        let fruit = &plain.fruits()[0];
+        assert_eq!(fruit.history[1].volume_ratio, None);
+        assert_eq!(fruit.volume_change_m3(1), Some(differenced));
+        assert_eq!(
+            fruit.volume_change_m3(0),
+            None,
+            "no record before the first"
         );
     }
 }

@@ -643,6 +643,20 @@ impl TrolleyPlanner {
             .note_scan(*sensor_origin_in_world, keys.collect());
     }
 
+    /// The voxel centres (world frame) of the latest clusters whose fruits have the ids `ids`:
+    /// the surface each fruit was fitted to; empty for an id no latest cluster carries.
+    pub fn fruit_voxel_centres(&self, ids: &[u32]) -> Vec<Vec<nalgebra::Point3<f64>>> {
+        ids.iter()
+            .map(|id| {
+                let Some(i) = self.estimates.iter().position(|e| e.id == *id) else {
+                    return Vec::new();
+                };
+                let voxels = &self.clusters[i].voxels;
+                voxels.iter().map(|k| self.map.centre_of(*k)).collect()
+            })
+            .collect()
+    }
+
     /// Every fruit of the latest clusters with its fitted solid and, as its confidence, the
     /// evidence's that it is a fruit: the clusters [`TrolleyPlanner::cluster_outcomes`] reports.
     pub fn fruits(&mut self) -> Vec<FruitEstimate> {
@@ -864,7 +878,7 @@ impl TrolleyPlanner {
             // Set by the planner service (the newest ownership epoch it knows).
             owner_epoch: glasshouse_fleet::NO_EPOCH,
             visit: self.visit,
-            season: self.season_histories(&[]),
+            season: self.committed_season(),
             hand_eye: self.hand_eye_on_the_wire(),
         })
     }
@@ -946,7 +960,7 @@ impl TrolleyPlanner {
             next_fruit_id,
             owner_epoch: glasshouse_fleet::NO_EPOCH,
             visit: self.visit,
-            season: self.season_histories(&[]),
+            season: self.committed_season(),
             hand_eye: self.hand_eye_on_the_wire(),
         };
         StoredCopy {

@@ -27,7 +27,10 @@ impl TrolleyPlanner {
         }
         rules.validate().map_err(PlanningError::Settings)?;
         let fruits = self.fruits();
-        self.season.observe_visit(self.visit as usize, &fruits);
+        let ids: Vec<u32> = fruits.iter().map(|f| f.id).collect();
+        let surfaces = self.fruit_voxel_centres(&ids);
+        self.season
+            .observe_visit_measured(self.visit as usize, &fruits, &surfaces);
         let prior = self.map.prior(rules);
         let mut next = Self::on_prior(self.settings.clone(), prior)?;
         next.info = self.info.take();
@@ -48,7 +51,9 @@ impl TrolleyPlanner {
     /// Every fruit of the season as FruitEstimates carries it: the fruits of the earlier visits
     /// and `current` (this visit's estimates, matched to them as a visit's end would match
     /// them, new ones numbered after them), each with its estimate's id on this visit (0: not
-    /// seen on it). Nothing is committed: the visit's end decides.
+    /// seen on it). Nothing is committed: the visit's end decides, and measures each fruit's
+    /// growth since its last visit then (a record of the current visit has no volume ratio
+    /// yet). No surfaces: FruitEstimates leave them out.
     pub fn season_histories(&self, current: &[FruitEstimate]) -> Vec<FruitHistory> {
         let mut season = self.season.clone();
         let ids = season.observe_visit(self.visit as usize, current);
@@ -62,6 +67,23 @@ impl TrolleyPlanner {
                     .position(|&id| id == f.id)
                     .map_or(0, |i| current[i].id),
                 visits: f.history.iter().map(wire_record).collect(),
+                last_surface: None,
+            })
+            .collect()
+    }
+
+    /// The fruits of the visits before this one as a snapshot or the store keeps them: their
+    /// histories and the last surface of each, against which the next visit's growth is
+    /// measured.
+    pub fn committed_season(&self) -> Vec<FruitHistory> {
+        self.season
+            .fruits()
+            .iter()
+            .map(|f| FruitHistory {
+                season_id: f.id,
+                fruit_id: 0,
+                visits: f.history.iter().map(wire_record).collect(),
+                last_surface: f.last_surface.clone(),
             })
             .collect()
     }
@@ -73,6 +95,7 @@ impl TrolleyPlanner {
             .map(|h| SeasonFruit {
                 id: h.season_id,
                 history: h.visits.iter().map(tracker_record).collect(),
+                last_surface: h.last_surface.clone(),
             })
             .collect();
         self.visit = visit;
@@ -87,6 +110,7 @@ fn wire_record(r: &VisitRecord) -> FruitVisit {
         size_m: r.size_m,
         volume_m3: r.volume_m3,
         colour: r.colour,
+        volume_ratio: r.volume_ratio,
     }
 }
 
@@ -98,5 +122,6 @@ fn tracker_record(r: &FruitVisit) -> VisitRecord {
         volume_m3: r.volume_m3,
         visit_fruit_id: 0,
         colour: r.colour,
+        volume_ratio: r.volume_ratio,
     }
 }

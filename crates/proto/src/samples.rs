@@ -1,7 +1,8 @@
 //! Small, valid example messages of every kind, for tests and for fault injection.
 
 use glasshouse_geom::{
-    look_at, Aabb, CameraIntrinsics, FruitEstimate, FruitSolid, Rgb, RgbSum, SolidKind,
+    look_at, Aabb, CameraIntrinsics, FruitEstimate, FruitSolid, FruitSurface, Rgb, RgbSum,
+    SolidKind,
 };
 use nalgebra::{Isometry3, Point3, Vector3};
 
@@ -161,6 +162,8 @@ pub fn fruit_histories(fruit_id: u32) -> Vec<FruitHistory> {
         size_m: Vector3::new(0.0625, 0.078125, 0.09375) * grown,
         volume_m3: 2f64.powi(-13) * grown.powi(3),
         colour: Some(colour),
+        // The growth measured on one shape, where it was (not on the first record).
+        volume_ratio: (visit > 0).then_some(grown.powi(3)),
     };
     vec![FruitHistory {
         season_id: 5,
@@ -169,7 +172,23 @@ pub fn fruit_histories(fruit_id: u32) -> Vec<FruitHistory> {
             record(0, 1.0, Rgb::new(110, 150, 40)),
             record(2, 1.25, Rgb::new(190, 35, 25)),
         ],
+        last_surface: None,
     }]
+}
+
+/// [`fruit_histories`] as a snapshot keeps them: with the last visit's solid and surface.
+pub fn fruit_histories_with_surfaces() -> Vec<FruitHistory> {
+    let mut histories = fruit_histories(0);
+    for h in &mut histories {
+        h.last_surface = sample_fruit().solid.map(|solid| FruitSurface {
+            solid,
+            points_m: vec![
+                Point3::new(0.125, 0.25, 0.875),
+                Point3::new(0.0625, 0.25, 0.9375),
+            ],
+        });
+    }
+    histories
 }
 
 /// A small valid FruitEstimates.
@@ -333,7 +352,7 @@ pub fn map_snapshot() -> MapSnapshot {
         next_fruit_id: 4,
         owner_epoch: SAMPLE_OWNER_EPOCH,
         visit: 2,
-        season: fruit_histories(0),
+        season: fruit_histories_with_surfaces(),
         hand_eye: Some(HandEye {
             camera_believed_from_true: Isometry3::translation(0.004, -0.002, 0.001),
             scans_seen: 3,

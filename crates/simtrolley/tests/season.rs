@@ -159,3 +159,68 @@ fn a_visits_first_map_update_replaces_the_last_visits_voxels() {
     // The next ones are changes again.
     assert!(!planner.map_update(2, "p1").full);
 }
+
+/// Integrates frames `seqs` of `trolley` (its view does not change between them).
+fn integrate(planner: &mut TrolleyPlanner, trolley: &mut SimTrolley, seqs: std::ops::Range<u64>) {
+    let detector = DetectorConfig::default();
+    for seq in seqs {
+        let frame = trolley.capture(seq).unwrap().unwrap();
+        let cloud = detect_frame(&frame, FrameId::new(0, seq), "d", &detector).unwrap();
+        planner.integrate(&cloud, 0).unwrap();
+    }
+}
+
+#[test]
+fn a_revisits_growth_is_measured_on_one_shape_against_what_a_snapshot_carries() {
+    let settings = SimTrolleySettings::new(ScenarioKind::Two, 3, (320, 240), 1.0);
+    let mut trolley = SimTrolley::new(settings).unwrap();
+    let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    planner.set_info(trolley.info()).unwrap();
+    integrate(&mut planner, &mut trolley, 1..4);
+    let fitted = planner
+        .fruits()
+        .iter()
+        .filter(|f| f.solid.is_some())
+        .count();
+    assert!(fitted > 0, "no fitted fruit in the first view");
+    assert!(planner.start_visit(1, &PriorRules::default()).unwrap());
+    // Each fitted fruit's surface is kept for the next visit, and a snapshot carries it.
+    let committed = planner.committed_season();
+    let surfaces: Vec<_> = committed
+        .iter()
+        .filter_map(|h| h.last_surface.as_ref())
+        .collect();
+    assert_eq!(surfaces.len(), fitted);
+    assert!(
+        surfaces.iter().all(|s| s.points_m.len() >= 12),
+        "too few points"
+    );
+    let snapshot = planner.snapshot("t1", "p1").unwrap();
+    let mut copy = TrolleyPlanner::from_snapshot(planner.settings().clone(), &snapshot).unwrap();
+    let carried = copy.committed_season();
+    for (a, b) in committed.iter().zip(&carried) {
+        let (a, b) = (a.last_surface.as_ref(), b.last_surface.as_ref());
+        assert_eq!(a.map(|s| s.points_m.len()), b.map(|s| s.points_m.len()));
+    }
+    // The same view again (the fruits did not grow): owner and copy measure a ratio near 1
+    // for every fruit seen on both visits, and the same one.
+    let mut again = SimTrolley::new(settings).unwrap();
+    integrate(&mut planner, &mut trolley, 4..7);
+    integrate(&mut copy, &mut again, 4..7);
+    assert!(planner.start_visit(2, &PriorRules::default()).unwrap());
+    assert!(copy.start_visit(2, &PriorRules::default()).unwrap());
+    let ratios = |p: &TrolleyPlanner| -> Vec<f64> {
+        let season = p.committed_season();
+        let on_visit_1 = season
+            .iter()
+            .flat_map(|h| h.visits.iter().filter(|v| v.visit == 1));
+        on_visit_1.filter_map(|v| v.volume_ratio).collect()
+    };
+    let (owner, copied) = (ratios(&planner), ratios(&copy));
+    assert!(!owner.is_empty(), "no growth measured");
+    assert!(owner.iter().all(|r| (r - 1.0).abs() < 0.1), "{owner:?}");
+    assert_eq!(owner.len(), copied.len());
+    for (a, b) in owner.iter().zip(&copied) {
+        assert!((a - b).abs() < 1e-3, "{owner:?} against {copied:?}");
+    }
+}

@@ -33,6 +33,7 @@ fn visit(truths: Vec<FruitTruth>, fruits: Vec<FruitEstimate>) -> TrialResult {
         frames_without_reachable_view: 0,
         compute_time_s: 0.0,
         fruits,
+        fruit_surfaces: Vec::new(),
         clusters: Vec::new(),
         truths,
         registration: Default::default(),

@@ -5027,6 +5027,9 @@ impl<'a> FruitHistory<'a> {
   pub const VT_VISITS: ::flatbuffers::VOffsetT = 8;
   pub const VT_COLOURS: ::flatbuffers::VOffsetT = 10;
   pub const VT_COLOUR_KNOWN: ::flatbuffers::VOffsetT = 12;
+  pub const VT_VOLUME_RATIOS: ::flatbuffers::VOffsetT = 14;
+  pub const VT_LAST_SOLID: ::flatbuffers::VOffsetT = 16;
+  pub const VT_LAST_SURFACE: ::flatbuffers::VOffsetT = 18;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -5038,6 +5041,9 @@ impl<'a> FruitHistory<'a> {
     args: &'args FruitHistoryArgs<'args>
   ) -> ::flatbuffers::WIPOffset<FruitHistory<'bldr>> {
     let mut builder = FruitHistoryBuilder::new(_fbb);
+    if let Some(x) = args.last_surface { builder.add_last_surface(x); }
+    if let Some(x) = args.last_solid { builder.add_last_solid(x); }
+    if let Some(x) = args.volume_ratios { builder.add_volume_ratios(x); }
     if let Some(x) = args.colour_known { builder.add_colour_known(x); }
     if let Some(x) = args.colours { builder.add_colours(x); }
     if let Some(x) = args.visits { builder.add_visits(x); }
@@ -5086,6 +5092,34 @@ impl<'a> FruitHistory<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, bool>>>(FruitHistory::VT_COLOUR_KNOWN, None)}
   }
+  /// The fruit's growth measured on one shape, parallel to visits: each visit's volume over the
+  /// record before it, both visits' surfaces fitted by one solid (NaN where not measured: the
+  /// first record, a visit that ended without a fit); empty when none was measured (and in
+  /// older messages).
+  #[inline]
+  pub fn volume_ratios(&self) -> Option<::flatbuffers::Vector<'a, f32>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, f32>>>(FruitHistory::VT_VOLUME_RATIOS, None)}
+  }
+  /// The solid fitted on the last visit recorded and the surface it was fitted to (its voxel
+  /// centres, that visit's world frame), kept to measure the next visit's growth: sent in
+  /// MapSnapshots (a new owner, a restarted planner), absent from FruitEstimates.
+  #[inline]
+  pub fn last_solid(&self) -> Option<FittedEllipsoid<'a>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<FittedEllipsoid>>(FruitHistory::VT_LAST_SOLID, None)}
+  }
+  #[inline]
+  pub fn last_surface(&self) -> Option<::flatbuffers::Vector<'a, Vec3>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, Vec3>>>(FruitHistory::VT_LAST_SURFACE, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for FruitHistory<'_> {
@@ -5099,6 +5133,9 @@ impl ::flatbuffers::Verifiable for FruitHistory<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, FruitVisit>>>("visits", Self::VT_VISITS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, Rgb>>>("colours", Self::VT_COLOURS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, bool>>>("colour_known", Self::VT_COLOUR_KNOWN, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, f32>>>("volume_ratios", Self::VT_VOLUME_RATIOS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<FittedEllipsoid>>("last_solid", Self::VT_LAST_SOLID, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, Vec3>>>("last_surface", Self::VT_LAST_SURFACE, false)?
      .finish();
     Ok(())
   }
@@ -5109,6 +5146,9 @@ pub struct FruitHistoryArgs<'a> {
     pub visits: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, FruitVisit>>>,
     pub colours: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, Rgb>>>,
     pub colour_known: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, bool>>>,
+    pub volume_ratios: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, f32>>>,
+    pub last_solid: Option<::flatbuffers::WIPOffset<FittedEllipsoid<'a>>>,
+    pub last_surface: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, Vec3>>>,
 }
 impl<'a> Default for FruitHistoryArgs<'a> {
   #[inline]
@@ -5119,6 +5159,9 @@ impl<'a> Default for FruitHistoryArgs<'a> {
       visits: None,
       colours: None,
       colour_known: None,
+      volume_ratios: None,
+      last_solid: None,
+      last_surface: None,
     }
   }
 }
@@ -5149,6 +5192,18 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> FruitHistoryBuilder<'a, 'b, A
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitHistory::VT_COLOUR_KNOWN, colour_known);
   }
   #[inline]
+  pub fn add_volume_ratios(&mut self, volume_ratios: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , f32>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitHistory::VT_VOLUME_RATIOS, volume_ratios);
+  }
+  #[inline]
+  pub fn add_last_solid(&mut self, last_solid: ::flatbuffers::WIPOffset<FittedEllipsoid<'b >>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<FittedEllipsoid>>(FruitHistory::VT_LAST_SOLID, last_solid);
+  }
+  #[inline]
+  pub fn add_last_surface(&mut self, last_surface: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , Vec3>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(FruitHistory::VT_LAST_SURFACE, last_surface);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> FruitHistoryBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     FruitHistoryBuilder {
@@ -5171,6 +5226,9 @@ impl ::core::fmt::Debug for FruitHistory<'_> {
       ds.field("visits", &self.visits());
       ds.field("colours", &self.colours());
       ds.field("colour_known", &self.colour_known());
+      ds.field("volume_ratios", &self.volume_ratios());
+      ds.field("last_solid", &self.last_solid());
+      ds.field("last_surface", &self.last_surface());
       ds.finish()
   }
 }

@@ -1,7 +1,7 @@
 //! FruitEstimates: one trolley's fruits, owning planner → dashboard (also the simulator's truth).
 
 use flatbuffers::{FlatBufferBuilder, UnionWIPOffset, WIPOffset};
-use glasshouse_geom::{FruitEstimate, FruitSolid, Rgb, SolidKind};
+use glasshouse_geom::{FruitEstimate, FruitSolid, FruitSurface, Rgb, SolidKind};
 use nalgebra::{Point3, Quaternion, UnitQuaternion, Vector3};
 
 use super::convert::{content, payload, string_or_empty, unit_rotation};
@@ -35,6 +35,8 @@ pub struct FruitVisit {
     pub volume_m3: f64,
     /// Its mean observed colour on that visit ([`FruitEstimate::colour`]); `None`: unknown.
     pub colour: Option<Rgb>,
+    /// Its volume over the record before it, measured on one shape; `None`: not measured.
+    pub volume_ratio: Option<f64>,
 }
 
 /// A fruit over the visits of its row: its season id, its estimate's id on the current visit
@@ -44,6 +46,9 @@ pub struct FruitHistory {
     pub season_id: u32,
     pub fruit_id: u32,
     pub visits: Vec<FruitVisit>,
+    /// The solid and surface of its last record, to measure the next visit's growth against
+    /// (MapSnapshots carry it; FruitEstimates leave it out).
+    pub last_surface: Option<FruitSurface>,
 }
 
 type HistoryVector<'a> =
@@ -69,6 +74,18 @@ pub(super) fn write_histories<'a>(
             let visits = fb_visits(&h.visits);
             let visits = fbb.create_vector(&visits);
             let (colours, colour_known) = write_visit_colours(fbb, &h.visits);
+            let measured = h.visits.iter().any(|v| v.volume_ratio.is_some());
+            let ratios: Vec<f32> = h
+                .visits
+                .iter()
+                .map(|v| v.volume_ratio.map_or(f32::NAN, |r| r as f32))
+                .collect();
+            let volume_ratios = measured.then(|| fbb.create_vector(&ratios));
+            let last_solid = h.last_surface.as_ref().map(|s| write_solid(fbb, &s.solid));
+            let last_surface = h.last_surface.as_ref().map(|s| {
+                let points: Vec<fb::Vec3> = s.points_m.iter().map(|p| vec3(&p.coords)).collect();
+                fbb.create_vector(&points)
+            });
             fb::FruitHistory::create(
                 fbb,
                 &fb::FruitHistoryArgs {
@@ -77,6 +94,9 @@ pub(super) fn write_histories<'a>(
                     visits: Some(visits),
                     colours,
                     colour_known,
+                    volume_ratios,
+                    last_solid,
+                    last_surface,
                 },
             )
         })
@@ -136,6 +156,52 @@ fn read_visit_colours(
         .collect())
 }
 
+/// Each visit's measured volume ratio of a history of `visits` records: when present, one per
+/// visit, each positive or NaN (not measured).
+fn read_volume_ratios(
+    kind: MessageKind,
+    h: &fb::FruitHistory<'_>,
+    visits: usize,
+) -> Result<Vec<Option<f64>>> {
+    let Some(ratios) = h.volume_ratios().filter(|r| !r.is_empty()) else {
+        return Ok(vec![None; visits]);
+    };
+    if ratios.len() != visits {
+        let n = ratios.len();
+        let why = format!("a fruit history of {visits} visits holds {n} volume ratios");
+        return Err(content(kind, why));
+    }
+    ratios
+        .iter()
+        .map(|r| match f64::from(r) {
+            r if r.is_nan() => Ok(None),
+            r if r.is_finite() && r > 0.0 => Ok(Some(r)),
+            _ => Err(content(kind, "fruit history holds a volume ratio that is not positive")),
+        })
+        .collect()
+}
+
+/// A history's last solid and surface: both or neither, every value finite.
+fn read_last_surface(kind: MessageKind, h: &fb::FruitHistory<'_>) -> Result<Option<FruitSurface>> {
+    let (solid, points) = match (h.last_solid(), h.last_surface()) {
+        (None, None) => return Ok(None),
+        (Some(solid), Some(points)) => (read_solid(kind, solid)?, points),
+        _ => return Err(content(kind, "fruit history holds a last solid without its surface")),
+    };
+    let points_m: Vec<Point3<f64>> = points.iter().map(point).collect();
+    let finite = points_m.iter().flat_map(|p| p.iter()).all(|v| v.is_finite())
+        && solid_is_finite(&solid);
+    match finite {
+        true => Ok(Some(FruitSurface { solid, points_m })),
+        false => Err(content(kind, "fruit history's last surface holds a non-finite value")),
+    }
+}
+
+fn solid_is_finite(s: &FruitSolid) -> bool {
+    let values = [s.volume_m3, s.taper, s.exponents[0], s.exponents[1]];
+    s.centre.iter().chain(s.semi_axes_m.iter()).chain(values.iter()).all(|v| v.is_finite())
+}
+
 pub(super) fn rgb_to_fb(c: &Rgb) -> fb::Rgb {
     fb::Rgb::new(c.r, c.g, c.b)
 }
@@ -159,13 +225,16 @@ pub(super) fn read_histories(
             let visits = h.visits().map(|vs| vs.iter().collect::<Vec<_>>());
             let visits = visits.unwrap_or_default();
             let colours = read_visit_colours(kind, &h, visits.len())?;
-            let visits = visits.into_iter().zip(colours).map(|(v, colour)| {
+            let ratios = read_volume_ratios(kind, &h, visits.len())?;
+            let visits = visits.into_iter().zip(colours).zip(ratios);
+            let visits = visits.map(|((v, colour), volume_ratio)| {
                 let record = FruitVisit {
                     visit: v.visit(),
                     centre: point(v.centre()),
                     size_m: vector(v.size()),
                     volume_m3: v.volume_m3().into(),
                     colour,
+                    volume_ratio,
                 };
                 let finite = record
                     .centre
@@ -182,6 +251,7 @@ pub(super) fn read_histories(
                 season_id: h.season_id(),
                 fruit_id: h.fruit_id(),
                 visits: visits.collect::<Result<Vec<_>>>()?,
+                last_surface: read_last_surface(kind, &h)?,
             })
         })
         .collect()
@@ -250,32 +320,7 @@ pub(super) fn write_fruit<'a>(
 ) -> WIPOffset<fb::Fruit<'a>> {
     let centre = vec3(&f.centre.coords);
     let bbox = fb::Box3::new(&vec3(&f.min.coords), &vec3(&f.max.coords));
-    let fitted = f.solid.as_ref().map(|s| {
-        let centre = vec3(&s.centre.coords);
-        let semi_axes = vec3(&((s.box_max - s.box_min) / 2.0));
-        let solid_box = fb::Box3::new(&vec3(&s.box_min.coords), &vec3(&s.box_max.coords));
-        let body_semi_axes = vec3(&s.semi_axes_m);
-        let q = s.world_from_body.quaternion();
-        let rotation = fb::Quat::new(q.i, q.j, q.k, q.w);
-        fb::FittedEllipsoid::create(
-            fbb,
-            &fb::FittedEllipsoidArgs {
-                centre: Some(&centre),
-                semi_axes: Some(&semi_axes),
-                volume_m3: s.volume_m3 as f32,
-                box_volume_m3: s.box_volume_m3 as f32,
-                confidence: s.confidence as f32,
-                is_fit: s.kind == SolidKind::Ellipsoid,
-                box_: Some(&solid_box),
-                body_semi_axes: Some(&body_semi_axes),
-                world_from_body: Some(&rotation),
-                exponent_profile: s.exponents[0] as f32,
-                exponent_section: s.exponents[1] as f32,
-                taper: s.taper as f32,
-                rms_residual_m: s.rms_residual_m as f32,
-            },
-        )
-    });
+    let fitted = f.solid.as_ref().map(|s| write_solid(fbb, s));
     let colour = f.colour.as_ref().map(rgb_to_fb);
     fb::Fruit::create(
         fbb,
@@ -289,6 +334,37 @@ pub(super) fn write_fruit<'a>(
             fitted,
             view_directions: f.view_directions,
             colour: colour.as_ref(),
+        },
+    )
+}
+
+/// Writes a fitted solid.
+fn write_solid<'a>(
+    fbb: &mut FlatBufferBuilder<'a>,
+    s: &FruitSolid,
+) -> WIPOffset<fb::FittedEllipsoid<'a>> {
+    let centre = vec3(&s.centre.coords);
+    let semi_axes = vec3(&((s.box_max - s.box_min) / 2.0));
+    let solid_box = fb::Box3::new(&vec3(&s.box_min.coords), &vec3(&s.box_max.coords));
+    let body_semi_axes = vec3(&s.semi_axes_m);
+    let q = s.world_from_body.quaternion();
+    let rotation = fb::Quat::new(q.i, q.j, q.k, q.w);
+    fb::FittedEllipsoid::create(
+        fbb,
+        &fb::FittedEllipsoidArgs {
+            centre: Some(&centre),
+            semi_axes: Some(&semi_axes),
+            volume_m3: s.volume_m3 as f32,
+            box_volume_m3: s.box_volume_m3 as f32,
+            confidence: s.confidence as f32,
+            is_fit: s.kind == SolidKind::Ellipsoid,
+            box_: Some(&solid_box),
+            body_semi_axes: Some(&body_semi_axes),
+            world_from_body: Some(&rotation),
+            exponent_profile: s.exponents[0] as f32,
+            exponent_section: s.exponents[1] as f32,
+            taper: s.taper as f32,
+            rms_residual_m: s.rms_residual_m as f32,
         },
     )
 }
@@ -551,8 +627,14 @@ mod colour_tests {
     }
 
     /// A sender whose one history has two visits and one colour.
+    /// A sender whose one history of two visits is broken one way.
     #[derive(Clone, Debug)]
-    struct BrokenSender;
+    enum BrokenSender {
+        OneColour,
+        OneVolumeRatio,
+        NegativeVolumeRatio,
+        SolidWithoutSurface,
+    }
 
     impl From<BrokenSender> for crate::Message {
         fn from(_: BrokenSender) -> Self {
@@ -569,17 +651,26 @@ mod colour_tests {
                 fb::FruitVisit::new(0, &v, &v, 1e-4),
                 fb::FruitVisit::new(1, &v, &v, 2e-4),
             ]);
-            let colours = fbb.create_vector(&[fb::Rgb::new(200, 30, 20)]);
-            let history = fb::FruitHistory::create(
-                fbb,
-                &fb::FruitHistoryArgs {
-                    season_id: 1,
-                    fruit_id: 0,
-                    visits: Some(visits),
-                    colours: Some(colours),
-                    colour_known: None,
-                },
-            );
+            let mut args = fb::FruitHistoryArgs {
+                season_id: 1,
+                fruit_id: 0,
+                visits: Some(visits),
+                ..Default::default()
+            };
+            match self {
+                Self::OneColour => {
+                    args.colours = Some(fbb.create_vector(&[fb::Rgb::new(200, 30, 20)]));
+                }
+                Self::OneVolumeRatio => args.volume_ratios = Some(fbb.create_vector(&[1.5f32])),
+                Self::NegativeVolumeRatio => {
+                    args.volume_ratios = Some(fbb.create_vector(&[f32::NAN, -1.5]));
+                }
+                Self::SolidWithoutSurface => {
+                    let solid = samples::fruit_estimates().fruits[0].solid;
+                    args.last_solid = solid.map(|s| write_solid(fbb, &s));
+                }
+            }
+            let history = fb::FruitHistory::create(fbb, &args);
             let history = fbb.create_vector(&[history]);
             let mut t = fb::FruitEstimatesBuilder::new(fbb);
             t.add_history(history);
@@ -587,13 +678,27 @@ mod colour_tests {
         }
 
         fn read_payload(envelope: &fb::Envelope<'_>) -> Result<Self> {
-            FruitEstimates::read_payload(envelope).map(|_| BrokenSender)
+            FruitEstimates::read_payload(envelope).map(|_| BrokenSender::OneColour)
+        }
+    }
+
+    #[test]
+    fn volume_ratios_and_last_surfaces_that_do_not_fit_their_history_are_content_errors() {
+        for (broken, why) in [
+            (BrokenSender::OneVolumeRatio, "2 visits holds 1 volume ratios"),
+            (BrokenSender::NegativeVolumeRatio, "not positive"),
+            (BrokenSender::SolidWithoutSurface, "last solid without its surface"),
+        ] {
+            let bytes = encode(&samples::header(3), &broken);
+            let err = decode_typed::<FruitEstimates>(&bytes).unwrap_err();
+            assert!(matches!(err, ProtoError::Content { .. }), "{err}");
+            assert!(err.to_string().contains(why), "{err}");
         }
     }
 
     #[test]
     fn colours_that_are_not_one_per_visit_are_a_content_error() {
-        let bytes = encode(&samples::header(3), &BrokenSender);
+        let bytes = encode(&samples::header(3), &BrokenSender::OneColour);
         let err = decode_typed::<FruitEstimates>(&bytes).unwrap_err();
         assert!(matches!(err, ProtoError::Content { .. }), "{err}");
         assert!(

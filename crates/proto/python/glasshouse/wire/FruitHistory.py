@@ -5,8 +5,10 @@
 import flatbuffers
 from flatbuffers.compat import import_numpy
 from typing import Any
+from glasshouse.wire.FittedEllipsoid import FittedEllipsoid
 from glasshouse.wire.FruitVisit import FruitVisit
 from glasshouse.wire.Rgb import Rgb
+from glasshouse.wire.Vec3 import Vec3
 from typing import Optional
 np = import_numpy()
 
@@ -126,8 +128,75 @@ class FruitHistory(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(12))
         return o == 0
 
+    # The fruit's growth measured on one shape, parallel to visits: each visit's volume over the
+    # record before it, both visits' surfaces fitted by one solid (NaN where not measured: the
+    # first record, a visit that ended without a fit); empty when none was measured (and in
+    # older messages).
+    # FruitHistory
+    def VolumeRatios(self, j: int):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.Float32Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 4))
+        return 0
+
+    # FruitHistory
+    def VolumeRatiosAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Float32Flags, o)
+        return 0
+
+    # FruitHistory
+    def VolumeRatiosLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # FruitHistory
+    def VolumeRatiosIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(14))
+        return o == 0
+
+    # The solid fitted on the last visit recorded and the surface it was fitted to (its voxel
+    # centres, that visit's world frame), kept to measure the next visit's growth: sent in
+    # MapSnapshots (a new owner, a restarted planner), absent from FruitEstimates.
+    # FruitHistory
+    def LastSolid(self) -> Optional[FittedEllipsoid]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            x = self._tab.Indirect(o + self._tab.Pos)
+            obj = FittedEllipsoid()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # FruitHistory
+    def LastSurface(self, j: int) -> Optional[Vec3]:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 12
+            obj = Vec3()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # FruitHistory
+    def LastSurfaceLength(self) -> int:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # FruitHistory
+    def LastSurfaceIsNone(self) -> bool:
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(18))
+        return o == 0
+
 def FruitHistoryStart(builder: flatbuffers.Builder):
-    builder.StartObject(5)
+    builder.StartObject(8)
 
 def Start(builder: flatbuffers.Builder):
     FruitHistoryStart(builder)
@@ -179,6 +248,36 @@ def FruitHistoryStartColourKnownVector(builder, numElems: int) -> int:
 
 def StartColourKnownVector(builder, numElems: int) -> int:
     return FruitHistoryStartColourKnownVector(builder, numElems)
+
+def FruitHistoryAddVolumeRatios(builder: flatbuffers.Builder, volumeRatios: int):
+    builder.PrependUOffsetTRelativeSlot(5, flatbuffers.number_types.UOffsetTFlags.py_type(volumeRatios), 0)
+
+def AddVolumeRatios(builder: flatbuffers.Builder, volumeRatios: int):
+    FruitHistoryAddVolumeRatios(builder, volumeRatios)
+
+def FruitHistoryStartVolumeRatiosVector(builder, numElems: int) -> int:
+    return builder.StartVector(4, numElems, 4)
+
+def StartVolumeRatiosVector(builder, numElems: int) -> int:
+    return FruitHistoryStartVolumeRatiosVector(builder, numElems)
+
+def FruitHistoryAddLastSolid(builder: flatbuffers.Builder, lastSolid: int):
+    builder.PrependUOffsetTRelativeSlot(6, flatbuffers.number_types.UOffsetTFlags.py_type(lastSolid), 0)
+
+def AddLastSolid(builder: flatbuffers.Builder, lastSolid: int):
+    FruitHistoryAddLastSolid(builder, lastSolid)
+
+def FruitHistoryAddLastSurface(builder: flatbuffers.Builder, lastSurface: int):
+    builder.PrependUOffsetTRelativeSlot(7, flatbuffers.number_types.UOffsetTFlags.py_type(lastSurface), 0)
+
+def AddLastSurface(builder: flatbuffers.Builder, lastSurface: int):
+    FruitHistoryAddLastSurface(builder, lastSurface)
+
+def FruitHistoryStartLastSurfaceVector(builder, numElems: int) -> int:
+    return builder.StartVector(12, numElems, 4)
+
+def StartLastSurfaceVector(builder, numElems: int) -> int:
+    return FruitHistoryStartLastSurfaceVector(builder, numElems)
 
 def FruitHistoryEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -297,6 +297,29 @@ pub fn beta(p: f64, q: f64) -> f64 {
     (ln_gamma(p) + ln_gamma(q) - ln_gamma(p + q)).exp()
 }
 
+impl Superellipsoid {
+    /// This shape as a fitted [`glasshouse_geom::FruitSolid`] (its centre the centroid), with
+    /// the observed share `confidence` and the fit's `rms_residual_m`.
+    pub fn to_solid(&self, confidence: f64, rms_residual_m: f64) -> glasshouse_geom::FruitSolid {
+        let (box_min, box_max) = self.world_box();
+        let size = box_max - box_min;
+        glasshouse_geom::FruitSolid {
+            kind: glasshouse_geom::SolidKind::Ellipsoid,
+            centre: self.centroid(),
+            semi_axes_m: self.semi_axes_m,
+            world_from_body: nalgebra::UnitQuaternion::from_rotation_matrix(&self.world_from_body),
+            exponents: self.exponents,
+            taper: self.taper,
+            volume_m3: self.volume_m3(),
+            box_min,
+            box_max,
+            box_volume_m3: size.x * size.y * size.z,
+            confidence,
+            rms_residual_m,
+        }
+    }
+}
+
 impl From<&glasshouse_geom::FruitSolid> for Superellipsoid {
     /// The solid a fit describes (its `centre` is the centre of volume, the body origin sits
     /// off it along body z when tapered).

@@ -2,9 +2,9 @@
 //! 4-5 for it): starts, solves ([`super::refine`]), the canonical orientation and the checks.
 
 use glasshouse_roimap::{Occupancy, RoiMap};
-use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 
-use super::{fibonacci_sphere, refine, FitConfig, FitData, FruitSolid, SolidKind};
+use super::{fibonacci_sphere, refine, FitConfig, FitData, FruitSolid};
 use crate::evidence::principal_axes;
 use crate::superellipsoid::Superellipsoid;
 
@@ -172,22 +172,8 @@ pub(super) fn finish_superellipsoid(
     if rms_m > max_rms_m {
         return Err(Some(Box::new(s)));
     }
-    let (box_min, box_max) = s.world_box();
-    let size = box_max - box_min;
-    Ok(FruitSolid {
-        kind: SolidKind::Ellipsoid,
-        centre: s.centroid(),
-        semi_axes_m: s.semi_axes_m,
-        world_from_body: UnitQuaternion::from_rotation_matrix(&s.world_from_body),
-        exponents: s.exponents,
-        taper: s.taper,
-        volume_m3: s.volume_m3(),
-        box_min,
-        box_max,
-        box_volume_m3: size.x * size.y * size.z,
-        confidence: observed_share(map, &s, config.surface_samples),
-        rms_residual_m: rms_m,
-    })
+    let confidence = observed_share(map, &s, config.surface_samples);
+    Ok(s.to_solid(confidence, rms_m))
 }
 
 /// Step 4: while free voxels lie deeper than `margin_m` inside, the semi-axis along which they

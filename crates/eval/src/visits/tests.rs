@@ -87,3 +87,35 @@ fn links_are_judged_by_the_simulators_ids_and_growth_by_the_true_change() {
     assert_eq!(season.visits.len(), 2);
     assert_eq!(season.season_fruits, 3);
 }
+
+/// An estimate of a round fruit of radius `r_m` at `x` with its fitted sphere's volume times
+/// `volume_scale`, and the voxel centres (5 mm) of its side facing +x.
+fn round(id: u32, x: f64, r_m: f64, volume_scale: f64) -> (FruitEstimate, Vec<Point3<f64>>) {
+    use glasshouse_nbv::superellipsoid::Superellipsoid;
+    let sphere = Superellipsoid::sphere(Point3::new(x, 0.0, 1.0), r_m);
+    let mut solid = sphere.to_solid(1.0, 0.0);
+    solid.volume_m3 *= volume_scale;
+    let e = FruitEstimate {
+        solid: Some(solid),
+        ..estimate(id, x, r_m, 0.0)
+    };
+    (e, sphere.seen_voxel_centres(Vector3::x(), 0.005))
+}
+
+#[test]
+fn growth_is_judged_on_the_change_measured_on_one_shape_when_the_surfaces_are_known() {
+    let (monday_fruit, monday_surface) = round(1, 0.0, 0.03, 1.0);
+    // Thursday: the fruit grew 10 % in size, its fit came out 30 % too large in volume.
+    let (thursday_fruit, thursday_surface) = round(5, 0.012, 0.033, 1.3);
+    let mut monday = visit(vec![truth(10, 0.0, 0.03)], vec![monday_fruit]);
+    let mut thursday = visit(vec![truth(10, 0.012, 0.033)], vec![thursday_fruit]);
+    monday.fruit_surfaces = vec![monday_surface];
+    thursday.fruit_surfaces = vec![thursday_surface];
+    let season = season_figures(&[monday, thursday], &[0.0, 3.5], SeasonRules::default());
+    let (measured, differenced) = (season.growth_errors[0], season.differenced_growth_errors[0]);
+    assert!(differenced > 1.0, "{differenced}");
+    assert!(
+        measured < 0.5 * differenced,
+        "{measured} against {differenced}"
+    );
+}

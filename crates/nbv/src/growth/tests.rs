@@ -1,7 +1,5 @@
 #![allow(clippy::unwrap_used)]
 
-use std::collections::BTreeSet;
-
 use nalgebra::{Rotation3, Unit};
 
 use super::*;
@@ -26,29 +24,9 @@ fn solid_of(s: &Superellipsoid) -> FruitSolid {
     s.to_solid(1.0, 0.0)
 }
 
-/// The centres of the voxels holding the surface points of `s` whose outward direction faces
-/// `towards` (a camera's side of the fruit): what a visit's cluster holds.
+/// What a visit's cluster holds of `s` seen from `towards`.
 fn seen_voxels(s: &Superellipsoid, towards: Vector3<f64>) -> Vec<Point3<f64>> {
-    let n = 4000;
-    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
-    let mut keys = BTreeSet::new();
-    for i in 0..n {
-        let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
-        let r = (1.0 - z * z).sqrt();
-        let u = Vector3::new(
-            r * (golden * i as f64).cos(),
-            r * (golden * i as f64).sin(),
-            z,
-        );
-        let p = s.surface_point(&u);
-        if (p - s.centroid()).normalize().dot(&towards.normalize()) > 0.1 {
-            let key = p.coords.map(|v| (v / VOXEL_M).floor() as i64);
-            keys.insert([key.x, key.y, key.z]);
-        }
-    }
-    keys.iter()
-        .map(|k| Point3::from(k.map(|v| (v as f64 + 0.5) * VOXEL_M)))
-        .collect()
+    s.seen_voxel_centres(towards, VOXEL_M)
 }
 
 #[test]

@@ -348,6 +348,25 @@ fn joining_p1() -> PlannerNode {
     p2
 }
 
+/// p2, a planner that knows p1, told of t1 (`info`).
+fn p2_told_of(info: &TrolleyInfo) -> PlannerNode {
+    let mut p2 = joining_p1();
+    p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
+    p2.handle(info_event(info));
+    p2
+}
+
+/// Loads into `to` the map of t1 that `from` holds now.
+fn load_t1_from(from: &PlannerNode, to: &mut PlannerNode) {
+    let Ok((_, snapshot)) = from.snapshot_of("t1") else {
+        panic!("{} holds t1", from.pid)
+    };
+    to.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(snapshot),
+    });
+}
+
 #[test]
 fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
     let (info, clouds) = trolley_clouds(3);
@@ -809,19 +828,11 @@ fn buffered_clouds_the_snapshot_holds_are_not_inserted_again() {
     let (info, clouds) = trolley_clouds(6);
     let mut p1 = alone_with(&info, &clouds[..5]);
     // p2 took t1 on after frame 1 and buffered frames 2..=6; the snapshot it gets holds 1..=5.
-    let mut p2 = joining_p1();
-    p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
-    p2.handle(info_event(&info));
+    let mut p2 = p2_told_of(&info);
     for c in &clouds[1..] {
         assert!(p2.handle(cloud_event(c)).is_empty());
     }
-    let Ok((_, snapshot)) = p1.snapshot_of("t1") else {
-        panic!("p1 holds t1")
-    };
-    p2.handle(PlannerEvent::SnapshotLoaded {
-        tid: "t1".into(),
-        snapshot: Some(snapshot),
-    });
+    load_t1_from(&p1, &mut p2);
     p1.handle(cloud_event(&clouds[5]));
     let (m1, m2) = (
         p1.planner("t1").unwrap().map(),
@@ -836,16 +847,8 @@ fn buffered_clouds_the_snapshot_holds_are_not_inserted_again() {
 fn clouds_a_loaded_snapshot_holds_replayed_after_the_load_are_not_inserted_again() {
     let (info, clouds) = trolley_clouds(7);
     let mut p1 = alone_with(&info, &clouds[..6]);
-    let mut p2 = joining_p1();
-    p2.handle(PlannerEvent::TrolleyJoined("t1".into()));
-    p2.handle(info_event(&info));
-    let Ok((_, snapshot)) = p1.snapshot_of("t1") else {
-        panic!("p1 holds t1")
-    };
-    p2.handle(PlannerEvent::SnapshotLoaded {
-        tid: "t1".into(),
-        snapshot: Some(snapshot),
-    });
+    let mut p2 = p2_told_of(&info);
+    load_t1_from(&p1, &mut p2);
     // A detector's cloud cache answers the gap p2 saw while it was cut off: frames 2..=6 again,
     // in order, after the snapshot that holds them (more than the resync run of a live stream).
     for c in &clouds[1..6] {

@@ -129,3 +129,4 @@ fn too_few_points_give_no_scale() {
     };
     assert_eq!(volume_ratio(&side, &side), None);
 }
+

@@ -129,4 +129,3 @@ fn too_few_points_give_no_scale() {
     };
     assert_eq!(volume_ratio(&side, &side), None);
 }
-

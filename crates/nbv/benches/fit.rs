@@ -1,11 +1,15 @@
 //! Time of one whole-fruit fit ([`fit_ellipsoid`]) per model on scanned synthetic fruit: a
 //! sphere seen from one side, a tilted lobed capsicum seen from two sides, an ellipsoid seen all
-//! round. Run with `cargo bench -p glasshouse-nbv --bench fit`. Wall-clock time is read here
+//! round; and of one growth measurement between two visits of it ([`volume_ratio`], the fruit's
+//! surface against itself, what a visit's end costs per fruit). Run with `cargo bench -p
+//! glasshouse-nbv --bench fit`. Wall-clock time is read here
 //! only, never in the libraries.
 
 use std::time::Instant;
 
+use glasshouse_geom::FruitSurface;
 use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, ShapeModel};
+use glasshouse_nbv::growth::volume_ratio;
 use glasshouse_roimap::{MapConfig, RoiCluster, RoiMap};
 use nalgebra::{Point3, Rotation3, Unit, Vector3};
 
@@ -107,8 +111,8 @@ fn main() {
         ("ellipsoid, all round", scanned(&ellipsoid, &all_round)),
     ];
     println!(
-        "{:<24} {:>8} {:>14} {:>14}",
-        "case", "voxels", "aligned ms", "superell. ms"
+        "{:<24} {:>8} {:>14} {:>14} {:>12}",
+        "case", "voxels", "aligned ms", "superell. ms", "growth ms"
     );
     for (name, (map, cluster)) in &cases {
         let time = |model| {
@@ -120,8 +124,15 @@ fn main() {
                 std::hint::black_box(fit_ellipsoid(map, cluster, &config));
             })
         };
+        let surface = FruitSurface {
+            solid: fit_ellipsoid(map, cluster, &FitConfig::default()),
+            points_m: cluster.voxels.iter().map(|k| map.centre_of(*k)).collect(),
+        };
+        let growth_ms = fastest_ms(15, || {
+            std::hint::black_box(volume_ratio(&surface, &surface));
+        });
         println!(
-            "{name:<24} {:>8} {:>14.2} {:>14.2}",
+            "{name:<24} {:>8} {:>14.2} {:>14.2} {growth_ms:>12.2}",
             cluster.voxels.len(),
             time(ShapeModel::AxisAlignedEllipsoid),
             time(ShapeModel::Superellipsoid)

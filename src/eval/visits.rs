@@ -120,61 +120,57 @@ fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String
         seasons.len()
     );
     for (k, day) in days.iter().enumerate() {
-        let of = |f: fn(&glasshouse_eval::visits::VisitFigures) -> f64| -> Vec<f64> {
-            seasons.iter().map(|s| f(&s.visits[k])).collect()
-        };
-        let t95: Vec<f64> = seasons
-            .iter()
-            .filter_map(|s| s.visits[k].time_to_95_s.map(f64::from))
-            .collect();
-        let t_level: Vec<f64> = seasons
-            .iter()
-            .filter_map(|s| s.visits[k].time_to_first_level_s.map(f64::from))
-            .collect();
-        out.push_str(&format!(
-            "| {day} | {} | {} | {} | {} | {} | {} | {} of {} | {} | {} | {} of {} |\n",
-            fmt(&of(|v| v.count_ratio), 2),
-            fmt(&of(|v| v.f1), 2),
-            fmt(&of(|v| v.f1_near), 2),
-            fmt(&of(|v| v.centre_cm), 2),
-            fmt(&of(|v| v.volume_accuracy), 2),
-            fmt(&t95, 0),
-            t95.len(),
-            seasons.len(),
-            fmt(&of(|v| v.detected_share), 2),
-            fmt(&t_level, 0),
-            t_level.len(),
-            seasons.len()
-        ));
+        out.push_str(&visit_row(seasons, k, *day));
     }
+    out.push('\n');
+    out.push_str(&identity_line(seasons));
+    out.push_str(&growth_line(seasons));
+    out.push_str(&revisit_lines(seasons));
+    out.push('\n');
+    out
+}
+
+/// The table row of visit `k` (on `day`) over every season.
+fn visit_row(seasons: &[SeasonFigures], k: usize, day: f64) -> String {
+    let of = |f: fn(&glasshouse_eval::visits::VisitFigures) -> f64| -> Vec<f64> {
+        seasons.iter().map(|s| f(&s.visits[k])).collect()
+    };
+    let times = |f: fn(&glasshouse_eval::visits::VisitFigures) -> Option<u32>| -> Vec<f64> {
+        seasons
+            .iter()
+            .filter_map(|s| f(&s.visits[k]).map(f64::from))
+            .collect()
+    };
+    let (t95, t_level) = (
+        times(|v| v.time_to_95_s),
+        times(|v| v.time_to_first_level_s),
+    );
+    format!(
+        "| {day} | {} | {} | {} | {} | {} | {} | {} of {} | {} | {} | {} of {} |\n",
+        fmt(&of(|v| v.count_ratio), 2),
+        fmt(&of(|v| v.f1), 2),
+        fmt(&of(|v| v.f1_near), 2),
+        fmt(&of(|v| v.centre_cm), 2),
+        fmt(&of(|v| v.volume_accuracy), 2),
+        fmt(&t95, 0),
+        t95.len(),
+        seasons.len(),
+        fmt(&of(|v| v.detected_share), 2),
+        fmt(&t_level, 0),
+        t_level.len(),
+        seasons.len()
+    )
+}
+
+/// Identity over consecutive visits, summed over the seasons.
+fn identity_line(seasons: &[SeasonFigures]) -> String {
     let mut identity = IdentityCounts::default();
     for s in seasons {
         identity.add(&s.identity);
     }
     let per_trial_f1: Vec<f64> = seasons.iter().map(|s| s.identity.f1()).collect();
-    let mut errors: Vec<f64> = seasons
-        .iter()
-        .flat_map(|s| s.growth_errors.clone())
-        .collect();
-    errors.sort_by(f64::total_cmp);
-    let within = errors.iter().filter(|&&e| e <= GROWTH_TOLERANCE).count();
-    let median = errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN);
-    let mut differenced: Vec<f64> = seasons
-        .iter()
-        .flat_map(|s| s.differenced_growth_errors.clone())
-        .collect();
-    differenced.sort_by(f64::total_cmp);
-    let differenced_median = differenced
-        .get(differenced.len() / 2)
-        .copied()
-        .unwrap_or(f64::NAN);
-    let ratios = revisit_ratios(seasons, |v| v.time_to_95_s);
-    let level_ratios = revisit_ratios(seasons, |v| v.time_to_first_level_s);
-    out.push_str(&format!(
-        "\nIdentity over consecutive visits: precision {:.3}, recall {:.3}, F1 {:.3} ({} correct of {} links made, {} possible; per trial F1 {}).\n\
-         Growth: {} correct links of growing fruit, |ΔV_est − ΔV_true| / ΔV_true median {:.2}, {} within {:.0} % (measured on one shape; the difference of the two fitted volumes: median {:.2}).\n\
-         Time to 95 % on a revisit against the first visit: {} ({} revisits that reached 95 % after a first visit that did).\n\
-         Time to 95 % of what the first visit found, a revisit against the first visit: {} ({} revisits; median {:.2}).\n\n",
+    format!(
+        "Identity over consecutive visits: precision {:.3}, recall {:.3}, F1 {:.3} ({} correct of {} links made, {} possible; per trial F1 {}).\n",
         identity.precision(),
         identity.recall(),
         identity.f1(),
@@ -182,18 +178,40 @@ fn method_table(method: &str, seasons: &[SeasonFigures], days: &[f64]) -> String
         identity.made,
         identity.possible,
         fmt(&per_trial_f1, 3),
+    )
+}
+
+/// The growth errors, measured on one shape and differenced, over every season's links.
+fn growth_line(seasons: &[SeasonFigures]) -> String {
+    let all = |f: fn(&SeasonFigures) -> &Vec<f64>| -> Vec<f64> {
+        seasons.iter().flat_map(|s| f(s).iter().copied()).collect()
+    };
+    let errors = all(|s| &s.growth_errors);
+    let differenced = all(|s| &s.differenced_growth_errors);
+    let within = errors.iter().filter(|&&e| e <= GROWTH_TOLERANCE).count();
+    format!(
+        "Growth: {} correct links of growing fruit, |ΔV_est − ΔV_true| / ΔV_true median {:.2}, {} within {:.0} % (measured on one shape; the difference of the two fitted volumes: median {:.2}).\n",
         errors.len(),
-        median,
+        median_of(&errors),
         within,
         GROWTH_TOLERANCE * 100.0,
-        differenced_median,
+        median_of(&differenced),
+    )
+}
+
+/// The revisits' times against their first visits'.
+fn revisit_lines(seasons: &[SeasonFigures]) -> String {
+    let ratios = revisit_ratios(seasons, |v| v.time_to_95_s);
+    let level_ratios = revisit_ratios(seasons, |v| v.time_to_first_level_s);
+    format!(
+        "Time to 95 % on a revisit against the first visit: {} ({} revisits that reached 95 % after a first visit that did).\n\
+         Time to 95 % of what the first visit found, a revisit against the first visit: {} ({} revisits; median {:.2}).\n",
         fmt(&ratios, 2),
         ratios.len(),
         fmt(&level_ratios, 2),
         level_ratios.len(),
         median_of(&level_ratios)
-    ));
-    out
+    )
 }
 
 /// Every revisit's time against its season's first visit's, where both exist.

@@ -57,9 +57,11 @@ fn minimise(
                 jacobian[(i, k)] = (u - d) / (2.0 * steps[k]);
             }
         }
-        let weights =
-            DVector::from_iterator(at.len(), at.iter().map(|r| HUBER_M / r.abs().max(HUBER_M)));
-        let weighted = DMatrix::from_diagonal(&weights) * &jacobian;
+        // Each row scaled by its Huber weight (not a dense n × n diagonal matrix).
+        let mut weighted = jacobian.clone();
+        for (mut row, r) in weighted.row_iter_mut().zip(&at) {
+            row *= HUBER_M / r.abs().max(HUBER_M);
+        }
         let normal = jacobian.transpose() * &weighted;
         let gradient = weighted.transpose() * DVector::from_column_slice(&at);
         let damped = &normal + DMatrix::from_diagonal(&normal.diagonal()) * damping;

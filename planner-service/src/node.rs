@@ -1099,33 +1099,7 @@ impl PlannerNode {
             }
             return Vec::new();
         }
-        let mut from_snapshot = false;
-        let snapshot = snapshot.filter(|s| !slot.holds_newer_than(s));
-        if let Some(snapshot) = snapshot {
-            match TrolleyPlanner::from_snapshot(self.planning.clone(), &snapshot) {
-                // A copy restored from the store yields to a newer term's snapshot (above).
-                Ok(loaded) if slot.restored_epoch == 0 && holds_more(&slot.planner, &loaded) => {
-                    tracing::warn!(planner = %pid, trolley = %tid, from = %snapshot.planner_id,
-                        own_scans = slot.planner.map().scans_inserted(), their_scans = loaded.map().scans_inserted(),
-                        "kept its own copy: it holds every frame of the snapshot's and more scans");
-                    self.stats.kept_own_copy += 1;
-                }
-                Ok(mut loaded) => {
-                    tracing::info!(planner = %pid, trolley = %tid, from = %snapshot.planner_id, seq = snapshot.based_on_seq, epoch_ns = snapshot.based_on_epoch_ns, voxels = loaded.map().len(), "snapshot loaded");
-                    if let Some(info) = slot.planner.info() {
-                        if let Err(e) = loaded.set_info(info.clone()) {
-                            tracing::warn!(planner = %pid, trolley = %tid, error = %e, "views are not filtered by reach");
-                        }
-                    }
-                    *slot.planner = loaded;
-                    slot.unfinished = None;
-                    from_snapshot = true;
-                }
-                Err(e) => {
-                    tracing::warn!(planner = %pid, trolley = %tid, error = %e, "snapshot unusable: starting from the buffered clouds")
-                }
-            }
-        }
+        let from_snapshot = snapshot.is_some_and(|s| self.adopt_snapshot(tid, &s));
         let plan_last = role == Role::Owner;
         let next = match plan_last {
             true => {
@@ -1134,6 +1108,9 @@ impl PlannerNode {
                 Stage::Owning { term }
             }
             false => Stage::standby(),
+        };
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return Vec::new();
         };
         let Some(buffered) = slot.end_loading(next) else {
             return Vec::new();
@@ -1144,10 +1121,57 @@ impl PlannerNode {
         {
             return self.integrate(tid, last, true);
         }
-        // Buffered clouds the snapshot already holds are skipped: fed in order they would look
-        // like a live stream behind the map's mark and resync it. The last one is still
-        // planned on (the edge may wait on it).
-        let mark = slot.planner.last_frame();
+        self.replay_buffered(tid, buffered, plan_last)
+    }
+
+    /// The loading copy of `tid` becomes `snapshot`'s map unless its own holds it and more (or
+    /// the snapshot is older or unusable); whether it did.
+    fn adopt_snapshot(&mut self, tid: &str, snapshot: &MapSnapshot) -> bool {
+        let pid = &self.pid;
+        let Some(slot) = self.slots.get_mut(tid) else {
+            return false;
+        };
+        if slot.holds_newer_than(snapshot) {
+            return false;
+        }
+        match TrolleyPlanner::from_snapshot(self.planning.clone(), snapshot) {
+            // A copy restored from the store yields to a newer term's snapshot (above).
+            Ok(loaded) if slot.restored_epoch == 0 && holds_more(&slot.planner, &loaded) => {
+                tracing::warn!(planner = %pid, trolley = %tid, from = %snapshot.planner_id,
+                    own_scans = slot.planner.map().scans_inserted(), their_scans = loaded.map().scans_inserted(),
+                    "kept its own copy: it holds every frame of the snapshot's and more scans");
+                self.stats.kept_own_copy += 1;
+                false
+            }
+            Ok(mut loaded) => {
+                tracing::info!(planner = %pid, trolley = %tid, from = %snapshot.planner_id, seq = snapshot.based_on_seq, epoch_ns = snapshot.based_on_epoch_ns, voxels = loaded.map().len(), "snapshot loaded");
+                if let Some(info) = slot.planner.info() {
+                    if let Err(e) = loaded.set_info(info.clone()) {
+                        tracing::warn!(planner = %pid, trolley = %tid, error = %e, "views are not filtered by reach");
+                    }
+                }
+                *slot.planner = loaded;
+                slot.unfinished = None;
+                true
+            }
+            Err(e) => {
+                tracing::warn!(planner = %pid, trolley = %tid, error = %e, "snapshot unusable: starting from the buffered clouds");
+                false
+            }
+        }
+    }
+
+    /// The clouds buffered while loading, integrated in order; those the loaded map already
+    /// holds are skipped (fed in order they would look like a live stream behind the map's
+    /// mark and resync it), but the last one is still planned on by an owner (the edge may
+    /// wait on it).
+    fn replay_buffered(
+        &mut self,
+        tid: &str,
+        buffered: Vec<ReceivedCloud>,
+        plan_last: bool,
+    ) -> Vec<PlannerAction> {
+        let mark = self.slots.get(tid).and_then(|s| s.planner.last_frame());
         let n = buffered.len();
         let mut actions = Vec::new();
         for (i, received) in buffered.into_iter().enumerate() {
@@ -1222,20 +1246,7 @@ impl PlannerNode {
         let mut laps = Laps::start();
         let (header, cloud) = (&received.header, &received.cloud);
         let frame = cloud.source_frame();
-        let registered_before = *slot.planner.alignment_counts();
-        let inserted = slot.planner.insert(cloud, received.received_ns);
-        // The last alignment is this cloud's only when the insert registered it (a repeated or
-        // stale frame is not registered again).
-        let registration = (*slot.planner.alignment_counts() != registered_before)
-            .then(|| slot.planner.last_alignment())
-            .flatten()
-            .map(|alignment| FrameRegistration {
-                hand_eye_correction: slot
-                    .planner
-                    .last_hand_eye_correction()
-                    .map(RigidCorrection::from_isometry),
-                ..frame_registration(frame, alignment)
-            });
+        let (inserted, registration) = insert_registered(&mut slot.planner, &received);
         self.stats.stages.integrate_ms += laps.lap_ms();
         let verdict = inserted.as_ref().ok().cloned();
         let (stats, refusals) = (&mut self.stats, &mut self.logged_refusals);
@@ -1269,16 +1280,27 @@ impl PlannerNode {
             actions.extend(self.track_and_publish(tid, unfinished, (fit, plan), started));
             return actions;
         }
-        // Planning reads only the map: the views go out now, the clusters, fruit ids and fits
-        // once the other trolleys taken over have theirs.
-        let views = self.plan_views(tid, &camera, frame, started);
+        actions.extend(self.views_now_fruits_later(tid, &camera, unfinished, started));
+        actions
+    }
+
+    /// Planning reads only the map: the views of `unfinished`'s cloud go out now, its clusters,
+    /// fruit ids and fits once the other trolleys taken over have theirs (a `Finish`).
+    fn views_now_fruits_later(
+        &mut self,
+        tid: &str,
+        camera: &nalgebra::Isometry3<f64>,
+        unfinished: Unfinished,
+        started: Instant,
+    ) -> Vec<PlannerAction> {
+        let views = self.plan_views(tid, camera, unfinished.frame, started);
         let Some(slot) = self.slots.get_mut(tid) else {
-            return actions;
+            return Vec::new();
         };
         let header = unfinished.header.clone();
         slot.unfinished = Some(unfinished);
         let mut laps = Laps::start();
-        actions.extend(self.publish(tid, &header, views, None, None));
+        let mut actions = self.publish(tid, &header, views, None, None);
         self.stats.stages.publish_ms += laps.lap_ms();
         actions.push(PlannerAction::Finish {
             tid: tid.to_owned(),
@@ -1566,6 +1588,30 @@ fn note_insert(
         Ok(FrameVerdict::Fresh | FrameVerdict::Repeat) => {}
     }
     true
+}
+
+/// `received`'s cloud inserted into `planner`, and its registration when the insert registered
+/// it (a repeated or stale frame is not registered again, so the last alignment is not its).
+fn insert_registered(
+    planner: &mut TrolleyPlanner,
+    received: &ReceivedCloud,
+) -> (
+    Result<FrameVerdict, PlanningError>,
+    Option<FrameRegistration>,
+) {
+    let frame = received.cloud.source_frame();
+    let registered_before = *planner.alignment_counts();
+    let inserted = planner.insert(&received.cloud, received.received_ns);
+    let registration = (*planner.alignment_counts() != registered_before)
+        .then(|| planner.last_alignment())
+        .flatten()
+        .map(|alignment| FrameRegistration {
+            hand_eye_correction: planner
+                .last_hand_eye_correction()
+                .map(RigidCorrection::from_isometry),
+            ..frame_registration(frame, alignment)
+        });
+    (inserted, registration)
 }
 
 /// Whether a copy of one trolley holds more than `other`: at least as late a frame and at

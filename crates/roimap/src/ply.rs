@@ -114,33 +114,47 @@ fn next_line(r: &mut impl BufRead, line: &mut String) -> Result<(), PlyError> {
 /// Reads a PLY point cloud (see the module docs).
 pub fn read_cloud(r: impl Read) -> Result<PlyCloud, PlyError> {
     let mut r = BufReader::new(r);
+    let header = read_header(&mut r)?;
+    let vertex_at = header
+        .elements
+        .iter()
+        .position(|e| e.name == "vertex")
+        .ok_or(PlyError::NoXyz)?;
+    let (before, vertex) = (&header.elements[..vertex_at], &header.elements[vertex_at]);
+    let xyz = xyz_of(vertex)?;
+    let points = match header.binary {
+        true => read_binary_vertices(&mut r, before, vertex, xyz)?,
+        false => read_ascii_vertices(r, before, vertex, xyz)?,
+    };
+    Ok(PlyCloud {
+        points,
+        origin: header.origin,
+    })
+}
+
+/// What a PLY header declares.
+struct Header {
+    /// Binary little-endian (else ASCII).
+    binary: bool,
+    origin: Option<Point3<f64>>,
+    elements: Vec<Element>,
+}
+
+/// The header, up to and including `end_header`.
+fn read_header(r: &mut impl BufRead) -> Result<Header, PlyError> {
     let mut line = String::new();
-    next_line(&mut r, &mut line)?;
+    next_line(r, &mut line)?;
     if line.trim_end() != "ply" {
         return Err(PlyError::NotPly);
     }
-    let mut binary = None;
-    let mut origin = None;
-    let mut elements: Vec<Element> = Vec::new();
+    let (mut binary, mut origin, mut elements) = (None, None, Vec::new());
     loop {
-        next_line(&mut r, &mut line)?;
+        next_line(r, &mut line)?;
         let words: Vec<&str> = line.split_whitespace().collect();
         match words.as_slice() {
             ["end_header"] => break,
-            ["format", fmt, _version] => {
-                binary = Some(match *fmt {
-                    "binary_little_endian" => true,
-                    "ascii" => false,
-                    other => return Err(PlyError::UnsupportedFormat(other.to_string())),
-                })
-            }
-            ["comment", "origin", x, y, z] => {
-                let p = |s: &str| {
-                    s.parse::<f64>()
-                        .map_err(|_| PlyError::BadHeader(format!("bad origin value `{s}`")))
-                };
-                origin = Some(Point3::new(p(x)?, p(y)?, p(z)?));
-            }
+            ["format", fmt, _version] => binary = Some(is_binary(fmt)?),
+            ["comment", "origin", x, y, z] => origin = Some(parse_origin([x, y, z])?),
             ["comment", ..] | ["obj_info", ..] | [] => {}
             ["element", name, count] => elements.push(Element {
                 name: name.to_string(),
@@ -149,28 +163,7 @@ pub fn read_cloud(r: impl Read) -> Result<PlyCloud, PlyError> {
                     .map_err(|_| PlyError::BadHeader(format!("bad count `{count}`")))?,
                 props: Vec::new(),
             }),
-            ["property", "list", ct, vt, _name] => {
-                let (Some(ct), Some(_)) = (Scalar::parse(ct), Scalar::parse(vt)) else {
-                    return Err(PlyError::BadHeader(format!(
-                        "bad list types in `{}`",
-                        line.trim()
-                    )));
-                };
-                elements
-                    .last_mut()
-                    .ok_or_else(|| PlyError::BadHeader("property before element".into()))?
-                    .props
-                    .push(Property::List(ct));
-            }
-            ["property", ty, name] => {
-                let ty = Scalar::parse(ty)
-                    .ok_or_else(|| PlyError::BadHeader(format!("unknown type `{ty}`")))?;
-                elements
-                    .last_mut()
-                    .ok_or_else(|| PlyError::BadHeader("property before element".into()))?
-                    .props
-                    .push(Property::Scalar(name.to_string(), ty));
-            }
+            ["property", rest @ ..] => add_property(&mut elements, rest, &line)?,
             _ => {
                 return Err(PlyError::BadHeader(format!(
                     "unexpected line `{}`",
@@ -180,11 +173,60 @@ pub fn read_cloud(r: impl Read) -> Result<PlyCloud, PlyError> {
         }
     }
     let binary = binary.ok_or_else(|| PlyError::BadHeader("no format line".into()))?;
-    let vertex_at = elements
-        .iter()
-        .position(|e| e.name == "vertex")
-        .ok_or(PlyError::NoXyz)?;
-    let vertex = &elements[vertex_at];
+    Ok(Header {
+        binary,
+        origin,
+        elements,
+    })
+}
+
+fn is_binary(format: &str) -> Result<bool, PlyError> {
+    match format {
+        "binary_little_endian" => Ok(true),
+        "ascii" => Ok(false),
+        other => Err(PlyError::UnsupportedFormat(other.to_string())),
+    }
+}
+
+fn parse_origin(xyz: [&&str; 3]) -> Result<Point3<f64>, PlyError> {
+    let p = |s: &str| {
+        s.parse::<f64>()
+            .map_err(|_| PlyError::BadHeader(format!("bad origin value `{s}`")))
+    };
+    Ok(Point3::new(p(xyz[0])?, p(xyz[1])?, p(xyz[2])?))
+}
+
+/// A `property` line's words after `property`, added to the last element declared.
+fn add_property(elements: &mut [Element], words: &[&str], line: &str) -> Result<(), PlyError> {
+    let property = match words {
+        ["list", ct, vt, _name] => match (Scalar::parse(ct), Scalar::parse(vt)) {
+            (Some(ct), Some(_)) => Property::List(ct),
+            _ => {
+                let line = line.trim();
+                return Err(PlyError::BadHeader(format!("bad list types in `{line}`")));
+            }
+        },
+        [ty, name] => {
+            let ty = Scalar::parse(ty)
+                .ok_or_else(|| PlyError::BadHeader(format!("unknown type `{ty}`")))?;
+            Property::Scalar(name.to_string(), ty)
+        }
+        _ => {
+            let line = line.trim();
+            return Err(PlyError::BadHeader(format!("unexpected line `{line}`")));
+        }
+    };
+    elements
+        .last_mut()
+        .ok_or_else(|| PlyError::BadHeader("property before element".into()))?
+        .props
+        .push(property);
+    Ok(())
+}
+
+/// The indices of the vertex element's x, y and z properties; a vertex with a list property
+/// is refused (its size would vary).
+fn xyz_of(vertex: &Element) -> Result<[usize; 3], PlyError> {
     let find = |n: &str| {
         vertex
             .props
@@ -199,85 +241,108 @@ pub fn read_cloud(r: impl Read) -> Result<PlyCloud, PlyError> {
             "list property in the vertex element".into(),
         ));
     }
-    // The count is the header's claim: reserve for at most 64k points, the rest as they arrive.
-    let mut points = Vec::with_capacity(vertex.count.min(1 << 16));
-    if binary {
-        // Skip earlier elements (fixed-size only).
-        for e in &elements[..vertex_at] {
-            let mut size = 0usize;
-            for p in &e.props {
-                match p {
-                    Property::Scalar(_, t) => size += t.size(),
-                    Property::List(..) => {
-                        return Err(PlyError::BadHeader(format!(
-                            "list property in element `{}` before vertex",
-                            e.name
-                        )))
-                    }
-                }
-            }
-            // Skipped as one byte count, not element by element: an element without properties
-            // and a huge count would otherwise loop on empty reads for as long as it says.
-            let bytes = (size as u64)
-                .checked_mul(e.count as u64)
-                .ok_or_else(|| PlyError::BadHeader(format!("element `{}` is too large", e.name)))?;
-            let skipped = std::io::copy(&mut (&mut r).take(bytes), &mut std::io::sink())?;
-            if skipped < bytes {
-                return Err(PlyError::Truncated(format!("element `{}`", e.name)));
-            }
-        }
-        let offsets: Vec<(usize, Scalar)> = {
-            let mut at = 0;
-            vertex
-                .props
-                .iter()
-                .map(|p| {
-                    let t = match p {
-                        Property::Scalar(_, t) => *t,
-                        Property::List(ct) => *ct,
-                    };
-                    let o = (at, t);
-                    at += t.size();
-                    o
-                })
-                .collect()
+    Ok([ix, iy, iz])
+}
+
+/// Room for the header's claimed count of points: at most 64k, the rest as they arrive.
+fn points_for(vertex: &Element) -> Vec<Point3<f32>> {
+    Vec::with_capacity(vertex.count.min(1 << 16))
+}
+
+/// The vertices of a binary body, after skipping the (fixed-size) elements `before` them.
+fn read_binary_vertices(
+    r: &mut impl Read,
+    before: &[Element],
+    vertex: &Element,
+    [ix, iy, iz]: [usize; 3],
+) -> Result<Vec<Point3<f32>>, PlyError> {
+    for e in before {
+        skip_binary_element(r, e)?;
+    }
+    let mut at = 0;
+    let offsets: Vec<(usize, Scalar)> = vertex
+        .props
+        .iter()
+        .map(|p| {
+            let t = match p {
+                Property::Scalar(_, t) => *t,
+                Property::List(ct) => *ct,
+            };
+            at += t.size();
+            (at - t.size(), t)
+        })
+        .collect();
+    let mut buf = vec![0u8; at];
+    let mut points = points_for(vertex);
+    for i in 0..vertex.count {
+        r.read_exact(&mut buf)
+            .map_err(|_| PlyError::Truncated(format!("vertex {i} of {}", vertex.count)))?;
+        let v = |idx: usize| {
+            let (o, t) = offsets[idx];
+            t.read_le(&buf[o..]) as f32
         };
-        let stride: usize = offsets.iter().map(|(_, t)| t.size()).sum();
-        let mut buf = vec![0u8; stride];
-        for i in 0..vertex.count {
-            r.read_exact(&mut buf)
-                .map_err(|_| PlyError::Truncated(format!("vertex {i} of {}", vertex.count)))?;
-            let v = |idx: usize| {
-                let (o, t) = offsets[idx];
-                t.read_le(&buf[o..]) as f32
-            };
-            points.push(Point3::new(v(ix), v(iy), v(iz)));
-        }
-    } else {
-        let mut lines = r.lines();
-        for e in &elements[..vertex_at] {
-            for _ in 0..e.count {
-                lines
-                    .next()
-                    .ok_or_else(|| PlyError::Truncated(format!("element `{}`", e.name)))??;
+        points.push(Point3::new(v(ix), v(iy), v(iz)));
+    }
+    Ok(points)
+}
+
+/// Skips element `e` of a binary body, as one byte count, not element by element: an element
+/// without properties and a huge count would otherwise loop on empty reads for as long as it
+/// says.
+fn skip_binary_element(r: &mut impl Read, e: &Element) -> Result<(), PlyError> {
+    let mut size = 0usize;
+    for p in &e.props {
+        match p {
+            Property::Scalar(_, t) => size += t.size(),
+            Property::List(..) => {
+                return Err(PlyError::BadHeader(format!(
+                    "list property in element `{}` before vertex",
+                    e.name
+                )))
             }
-        }
-        for i in 0..vertex.count {
-            let l = lines
-                .next()
-                .ok_or_else(|| PlyError::Truncated(format!("vertex {i} of {}", vertex.count)))??;
-            let words: Vec<&str> = l.split_whitespace().collect();
-            let v = |idx: usize| -> Result<f32, PlyError> {
-                let w = words
-                    .get(idx)
-                    .ok_or_else(|| PlyError::Truncated(format!("vertex {i} has too few values")))?;
-                w.parse::<f32>()
-                    .map_err(|_| PlyError::BadValue(format!("`{w}` in vertex {i}")))
-            };
-            points.push(Point3::new(v(ix)?, v(iy)?, v(iz)?));
         }
     }
-    Ok(PlyCloud { points, origin })
+    let bytes = (size as u64)
+        .checked_mul(e.count as u64)
+        .ok_or_else(|| PlyError::BadHeader(format!("element `{}` is too large", e.name)))?;
+    let skipped = std::io::copy(&mut r.take(bytes), &mut std::io::sink())?;
+    if skipped < bytes {
+        return Err(PlyError::Truncated(format!("element `{}`", e.name)));
+    }
+    Ok(())
+}
+
+/// The vertices of an ASCII body, after skipping the lines of the elements `before` them.
+fn read_ascii_vertices(
+    r: impl BufRead,
+    before: &[Element],
+    vertex: &Element,
+    [ix, iy, iz]: [usize; 3],
+) -> Result<Vec<Point3<f32>>, PlyError> {
+    let mut lines = r.lines();
+    for e in before {
+        for _ in 0..e.count {
+            lines
+                .next()
+                .ok_or_else(|| PlyError::Truncated(format!("element `{}`", e.name)))??;
+        }
+    }
+    let mut points = points_for(vertex);
+    for i in 0..vertex.count {
+        let l = lines
+            .next()
+            .ok_or_else(|| PlyError::Truncated(format!("vertex {i} of {}", vertex.count)))??;
+        let words: Vec<&str> = l.split_whitespace().collect();
+        let v = |idx: usize| -> Result<f32, PlyError> {
+            let w = words
+                .get(idx)
+                .ok_or_else(|| PlyError::Truncated(format!("vertex {i} has too few values")))?;
+            w.parse::<f32>()
+                .map_err(|_| PlyError::BadValue(format!("`{w}` in vertex {i}")))
+        };
+        points.push(Point3::new(v(ix)?, v(iy)?, v(iz)?));
+    }
+    Ok(points)
 }
 
 /// Writes a cloud as binary little-endian PLY with float x, y, z and a `comment origin` line.

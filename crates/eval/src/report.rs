@@ -641,6 +641,21 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
          > 0.5 rule of the published plots and the fitted ellipsoid estimates.\n"
     );
     write_method_header(&mut out, &["scenario", "metric"], runs);
+    write_final_rows(&mut out, scenario, runs);
+    write_per_trial_rows(&mut out, scenario, runs);
+    write_missed(&mut out, runs);
+    let pairs = ours_explo_pairs(runs);
+    if !pairs.is_empty() {
+        write_p_table(&mut out, runs, &pairs);
+        for metric in &OVER_TIME_METRICS {
+            write_over_time(&mut out, runs, &pairs, metric, budget_s);
+        }
+    }
+    out
+}
+
+/// The metrics at the end of the budget, a row each.
+fn write_final_rows(out: &mut String, scenario: &str, runs: &[MethodRuns]) {
     for metric in &METRICS {
         let _ = write!(out, "| {scenario} | {} |", metric.label);
         for r in runs {
@@ -648,6 +663,10 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         }
         out.push('\n');
     }
+}
+
+/// The figures each trial gives once (time to 95 %, views, compute), a row each.
+fn write_per_trial_rows(out: &mut String, scenario: &str, runs: &[MethodRuns]) {
     type PerTrial = fn(&TrialResult) -> Option<f64>;
     let rows: [(&str, PerTrial); 5] = [
         (
@@ -675,69 +694,79 @@ pub fn table_markdown(scenario: &str, runs: &[MethodRuns], budget_s: f64) -> Str
         }
         out.push('\n');
     }
+}
 
-    write_missed(&mut out, runs);
-    let p = p_values(runs);
-    let pairs: Vec<(Method, Method)> = runs
-        .iter()
+/// Every (Ours, Explo) pair of methods among `runs`.
+fn ours_explo_pairs(runs: &[MethodRuns]) -> Vec<(Method, Method)> {
+    runs.iter()
         .filter(|o| o.method.uses_roi_sampling())
         .flat_map(|o| {
             runs.iter()
                 .filter(|e| !e.method.uses_roi_sampling())
                 .map(move |e| (o.method, e.method))
         })
-        .collect();
-    if !pairs.is_empty() {
-        let _ = writeln!(
-            out,
-            "\n## One-sided Mann-Whitney U p-values (Ours better than Explo)\n\n\
-             Alternative: the Ours method's values are larger (smaller for centre distance).\n"
-        );
-        let _ = write!(out, "| metric |");
-        for (ours, explo) in &pairs {
-            let _ = write!(out, " {ours} vs {explo} |");
-        }
-        let _ = write!(out, "\n|---|");
-        for _ in &pairs {
-            let _ = write!(out, "---|");
-        }
-        out.push('\n');
-        for metric in &METRICS {
-            let _ = write!(out, "| {} |", metric.label);
-            write_p_cells(&mut out, &p, metric, &pairs);
-            out.push('\n');
-        }
-        for metric in &OVER_TIME_METRICS {
-            let _ = writeln!(
-                out,
-                "\n## {} over time: mean per method, then the one-sided p-values\n",
-                metric.label
-            );
-            let _ = write!(out, "| time (s) |");
-            for r in runs {
-                let _ = write!(out, " {} |", method_label(r.method));
-            }
-            for (ours, explo) in &pairs {
-                let _ = write!(out, " p {ours} vs {explo} |");
-            }
-            let _ = write!(out, "\n|---|");
-            for _ in 0..runs.len() + pairs.len() {
-                let _ = write!(out, "---|");
-            }
-            out.push('\n');
-            for t in checkpoints(budget_s) {
-                let _ = write!(out, "| {t} |");
-                for r in runs {
-                    let mean = mean_std(&r.values_at(metric, t)).map_or(f64::NAN, |m| m.mean);
-                    let _ = write!(out, " {:.*} |", metric.decimals, mean);
-                }
-                let p = p_values_at(runs, std::slice::from_ref(metric), t);
-                write_p_cells(&mut out, &p, metric, &pairs);
-                out.push('\n');
-            }
-        }
+        .collect()
+}
+
+/// The one-sided p-values of the metrics at the end, a column per pair.
+fn write_p_table(out: &mut String, runs: &[MethodRuns], pairs: &[(Method, Method)]) {
+    let p = p_values(runs);
+    let _ = writeln!(
+        out,
+        "\n## One-sided Mann-Whitney U p-values (Ours better than Explo)\n\n\
+         Alternative: the Ours method's values are larger (smaller for centre distance).\n"
+    );
+    let _ = write!(out, "| metric |");
+    for (ours, explo) in pairs {
+        let _ = write!(out, " {ours} vs {explo} |");
     }
-    out
+    let _ = write!(out, "\n|---|");
+    for _ in pairs {
+        let _ = write!(out, "---|");
+    }
+    out.push('\n');
+    for metric in &METRICS {
+        let _ = write!(out, "| {} |", metric.label);
+        write_p_cells(out, &p, metric, pairs);
+        out.push('\n');
+    }
+}
+
+/// `metric` over time: each method's mean at every checkpoint, then the pairs' p-values.
+fn write_over_time(
+    out: &mut String,
+    runs: &[MethodRuns],
+    pairs: &[(Method, Method)],
+    metric: &MetricDef,
+    budget_s: f64,
+) {
+    let _ = writeln!(
+        out,
+        "\n## {} over time: mean per method, then the one-sided p-values\n",
+        metric.label
+    );
+    let _ = write!(out, "| time (s) |");
+    for r in runs {
+        let _ = write!(out, " {} |", method_label(r.method));
+    }
+    for (ours, explo) in pairs {
+        let _ = write!(out, " p {ours} vs {explo} |");
+    }
+    let _ = write!(out, "\n|---|");
+    for _ in 0..runs.len() + pairs.len() {
+        let _ = write!(out, "---|");
+    }
+    out.push('\n');
+    for t in checkpoints(budget_s) {
+        let _ = write!(out, "| {t} |");
+        for r in runs {
+            let mean = mean_std(&r.values_at(metric, t)).map_or(f64::NAN, |m| m.mean);
+            let _ = write!(out, " {:.*} |", metric.decimals, mean);
+        }
+        let p = p_values_at(runs, std::slice::from_ref(metric), t);
+        write_p_cells(out, &p, metric, pairs);
+        out.push('\n');
+    }
 }
 
 /// One table cell per (Ours, Explo) pair: the metric's one-sided p-value, or `–`.

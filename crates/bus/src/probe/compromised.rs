@@ -197,9 +197,11 @@ pub(super) async fn detector_attempts(
             .send(&cloud_header(tid, claimed), &cloud)
             .await?;
     }
-    let control = PROBE_SEQ + 10;
-    let header = cloud_header(tid, &serving);
-    control_clouds.send(&header, &probe_cloud(control)).await?;
+    let control = (
+        &control_clouds,
+        &cloud_header(tid, &serving),
+        PROBE_SEQ + 10,
+    );
     // A loaded machine can take long to plan and publish: as long as the links may take.
     let wait = Instant::now()
         + setup
@@ -282,28 +284,51 @@ async fn owner_refusals(
     }
 }
 
-/// Waits until the control frame shows in the victim's map or views and every forged cloud
-/// either shows there too (taken) or was counted by the owner (refused clouds over `before`);
-/// returns the probe frames seen.
+/// How often the control cloud is sent again until it shows: an owner with a later cloud of
+/// the trolley queued integrates an earlier one without planning on it, so on a loaded machine
+/// one control can pass unseen.
+const CONTROL_RESEND: Duration = Duration::from_secs(2);
+
+/// Sends the control cloud (`control`: its sender, header and frame seq) and waits until it
+/// shows in the victim's map or views, sending it again every [`CONTROL_RESEND`] until then,
+/// and until every forged cloud either shows there too (taken) or was counted by the owner
+/// (refused clouds over `before`); returns the probe frames seen.
 async fn judge_clouds(
     watch: &Victim,
     (owner, before, forged): (&str, u64, u64),
-    control: u64,
+    (sender, header, control): (&Sender<'_>, &Header, u64),
     deadline: Instant,
 ) -> Result<Vec<u64>, ProbeError> {
     let (mut seen, mut refused) = (Vec::new(), 0);
     let forged_seen = |seen: &Vec<u64>| seen.iter().filter(|&&f| f != control).count() as u64;
+    let mut resend = tokio::time::interval(CONTROL_RESEND);
+    let unjudged = |seen: &Vec<u64>, refused: u64| {
+        ProbeError::NoSign(format!(
+            "the control cloud in the map or views (seen: {}) and the forged clouds refused or \
+             taken ({} of {forged}) before the deadline",
+            seen.contains(&control),
+            refused + forged_seen(seen)
+        ))
+    };
     while !(seen.contains(&control) && refused + forged_seen(&seen) >= forged) {
         let frame = tokio::select! {
-            m = next(&watch.maps, deadline, "the control cloud in the map and the refusals counted") => m?.message.based_on_seq,
-            v = next(&watch.views, deadline, "the control cloud in the views and the refusals counted") => {
-                let v = v?.message;
-                if v.based_on_epoch_ns != PROBE_EPOCH_NS { continue; }
-                v.based_on_seq
+            _ = resend.tick(), if !seen.contains(&control) => {
+                sender.send(header, &probe_cloud(control)).await?;
+                continue;
             }
-            s = next(&watch.planners, deadline, "the owner's status") => {
-                let s = s?.message;
-                if s.planner_id == owner {
+            m = next(&watch.maps, deadline, "") => match m {
+                Ok(m) => m.message.based_on_seq,
+                Err(_) => return Err(unjudged(&seen, refused)),
+            },
+            v = next(&watch.views, deadline, "") => {
+                let Ok(v) = v else { return Err(unjudged(&seen, refused)) };
+                if v.message.based_on_epoch_ns != PROBE_EPOCH_NS { continue; }
+                v.message.based_on_seq
+            }
+            s = next(&watch.planners, deadline, "") => {
+                let Ok(s) = s else { return Err(unjudged(&seen, refused)) };
+                if s.message.planner_id == owner {
+                    let s = s.message;
                     refused = (s.refused_clouds + s.unassigned_clouds).saturating_sub(before);
                 }
                 continue;

@@ -193,9 +193,10 @@ fn spawn(
 struct TrolleyLog {
     frame_at: HashMap<u64, Instant>,
     cloud_at: HashMap<u64, Instant>,
-    /// Frame → cloud and frame → views latencies, ms.
+    /// Frame → cloud, frame → views and cloud → views (the planners' part) latencies, ms.
     frame_to_cloud_ms: Vec<f64>,
     frame_to_views_ms: Vec<f64>,
+    cloud_to_views_ms: Vec<f64>,
     views: u64,
     /// Every RankedViews: its arrival, its planner, and when the frame it answers arrived (for
     /// the first views on a frame).
@@ -267,6 +268,10 @@ struct Report {
     frame_to_cloud_ms_p99: Option<f64>,
     frame_to_views_ms_p50: Option<f64>,
     frame_to_views_ms_p99: Option<f64>,
+    /// From the ROI cloud to the first views on its frame: the planners' part of the loop
+    /// (queueing behind other trolleys' clouds included).
+    cloud_to_views_ms_p50: Option<f64>,
+    cloud_to_views_ms_p99: Option<f64>,
     /// The same latency by the planner that answered, and before, around and after the fault.
     frame_to_views_tail: tail::TailReport,
     messages_dropped: u64,
@@ -839,6 +844,10 @@ impl Observed {
                 if let Some(f) = frame {
                     t.frame_to_views_ms
                         .push(now.duration_since(f).as_secs_f64() * 1e3);
+                    if let Some(c) = t.cloud_at.get(&v.based_on_seq) {
+                        t.cloud_to_views_ms
+                            .push(now.saturating_duration_since(*c).as_secs_f64() * 1e3);
+                    }
                 }
                 t.views_from.push((now, header.source_id.clone(), frame));
             }
@@ -1162,6 +1171,11 @@ fn build_report(
         .values()
         .flat_map(|t| t.frame_to_views_ms.iter().copied())
         .collect();
+    let all_planned: Vec<f64> = o
+        .trolleys
+        .values()
+        .flat_map(|t| t.cloud_to_views_ms.iter().copied())
+        .collect();
     let frames: usize = o.trolleys.values().map(|t| t.cloud_at.len()).sum();
     let views: u64 = o.trolleys.values().map(|t| t.views).sum();
     let dropped: u64 = o
@@ -1199,6 +1213,8 @@ fn build_report(
         frame_to_cloud_ms_p99: percentile(&all_cloud, 99.0),
         frame_to_views_ms_p50: percentile(&all_views, 50.0),
         frame_to_views_ms_p99: percentile(&all_views, 99.0),
+        cloud_to_views_ms_p50: percentile(&all_planned, 50.0),
+        cloud_to_views_ms_p99: percentile(&all_planned, 99.0),
         frame_to_views_tail: tail::report(&o.trolleys, m.fault.as_ref().map(|f| f.at)),
         messages_dropped: dropped,
         observer_corrupt: o.corrupt,
@@ -1257,6 +1273,11 @@ fn print_throughput(r: &Report) {
         "  frame -> views       p50 {}  p99 {}",
         ms(r.frame_to_views_ms_p50),
         ms(r.frame_to_views_ms_p99)
+    );
+    println!(
+        "  ROI cloud -> views   p50 {}  p99 {}",
+        ms(r.cloud_to_views_ms_p50),
+        ms(r.cloud_to_views_ms_p99)
     );
     println!("{}", tail::text(&r.frame_to_views_tail));
     println!(

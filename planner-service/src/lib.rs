@@ -459,6 +459,9 @@ async fn perform(
         PlannerAction::Finish { tid } => {
             let _ = out.events.send(PlannerEvent::Finish { tid });
         }
+        PlannerAction::NextCloud => {
+            let _ = out.events.send(PlannerEvent::NextCloud);
+        }
         PlannerAction::Store(write) => {
             if let Some(store) = &out.store {
                 store.write(write).await;

@@ -99,7 +99,8 @@ pub enum PlannerEvent {
     },
     /// Clouds that queued up while the planner was busy, in arrival order, the last received at
     /// `received_ns`: each is integrated, and the owner plans once per trolley, on the trolley's
-    /// last cloud of the batch.
+    /// last cloud of the batch. They are handled until one has something to publish, the rest
+    /// one [`PlannerEvent::NextCloud`] at a time.
     Clouds {
         clouds: Vec<KeyedCloud>,
         received_ns: u64,
@@ -133,6 +134,8 @@ pub enum PlannerEvent {
     Finish {
         tid: String,
     },
+    /// The next cloud of the batch being handled (see [`PlannerAction::NextCloud`]).
+    NextCloud,
     /// A store write of `tid` failed: the store may miss what it held, so the next checkpoint
     /// of the trolley writes every block again.
     StoreFailed {
@@ -198,6 +201,10 @@ pub enum PlannerAction {
     Finish {
         tid: String,
     },
+    /// Feed `PlannerEvent::NextCloud` back once the actions before it are done: a batch of
+    /// clouds is handled until one of them has something to publish, so a trolley's views go
+    /// out before the other trolleys' clouds queued behind its own are integrated.
+    NextCloud,
     /// Write to the planner's store before performing the actions after this one.
     Store(StoreWrite),
 }
@@ -308,7 +315,9 @@ pub struct PlannerNode {
     latest_fruits: BTreeMap<String, FruitEstimates>,
     stats: PlannerStats,
     status_seq: u64,
-    /// While a `Clouds` batch is handled: per trolley, its clouds still to come in the batch.
+    /// Clouds of the batch being handled, in arrival order (see [`PlannerAction::NextCloud`]).
+    batch: VecDeque<ReceivedCloud>,
+    /// Per trolley, its clouds still to come in `batch`.
     queued_clouds: BTreeMap<String, usize>,
     /// See [`PlannerNode::with_replica_refresh`]; 0: a hot replica.
     replica_refresh_clouds: usize,
@@ -386,6 +395,7 @@ impl PlannerNode {
             latest_fruits: BTreeMap::new(),
             stats: PlannerStats::default(),
             status_seq: 0,
+            batch: VecDeque::new(),
             queued_clouds: BTreeMap::new(),
             replica_refresh_clouds: REPLICA_REFRESH_CLOUDS,
             takeover_decode_threads: TAKEOVER_DECODE_THREADS,
@@ -524,6 +534,7 @@ impl PlannerNode {
             PlannerEvent::SnapshotAsked { query_id, tid } => self.on_snapshot_asked(query_id, &tid),
             PlannerEvent::CatchUp { tid } => self.on_catch_up(&tid),
             PlannerEvent::Finish { tid } => self.finish(&tid),
+            PlannerEvent::NextCloud => self.next_of_batch(),
             PlannerEvent::StoreFailed { tid } => {
                 if let Some(slot) = self.slots.get_mut(&tid) {
                     slot.stored = StoredMark::default();
@@ -903,32 +914,52 @@ impl PlannerNode {
         }
     }
 
-    /// Handles a batch of clouds one by one, so that a trolley's clouds queued behind a later
-    /// one are integrated without fits or planning (the edge waits only on its latest frame).
+    /// Queues a batch of clouds and takes its first step. The clouds are handled one by one, so
+    /// that a trolley's clouds queued behind a later one are integrated without fits or
+    /// planning (the edge waits only on its latest frame), and each cloud's results go out
+    /// before the next cloud is taken.
     fn on_clouds(&mut self, clouds: Vec<KeyedCloud>, received_ns: u64) -> Vec<PlannerAction> {
         self.expire_unknown_sources(received_ns);
         let clouds: Vec<KeyedCloud> = clouds
             .into_iter()
             .filter(|c| self.sent_by_its_key(c))
             .collect();
-        for c in &clouds {
+        // A batch still being handled (its NextCloud not yet fed back) takes these after its
+        // own clouds; a step is taken now either way, so no cloud waits on a lost NextCloud.
+        for KeyedCloud { header, cloud, .. } in clouds {
             *self
                 .queued_clouds
-                .entry(c.header.trolley_id.clone())
+                .entry(header.trolley_id.clone())
                 .or_default() += 1;
-        }
-        let mut actions = Vec::new();
-        for KeyedCloud { header, cloud, .. } in clouds {
-            if let Some(n) = self.queued_clouds.get_mut(&header.trolley_id) {
-                *n -= 1;
-            }
-            actions.extend(self.on_cloud(ReceivedCloud {
+            self.batch.push_back(ReceivedCloud {
                 header,
                 cloud,
                 received_ns,
-            }));
+            });
         }
-        self.queued_clouds.clear();
+        self.next_of_batch()
+    }
+
+    /// Handles the batch's clouds in order until one has something to publish; a
+    /// [`PlannerAction::NextCloud`] after its actions when more wait.
+    fn next_of_batch(&mut self) -> Vec<PlannerAction> {
+        let mut actions = Vec::new();
+        while actions.is_empty() {
+            let Some(received) = self.batch.pop_front() else {
+                break;
+            };
+            let tid = &received.header.trolley_id;
+            if let Some(n) = self.queued_clouds.get_mut(tid) {
+                *n -= 1;
+                if *n == 0 {
+                    self.queued_clouds.remove(tid);
+                }
+            }
+            actions = self.on_cloud(received);
+        }
+        if !self.batch.is_empty() {
+            actions.push(PlannerAction::NextCloud);
+        }
         actions
     }
 

@@ -110,17 +110,19 @@ fn asks(actions: &[PlannerAction]) -> Vec<(String, Vec<String>)> {
         .collect()
 }
 
-/// `actions` and what the `Finish` events they ask for give, fed back as the driver does.
+/// `actions` and what the `Finish` and `NextCloud` events they ask for give, fed back as the
+/// driver does.
 fn settle(node: &mut PlannerNode, actions: Vec<PlannerAction>) -> Vec<PlannerAction> {
     let mut out = Vec::new();
     for action in actions {
-        let finish = match &action {
-            PlannerAction::Finish { tid } => Some(tid.clone()),
+        let back = match &action {
+            PlannerAction::Finish { tid } => Some(PlannerEvent::Finish { tid: tid.clone() }),
+            PlannerAction::NextCloud => Some(PlannerEvent::NextCloud),
             _ => None,
         };
         out.push(action);
-        if let Some(tid) = finish {
-            let more = node.handle(PlannerEvent::Finish { tid });
+        if let Some(event) = back {
+            let more = node.handle(event);
             out.extend(settle(node, more));
         }
     }
@@ -553,7 +555,7 @@ fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
             received_ns: NOW_NS,
         }
     };
-    let actions = owner.handle(batch());
+    let actions = feed(&mut owner, batch());
     assert_eq!(owner.stats().clouds_integrated, 3);
     assert_eq!(owner.stats().plans, 1);
     let views = views_of(&actions);
@@ -581,6 +583,35 @@ fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
 #[test]
 fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
     let (info, clouds) = trolley_clouds(3);
+    let mut solo = owning_t1_and_t2(&info);
+    let of =
+        |tid: &str, i: usize| keyed(header(tid, clouds[i].source_frame_seq), clouds[i].clone());
+    let batch = vec![
+        of("t1", 0),
+        of("t2", 0),
+        of("t1", 1),
+        of("t1", 2),
+        of("t2", 1),
+    ];
+    let actions = feed(
+        &mut solo,
+        PlannerEvent::Clouds {
+            clouds: batch,
+            received_ns: NOW_NS,
+        },
+    );
+    assert_eq!(solo.stats().clouds_integrated, 5);
+    assert_eq!(solo.stats().plans, 2);
+    assert_eq!(outputs_for(&actions, "t1"), (1, 1, 3));
+    assert_eq!(outputs_for(&actions, "t2"), (1, 1, 2));
+    assert_eq!(
+        views_for(&actions),
+        vec![("t1".into(), 3), ("t2".into(), 2)]
+    );
+}
+
+/// A planner owning t1 and t2 alone, both informed.
+fn owning_t1_and_t2(info: &TrolleyInfo) -> PlannerNode {
     let mut solo = node("p1");
     for tid in ["t1", "t2"] {
         solo.handle(PlannerEvent::TrolleyJoined(tid.into()));
@@ -593,24 +624,11 @@ fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
             info: info.clone(),
         });
     }
-    let of =
-        |tid: &str, i: usize| keyed(header(tid, clouds[i].source_frame_seq), clouds[i].clone());
-    let batch = vec![
-        of("t1", 0),
-        of("t2", 0),
-        of("t1", 1),
-        of("t1", 2),
-        of("t2", 1),
-    ];
-    let actions = solo.handle(PlannerEvent::Clouds {
-        clouds: batch,
-        received_ns: NOW_NS,
-    });
-    assert_eq!(solo.stats().clouds_integrated, 5);
-    assert_eq!(solo.stats().plans, 2);
-    assert_eq!(outputs_for(&actions, "t1"), (1, 1, 3));
-    assert_eq!(outputs_for(&actions, "t2"), (1, 1, 2));
-    let planned: Vec<(String, u64)> = actions
+    solo
+}
+
+fn views_for(actions: &[PlannerAction]) -> Vec<(String, u64)> {
+    actions
         .iter()
         .filter_map(|a| match a {
             PlannerAction::Publish {
@@ -620,8 +638,36 @@ fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
             } => Some((tid.clone(), v.based_on_seq)),
             _ => None,
         })
-        .collect();
-    assert_eq!(planned, vec![("t1".into(), 3), ("t2".into(), 2)]);
+        .collect()
+}
+
+#[test]
+fn a_trolleys_views_go_out_before_the_next_trolleys_cloud_is_integrated() {
+    let (info, clouds) = trolley_clouds(3);
+    let mut solo = owning_t1_and_t2(&info);
+    let of =
+        |tid: &str, i: usize| keyed(header(tid, clouds[i].source_frame_seq), clouds[i].clone());
+    let first = solo.handle(PlannerEvent::Clouds {
+        clouds: vec![of("t1", 0), of("t2", 0)],
+        received_ns: NOW_NS,
+    });
+    assert_eq!(views_for(&first), vec![("t1".into(), 1)]);
+    assert_eq!(first.last(), Some(&PlannerAction::NextCloud));
+    assert_eq!(solo.stats().clouds_integrated, 1);
+    // Clouds that come before the NextCloud is fed back queue behind the batch's own.
+    let more = solo.handle(PlannerEvent::Clouds {
+        clouds: vec![of("t1", 1)],
+        received_ns: NOW_NS,
+    });
+    assert_eq!(views_for(&more), vec![("t2".into(), 1)]);
+    assert_eq!(more.last(), Some(&PlannerAction::NextCloud));
+    let last = solo.handle(PlannerEvent::NextCloud);
+    assert_eq!(views_for(&last), vec![("t1".into(), 2)]);
+    assert!(!last.contains(&PlannerAction::NextCloud));
+    // A NextCloud left over after the batch is done changes nothing.
+    assert!(solo.handle(PlannerEvent::NextCloud).is_empty());
+    assert_eq!(solo.stats().clouds_integrated, 3);
+    assert_eq!(solo.stats().plans, 3);
 }
 
 /// The owner of t1 with its info and the first cloud integrated.

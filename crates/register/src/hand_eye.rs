@@ -19,6 +19,8 @@
 
 use std::collections::{HashMap, VecDeque};
 
+use glasshouse_roimap::{KeyBuildHasher, VoxelKey};
+
 use nalgebra::{
     Isometry3, Matrix3, Matrix6, Point3, Translation3, UnitQuaternion, Vector3, Vector6,
 };
@@ -338,11 +340,13 @@ impl HandEyeEstimator {
     fn solve_round(&self) -> Option<(Vector6<f64>, HandEyeFigures)> {
         let placed: Vec<Placed> = self.scans.iter().map(|s| self.place(s)).collect();
         let grid = Grid::new(&placed, self.settings.match_radius_m);
+        let mut nearest = Nearest::new(placed.len());
         let mut normal = Normal::default();
         for (a, scan) in placed.iter().enumerate() {
             let stride = (scan.surfels.len() / self.settings.query_points).max(1);
             for i in (0..scan.surfels.len()).step_by(stride) {
-                for (b, j) in grid.matches(&placed, a, i, self.settings.match_radius_m) {
+                grid.matches(&placed, a, i, self.settings.match_radius_m, &mut nearest);
+                for &(b, j) in &nearest.found {
                     normal.add(&self.settings, &placed[a], i, &placed[b], j);
                 }
             }
@@ -383,50 +387,143 @@ struct PlacedSurfel {
     normal_world: Vector3<f64>,
 }
 
-/// The placed surfels of every scan hashed by cell.
+/// The placed surfels of every scan by cell: each cell's surfels lie together in `entries`, in
+/// scan and surfel order (the order the matches, and so the sums, are made in), each with its
+/// world position, so a query reads its candidates in one run of memory.
 struct Grid {
     cell_m: f64,
-    cells: HashMap<[i32; 3], Vec<(u32, u32)>>,
+    /// Per occupied cell, the range of its surfels in `entries`.
+    cells: HashMap<VoxelKey, (u32, u32), KeyBuildHasher>,
+    entries: Vec<Entry>,
+}
+
+#[derive(Clone, Copy)]
+struct Entry {
+    world: Point3<f64>,
+    scan: u32,
+    surfel: u32,
 }
 
 impl Grid {
     fn new(placed: &[Placed], cell_m: f64) -> Self {
-        let mut cells: HashMap<[i32; 3], Vec<(u32, u32)>> = HashMap::new();
-        for (s, scan) in placed.iter().enumerate() {
-            for (i, p) in scan.surfels.iter().enumerate() {
-                cells
-                    .entry(cell_of(&p.world, cell_m))
-                    .or_default()
-                    .push((s as u32, i as u32));
+        let total: usize = placed.iter().map(|scan| scan.surfels.len()).sum();
+        let mut cells: HashMap<VoxelKey, (u32, u32), KeyBuildHasher> =
+            HashMap::with_capacity_and_hasher(total, KeyBuildHasher::default());
+        // Counted first, then placed: one allocation for every cell's pairs.
+        let cell_of_each: Vec<VoxelKey> = placed
+            .iter()
+            .flat_map(|scan| scan.surfels.iter().map(|p| cell_of(&p.world, cell_m)))
+            .collect();
+        for key in &cell_of_each {
+            cells.entry(*key).or_insert((0, 0)).1 += 1;
+        }
+        let mut start = 0;
+        for range in cells.values_mut() {
+            let len = range.1;
+            *range = (start, start);
+            start += len;
+        }
+        let unset = Entry {
+            world: Point3::origin(),
+            scan: 0,
+            surfel: 0,
+        };
+        let mut entries = vec![unset; total];
+        let all = placed.iter().enumerate().flat_map(|(s, scan)| {
+            scan.surfels.iter().enumerate().map(move |(i, p)| Entry {
+                world: p.world,
+                scan: s as u32,
+                surfel: i as u32,
+            })
+        });
+        for (key, entry) in cell_of_each.iter().zip(all) {
+            if let Some(range) = cells.get_mut(key) {
+                entries[range.1 as usize] = entry;
+                range.1 += 1;
             }
         }
-        Self { cell_m, cells }
+        Self {
+            cell_m,
+            cells,
+            entries,
+        }
     }
 
-    /// The nearest surfel within `radius_m` of surfel `i` of scan `a` in every other scan.
-    fn matches(&self, placed: &[Placed], a: usize, i: usize, radius_m: f64) -> Vec<(usize, usize)> {
+    /// The nearest surfel within `radius_m` of surfel `i` of scan `a` in every other scan, into
+    /// `nearest.found` (scans in the order first met).
+    fn matches(&self, placed: &[Placed], a: usize, i: usize, radius_m: f64, nearest: &mut Nearest) {
+        nearest.clear();
         let p = placed[a].surfels[i].world;
         let c = cell_of(&p, self.cell_m);
-        let mut best: Vec<(usize, usize, f64)> = Vec::new();
         for d in NEIGHBOURS {
-            let key = [c[0] + d[0], c[1] + d[1], c[2] + d[2]];
-            for &(s, j) in self.cells.get(&key).into_iter().flatten() {
-                let (s, j) = (s as usize, j as usize);
+            let key = VoxelKey {
+                x: c.x + d[0],
+                y: c.y + d[1],
+                z: c.z + d[2],
+            };
+            let Some(&(from, to)) = self.cells.get(&key) else {
+                continue;
+            };
+            for e in &self.entries[from as usize..to as usize] {
+                let s = e.scan as usize;
                 if s == a {
                     continue;
                 }
-                let d2 = (placed[s].surfels[j].world - p).norm_squared();
-                if d2 > radius_m * radius_m {
-                    continue;
-                }
-                match best.iter_mut().find(|m| m.0 == s) {
-                    Some(m) if d2 < m.2 => *m = (s, j, d2),
-                    Some(_) => {}
-                    None => best.push((s, j, d2)),
+                let d2 = (e.world - p).norm_squared();
+                if d2 <= radius_m * radius_m {
+                    nearest.offer(s, e.surfel as usize, d2);
                 }
             }
         }
-        best.into_iter().map(|(s, j, _)| (s, j)).collect()
+        nearest.finish();
+    }
+}
+
+/// The nearest candidate per scan for one query point: a slot per scan of the window, so a
+/// candidate costs one look-up, not a search of the scans met so far.
+struct Nearest {
+    /// Per scan: its nearest surfel so far and the squared distance (`NONE`: none yet).
+    best: Vec<(usize, f64)>,
+    /// Scans met, in the order first met.
+    met: Vec<usize>,
+    /// The matches: (scan, surfel), in the order the scans were first met.
+    found: Vec<(usize, usize)>,
+}
+
+impl Nearest {
+    const NONE: usize = usize::MAX;
+
+    fn new(scans: usize) -> Self {
+        Self {
+            best: vec![(Self::NONE, 0.0); scans],
+            met: Vec::new(),
+            found: Vec::new(),
+        }
+    }
+
+    fn clear(&mut self) {
+        for &s in &self.met {
+            self.best[s] = (Self::NONE, 0.0);
+        }
+        self.met.clear();
+        self.found.clear();
+    }
+
+    /// A candidate replaces the scan's nearest only when strictly nearer (the first met wins
+    /// a tie).
+    fn offer(&mut self, s: usize, j: usize, d2: f64) {
+        let slot = &mut self.best[s];
+        if slot.0 == Self::NONE {
+            self.met.push(s);
+            *slot = (j, d2);
+        } else if d2 < slot.1 {
+            *slot = (j, d2);
+        }
+    }
+
+    fn finish(&mut self) {
+        let best = &self.best;
+        self.found.extend(self.met.iter().map(|&s| (s, best[s].0)));
     }
 }
 
@@ -444,12 +541,12 @@ const NEIGHBOURS: [[i32; 3]; 27] = {
     out
 };
 
-fn cell_of(p: &Point3<f64>, cell_m: f64) -> [i32; 3] {
-    [
-        (p.x / cell_m).floor() as i32,
-        (p.y / cell_m).floor() as i32,
-        (p.z / cell_m).floor() as i32,
-    ]
+fn cell_of(p: &Point3<f64>, cell_m: f64) -> VoxelKey {
+    VoxelKey {
+        x: (p.x / cell_m).floor() as i32,
+        y: (p.y / cell_m).floor() as i32,
+        z: (p.z / cell_m).floor() as i32,
+    }
 }
 
 /// The normal equations of one round.
@@ -549,7 +646,7 @@ fn surface_of(
         return Vec::new();
     }
     let radius = settings.normal_radius_m;
-    let mut cells: HashMap<[i32; 3], Vec<u32>> = HashMap::new();
+    let mut cells: HashMap<VoxelKey, Vec<u32>, KeyBuildHasher> = HashMap::default();
     for (i, q) in in_range.iter().enumerate() {
         cells
             .entry(cell_of(&Point3::from(*q), radius))
@@ -574,14 +671,20 @@ fn surface_of(
 fn normal_at(
     settings: &HandEyeSettings,
     points: &[Vector3<f64>],
-    cells: &HashMap<[i32; 3], Vec<u32>>,
+    cells: &HashMap<VoxelKey, Vec<u32>, KeyBuildHasher>,
     at: &Vector3<f64>,
 ) -> Option<Vector3<f64>> {
     let radius = settings.normal_radius_m;
     let c = cell_of(&Point3::from(*at), radius);
     let near: Vec<&Vector3<f64>> = NEIGHBOURS
         .iter()
-        .filter_map(|d| cells.get(&[c[0] + d[0], c[1] + d[1], c[2] + d[2]]))
+        .filter_map(|d| {
+            cells.get(&VoxelKey {
+                x: c.x + d[0],
+                y: c.y + d[1],
+                z: c.z + d[2],
+            })
+        })
         .flatten()
         .map(|&i| &points[i as usize])
         .filter(|p| (*p - at).norm_squared() <= radius * radius)

@@ -584,14 +584,12 @@ fn queued_clouds_are_all_integrated_and_planned_once_on_the_latest() {
 fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
     let (info, clouds) = trolley_clouds(3);
     let mut solo = owning_t1_and_t2(&info);
-    let of =
-        |tid: &str, i: usize| keyed(header(tid, clouds[i].source_frame_seq), clouds[i].clone());
     let batch = vec![
-        of("t1", 0),
-        of("t2", 0),
-        of("t1", 1),
-        of("t1", 2),
-        of("t2", 1),
+        keyed_as("t1", &clouds[0]),
+        keyed_as("t2", &clouds[0]),
+        keyed_as("t1", &clouds[1]),
+        keyed_as("t1", &clouds[2]),
+        keyed_as("t2", &clouds[1]),
     ];
     let actions = feed(
         &mut solo,
@@ -608,6 +606,11 @@ fn a_batch_of_several_trolleys_plans_each_once_on_its_own_latest() {
         views_for(&actions),
         vec![("t1".into(), 3), ("t2".into(), 2)]
     );
+}
+
+/// `cloud` as trolley `tid`'s, sent by its detector.
+fn keyed_as(tid: &str, cloud: &RoiCloud) -> KeyedCloud {
+    keyed(header(tid, cloud.source_frame_seq), cloud.clone())
 }
 
 /// A planner owning t1 and t2 alone, both informed.
@@ -645,10 +648,8 @@ fn views_for(actions: &[PlannerAction]) -> Vec<(String, u64)> {
 fn a_trolleys_views_go_out_before_the_next_trolleys_cloud_is_integrated() {
     let (info, clouds) = trolley_clouds(3);
     let mut solo = owning_t1_and_t2(&info);
-    let of =
-        |tid: &str, i: usize| keyed(header(tid, clouds[i].source_frame_seq), clouds[i].clone());
     let first = solo.handle(PlannerEvent::Clouds {
-        clouds: vec![of("t1", 0), of("t2", 0)],
+        clouds: vec![keyed_as("t1", &clouds[0]), keyed_as("t2", &clouds[0])],
         received_ns: NOW_NS,
     });
     assert_eq!(views_for(&first), vec![("t1".into(), 1)]);
@@ -656,7 +657,7 @@ fn a_trolleys_views_go_out_before_the_next_trolleys_cloud_is_integrated() {
     assert_eq!(solo.stats().clouds_integrated, 1);
     // Clouds that come before the NextCloud is fed back queue behind the batch's own.
     let more = solo.handle(PlannerEvent::Clouds {
-        clouds: vec![of("t1", 1)],
+        clouds: vec![keyed_as("t1", &clouds[1])],
         received_ns: NOW_NS,
     });
     assert_eq!(views_for(&more), vec![("t2".into(), 1)]);

@@ -14,7 +14,10 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use glasshouse_eval::{ComputeTime, Trial, TrialConfig};
 use glasshouse_nbv::Method;
-use glasshouse_planner::node::{PlannerAction, PlannerEvent, PlannerNode, Role, TrolleyOutput};
+use glasshouse_pipeline::PlanningSettings;
+use glasshouse_planner::node::{
+    decode_ahead, PlannerAction, PlannerEvent, PlannerNode, Role, TrolleyOutput,
+};
 use glasshouse_proto::{Header, RoiCloud, StageTimes, TrolleyInfo};
 use glasshouse_roimap::RoiMap;
 use glasshouse_sim::ScenarioKind;
@@ -48,6 +51,11 @@ pub struct BenchReplicaArgs {
     /// what the fruits' colours cost per frame is the difference to a run with them.
     #[arg(long)]
     without_colours: bool,
+    /// Standby replicas decode each snapshot they hold at once, as the planner service does in
+    /// the background by default (`standby_decoded_ahead`): the decodes are timed apart from
+    /// the replica's own handling, and the takeover adopts the decoded copy.
+    #[arg(long)]
+    decoded_ahead: bool,
 }
 
 /// One replica setting's figures (times in ms on this thread).
@@ -59,6 +67,9 @@ struct ReplicaRun {
     /// The replica's own handling plus the owner's answers to its snapshot queries.
     replica_ms_per_frame: f64,
     replica_share_of_owner: f64,
+    /// Snapshots decoded ahead of the takeover (`--decoded-ahead`; the service does it in the
+    /// background, on idle cores).
+    replica_decode_ahead_ms_per_frame: f64,
     snapshots: usize,
     owner_ms_first_frames: f64,
     owner_ms_last_frames: f64,
@@ -89,7 +100,11 @@ pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
     }
     let mut runs = Vec::new();
     for &refresh in &args.refresh {
-        let run = replay(&config, args.window, refresh, &info, &clouds)?;
+        let replica = ReplicaSetup {
+            refresh,
+            decoded_ahead: args.decoded_ahead,
+        };
+        let run = replay(&config, args.window, replica, &info, &clouds)?;
         print_run(&run);
         runs.push(run);
     }
@@ -144,17 +159,30 @@ pub(crate) fn joining(info: &TrolleyInfo) -> [PlannerEvent; 4] {
     ]
 }
 
+/// How the replica keeps its copy.
+#[derive(Clone, Copy, Debug)]
+struct ReplicaSetup {
+    refresh: usize,
+    decoded_ahead: bool,
+}
+
 /// Owner and replica of one trolley, the owner first.
 struct Pair {
     owner: PlannerNode,
     replica: PlannerNode,
     queries: u64,
+    planning: PlanningSettings,
+    /// Time decoding the replica's snapshots ahead, apart from its own handling.
+    decode_ahead_ms: f64,
 }
 
 impl Pair {
-    fn new(config: &TrialConfig, refresh: usize, info: &TrolleyInfo) -> anyhow::Result<Self> {
-        let node =
-            |pid: &str| PlannerNode::new(pid, config.planning(), 0).with_replica_refresh(refresh);
+    fn new(config: &TrialConfig, setup: ReplicaSetup, info: &TrolleyInfo) -> anyhow::Result<Self> {
+        let node = |pid: &str| {
+            PlannerNode::new(pid, config.planning(), 0)
+                .with_replica_refresh(setup.refresh)
+                .with_standby_decoded_ahead(setup.decoded_ahead)
+        };
         let mut nodes = [(node("p1"), "p2"), (node("p2"), "p1")];
         for (node, other) in &mut nodes {
             node.handle(PlannerEvent::PlannerJoined(other.to_string()));
@@ -175,6 +203,8 @@ impl Pair {
             owner,
             replica,
             queries: 0,
+            planning: config.planning(),
+            decode_ahead_ms: 0.0,
         })
     }
 
@@ -194,11 +224,26 @@ impl Pair {
                 PlannerAction::ReplySnapshot { answer, .. } => answer.ok().map(|(_, s)| s),
                 _ => None,
             });
-            self.replica
+            let loaded = self
+                .replica
                 .handle(PlannerEvent::SnapshotLoaded { tid, snapshot });
+            self.decode_ahead(loaded);
             answered += 1;
         }
         answered
+    }
+
+    /// Decodes what the replica asks to be decoded ahead and hands it the copies.
+    fn decode_ahead(&mut self, actions: Vec<PlannerAction>) {
+        for action in actions {
+            let PlannerAction::DecodeAhead { tid, snapshot } = action else {
+                continue;
+            };
+            let started = Instant::now();
+            let decoded = decode_ahead(&self.planning, tid, snapshot);
+            self.decode_ahead_ms += ms_since(started);
+            self.replica.handle(decoded);
+        }
     }
 }
 
@@ -247,11 +292,11 @@ pub(crate) fn ms_since(started: Instant) -> f64 {
 fn replay(
     config: &TrialConfig,
     window: usize,
-    refresh: usize,
+    replica: ReplicaSetup,
     info: &TrolleyInfo,
     clouds: &[RoiCloud],
 ) -> anyhow::Result<ReplicaRun> {
-    let mut pair = Pair::new(config, refresh, info)?;
+    let mut pair = Pair::new(config, replica, info)?;
     let (mut owner_ms, mut replica_ms) = (Vec::new(), 0.0);
     let mut snapshots = 0;
     let frames = clouds.len();
@@ -294,11 +339,12 @@ fn replay(
     };
     let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
     Ok(ReplicaRun {
-        replica_refresh_clouds: refresh,
+        replica_refresh_clouds: replica.refresh,
         frames,
         owner_ms_per_frame: owner_total / frames as f64,
         replica_ms_per_frame: replica_ms / frames as f64,
         replica_share_of_owner: replica_ms / owner_total,
+        replica_decode_ahead_ms_per_frame: pair.decode_ahead_ms / frames as f64,
         snapshots,
         owner_ms_first_frames: mean(&owner_ms[..window]),
         owner_ms_last_frames: mean(&owner_ms[frames - window..]),
@@ -332,6 +378,12 @@ fn print_run(run: &ReplicaRun) {
         run.replica_share_of_owner * 100.0,
         run.snapshots
     );
+    if run.replica_decode_ahead_ms_per_frame > 0.0 {
+        println!(
+            "  replica's decodes ahead of a takeover (in the background in the service): {:.1} ms/frame",
+            run.replica_decode_ahead_ms_per_frame
+        );
+    }
     println!(
         "  owner at the start / end of the run: {:.1} / {:.1} ms/frame",
         run.owner_ms_first_frames, run.owner_ms_last_frames

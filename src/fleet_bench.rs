@@ -111,6 +111,10 @@ pub struct FleetBenchArgs {
     /// decoded at once (planner default 8); 1: each at its own catch-up, one after another.
     #[arg(long)]
     pub takeover_decode_threads: Option<usize>,
+    /// Every planner's `--standby-decoded-ahead`: whether standby replicas decode the snapshots
+    /// they hold in the background, on idle cores (planner default true).
+    #[arg(long, value_name = "BOOL")]
+    pub standby_decoded_ahead: Option<bool>,
     /// Every planner keeps its trolleys in a store, DIR/<planner>.redb (`planner-service
     /// --store`), and the report gives what the stores wrote per frame. `--fault restart-all`
     /// uses stores in the logs folder when this is not given.
@@ -259,6 +263,8 @@ struct Report {
     replica_refresh_clouds: Option<usize>,
     /// The planners' `--takeover-decode-threads` (None: their default).
     takeover_decode_threads: Option<usize>,
+    /// The planners' `--standby-decoded-ahead` (None: their default).
+    standby_decoded_ahead: Option<bool>,
     width: u32,
     fps_per_trolley_max: f64,
     measured_s: f64,
@@ -635,6 +641,9 @@ impl Fleet {
             }
             if let Some(n) = args.takeover_decode_threads {
                 extra.extend(["--takeover-decode-threads".into(), n.to_string()]);
+            }
+            if let Some(ahead) = args.standby_decoded_ahead {
+                extra.extend(["--standby-decoded-ahead".into(), ahead.to_string()]);
             }
             if let Some(dir) = self.store_dir(args) {
                 let file = dir.join(format!("p{i}.redb"));
@@ -1204,6 +1213,7 @@ fn build_report(
         realtime: args.realtime,
         replica_refresh_clouds: args.replica_refresh_clouds,
         takeover_decode_threads: args.takeover_decode_threads,
+        standby_decoded_ahead: args.standby_decoded_ahead,
         width: args.width,
         fps_per_trolley_max: args.fps,
         measured_s: elapsed_s,

@@ -24,6 +24,7 @@
 //! [`node::PlannerAction`]s. The planner ranked first for the fleet (the rendezvous winner for
 //! the key `fleet`) also merges every trolley's fruits into the fleet map on `gh/fleet/fruits`.
 
+mod decoder;
 pub mod metrics;
 pub mod node;
 mod registration;
@@ -65,6 +66,10 @@ pub struct PlannerSettings {
     /// Snapshots of trolleys taken over together (a lost planner's) decoded at once, a thread
     /// each, before the first is planned on; 1 decodes each at its own catch-up.
     pub takeover_decode_threads: usize,
+    /// A standby replica decodes each snapshot it holds in the background, on a thread of the
+    /// idle scheduling class, so a takeover adopts the decoded copy instead of decoding (it costs
+    /// the decoded map's memory beside the snapshot, and a decode per refresh on idle cores).
+    pub standby_decoded_ahead: bool,
     /// Method, seed, map and fit settings (the experiments use the same defaults).
     pub planning: PlanningSettings,
     /// Where the planner keeps the trolleys it owns, so that they outlive it (none: in memory
@@ -112,6 +117,7 @@ impl PlannerSettings {
             status_period_ms: 1000,
             replica_refresh_clouds: node::REPLICA_REFRESH_CLOUDS,
             takeover_decode_threads: node::TAKEOVER_DECODE_THREADS,
+            standby_decoded_ahead: true,
             planning: PlanningSettings::default(),
             store: None,
         }
@@ -334,6 +340,7 @@ struct Outputs {
     trolleys: HashMap<String, TrolleyPublishers>,
     events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
     store: Option<storage::StoreWriter>,
+    decoder: Option<decoder::StandbyDecoder>,
 }
 
 impl Outputs {
@@ -352,6 +359,7 @@ impl Outputs {
             trolleys: HashMap::new(),
             events,
             store: None,
+            decoder: None,
         })
     }
 
@@ -467,6 +475,11 @@ async fn perform(
                 store.write(write).await;
             }
         }
+        PlannerAction::DecodeAhead { tid, snapshot } => {
+            if let Some(decoder) = &out.decoder {
+                decoder.decode(tid, snapshot);
+            }
+        }
     }
     Ok(0)
 }
@@ -520,7 +533,15 @@ pub async fn run(
     let epoch_ns = wall_clock_ns();
     let node = PlannerNode::new(&pid, settings.planning.clone(), epoch_ns)
         .with_replica_refresh(settings.replica_refresh_clouds)
-        .with_takeover_decode_threads(settings.takeover_decode_threads);
+        .with_takeover_decode_threads(settings.takeover_decode_threads)
+        .with_standby_decoded_ahead(settings.standby_decoded_ahead);
+    if settings.standby_decoded_ahead {
+        let events = out.events.clone();
+        out.decoder = Some(
+            decoder::StandbyDecoder::start(settings.planning.clone(), events)
+                .context("the standby decoder did not start")?,
+        );
+    }
     let mut node = Box::new(node);
     if let Some(store) = &settings.store {
         let (restored, opened) = open_store(store, node, &pid).await?;

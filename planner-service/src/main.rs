@@ -10,7 +10,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 /// fruit estimates.
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
-/// replica_refresh_clouds, takeover_decode_threads, `store: { path, checkpoint_clouds, settle_ms }` and
+/// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, `store: { path, checkpoint_clouds, settle_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
 /// scoring_threads }`), then the flags below.
 ///
@@ -37,6 +37,11 @@ struct Cli {
     /// catch-up, one after another.
     #[arg(long)]
     takeover_decode_threads: Option<usize>,
+    /// Whether a standby replica decodes each snapshot it holds in the background (on idle
+    /// cores), so that a takeover need not decode (default true); false keeps standby copies
+    /// encoded only, at about a tenth of the memory, and decodes at the takeover.
+    #[arg(long, value_name = "BOOL")]
+    standby_decoded_ahead: Option<bool>,
     /// Keep every trolley this planner owns in this store file (created if missing; one per
     /// planner), so that maps and fruit ids survive a restart of every planner. Without it maps
     /// live in memory only. The planner then waits `store.settle_ms` (3 s) for its peers
@@ -56,6 +61,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.planning.seed, cli.seed);
     set_flag(&mut s.replica_refresh_clouds, cli.replica_refresh_clouds);
     set_flag(&mut s.takeover_decode_threads, cli.takeover_decode_threads);
+    set_flag(&mut s.standby_decoded_ahead, cli.standby_decoded_ahead);
     if let Some(path) = cli.store {
         s.store = Some(StoreSettings {
             path,

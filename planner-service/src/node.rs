@@ -35,6 +35,7 @@
 //! term before it plans again (`PlannerStatus::stepped_down`).
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::sync::Arc;
 use std::time::Instant;
 
 pub use glasshouse_fleet::Role;
@@ -136,6 +137,9 @@ pub enum PlannerEvent {
     },
     /// The next cloud of the batch being handled (see [`PlannerAction::NextCloud`]).
     NextCloud,
+    /// The answer to a [`PlannerAction::DecodeAhead`]: `copy` decoded from `snapshot` (see
+    /// [`decode_ahead`]).
+    DecodedAhead(DecodedAhead),
     /// A store write of `tid` failed: the store may miss what it held, so the next checkpoint
     /// of the trolley writes every block again.
     StoreFailed {
@@ -207,6 +211,50 @@ pub enum PlannerAction {
     NextCloud,
     /// Write to the planner's store before performing the actions after this one.
     Store(StoreWrite),
+    /// Decode `snapshot`, a standby copy's, in the background with [`decode_ahead`] (when the
+    /// cores are otherwise idle: it is never waited on) and feed the result back as
+    /// [`PlannerEvent::DecodedAhead`]: a takeover of the trolley then adopts the decoded copy
+    /// instead of decoding. A newer request for the same trolley supersedes an older one.
+    DecodeAhead {
+        tid: String,
+        snapshot: Arc<MapSnapshot>,
+    },
+}
+
+/// A standby copy's snapshot decoded ahead of a takeover.
+#[derive(Clone)]
+pub struct DecodedAhead {
+    pub tid: String,
+    pub snapshot: Arc<MapSnapshot>,
+    pub copy: Result<Box<TrolleyPlanner>, PlanningError>,
+    pub decode_ms: f64,
+}
+
+impl std::fmt::Debug for DecodedAhead {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DecodedAhead")
+            .field("tid", &self.tid)
+            .field("decoded", &self.copy.as_ref().map(|_| "copy"))
+            .field("decode_ms", &self.decode_ms)
+            .finish()
+    }
+}
+
+/// Decodes a standby copy's snapshot (what a [`PlannerAction::DecodeAhead`] asks), with the
+/// node's planning settings; pure, so a driver can run it on any thread.
+pub fn decode_ahead(
+    planning: &PlanningSettings,
+    tid: String,
+    snapshot: Arc<MapSnapshot>,
+) -> PlannerEvent {
+    let started = Instant::now();
+    let copy = TrolleyPlanner::from_snapshot(planning.clone(), &snapshot).map(Box::new);
+    PlannerEvent::DecodedAhead(DecodedAhead {
+        tid,
+        snapshot,
+        copy,
+        decode_ms: started.elapsed().as_secs_f64() * 1e3,
+    })
 }
 
 /// Counts the driver mirrors into its counters.
@@ -242,6 +290,11 @@ pub struct PlannerStats {
     /// Snapshots not loaded after a step-down because this planner's own copy held more
     /// ([`holds_more`]).
     pub kept_own_copy: u64,
+    /// Standby copies decoded ahead of a takeover and kept (see
+    /// [`PlannerNode::with_standby_decoded_ahead`]).
+    pub standby_decodes_ahead: u64,
+    /// Takeovers that adopted a copy decoded ahead instead of decoding.
+    pub decoded_ahead_adopted: u64,
 }
 
 /// What follows a cloud's insert ([`PlannerNode::integrate_then`]).
@@ -323,6 +376,8 @@ pub struct PlannerNode {
     replica_refresh_clouds: usize,
     /// See [`PlannerNode::with_takeover_decode_threads`].
     takeover_decode_threads: usize,
+    /// See [`PlannerNode::with_standby_decoded_ahead`].
+    standby_decoded_ahead: bool,
     /// See [`PlannerNode::with_store`]; None: no store.
     store: Option<StoreRules>,
     /// How a new visit's prior is made from the previous visit's map.
@@ -399,6 +454,7 @@ impl PlannerNode {
             queued_clouds: BTreeMap::new(),
             replica_refresh_clouds: REPLICA_REFRESH_CLOUDS,
             takeover_decode_threads: TAKEOVER_DECODE_THREADS,
+            standby_decoded_ahead: false,
             store: None,
             revisit_prior: PriorRules::default(),
             settle_until_ns: epoch_ns,
@@ -425,6 +481,15 @@ impl PlannerNode {
     /// catch-up, one after another.
     pub fn with_takeover_decode_threads(mut self, threads: usize) -> Self {
         self.takeover_decode_threads = threads.max(1);
+        self
+    }
+
+    /// Whether a standby copy's snapshot is decoded as soon as it is held
+    /// ([`PlannerAction::DecodeAhead`], off by default): a takeover then adopts the decoded copy
+    /// instead of decoding (a standby copy costs its decoded map's memory beside the snapshot,
+    /// and every refresh a decode in the background).
+    pub fn with_standby_decoded_ahead(mut self, ahead: bool) -> Self {
+        self.standby_decoded_ahead = ahead;
         self
     }
 
@@ -535,6 +600,7 @@ impl PlannerNode {
             PlannerEvent::CatchUp { tid } => self.on_catch_up(&tid),
             PlannerEvent::Finish { tid } => self.finish(&tid),
             PlannerEvent::NextCloud => self.next_of_batch(),
+            PlannerEvent::DecodedAhead(decoded) => self.on_decoded_ahead(decoded),
             PlannerEvent::StoreFailed { tid } => {
                 if let Some(slot) = self.slots.get_mut(&tid) {
                     slot.stored = StoredMark::default();
@@ -822,12 +888,14 @@ impl PlannerNode {
             return actions;
         };
         let started = Instant::now();
-        let decoded = held.map(|snapshot| slot.planner.restore(&snapshot));
+        let adopted_ahead = held.as_ref().is_some_and(|h| h.decoded.is_some());
+        let decoded = held.map(|held| slot.restore_held(held));
         if let Some(Err(e)) = &decoded {
             tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
                 "the owner's snapshot does not load: the kept clouds go on the copy as it is");
         }
         let decode_ms = decoded_ahead_ms.unwrap_or_else(|| started.elapsed().as_secs_f64() * 1e3);
+        self.stats.decoded_ahead_adopted += u64::from(adopted_ahead);
         let last = slot.last_cloud.clone();
         let n = pending.len();
         let pending = match plan_last && n > 0 {
@@ -909,9 +977,47 @@ impl PlannerNode {
             return Vec::new();
         };
         match snapshot.is_some_and(|snapshot| slot.hold(snapshot, &pid, tid)) {
-            true => Vec::new(),
+            true => self.decode_held_ahead(tid),
             false => self.catch_up(tid, false),
         }
+    }
+
+    /// Asks for the snapshot `tid`'s standby copy holds to be decoded ahead, when this node
+    /// decodes ahead and the copy holds one not yet decoded.
+    fn decode_held_ahead(&self, tid: &str) -> Vec<PlannerAction> {
+        let snapshot = self.slots.get(tid).and_then(Slot::to_decode);
+        match (self.standby_decoded_ahead, snapshot) {
+            (true, Some(snapshot)) => vec![PlannerAction::DecodeAhead {
+                tid: tid.to_owned(),
+                snapshot,
+            }],
+            _ => Vec::new(),
+        }
+    }
+
+    /// A copy decoded ahead is kept when its snapshot is still the one held; else dropped.
+    fn on_decoded_ahead(&mut self, decoded: DecodedAhead) -> Vec<PlannerAction> {
+        let DecodedAhead {
+            tid,
+            snapshot,
+            copy,
+            decode_ms,
+        } = decoded;
+        let copy = match copy {
+            Ok(copy) => copy,
+            Err(e) => {
+                tracing::warn!(planner = %self.pid, trolley = %tid, error = %e,
+                    "the held snapshot does not decode ahead: a takeover decodes it then");
+                return Vec::new();
+            }
+        };
+        let kept = self
+            .slots
+            .get_mut(&tid)
+            .is_some_and(|slot| slot.keep_decoded(&snapshot, copy));
+        self.stats.standby_decodes_ahead += u64::from(kept);
+        tracing::debug!(planner = %self.pid, trolley = %tid, decode_ms, kept, "standby copy decoded ahead");
+        Vec::new()
     }
 
     /// Queues a batch of clouds and takes its first step. The clouds are handled one by one, so
@@ -1128,7 +1234,7 @@ impl PlannerNode {
             if let Some(buffered) = slot.end_loading(Stage::standby()) {
                 slot.stand_by_loaded(buffered, snapshot, (&pid, tid));
             }
-            return Vec::new();
+            return self.decode_held_ahead(tid);
         }
         let from_snapshot = snapshot.is_some_and(|s| self.adopt_snapshot(tid, &s));
         let plan_last = role == Role::Owner;

@@ -4,6 +4,8 @@
 //! holds consistent (a term only while owning, a held snapshot only while standing by or taking
 //! over, clouds buffered only while loading).
 
+use std::sync::Arc;
+
 use crate::node::{StoredMark, Unfinished};
 use glasshouse_fleet::Role;
 use glasshouse_pipeline::TrolleyPlanner;
@@ -17,6 +19,22 @@ pub(crate) struct ReceivedCloud {
     pub received_ns: u64,
 }
 
+/// The owner's snapshot a standby copy holds, and, once decoded ahead of a takeover (on a
+/// background thread, when the planner's cores are idle), the copy decoded from it.
+pub(crate) struct Held {
+    pub snapshot: Arc<MapSnapshot>,
+    pub decoded: Option<Box<TrolleyPlanner>>,
+}
+
+impl Held {
+    fn new(snapshot: Box<MapSnapshot>) -> Self {
+        Self {
+            snapshot: Arc::from(snapshot),
+            decoded: None,
+        }
+    }
+}
+
 /// Where a planner's copy of a trolley stands.
 pub(crate) enum Stage {
     /// Waiting for a snapshot (the trolley is new to this planner, or it stepped down from it):
@@ -26,11 +44,12 @@ pub(crate) enum Stage {
         buffered: Vec<ReceivedCloud>,
     },
     /// A replica's copy: the owner's latest snapshot kept encoded (a tenth of the decoded map's
-    /// memory, no decoding work until it is needed) and the clouds newer than it, in arrival
-    /// order, integrated when it catches up; `refresh_asked` while it waits for a snapshot it
-    /// asked of the owner. A hot replica integrates every cloud at once and holds nothing.
+    /// memory; decoded ahead only when the node is told to, see [`Held`]) and the clouds newer
+    /// than it, in arrival order, integrated when it catches up; `refresh_asked` while it waits
+    /// for a snapshot it asked of the owner. A hot replica integrates every cloud at once and
+    /// holds nothing.
     Standby {
-        held: Option<Box<MapSnapshot>>,
+        held: Option<Held>,
         pending: Vec<ReceivedCloud>,
         refresh_asked: bool,
     },
@@ -38,7 +57,7 @@ pub(crate) enum Stage {
     /// copy holds (and plans on the last cloud) before anything else.
     TakingOver {
         term: u64,
-        held: Option<Box<MapSnapshot>>,
+        held: Option<Held>,
         pending: Vec<ReceivedCloud>,
     },
     /// An owner that took over and sent views planned on its copy before integrating the
@@ -210,7 +229,7 @@ impl Slot {
         // The copy is replaced by a snapshot: what was left of its last cloud goes with it.
         self.unfinished = None;
         if let Some(held) = held {
-            if let Err(e) = self.planner.restore(&held) {
+            if let Err(e) = self.restore_held(held) {
                 tracing::warn!(planner = %pid, trolley = %tid, error = %e, "held snapshot not restored");
             }
         }
@@ -252,10 +271,51 @@ impl Slot {
         }
     }
 
-    /// The snapshot a copy taking over holds, taken out to be decoded elsewhere (the decoded
-    /// copy is then [`TrolleyPlanner::adopt`]ed): the copy stays taking over, its pending clouds
-    /// newer than the snapshot. None for any other copy.
-    pub fn take_held(&mut self) -> Option<Box<MapSnapshot>> {
+    /// The copy becomes what `held` holds: the copy decoded ahead when there is one, else the
+    /// snapshot decoded now.
+    pub fn restore_held(&mut self, held: Held) -> Result<(), glasshouse_pipeline::PlanningError> {
+        match held.decoded {
+            Some(copy) => {
+                self.planner.adopt(*copy);
+                Ok(())
+            }
+            None => self.planner.restore(&held.snapshot),
+        }
+    }
+
+    /// The held snapshot a standby copy has not decoded yet (to be decoded ahead).
+    pub fn to_decode(&self) -> Option<Arc<MapSnapshot>> {
+        match &self.stage {
+            Stage::Standby {
+                held: Some(held), ..
+            } if held.decoded.is_none() => Some(held.snapshot.clone()),
+            _ => None,
+        }
+    }
+
+    /// Keeps `copy`, decoded ahead from `snapshot`, when `snapshot` is still the one held and
+    /// not yet decoded; returns whether it was kept (a newer snapshot supersedes it).
+    pub fn keep_decoded(&mut self, snapshot: &Arc<MapSnapshot>, copy: Box<TrolleyPlanner>) -> bool {
+        let (Stage::Standby {
+            held: Some(held), ..
+        }
+        | Stage::TakingOver {
+            held: Some(held), ..
+        }) = &mut self.stage
+        else {
+            return false;
+        };
+        if !Arc::ptr_eq(&held.snapshot, snapshot) || held.decoded.is_some() {
+            return false;
+        }
+        held.decoded = Some(copy);
+        true
+    }
+
+    /// What a copy taking over holds, taken out to be decoded elsewhere (the decoded copy is
+    /// then [`TrolleyPlanner::adopt`]ed): the copy stays taking over, its pending clouds newer
+    /// than the snapshot. None for any other copy.
+    pub fn take_held(&mut self) -> Option<Held> {
         match &mut self.stage {
             Stage::TakingOver { held, .. } => held.take(),
             _ => None,
@@ -265,7 +325,7 @@ impl Slot {
     /// What the copy holds beyond its map, taken out to be integrated (the held snapshot, the
     /// pending clouds): an owner taking over owns from now on, a standby copy holds nothing more.
     /// None while loading.
-    pub fn take_backlog(&mut self) -> Option<(Option<Box<MapSnapshot>>, Vec<ReceivedCloud>)> {
+    pub fn take_backlog(&mut self) -> Option<(Option<Held>, Vec<ReceivedCloud>)> {
         match &mut self.stage {
             Stage::Loading { .. } => None,
             Stage::Owning { .. } => Some((None, Vec::new())),
@@ -330,7 +390,7 @@ impl Slot {
             return false;
         };
         pending.retain(|c| snapshot_frame.is_none_or(|b| c.cloud.source_frame() > b));
-        *held = Some(snapshot);
+        *held = Some(Held::new(snapshot));
         self.unfinished = None;
         if let Err(e) = self.planner.clear() {
             tracing::warn!(planner = %pid, trolley = %tid, error = %e, "copy not cleared");
@@ -342,13 +402,11 @@ impl Slot {
     pub fn copy_mark(&self) -> Option<FrameId> {
         match &self.stage {
             Stage::Standby {
-                held: Some(snapshot),
-                ..
+                held: Some(held), ..
             }
             | Stage::TakingOver {
-                held: Some(snapshot),
-                ..
-            } => based_on(snapshot),
+                held: Some(held), ..
+            } => based_on(&held.snapshot),
             _ => self.planner.last_frame(),
         }
     }

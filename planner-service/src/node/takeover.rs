@@ -9,14 +9,17 @@
 //! core per decode every trolley taken over waits for the slowest of them, on fewer cores for
 //! their sum over the cores, against the sum of those before its own; the views then go
 //! out one trolley after another as before, and each copy's kept clouds are integrated after
-//! all of them.
+//! all of them. A copy whose snapshot was already decoded in the background while it stood by
+//! (`PlannerNode::with_standby_decoded_ahead`) is not decoded again.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use glasshouse_pipeline::{PlanningError, TrolleyPlanner};
 use glasshouse_proto::MapSnapshot;
 
 use super::{PlannerAction, PlannerNode};
+use crate::slot::Held;
 
 impl PlannerNode {
     /// Catches up the trolleys `taken_over` (in order): the first at once, the others one
@@ -32,7 +35,7 @@ impl PlannerNode {
             let all: Vec<&str> = std::iter::once(first.as_str())
                 .chain(rest.iter().map(String::as_str))
                 .collect();
-            self.decode_ahead(&all);
+            self.decode_side_by_side(&all);
         }
         let (finishes, mut actions): (Vec<_>, Vec<_>) = self
             .catch_up(&first, true)
@@ -44,16 +47,28 @@ impl PlannerNode {
     }
 
     /// Decodes the snapshots the copies of `tids` hold, side by side, and has each copy adopt
-    /// its own; a snapshot that does not decode leaves its copy as it is, as a catch-up would.
-    fn decode_ahead(&mut self, tids: &[&str]) {
+    /// its own (a copy decoded in the background while standing by is adopted as it is); a
+    /// snapshot that does not decode leaves its copy as it is, as a catch-up would.
+    fn decode_side_by_side(&mut self, tids: &[&str]) {
         let started = Instant::now();
-        let held: Vec<(String, Box<MapSnapshot>)> = tids
-            .iter()
-            .filter_map(|&tid| {
-                let snapshot = self.slots.get_mut(tid)?.take_held()?;
-                Some((tid.to_owned(), snapshot))
-            })
-            .collect();
+        let mut held: Vec<(String, Arc<MapSnapshot>)> = Vec::new();
+        for &tid in tids {
+            let Some(slot) = self.slots.get_mut(tid) else {
+                continue;
+            };
+            match slot.take_held() {
+                Some(Held {
+                    decoded: Some(copy),
+                    ..
+                }) => {
+                    slot.planner.adopt(*copy);
+                    self.decoded_ahead.insert(tid.to_owned(), 0.0);
+                    self.stats.decoded_ahead_adopted += 1;
+                }
+                Some(Held { snapshot, .. }) => held.push((tid.to_owned(), snapshot)),
+                None => {}
+            }
+        }
         let threads = self.takeover_decode_threads;
         for (tid, decoded, ms) in decode_all(&self.planning, held, threads) {
             match (decoded, self.slots.get_mut(&tid)) {
@@ -77,10 +92,10 @@ type Decoded = (String, Result<TrolleyPlanner, PlanningError>, f64);
 
 fn decode_all(
     settings: &glasshouse_pipeline::PlanningSettings,
-    held: Vec<(String, Box<MapSnapshot>)>,
+    held: Vec<(String, Arc<MapSnapshot>)>,
     threads: usize,
 ) -> Vec<Decoded> {
-    let decode = |(tid, snapshot): (String, Box<MapSnapshot>)| {
+    let decode = |(tid, snapshot): (String, Arc<MapSnapshot>)| {
         let started = Instant::now();
         let copy = TrolleyPlanner::from_snapshot(settings.clone(), &snapshot);
         (tid, copy, started.elapsed().as_secs_f64() * 1e3)

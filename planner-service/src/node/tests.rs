@@ -937,12 +937,23 @@ fn answer_refreshes(
             _ => None,
         });
         assert!(snapshot.is_some(), "the owner answers");
-        replica.handle(PlannerEvent::SnapshotLoaded {
+        let loaded = replica.handle(PlannerEvent::SnapshotLoaded {
             tid: tid.clone(),
             snapshot,
         });
+        decode_ahead_as_the_driver_does(replica, loaded);
     }
     asked.len()
+}
+
+/// Performs the node's [`PlannerAction::DecodeAhead`]s among `actions` and feeds the copies back.
+fn decode_ahead_as_the_driver_does(node: &mut PlannerNode, actions: Vec<PlannerAction>) {
+    for action in actions {
+        if let PlannerAction::DecodeAhead { tid, snapshot } = action {
+            let decoded = super::decode_ahead(&node.planning, tid, snapshot);
+            assert!(node.handle(decoded).is_empty());
+        }
+    }
 }
 
 #[test]
@@ -1243,6 +1254,59 @@ fn trolleys_taken_over_together_are_decoded_before_the_first_is_planned_on() {
         assert_eq!(views_of(&caught).len(), 1);
         assert_eq!(views_of(&caught)[0].based_on_seq, 3);
     }
+    for tid in &owned {
+        assert!(same_map(&a, &b, tid), "{tid}");
+    }
+    assert_eq!(a.stats().clouds_integrated, 3, "only the pending clouds");
+}
+
+#[test]
+fn a_standby_copy_decoded_ahead_is_adopted_at_the_takeover_and_plans_on_the_owners_map() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut a, mut b, owned) = two_planners_eight_trolleys(2);
+    a.standby_decoded_ahead = true;
+    for tid in &owned {
+        for n in [&mut a, &mut b] {
+            n.handle(PlannerEvent::Info {
+                header: header(tid, 0),
+                info: info.clone(),
+            });
+        }
+        for cloud in &clouds {
+            b.handle(cloud_for(tid, cloud));
+            let actions = a.handle(cloud_for(tid, cloud));
+            answer_refreshes(&mut b, &mut a, actions);
+        }
+        assert_eq!(a.pending_clouds(tid), 1);
+    }
+    assert_eq!(
+        a.stats().standby_decodes_ahead,
+        3,
+        "one decoded copy per snapshot held"
+    );
+    // A copy decoded from another snapshot than the one held is not kept.
+    let Ok((_, other)) = b.snapshot_of(&owned[0]) else {
+        panic!("p2 owns {}", owned[0])
+    };
+    let stray = super::decode_ahead(&a.planning, owned[0].clone(), Arc::from(other));
+    a.handle(stray);
+    assert_eq!(a.stats().standby_decodes_ahead, 3);
+    let actions = a.handle(PlannerEvent::PlannerLeft("p2".into()));
+    let mut actions = settle(&mut a, actions);
+    for tid in actions.clone().iter().filter_map(|x| match x {
+        PlannerAction::CatchUp { tid } => Some(tid.clone()),
+        _ => None,
+    }) {
+        actions.extend(feed(&mut a, PlannerEvent::CatchUp { tid }));
+    }
+    assert_eq!(
+        a.stats().decoded_ahead_adopted,
+        3,
+        "no snapshot decoded again"
+    );
+    let views = views_of(&actions);
+    assert_eq!(views.len(), 3, "{actions:?}");
+    assert!(views.iter().all(|v| v.based_on_seq == 3));
     for tid in &owned {
         assert!(same_map(&a, &b, tid), "{tid}");
     }

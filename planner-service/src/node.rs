@@ -392,9 +392,18 @@ pub struct PlannerNode {
     restored: BTreeMap<String, Restored>,
     /// Trolleys whose latest fruits changed since they were last stored.
     fruits_to_store: BTreeSet<String>,
-    /// Copies taken over whose held snapshot was decoded ahead of their catch-up, with the ms
-    /// the decode took (see `takeover.rs`).
-    decoded_ahead: BTreeMap<String, f64>,
+    /// Copies taken over whose held snapshot was decoded (or its standby copy adopted) ahead of
+    /// their catch-up, side by side with the others taken over together (see `takeover.rs`).
+    decoded_at_takeover: BTreeMap<String, TakeoverDecode>,
+}
+
+/// How a copy taken over got its owner's map before its catch-up (see `takeover.rs`).
+#[derive(Debug, Clone, Copy)]
+struct TakeoverDecode {
+    /// Wall time of its decode at the takeover (0 for a standby copy adopted as it is).
+    decode_ms: f64,
+    /// The copy was decoded in the background while standing by and adopted as it is.
+    standby_copy: bool,
 }
 
 /// Clouds a standby replica holds before it asks its owner for a snapshot (the default of
@@ -463,7 +472,7 @@ impl PlannerNode {
             settle_infos: BTreeMap::new(),
             restored: BTreeMap::new(),
             fruits_to_store: BTreeSet::new(),
-            decoded_ahead: BTreeMap::new(),
+            decoded_at_takeover: BTreeMap::new(),
         }
     }
 
@@ -880,7 +889,7 @@ impl PlannerNode {
     /// it).
     fn catch_up(&mut self, tid: &str, plan_last: bool) -> Vec<PlannerAction> {
         let mut actions = self.finish(tid);
-        let decoded_ahead_ms = self.decoded_ahead.remove(tid);
+        let at_takeover = self.decoded_at_takeover.remove(tid);
         let Some(slot) = self.slots.get_mut(tid) else {
             return actions;
         };
@@ -894,8 +903,12 @@ impl PlannerNode {
             tracing::error!(planner = %self.pid, trolley = %tid, error = %e,
                 "the owner's snapshot does not load: the kept clouds go on the copy as it is");
         }
-        let decode_ms = decoded_ahead_ms.unwrap_or_else(|| started.elapsed().as_secs_f64() * 1e3);
+        let decode_ms = match at_takeover {
+            Some(d) => d.decode_ms,
+            None => started.elapsed().as_secs_f64() * 1e3,
+        };
         self.stats.decoded_ahead_adopted += u64::from(adopted_ahead);
+        let standby_copy = adopted_ahead || at_takeover.is_some_and(|d| d.standby_copy);
         let last = slot.last_cloud.clone();
         let n = pending.len();
         let pending = match plan_last && n > 0 {
@@ -921,11 +934,11 @@ impl PlannerNode {
         if let (0, true, Some(last)) = (n, plan_last, last) {
             actions.extend(self.integrate_then(tid, last, Then::ViewsFirst));
         }
-        if decoded.is_some() || decoded_ahead_ms.is_some() {
+        if decoded.is_some() || at_takeover.is_some() {
             let total_ms = started.elapsed().as_secs_f64() * 1e3;
             self.stats.catch_up_ms += total_ms;
-            let ahead = decoded_ahead_ms.is_some();
-            tracing::info!(planner = %self.pid, trolley = %tid, decode_ms, decoded_ahead = ahead, clouds = n, total_ms, "caught up");
+            let side_by_side = at_takeover.is_some();
+            tracing::info!(planner = %self.pid, trolley = %tid, decode_ms, standby_copy, side_by_side, clouds = n, total_ms, "caught up");
         }
         actions
     }
@@ -1161,7 +1174,7 @@ impl PlannerNode {
             match (after, self.slots.get_mut(&tid)) {
                 (None, Some(_)) => {
                     self.slots.remove(&tid);
-                    self.decoded_ahead.remove(&tid);
+                    self.decoded_at_takeover.remove(&tid);
                     tracing::info!(planner = %pid, trolley = %tid, "trolley released");
                     actions.push(PlannerAction::Release { tid });
                 }

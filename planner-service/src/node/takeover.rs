@@ -18,7 +18,7 @@ use std::time::Instant;
 use glasshouse_pipeline::{PlanningError, TrolleyPlanner};
 use glasshouse_proto::MapSnapshot;
 
-use super::{PlannerAction, PlannerNode};
+use super::{PlannerAction, PlannerNode, TakeoverDecode};
 use crate::slot::Held;
 
 impl PlannerNode {
@@ -62,7 +62,11 @@ impl PlannerNode {
                     ..
                 }) => {
                     slot.planner.adopt(*copy);
-                    self.decoded_ahead.insert(tid.to_owned(), 0.0);
+                    let adopted = TakeoverDecode {
+                        decode_ms: 0.0,
+                        standby_copy: true,
+                    };
+                    self.decoded_at_takeover.insert(tid.to_owned(), adopted);
                     self.stats.decoded_ahead_adopted += 1;
                 }
                 Some(Held { snapshot, .. }) => held.push((tid.to_owned(), snapshot)),
@@ -74,7 +78,11 @@ impl PlannerNode {
             match (decoded, self.slots.get_mut(&tid)) {
                 (Ok(copy), Some(slot)) => {
                     slot.planner.adopt(copy);
-                    self.decoded_ahead.insert(tid, ms);
+                    let decoded = TakeoverDecode {
+                        decode_ms: ms,
+                        standby_copy: false,
+                    };
+                    self.decoded_at_takeover.insert(tid, decoded);
                 }
                 (Err(e), _) => {
                     tracing::error!(planner = %self.pid, trolley = %tid, error = %e,

@@ -1213,23 +1213,37 @@ fn trolleys_taken_over_together_catch_up_one_event_each() {
     }
 }
 
-#[test]
-fn trolleys_taken_over_together_are_decoded_before_the_first_is_planned_on() {
-    let (info, clouds) = trolley_clouds(3);
-    let (mut a, mut b, owned) = two_planners_eight_trolleys(2);
-    // p1 stands by with p2's snapshot after two clouds of each, the third pending.
-    for tid in &owned {
-        for n in [&mut a, &mut b] {
+/// Feeds `owned`'s info and clouds to the owner `b` and the standby replica `a`, answering the
+/// replica's snapshot queries from the owner as the driver does.
+fn stand_by_on_owners_snapshots(
+    a: &mut PlannerNode,
+    b: &mut PlannerNode,
+    owned: &[String],
+    info: &TrolleyInfo,
+    clouds: &[RoiCloud],
+) {
+    for tid in owned {
+        for n in [&mut *a, &mut *b] {
             n.handle(PlannerEvent::Info {
                 header: header(tid, 0),
                 info: info.clone(),
             });
         }
-        for cloud in &clouds {
+        for cloud in clouds {
             b.handle(cloud_for(tid, cloud));
             let actions = a.handle(cloud_for(tid, cloud));
-            answer_refreshes(&mut b, &mut a, actions);
+            answer_refreshes(b, a, actions);
         }
+    }
+}
+
+#[test]
+fn trolleys_taken_over_together_are_decoded_before_the_first_is_planned_on() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut a, mut b, owned) = two_planners_eight_trolleys(2);
+    // p1 stands by with p2's snapshot after two clouds of each, the third pending.
+    stand_by_on_owners_snapshots(&mut a, &mut b, &owned, &info, &clouds);
+    for tid in &owned {
         assert_eq!(
             a.planner(tid).unwrap().map().scans_inserted(),
             0,
@@ -1265,18 +1279,8 @@ fn a_standby_copy_decoded_ahead_is_adopted_at_the_takeover_and_plans_on_the_owne
     let (info, clouds) = trolley_clouds(3);
     let (mut a, mut b, owned) = two_planners_eight_trolleys(2);
     a.standby_decoded_ahead = true;
+    stand_by_on_owners_snapshots(&mut a, &mut b, &owned, &info, &clouds);
     for tid in &owned {
-        for n in [&mut a, &mut b] {
-            n.handle(PlannerEvent::Info {
-                header: header(tid, 0),
-                info: info.clone(),
-            });
-        }
-        for cloud in &clouds {
-            b.handle(cloud_for(tid, cloud));
-            let actions = a.handle(cloud_for(tid, cloud));
-            answer_refreshes(&mut b, &mut a, actions);
-        }
         assert_eq!(a.pending_clouds(tid), 1);
     }
     assert_eq!(

@@ -247,14 +247,24 @@ pub fn decode_ahead(
     tid: String,
     snapshot: Arc<MapSnapshot>,
 ) -> PlannerEvent {
-    let started = Instant::now();
-    let copy = TrolleyPlanner::from_snapshot(planning.clone(), &snapshot).map(Box::new);
+    let (copy, decode_ms) = decode_timed(planning, &snapshot);
     PlannerEvent::DecodedAhead(DecodedAhead {
         tid,
         snapshot,
-        copy,
-        decode_ms: started.elapsed().as_secs_f64() * 1e3,
+        copy: copy.map(Box::new),
+        decode_ms,
     })
+}
+
+/// A copy decoded from `snapshot`, with the wall time the decode took in ms (ahead of a
+/// takeover or at it).
+fn decode_timed(
+    planning: &PlanningSettings,
+    snapshot: &MapSnapshot,
+) -> (Result<TrolleyPlanner, PlanningError>, f64) {
+    let started = Instant::now();
+    let copy = TrolleyPlanner::from_snapshot(planning.clone(), snapshot);
+    (copy, started.elapsed().as_secs_f64() * 1e3)
 }
 
 /// Counts the driver mirrors into its counters.

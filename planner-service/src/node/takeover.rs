@@ -18,7 +18,7 @@ use std::time::Instant;
 use glasshouse_pipeline::{PlanningError, TrolleyPlanner};
 use glasshouse_proto::MapSnapshot;
 
-use super::{PlannerAction, PlannerNode, TakeoverDecode};
+use super::{decode_timed, PlannerAction, PlannerNode, TakeoverDecode};
 use crate::slot::Held;
 
 impl PlannerNode {
@@ -104,9 +104,8 @@ fn decode_all(
     threads: usize,
 ) -> Vec<Decoded> {
     let decode = |(tid, snapshot): (String, Arc<MapSnapshot>)| {
-        let started = Instant::now();
-        let copy = TrolleyPlanner::from_snapshot(settings.clone(), &snapshot);
-        (tid, copy, started.elapsed().as_secs_f64() * 1e3)
+        let (copy, ms) = decode_timed(settings, &snapshot);
+        (tid, copy, ms)
     };
     let decode = &decode;
     let mut out = Vec::with_capacity(held.len());

@@ -138,6 +138,9 @@ pub struct PlannerRow {
     pub registration_skipped: u64,
     /// Clouds taken without colour (their colours not one per ROI point).
     pub colourless_clouds: u64,
+    /// Standby copies decoded ahead of a takeover, and takeovers that adopted one.
+    pub standby_decodes_ahead: u64,
+    pub decoded_ahead_adopted: u64,
 }
 
 #[derive(Serialize, Debug, Clone, PartialEq)]
@@ -275,6 +278,8 @@ impl PlannerRow {
             registration_rejected: p.registrations.rejected,
             registration_skipped: p.registrations.skipped,
             colourless_clouds: p.colourless_clouds,
+            standby_decodes_ahead: p.standby_decodes_ahead,
+            decoded_ahead_adopted: p.decoded_ahead_adopted,
         }
     }
 }

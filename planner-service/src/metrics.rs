@@ -162,6 +162,18 @@ fn from_status(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings 
             "ROI clouds integrated without colour: roi_rgb not 3 bytes per ROI point",
             &[],
             s(|st| st.colourless_clouds as f64),
+        )
+        .counter(
+            "standby_decodes_ahead",
+            "Standby copies decoded ahead of a takeover and kept",
+            &[],
+            s(|st| st.standby_decodes_ahead as f64),
+        )
+        .counter(
+            "decoded_ahead_adopted",
+            "Takeovers that adopted a copy decoded ahead instead of decoding",
+            &[],
+            s(|st| st.decoded_ahead_adopted as f64),
         );
     verdicts.into_iter().fold(readings, |r, (verdict, read)| {
         r.counter(

@@ -1671,6 +1671,8 @@ impl PlannerNode {
             stepped_down: s.stepped_down,
             unassigned_clouds: s.clouds_unassigned,
             colourless_clouds: s.clouds_colourless,
+            standby_decodes_ahead: s.standby_decodes_ahead,
+            decoded_ahead_adopted: s.decoded_ahead_adopted,
         };
         let header = Header {
             seq: self.status_seq,

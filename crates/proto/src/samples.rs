@@ -289,6 +289,8 @@ pub fn planner_status() -> PlannerStatus {
         stepped_down: 1,
         unassigned_clouds: 3,
         colourless_clouds: 1,
+        standby_decodes_ahead: 4,
+        decoded_ahead_adopted: 2,
     }
 }
 

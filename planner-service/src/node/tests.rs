@@ -1308,6 +1308,12 @@ fn a_standby_copy_decoded_ahead_is_adopted_at_the_takeover_and_plans_on_the_owne
         3,
         "no snapshot decoded again"
     );
+    let status = status_of(&a.handle(status_tick(NOW_NS)));
+    assert_eq!(
+        (status.standby_decodes_ahead, status.decoded_ahead_adopted),
+        (3, 3),
+        "the status reports both"
+    );
     let views = views_of(&actions);
     assert_eq!(views.len(), 3, "{actions:?}");
     assert!(views.iter().all(|v| v.based_on_seq == 3));

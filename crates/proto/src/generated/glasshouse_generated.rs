@@ -6078,6 +6078,8 @@ impl<'a> PlannerStatus<'a> {
   pub const VT_STEPPED_DOWN: ::flatbuffers::VOffsetT = 38;
   pub const VT_UNASSIGNED_CLOUDS: ::flatbuffers::VOffsetT = 40;
   pub const VT_COLOURLESS_CLOUDS: ::flatbuffers::VOffsetT = 42;
+  pub const VT_STANDBY_DECODES_AHEAD: ::flatbuffers::VOffsetT = 44;
+  pub const VT_DECODED_AHEAD_ADOPTED: ::flatbuffers::VOffsetT = 46;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -6089,6 +6091,8 @@ impl<'a> PlannerStatus<'a> {
     args: &'args PlannerStatusArgs<'args>
   ) -> ::flatbuffers::WIPOffset<PlannerStatus<'bldr>> {
     let mut builder = PlannerStatusBuilder::new(_fbb);
+    builder.add_decoded_ahead_adopted(args.decoded_ahead_adopted);
+    builder.add_standby_decodes_ahead(args.standby_decodes_ahead);
     builder.add_colourless_clouds(args.colourless_clouds);
     builder.add_unassigned_clouds(args.unassigned_clouds);
     builder.add_stepped_down(args.stepped_down);
@@ -6265,6 +6269,22 @@ impl<'a> PlannerStatus<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(PlannerStatus::VT_COLOURLESS_CLOUDS, Some(0)).unwrap()}
   }
+  /// Standby copies decoded ahead of a takeover (on an idle-class thread) and kept.
+  #[inline]
+  pub fn standby_decodes_ahead(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_STANDBY_DECODES_AHEAD, Some(0)).unwrap()}
+  }
+  /// Takeovers that adopted a copy decoded ahead instead of decoding the snapshot then.
+  #[inline]
+  pub fn decoded_ahead_adopted(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(PlannerStatus::VT_DECODED_AHEAD_ADOPTED, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
@@ -6293,6 +6313,8 @@ impl ::flatbuffers::Verifiable for PlannerStatus<'_> {
      .visit_field::<u64>("stepped_down", Self::VT_STEPPED_DOWN, false)?
      .visit_field::<u64>("unassigned_clouds", Self::VT_UNASSIGNED_CLOUDS, false)?
      .visit_field::<u64>("colourless_clouds", Self::VT_COLOURLESS_CLOUDS, false)?
+     .visit_field::<u64>("standby_decodes_ahead", Self::VT_STANDBY_DECODES_AHEAD, false)?
+     .visit_field::<u64>("decoded_ahead_adopted", Self::VT_DECODED_AHEAD_ADOPTED, false)?
      .finish();
     Ok(())
   }
@@ -6318,6 +6340,8 @@ pub struct PlannerStatusArgs<'a> {
     pub stepped_down: u64,
     pub unassigned_clouds: u64,
     pub colourless_clouds: u64,
+    pub standby_decodes_ahead: u64,
+    pub decoded_ahead_adopted: u64,
 }
 impl<'a> Default for PlannerStatusArgs<'a> {
   #[inline]
@@ -6343,6 +6367,8 @@ impl<'a> Default for PlannerStatusArgs<'a> {
       stepped_down: 0,
       unassigned_clouds: 0,
       colourless_clouds: 0,
+      standby_decodes_ahead: 0,
+      decoded_ahead_adopted: 0,
     }
   }
 }
@@ -6433,6 +6459,14 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> PlannerStatusBuilder<'a, 'b, 
     self.fbb_.push_slot::<u64>(PlannerStatus::VT_COLOURLESS_CLOUDS, colourless_clouds, 0);
   }
   #[inline]
+  pub fn add_standby_decodes_ahead(&mut self, standby_decodes_ahead: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_STANDBY_DECODES_AHEAD, standby_decodes_ahead, 0);
+  }
+  #[inline]
+  pub fn add_decoded_ahead_adopted(&mut self, decoded_ahead_adopted: u64) {
+    self.fbb_.push_slot::<u64>(PlannerStatus::VT_DECODED_AHEAD_ADOPTED, decoded_ahead_adopted, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> PlannerStatusBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     PlannerStatusBuilder {
@@ -6470,6 +6504,8 @@ impl ::core::fmt::Debug for PlannerStatus<'_> {
       ds.field("stepped_down", &self.stepped_down());
       ds.field("unassigned_clouds", &self.unassigned_clouds());
       ds.field("colourless_clouds", &self.colourless_clouds());
+      ds.field("standby_decodes_ahead", &self.standby_decodes_ahead());
+      ds.field("decoded_ahead_adopted", &self.decoded_ahead_adopted());
       ds.finish()
   }
 }

@@ -38,6 +38,10 @@ pub struct PlannerStatus {
     /// RoiClouds integrated without colour: their `roi_rgb` was not 3 bytes per ROI point
     /// ([`crate::RoiColours::WrongLength`]).
     pub colourless_clouds: u64,
+    /// Standby copies decoded ahead of a takeover (on an idle-class thread) and kept.
+    pub standby_decodes_ahead: u64,
+    /// Takeovers that adopted a copy decoded ahead instead of decoding the snapshot then.
+    pub decoded_ahead_adopted: u64,
 }
 
 /// Clouds registered to their maps, by verdict (see [`crate::RegistrationVerdict`]).
@@ -151,6 +155,8 @@ impl Wire for PlannerStatus {
                 stepped_down: self.stepped_down,
                 unassigned_clouds: self.unassigned_clouds,
                 colourless_clouds: self.colourless_clouds,
+                standby_decodes_ahead: self.standby_decodes_ahead,
+                decoded_ahead_adopted: self.decoded_ahead_adopted,
             },
         )
         .as_union_value()
@@ -184,6 +190,8 @@ impl Wire for PlannerStatus {
             stepped_down: m.stepped_down(),
             unassigned_clouds: m.unassigned_clouds(),
             colourless_clouds: m.colourless_clouds(),
+            standby_decodes_ahead: m.standby_decodes_ahead(),
+            decoded_ahead_adopted: m.decoded_ahead_adopted(),
         })
     }
 }
@@ -247,12 +255,15 @@ mod tests {
 
     #[test]
     fn a_status_from_a_sender_without_registration_totals_reads_zero() {
-        // Nor the fencing counts, the unassigned and the colourless clouds, which came later.
+        // Nor the fencing counts, the unassigned and the colourless clouds, the decodes
+        // ahead, which came later.
         let sample = PlannerStatus {
             stale_epoch: 0,
             stepped_down: 0,
             unassigned_clouds: 0,
             colourless_clouds: 0,
+            standby_decodes_ahead: 0,
+            decoded_ahead_adopted: 0,
             ..samples::planner_status()
         };
         let old = encode(&samples::header(2), &OldSender(sample.clone()));

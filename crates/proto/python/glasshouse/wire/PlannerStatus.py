@@ -212,8 +212,24 @@ class PlannerStatus(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # Standby copies decoded ahead of a takeover (on an idle-class thread) and kept.
+    # PlannerStatus
+    def StandbyDecodesAhead(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(44))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
+    # Takeovers that adopted a copy decoded ahead instead of decoding the snapshot then.
+    # PlannerStatus
+    def DecodedAheadAdopted(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(46))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def PlannerStatusStart(builder: flatbuffers.Builder):
-    builder.StartObject(20)
+    builder.StartObject(22)
 
 def Start(builder: flatbuffers.Builder):
     PlannerStatusStart(builder)
@@ -349,6 +365,18 @@ def PlannerStatusAddColourlessClouds(builder: flatbuffers.Builder, colourlessClo
 
 def AddColourlessClouds(builder: flatbuffers.Builder, colourlessClouds: int):
     PlannerStatusAddColourlessClouds(builder, colourlessClouds)
+
+def PlannerStatusAddStandbyDecodesAhead(builder: flatbuffers.Builder, standbyDecodesAhead: int):
+    builder.PrependUint64Slot(20, standbyDecodesAhead, 0)
+
+def AddStandbyDecodesAhead(builder: flatbuffers.Builder, standbyDecodesAhead: int):
+    PlannerStatusAddStandbyDecodesAhead(builder, standbyDecodesAhead)
+
+def PlannerStatusAddDecodedAheadAdopted(builder: flatbuffers.Builder, decodedAheadAdopted: int):
+    builder.PrependUint64Slot(21, decodedAheadAdopted, 0)
+
+def AddDecodedAheadAdopted(builder: flatbuffers.Builder, decodedAheadAdopted: int):
+    PlannerStatusAddDecodedAheadAdopted(builder, decodedAheadAdopted)
 
 def PlannerStatusEnd(builder: flatbuffers.Builder) -> int:
     return builder.EndObject()

@@ -115,6 +115,16 @@ pub struct FleetBenchArgs {
     /// they hold in the background, on idle cores (planner default true).
     #[arg(long, value_name = "BOOL")]
     pub standby_decoded_ahead: Option<bool>,
+    /// Every planner's `--insert-threads`: threads that cast one cloud's rays into its map
+    /// (planner default 0: one per core; the map is the same for any count).
+    #[arg(long, value_name = "N")]
+    pub insert_threads: Option<usize>,
+    /// The simulated trolleys (edge processes) run at this nice value. On a real fleet each
+    /// trolley renders nothing and runs on its own computer; here 16 simulators share the
+    /// services' cores, and at nice 0 they take them from the planners in turn. 0 runs them
+    /// as the services run.
+    #[arg(long, value_name = "NICE", default_value_t = 0, value_parser = clap::value_parser!(i32).range(0..=19))]
+    pub trolley_nice: i32,
     /// Every planner keeps its trolleys in a store, DIR/<planner>.redb (`planner-service
     /// --store`), and the report gives what the stores wrote per frame. `--fault restart-all`
     /// uses stores in the logs folder when this is not given.
@@ -167,12 +177,21 @@ fn rss_kib(pid: u32) -> Option<u64> {
 fn spawn(
     kind: &'static str,
     name: String,
-    bin: &Path,
+    (bin, nice): (&Path, i32),
     args: &[String],
     logs: &Path,
 ) -> anyhow::Result<Proc> {
     let log = std::fs::File::create(logs.join(format!("{name}.log")))?;
-    let child = Command::new(bin)
+    // `nice` execs the binary: the child's pid is the binary's.
+    let mut command = match nice {
+        0 => Command::new(bin),
+        n => {
+            let mut c = Command::new("nice");
+            c.args(["-n", &n.to_string()]).arg(bin);
+            c
+        }
+    };
+    let child = command
         .args(args)
         .env(
             "RUST_LOG",
@@ -265,6 +284,10 @@ struct Report {
     takeover_decode_threads: Option<usize>,
     /// The planners' `--standby-decoded-ahead` (None: their default).
     standby_decoded_ahead: Option<bool>,
+    /// The planners' `--insert-threads` (None: their default).
+    insert_threads: Option<usize>,
+    /// The simulated trolleys' nice value.
+    trolley_nice: i32,
     width: u32,
     fps_per_trolley_max: f64,
     measured_s: f64,
@@ -490,6 +513,8 @@ struct Fleet {
     temp_logs: bool,
     /// Each planner's name and flags, to start it again (`--fault restart-all`).
     planner_flags: Vec<(String, Vec<String>)>,
+    /// The edges' nice value (`--trolley-nice`).
+    trolley_nice: i32,
 }
 
 impl Fleet {
@@ -520,6 +545,7 @@ impl Fleet {
             logs,
             temp_logs,
             planner_flags: Vec::new(),
+            trolley_nice: args.trolley_nice,
         })
     }
 
@@ -562,7 +588,8 @@ impl Fleet {
             0 => "router".to_string(),
             i => format!("router{}", i + 1),
         };
-        let router = spawn("router", name, &sibling("glasshouse")?, &args, &self.logs)?;
+        let bin = sibling("glasshouse")?;
+        let router = spawn("router", name, (&bin, 0), &args, &self.logs)?;
         self.procs.push(router);
         Ok(())
     }
@@ -583,10 +610,11 @@ impl Fleet {
             "--to".into(),
             router,
         ];
+        let bin = sibling("glasshouse")?;
         let relay = spawn(
             "relay",
             format!("relay-{name}"),
-            &sibling("glasshouse")?,
+            (&bin, 0),
             &args,
             &self.logs,
         )?;
@@ -620,7 +648,8 @@ impl Fleet {
         let role = if kind == "edge" { "trolley" } else { kind };
         a.extend(self.config_flags(&format!("{role}-{name}")));
         a.extend_from_slice(extra);
-        let proc = spawn(kind, name, &sibling(bin)?, &a, &self.logs)?;
+        let nice = if kind == "edge" { self.trolley_nice } else { 0 };
+        let proc = spawn(kind, name, (&sibling(bin)?, nice), &a, &self.logs)?;
         self.procs.push(proc);
         Ok(())
     }
@@ -644,6 +673,9 @@ impl Fleet {
             }
             if let Some(ahead) = args.standby_decoded_ahead {
                 extra.extend(["--standby-decoded-ahead".into(), ahead.to_string()]);
+            }
+            if let Some(n) = args.insert_threads {
+                extra.extend(["--insert-threads".into(), n.to_string()]);
             }
             if let Some(dir) = self.store_dir(args) {
                 let file = dir.join(format!("p{i}.redb"));
@@ -1214,6 +1246,8 @@ fn build_report(
         replica_refresh_clouds: args.replica_refresh_clouds,
         takeover_decode_threads: args.takeover_decode_threads,
         standby_decoded_ahead: args.standby_decoded_ahead,
+        insert_threads: args.insert_threads,
+        trolley_nice: args.trolley_nice,
         width: args.width,
         fps_per_trolley_max: args.fps,
         measured_s: elapsed_s,

@@ -35,7 +35,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use glasshouse_bus::{
@@ -118,7 +118,13 @@ impl PlannerSettings {
             replica_refresh_clouds: node::REPLICA_REFRESH_CLOUDS,
             takeover_decode_threads: node::TAKEOVER_DECODE_THREADS,
             standby_decoded_ahead: true,
-            planning: PlanningSettings::default(),
+            // A planner has the machine's cores for itself and its trolleys' clouds: one
+            // cloud's rays are cast on all of them (the experiments run trials side by side
+            // and keep the shared default, one).
+            planning: PlanningSettings {
+                insert_threads: 0,
+                ..PlanningSettings::default()
+            },
             store: None,
         }
     }
@@ -557,14 +563,20 @@ pub async fn run(
     while let Some(event) = inputs.next(&mut shutdown, &drops).await {
         // Integration, fits and planning are heavy: the node works on a blocking thread.
         let stages_before = node.stats().stages;
-        let (back, actions) = tokio::task::spawn_blocking(move || {
+        let (kind, batch) = (event.kind(), event_clouds(&event));
+        let step_started = Instant::now();
+        let (back, actions, cpu_ms) = tokio::task::spawn_blocking(move || {
+            let cpu_before = thread_cpu_ms();
             let actions = node.handle(event);
-            (node, actions)
+            (node, actions, thread_cpu_ms() - cpu_before)
         })
         .await
         .context("planner task failed")?;
         node = back;
+        let handled = step_started.elapsed();
         mirror_stats(&counters, &stages_before, &node.stats());
+        let stages = stage_lap(&stages_before, &node.stats().stages);
+        let n_actions = actions.len();
         for action in actions {
             if let PlannerAction::PublishStatus { status, .. } = &action {
                 if let Ok(mut last) = counters.status.lock() {
@@ -576,6 +588,21 @@ pub async fn run(
                 .snapshot_bytes_sent
                 .fetch_add(snapshot_bytes, Ordering::Relaxed);
         }
+        // Where a planner's wall time goes, step by step (RUST_LOG=glasshouse_planner=debug).
+        tracing::debug!(
+            planner = %pid,
+            event = kind,
+            clouds = batch,
+            actions = n_actions,
+            handle_ms = handled.as_secs_f64() * 1e3,
+            handle_cpu_ms = cpu_ms,
+            perform_ms = (step_started.elapsed() - handled).as_secs_f64() * 1e3,
+            integrate_ms = stages.integrate_ms,
+            fit_ms = stages.fit_ms,
+            plan_ms = stages.plan_ms,
+            publish_ms = stages.publish_ms,
+            "step"
+        );
     }
     if let Some(store) = out.store.take() {
         // The checkpoints still queued are written before the planner stops.
@@ -586,6 +613,42 @@ pub async fn run(
     out.close().await;
     tracing::info!(planner = %pid, clouds = node.stats().clouds_integrated, dropped = drops.total(), "planner stopped");
     Ok(())
+}
+
+/// CPU time of the calling thread, ms (0 where the clock cannot be read): a step's CPU beside
+/// its wall time tells work from waiting for a core.
+#[allow(unsafe_code)]
+fn thread_cpu_ms() -> f64 {
+    let mut now = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec through the pointer it is given.
+    match unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut now) } {
+        0 => now.tv_sec as f64 * 1e3 + now.tv_nsec as f64 / 1e6,
+        _ => 0.0,
+    }
+}
+
+/// The time each stage took between two readings of the node's totals.
+fn stage_lap(before: &StageTimes, after: &StageTimes) -> StageTimes {
+    StageTimes {
+        integrate_ms: after.integrate_ms - before.integrate_ms,
+        cluster_ms: after.cluster_ms - before.cluster_ms,
+        track_ms: after.track_ms - before.track_ms,
+        fit_ms: after.fit_ms - before.fit_ms,
+        plan_ms: after.plan_ms - before.plan_ms,
+        publish_ms: after.publish_ms - before.publish_ms,
+    }
+}
+
+/// The clouds an event brings (0 for every other kind).
+fn event_clouds(event: &PlannerEvent) -> usize {
+    match event {
+        PlannerEvent::Clouds { clouds, .. } => clouds.len(),
+        PlannerEvent::Cloud { .. } => 1,
+        _ => 0,
+    }
 }
 
 /// Mirrors the node's counts into the counters tests and `/metrics` read.

@@ -12,7 +12,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
 /// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, `store: { path, checkpoint_clouds, settle_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
-/// scoring_threads }`), then the flags below.
+/// scoring_threads, insert_threads }`), then the flags below.
 ///
 /// Environment: GLASSHOUSE_SIMD=portable|avx2|avx512 caps the vector unit of the map's voxel
 /// walks (default: the widest the CPU has; every unit gives the same map).
@@ -42,6 +42,10 @@ struct Cli {
     /// encoded only, at about a tenth of the memory, and decodes at the takeover.
     #[arg(long, value_name = "BOOL")]
     standby_decoded_ahead: Option<bool>,
+    /// Threads that cast one cloud's rays into its map (default 0: one per core; the map is
+    /// the same, voxel for voxel, for any count).
+    #[arg(long, value_name = "N")]
+    insert_threads: Option<usize>,
     /// Keep every trolley this planner owns in this store file (created if missing; one per
     /// planner), so that maps and fruit ids survive a restart of every planner. Without it maps
     /// live in memory only. The planner then waits `store.settle_ms` (3 s) for its peers
@@ -62,6 +66,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.replica_refresh_clouds, cli.replica_refresh_clouds);
     set_flag(&mut s.takeover_decode_threads, cli.takeover_decode_threads);
     set_flag(&mut s.standby_decoded_ahead, cli.standby_decoded_ahead);
+    set_flag(&mut s.planning.insert_threads, cli.insert_threads);
     if let Some(path) = cli.store {
         s.store = Some(StoreSettings {
             path,

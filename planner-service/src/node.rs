@@ -153,6 +153,32 @@ pub enum PlannerEvent {
     },
 }
 
+impl PlannerEvent {
+    /// The event's name, for logs and step timings.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            PlannerEvent::PlannerJoined(_) => "planner_joined",
+            PlannerEvent::PlannerLeft(_) => "planner_left",
+            PlannerEvent::TrolleyJoined(_) => "trolley_joined",
+            PlannerEvent::TrolleyLeft(_) => "trolley_left",
+            PlannerEvent::DetectorJoined(_) => "detector_joined",
+            PlannerEvent::DetectorLeft(_) => "detector_left",
+            PlannerEvent::Cloud { .. } => "cloud",
+            PlannerEvent::Clouds { .. } => "clouds",
+            PlannerEvent::Info { .. } => "info",
+            PlannerEvent::Fruits { .. } => "fruits",
+            PlannerEvent::SnapshotLoaded { .. } => "snapshot_loaded",
+            PlannerEvent::SnapshotAsked { .. } => "snapshot_asked",
+            PlannerEvent::CatchUp { .. } => "catch_up",
+            PlannerEvent::Finish { .. } => "finish",
+            PlannerEvent::NextCloud => "next_cloud",
+            PlannerEvent::DecodedAhead(_) => "decoded_ahead",
+            PlannerEvent::StoreFailed { .. } => "store_failed",
+            PlannerEvent::StatusTick { .. } => "status_tick",
+        }
+    }
+}
+
 /// What a trolley's owner publishes.
 #[derive(Clone, Debug, PartialEq)]
 pub enum TrolleyOutput {

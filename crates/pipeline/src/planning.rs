@@ -61,6 +61,9 @@ pub struct PlanningSettings {
     pub fit: FitConfig,
     /// Threads that score candidates (0: one per core); any count gives the same plan.
     pub scoring_threads: usize,
+    /// Threads that cast a cloud's rays into the map (0: one per core); any count gives the
+    /// same map, voxel for voxel.
+    pub insert_threads: usize,
     /// How a cloud's detections enter the ROI map.
     pub roi_evidence: RoiEvidence,
     /// Which ROI voxels ROI-targeted sampling aims at.
@@ -178,6 +181,7 @@ impl Default for PlanningSettings {
             min_cluster_voxels: 10,
             fit: FitConfig::default(),
             scoring_threads: 0,
+            insert_threads: 1,
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
             registration: RegisterSettings::default(),
@@ -187,6 +191,14 @@ impl Default for PlanningSettings {
             clutter_settles_after_views: DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
         }
+    }
+}
+
+/// `threads`, or one per core for 0.
+fn threads_or_cores(threads: usize) -> usize {
+    match threads {
+        0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        n => n,
     }
 }
 
@@ -209,6 +221,12 @@ impl PlanningSettings {
         registration.map_err(|e| PlanningError::Settings(e.to_string()))?;
         let hand_eye = self.hand_eye.validate();
         hand_eye.map_err(|e| PlanningError::Settings(e.to_string()))?;
+        if self.insert_threads > 64 {
+            return Err(PlanningError::Settings(format!(
+                "insert_threads must be <= 64 (0 = one per core), got {}",
+                self.insert_threads
+            )));
+        }
         Ok(())
     }
 
@@ -474,6 +492,7 @@ impl TrolleyPlanner {
             self.order.integrated(frame);
             return Ok(FrameVerdict::Misaligned);
         };
+        let threads = threads_or_cores(self.settings.insert_threads);
         let evidence = match self.settings.roi_evidence {
             RoiEvidence::Labels => None,
             RoiEvidence::Confidence => roi_evidence_logodds(cloud),
@@ -481,8 +500,10 @@ impl TrolleyPlanner {
         match evidence {
             Some(evidence) => self
                 .map
-                .insert_scan_evidence(&origin, &points, &evidence, 1)?,
-            None => self.map.insert_scan(&origin, &points, &cloud.roi)?,
+                .insert_scan_evidence(&origin, &points, &evidence, threads)?,
+            None => self
+                .map
+                .insert_scan_threaded(&origin, &points, &cloud.roi, threads)?,
         };
         // Which fruit this view saw, from where: the fruit evidence's directions.
         self.note_view(&origin, &points, &cloud.roi);

@@ -467,3 +467,33 @@ fn rail_error_moves_the_camera_along_the_rail_per_segment() {
     let gantry = posed_sim(ScenarioKind::Two, rail);
     assert_eq!(gantry.true_world_from_camera(1), gantry.world_from_camera());
 }
+
+#[test]
+fn clouds_cast_on_several_threads_make_the_same_map_as_on_one() {
+    assert_eq!(PlanningSettings::default().insert_threads, 1);
+    let mut trolley = sim(ScenarioKind::Two);
+    let mut one = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    let mut three = TrolleyPlanner::new(PlanningSettings {
+        insert_threads: 3,
+        ..PlanningSettings::default()
+    })
+    .unwrap();
+    for seq in 1..=3 {
+        let frame = trolley.capture(seq).unwrap().unwrap();
+        let id = FrameId::new(EPOCH_NS, seq);
+        let cloud = detect_frame(&frame, id, "d1", &DetectorConfig::default()).unwrap();
+        one.integrate(&cloud, EPOCH_NS).unwrap();
+        three.integrate(&cloud, EPOCH_NS).unwrap();
+    }
+    assert!(one.map().len() > 1000, "{} voxels", one.map().len());
+    let map_bytes = |p: &TrolleyPlanner| p.snapshot("t1", "p1").unwrap().map;
+    assert!(map_bytes(&one) == map_bytes(&three), "the maps differ");
+    let too_many = PlanningSettings {
+        insert_threads: 65,
+        ..PlanningSettings::default()
+    };
+    assert!(matches!(
+        TrolleyPlanner::new(too_many),
+        Err(PlanningError::Settings(e)) if e.contains("insert_threads")
+    ));
+}

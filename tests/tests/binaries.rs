@@ -97,7 +97,16 @@ async fn real_binaries_close_the_loop() {
         (format!("127.0.0.1:{port}"), port)
     };
     let (dashboard_metrics, _) = metrics_of("dashboard");
-    let args = with(&["--record", &rrd_arg, "--metrics", &dashboard_metrics]);
+    // Its web page on a free port too: the default, 8080, may be taken on the machine.
+    let dashboard_http = format!("127.0.0.1:{}", free_port());
+    let args = with(&[
+        "--record",
+        &rrd_arg,
+        "--metrics",
+        &dashboard_metrics,
+        "--http",
+        &dashboard_http,
+    ]);
     let dashboard = Proc::start(
         "dashboard",
         "dashboard",

@@ -56,6 +56,11 @@ pub struct BenchReplicaArgs {
     /// the replica's own handling, and the takeover adopts the decoded copy.
     #[arg(long)]
     decoded_ahead: bool,
+    /// How an owner answers a standby's refresh, side by side on the same clouds: `true` with
+    /// the blocks changed since what the standby holds (a delta, when it holds a decoded copy:
+    /// with `--decoded-ahead`), `false` always with the whole map.
+    #[arg(long, value_delimiter = ',', default_value = "true")]
+    refresh_by_delta: Vec<bool>,
 }
 
 /// One replica setting's figures (times in ms on this thread).
@@ -72,6 +77,12 @@ struct ReplicaRun {
     /// background, on idle cores).
     replica_decode_ahead_ms_per_frame: f64,
     snapshots: usize,
+    /// Whether the owner answered refreshes with deltas where it could, how many it sent, the
+    /// map bytes of every answer and the owner's time per answer.
+    refresh_by_delta: bool,
+    deltas: u64,
+    snapshot_map_bytes: usize,
+    owner_ms_per_answer: f64,
     owner_ms_first_frames: f64,
     owner_ms_last_frames: f64,
     /// The owner's ms per frame in each stage, over the first and the last `window` frames.
@@ -101,13 +112,16 @@ pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
     }
     let mut runs = Vec::new();
     for &refresh in &args.refresh {
-        let replica = ReplicaSetup {
-            refresh,
-            decoded_ahead: args.decoded_ahead,
-        };
-        let run = replay(&config, args.window, replica, &info, &clouds)?;
-        print_run(&run);
-        runs.push(run);
+        for &by_delta in &args.refresh_by_delta {
+            let replica = ReplicaSetup {
+                refresh,
+                decoded_ahead: args.decoded_ahead,
+                by_delta,
+            };
+            let run = replay(&config, args.window, replica, &info, &clouds)?;
+            print_run(&run);
+            runs.push(run);
+        }
     }
     if let Some(path) = &args.json {
         let text = serde_json::to_string_pretty(&runs)?;
@@ -165,6 +179,7 @@ pub(crate) fn joining(info: &TrolleyInfo) -> [PlannerEvent; 4] {
 struct ReplicaSetup {
     refresh: usize,
     decoded_ahead: bool,
+    by_delta: bool,
 }
 
 /// Owner and replica of one trolley, the owner first.
@@ -175,6 +190,9 @@ struct Pair {
     planning: PlanningSettings,
     /// Time decoding the replica's snapshots ahead, apart from its own handling.
     decode_ahead_ms: f64,
+    /// The owner's time answering the replica's refreshes, and the map bytes it sent.
+    answer_ms: f64,
+    answer_map_bytes: usize,
 }
 
 impl Pair {
@@ -183,6 +201,7 @@ impl Pair {
             PlannerNode::new(pid, config.planning(), 0)
                 .with_replica_refresh(setup.refresh)
                 .with_standby_decoded_ahead(setup.decoded_ahead)
+                .with_refresh_by_delta(setup.by_delta)
         };
         let mut nodes = [(node("p1"), "p2"), (node("p2"), "p1")];
         for (node, other) in &mut nodes {
@@ -206,6 +225,8 @@ impl Pair {
             queries: 0,
             planning: config.planning(),
             decode_ahead_ms: 0.0,
+            answer_ms: 0.0,
+            answer_map_bytes: 0,
         })
     }
 
@@ -213,18 +234,23 @@ impl Pair {
     fn answer(&mut self, actions: Vec<PlannerAction>) -> usize {
         let mut answered = 0;
         for action in actions {
-            let PlannerAction::AskSnapshot { tid, .. } = action else {
+            let PlannerAction::AskSnapshot { tid, base, .. } = action else {
                 continue;
             };
             self.queries += 1;
             let asked = PlannerEvent::SnapshotAsked {
                 query_id: self.queries,
                 tid: tid.clone(),
+                base,
             };
-            let snapshot = self.owner.handle(asked).into_iter().find_map(|a| match a {
+            let started = Instant::now();
+            let reply = self.owner.handle(asked);
+            self.answer_ms += ms_since(started);
+            let snapshot = reply.into_iter().find_map(|a| match a {
                 PlannerAction::ReplySnapshot { answer, .. } => answer.ok().map(|(_, s)| s),
                 _ => None,
             });
+            self.answer_map_bytes += snapshot.as_ref().map_or(0, |s| s.map.len());
             let loaded = self
                 .replica
                 .handle(PlannerEvent::SnapshotLoaded { tid, snapshot });
@@ -350,6 +376,10 @@ fn replay(
         replica_share_of_owner: replica_ms / owner_total,
         replica_decode_ahead_ms_per_frame: pair.decode_ahead_ms / frames as f64,
         snapshots,
+        refresh_by_delta: replica.by_delta,
+        deltas: pair.owner.stats().snapshot_deltas_sent,
+        snapshot_map_bytes: pair.answer_map_bytes,
+        owner_ms_per_answer: pair.answer_ms / snapshots.max(1) as f64,
         owner_ms_first_frames: mean(&owner_ms[..window]),
         owner_ms_last_frames: mean(&owner_ms[frames - window..]),
         owner_stages_first_frames: per_frame(&StageTimes::default(), &stages_at.0),
@@ -375,6 +405,14 @@ fn print_run(run: &ReplicaRun) {
         n => format!("standby replica (snapshot every {n} clouds)"),
     };
     println!("{mode}, {} frames:", run.frames);
+    println!(
+        "  refreshes answered by delta where they can be: {} ({} of {} were); {:.1} ms per answer, {:.2} MB of map in all",
+        run.refresh_by_delta,
+        run.deltas,
+        run.snapshots,
+        run.owner_ms_per_answer,
+        run.snapshot_map_bytes as f64 / 1e6
+    );
     println!(
         "  owner {:.1} ms/frame, replica {:.1} ms/frame ({:.0} % of the owner), {} snapshots",
         run.owner_ms_per_frame,

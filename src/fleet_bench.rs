@@ -115,6 +115,10 @@ pub struct FleetBenchArgs {
     /// they hold in the background, on idle cores (planner default true).
     #[arg(long, value_name = "BOOL")]
     pub standby_decoded_ahead: Option<bool>,
+    /// Every planner's `--refresh-by-delta`: whether standby replicas with a decoded copy ask
+    /// for only the map's blocks changed since (planner default true).
+    #[arg(long, value_name = "BOOL")]
+    pub refresh_by_delta: Option<bool>,
     /// Every planner's `--insert-threads`: threads that cast one cloud's rays into its map
     /// (planner default 0: one per core; the map is the same for any count).
     #[arg(long, value_name = "N")]
@@ -284,6 +288,8 @@ struct Report {
     takeover_decode_threads: Option<usize>,
     /// The planners' `--standby-decoded-ahead` (None: their default).
     standby_decoded_ahead: Option<bool>,
+    /// The planners' `--refresh-by-delta` (None: their default).
+    refresh_by_delta: Option<bool>,
     /// The planners' `--insert-threads` (None: their default).
     insert_threads: Option<usize>,
     /// The simulated trolleys' nice value.
@@ -673,6 +679,9 @@ impl Fleet {
             }
             if let Some(ahead) = args.standby_decoded_ahead {
                 extra.extend(["--standby-decoded-ahead".into(), ahead.to_string()]);
+            }
+            if let Some(by_delta) = args.refresh_by_delta {
+                extra.extend(["--refresh-by-delta".into(), by_delta.to_string()]);
             }
             if let Some(n) = args.insert_threads {
                 extra.extend(["--insert-threads".into(), n.to_string()]);
@@ -1246,6 +1255,7 @@ fn build_report(
         replica_refresh_clouds: args.replica_refresh_clouds,
         takeover_decode_threads: args.takeover_decode_threads,
         standby_decoded_ahead: args.standby_decoded_ahead,
+        refresh_by_delta: args.refresh_by_delta,
         insert_threads: args.insert_threads,
         trolley_nice: args.trolley_nice,
         width: args.width,

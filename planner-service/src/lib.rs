@@ -39,8 +39,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use glasshouse_bus::{
-    ask, declare_alive, wall_clock_ns, Delivery, DropCounters, MemberEvent, MemberWatch, Publisher,
-    Received, Responder, Shutdown, Subscriber,
+    ask_with, declare_alive, wall_clock_ns, Delivery, DropCounters, MemberEvent, MemberWatch,
+    Publisher, Received, Responder, Shutdown, Subscriber,
 };
 use glasshouse_fleet::{merge_fruits, TrolleyFruit};
 use glasshouse_pipeline::PlanningSettings;
@@ -49,7 +49,9 @@ use glasshouse_proto::{
     FleetFruit, FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus,
     RankedViews, RoiCloud, StageTimes, TrolleyInfo,
 };
-use node::{KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, StoreRules, TrolleyOutput};
+use node::{
+    DeltaBase, KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, StoreRules, TrolleyOutput,
+};
 use serde::Deserialize;
 use zenoh::Session;
 
@@ -70,6 +72,10 @@ pub struct PlannerSettings {
     /// idle scheduling class, so a takeover adopts the decoded copy instead of decoding (it costs
     /// the decoded map's memory beside the snapshot, and a decode per refresh on idle cores).
     pub standby_decoded_ahead: bool,
+    /// A standby replica with a decoded copy asks its owner for only the map's blocks changed
+    /// since (a delta), so neither the owner's answer nor the copy's update follows the map's
+    /// size; false asks for the whole map every time.
+    pub refresh_by_delta: bool,
     /// Method, seed, map and fit settings (the experiments use the same defaults).
     pub planning: PlanningSettings,
     /// Where the planner keeps the trolleys it owns, so that they outlive it (none: in memory
@@ -118,6 +124,7 @@ impl PlannerSettings {
             replica_refresh_clouds: node::REPLICA_REFRESH_CLOUDS,
             takeover_decode_threads: node::TAKEOVER_DECODE_THREADS,
             standby_decoded_ahead: true,
+            refresh_by_delta: true,
             // A planner has the machine's cores for itself and its trolleys' clouds: one
             // cloud's rays are cast on all of them (the experiments run trials side by side
             // and keep the shared default, one).
@@ -167,11 +174,18 @@ pub struct PlannerCounters {
     pub stage_seconds: metrics::StageHistograms,
     /// Map snapshot bytes sent to planners taking a trolley over.
     pub snapshot_bytes_sent: AtomicU64,
+    /// Standby refreshes answered with a delta, and owners' deltas applied here
+    /// ([`node::DeltaBase`]).
+    pub snapshot_deltas_sent: AtomicU64,
+    pub snapshot_deltas_applied: AtomicU64,
     /// Store writes performed, their bytes (keys and values) and the writes that failed.
     pub store_writes: AtomicU64,
     pub store_bytes_written: AtomicU64,
     pub store_errors: AtomicU64,
 }
+
+/// The snapshot query's parameter that carries a standby copy's [`DeltaBase`].
+const DELTA_BASE_PARAMETER: &str = "base";
 
 /// Snapshots are asked of each candidate in turn for this long: a row's map is hundreds of MB and
 /// takes seconds to write and send; a candidate without the map declines at once.
@@ -297,11 +311,17 @@ impl Inputs {
     async fn snapshot_query(&mut self, query: zenoh::query::Query) -> Option<PlannerEvent> {
         match keys::parse(query.key_expr().as_str()) {
             Some(keys::ParsedKey::PlannerSnapshot { tid, .. }) => {
+                // A malformed base is no base: the whole map is sent.
+                let base = query
+                    .parameters()
+                    .get(DELTA_BASE_PARAMETER)
+                    .and_then(DeltaBase::parse);
                 self.next_query += 1;
                 self.queries.insert(self.next_query, query);
                 Some(PlannerEvent::SnapshotAsked {
                     query_id: self.next_query,
                     tid,
+                    base,
                 })
             }
             _ => {
@@ -393,15 +413,18 @@ impl Outputs {
     }
 
     /// Asks each source in turn for a snapshot of `tid`; the answer comes back as an event.
-    fn ask_snapshot(&self, tid: String, sources: Vec<String>) {
+    fn ask_snapshot(&self, tid: String, sources: Vec<String>, base: Option<DeltaBase>) {
         let (session, pid, tx) = (self.session.clone(), self.pid.clone(), self.events.clone());
+        let parameters = base.map_or_else(String::new, |base| {
+            format!("{DELTA_BASE_PARAMETER}={}", base.to_parameter())
+        });
         tokio::spawn(async move {
             let mut loaded = None;
             for source in sources {
                 let Ok(key) = keys::planner_snapshot(&source, &tid) else {
                     continue;
                 };
-                match ask(&session, &key, SNAPSHOT_TIMEOUT).await {
+                match ask_with(&session, &key, &parameters, SNAPSHOT_TIMEOUT).await {
                     Ok((_, snapshot)) => {
                         loaded = Some(Box::new(snapshot));
                         break;
@@ -461,7 +484,7 @@ async fn perform(
         PlannerAction::PublishFleet { header, fruits } => {
             out.fleet.publish(&header, &fruits).await?
         }
-        PlannerAction::AskSnapshot { tid, sources } => out.ask_snapshot(tid, sources),
+        PlannerAction::AskSnapshot { tid, sources, base } => out.ask_snapshot(tid, sources, base),
         PlannerAction::ReplySnapshot { query_id, answer } => {
             return Ok(inputs.reply(query_id, answer).await as u64);
         }
@@ -540,7 +563,8 @@ pub async fn run(
     let node = PlannerNode::new(&pid, settings.planning.clone(), epoch_ns)
         .with_replica_refresh(settings.replica_refresh_clouds)
         .with_takeover_decode_threads(settings.takeover_decode_threads)
-        .with_standby_decoded_ahead(settings.standby_decoded_ahead);
+        .with_standby_decoded_ahead(settings.standby_decoded_ahead)
+        .with_refresh_by_delta(settings.refresh_by_delta);
     if settings.standby_decoded_ahead {
         let events = out.events.clone();
         out.decoder = Some(
@@ -664,6 +688,11 @@ fn mirror_stats(
     set(&counters.views_published, stats.views_published);
     set(&counters.clouds_refused, stats.clouds_refused);
     set(&counters.drops.stale_epoch, stats.stale_epoch);
+    set(&counters.snapshot_deltas_sent, stats.snapshot_deltas_sent);
+    set(
+        &counters.snapshot_deltas_applied,
+        stats.snapshot_deltas_applied,
+    );
 }
 
 /// Environment variable that caps the map's vector unit (`portable`, `avx2` or `avx512`), for

@@ -10,7 +10,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 /// fruit estimates.
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
-/// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, `store: { path, checkpoint_clouds, settle_ms }` and
+/// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, refresh_by_delta, `store: { path, checkpoint_clouds, settle_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
 /// scoring_threads, insert_threads }`), then the flags below.
 ///
@@ -42,6 +42,10 @@ struct Cli {
     /// encoded only, at about a tenth of the memory, and decodes at the takeover.
     #[arg(long, value_name = "BOOL")]
     standby_decoded_ahead: Option<bool>,
+    /// Whether a standby replica with a decoded copy asks its owner for only the map's blocks
+    /// changed since what it holds (default true); false asks for the whole map every time.
+    #[arg(long, value_name = "BOOL")]
+    refresh_by_delta: Option<bool>,
     /// Threads that cast one cloud's rays into its map (default 0: one per core; the map is
     /// the same, voxel for voxel, for any count).
     #[arg(long, value_name = "N")]
@@ -66,6 +70,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.replica_refresh_clouds, cli.replica_refresh_clouds);
     set_flag(&mut s.takeover_decode_threads, cli.takeover_decode_threads);
     set_flag(&mut s.standby_decoded_ahead, cli.standby_decoded_ahead);
+    set_flag(&mut s.refresh_by_delta, cli.refresh_by_delta);
     set_flag(&mut s.planning.insert_threads, cli.insert_threads);
     if let Some(path) = cli.store {
         s.store = Some(StoreSettings {

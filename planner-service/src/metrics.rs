@@ -97,6 +97,18 @@ fn counts(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings {
             c(|k| &k.views_published),
         )
         .counter(
+            "snapshot_deltas_sent",
+            "Standby refreshes answered with the map blocks changed since the copy's base",
+            &[],
+            c(|k| &k.snapshot_deltas_sent),
+        )
+        .counter(
+            "snapshot_deltas_applied",
+            "Owners' deltas applied to this planner's standby copies",
+            &[],
+            c(|k| &k.snapshot_deltas_applied),
+        )
+        .counter(
             "snapshot_sent",
             "Map snapshot bytes sent to planners taking a trolley over",
             &[],

@@ -53,11 +53,13 @@ use glasshouse_proto::{
 use glasshouse_roimap::PriorRules;
 
 mod persist;
+mod refresh;
 mod takeover;
 
 pub(crate) use persist::StoredMark;
 use persist::{store_cloud, store_term_start, store_visit_start, Restored};
 pub use persist::{StoreRules, StoreWrite, StoredTrolley};
+pub use refresh::DeltaBase;
 
 use crate::fleet_fruits;
 use crate::registration::{frame_registration, registration_totals};
@@ -121,10 +123,12 @@ pub enum PlannerEvent {
         tid: String,
         snapshot: Option<Box<MapSnapshot>>,
     },
-    /// Another planner asks for this planner's copy of `tid` (query `query_id`).
+    /// Another planner asks for this planner's copy of `tid` (query `query_id`); a standby
+    /// copy's refresh says what it holds (`base`), so that the owner may send only what changed.
     SnapshotAsked {
         query_id: u64,
         tid: String,
+        base: Option<DeltaBase>,
     },
     /// A trolley this planner took over catches up now (see [`PlannerAction::CatchUp`]).
     CatchUp {
@@ -205,9 +209,11 @@ pub enum PlannerAction {
         fruits: FleetFruits,
     },
     /// Ask `sources` in turn for a snapshot of `tid`; feed the result as `SnapshotLoaded`.
+    /// With a `base` (a standby copy's refresh) the answer may be a delta on it.
     AskSnapshot {
         tid: String,
         sources: Vec<String>,
+        base: Option<DeltaBase>,
     },
     /// Answer query `query_id`.
     ReplySnapshot {
@@ -331,6 +337,10 @@ pub struct PlannerStats {
     pub standby_decodes_ahead: u64,
     /// Takeovers that adopted a copy decoded ahead instead of decoding.
     pub decoded_ahead_adopted: u64,
+    /// Standby refreshes this owner answered with the blocks changed since the copy's base.
+    pub snapshot_deltas_sent: u64,
+    /// Owners' deltas this planner's standby copies applied.
+    pub snapshot_deltas_applied: u64,
 }
 
 /// What follows a cloud's insert ([`PlannerNode::integrate_then`]).
@@ -414,6 +424,8 @@ pub struct PlannerNode {
     takeover_decode_threads: usize,
     /// See [`PlannerNode::with_standby_decoded_ahead`].
     standby_decoded_ahead: bool,
+    /// See [`PlannerNode::with_refresh_by_delta`].
+    refresh_by_delta: bool,
     /// See [`PlannerNode::with_store`]; None: no store.
     store: Option<StoreRules>,
     /// How a new visit's prior is made from the previous visit's map.
@@ -500,6 +512,7 @@ impl PlannerNode {
             replica_refresh_clouds: REPLICA_REFRESH_CLOUDS,
             takeover_decode_threads: TAKEOVER_DECODE_THREADS,
             standby_decoded_ahead: false,
+            refresh_by_delta: true,
             store: None,
             revisit_prior: PriorRules::default(),
             settle_until_ns: epoch_ns,
@@ -535,6 +548,14 @@ impl PlannerNode {
     /// and every refresh a decode in the background).
     pub fn with_standby_decoded_ahead(mut self, ahead: bool) -> Self {
         self.standby_decoded_ahead = ahead;
+        self
+    }
+
+    /// Whether a standby copy decoded ahead asks its owner for only the map's blocks changed
+    /// since what it holds (a delta, [`DeltaBase`]; on by default); false asks for the whole
+    /// map every time.
+    pub fn with_refresh_by_delta(mut self, by_delta: bool) -> Self {
+        self.refresh_by_delta = by_delta;
         self
     }
 
@@ -641,7 +662,11 @@ impl PlannerNode {
             PlannerEvent::SnapshotLoaded { tid, snapshot } => {
                 self.on_snapshot_loaded(&tid, snapshot)
             }
-            PlannerEvent::SnapshotAsked { query_id, tid } => self.on_snapshot_asked(query_id, &tid),
+            PlannerEvent::SnapshotAsked {
+                query_id,
+                tid,
+                base,
+            } => self.on_snapshot_asked(query_id, &tid, base),
             PlannerEvent::CatchUp { tid } => self.on_catch_up(&tid),
             PlannerEvent::Finish { tid } => self.finish(&tid),
             PlannerEvent::NextCloud => self.next_of_batch(),
@@ -687,12 +712,19 @@ impl PlannerNode {
         self.status(dropped_messages)
     }
 
-    /// A standby copy answers with every cloud it holds integrated.
-    fn on_snapshot_asked(&mut self, query_id: u64, tid: &str) -> Vec<PlannerAction> {
+    /// A standby copy answers with every cloud it holds integrated; an owner asked by a
+    /// standby copy of its current term, with the blocks changed since what the copy holds.
+    fn on_snapshot_asked(
+        &mut self,
+        query_id: u64,
+        tid: &str,
+        base: Option<DeltaBase>,
+    ) -> Vec<PlannerAction> {
         let mut actions = self.catch_up(tid, false);
         actions.extend(self.finish(tid));
         let mut laps = Laps::start();
-        let answer = self.snapshot_of(tid);
+        let delta = base.and_then(|base| self.delta_of(tid, &base));
+        let answer = delta.unwrap_or_else(|| self.snapshot_of(tid));
         self.stats.stages.publish_ms += laps.lap_ms();
         actions.push(PlannerAction::ReplySnapshot { query_id, answer });
         actions
@@ -847,6 +879,7 @@ impl PlannerNode {
         vec![PlannerAction::AskSnapshot {
             tid: tid.to_owned(),
             sources,
+            base: None,
         }]
     }
 
@@ -911,9 +944,11 @@ impl PlannerNode {
         match owner {
             Some(owner) if !*refresh_asked && pending.len() >= self.replica_refresh_clouds => {
                 *refresh_asked = true;
+                let base = slot.delta_base(&owner).filter(|_| self.refresh_by_delta);
                 vec![PlannerAction::AskSnapshot {
                     tid: tid.to_owned(),
                     sources: vec![owner],
+                    base,
                 }]
             }
             _ => Vec::new(),
@@ -1021,7 +1056,10 @@ impl PlannerNode {
         };
         *refresh_asked = false;
         // A replaced owner's copy is not kept: the replica integrates its clouds instead.
-        let snapshot = self.fresh(tid, snapshot);
+        let snapshot = match self.fresh(tid, snapshot) {
+            Some(delta) if refresh::is_delta(&delta) => return self.on_refresh_delta(tid, delta),
+            whole => whole,
+        };
         let Some(slot) = self.slots.get_mut(tid) else {
             return Vec::new();
         };
@@ -1249,7 +1287,11 @@ impl PlannerNode {
         };
         self.slots.insert(tid.clone(), slot);
         let sources = snapshot_sources(change, &self.pid);
-        vec![PlannerAction::AskSnapshot { tid, sources }]
+        vec![PlannerAction::AskSnapshot {
+            tid,
+            sources,
+            base: None,
+        }]
     }
 
     /// `snapshot` unless it comes under an older ownership epoch than the newest seen for
@@ -1391,16 +1433,20 @@ impl PlannerNode {
             Some(_) => return Err(none()),
             None => self.restored_snapshot(tid).ok_or_else(none)??,
         };
-        let header = Header {
+        tracing::info!(planner = %self.pid, trolley = %tid, "snapshot asked");
+        Ok((self.snapshot_header(tid, &snapshot), Box::new(snapshot)))
+    }
+
+    /// The header a snapshot of `tid` is sent with.
+    fn snapshot_header(&self, tid: &str, snapshot: &MapSnapshot) -> Header {
+        Header {
             seq: snapshot.based_on_seq,
             epoch_ns: self.epoch_ns,
             trolley_id: tid.to_owned(),
             source_id: self.pid.clone(),
             frame_id: "world".into(),
             ..Header::default()
-        };
-        tracing::info!(planner = %self.pid, trolley = %tid, "snapshot asked");
-        Ok((header, Box::new(snapshot)))
+        }
     }
 
     /// Integrates one cloud into the trolley's copy; with `plan` (the owner), also fits, plans and

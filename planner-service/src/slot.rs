@@ -413,7 +413,7 @@ impl Slot {
 }
 
 /// The last frame a snapshot holds; None for a map without frames.
-fn based_on(snapshot: &MapSnapshot) -> Option<FrameId> {
+pub(crate) fn based_on(snapshot: &MapSnapshot) -> Option<FrameId> {
     let frame = FrameId::new(snapshot.based_on_epoch_ns, snapshot.based_on_seq);
     (frame != FrameId::default()).then_some(frame)
 }

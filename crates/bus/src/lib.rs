@@ -736,8 +736,23 @@ pub async fn ask<M: Wire>(
     key: &Key<M>,
     timeout: Duration,
 ) -> Result<(Header, M), AskError> {
+    ask_with(session, key, "", timeout).await
+}
+
+/// [`ask`] with selector parameters (`name=value;…`, as Zenoh's selectors write them; empty for
+/// none), which the queryable reads with `Query::parameters`.
+pub async fn ask_with<M: Wire>(
+    session: &Session,
+    key: &Key<M>,
+    parameters: &str,
+    timeout: Duration,
+) -> Result<(Header, M), AskError> {
+    let selector = match parameters {
+        "" => key.as_str().to_owned(),
+        p => format!("{}?{p}", key.as_str()),
+    };
     let replies = session
-        .get(key.as_str().to_owned())
+        .get(selector)
         .timeout(timeout)
         .await
         .map_err(|e| AskError::Query(e.to_string()))?;

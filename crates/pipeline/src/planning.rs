@@ -882,13 +882,57 @@ impl TrolleyPlanner {
         self.map
             .write_snapshot(&mut map)
             .map_err(|e| PlanningError::Snapshot(e.to_string()))?;
+        Ok(self.snapshot_with_map(tid, pid, map))
+    }
+
+    /// The trolley's state as [`TrolleyPlanner::snapshot`] gives it, but with only the map's
+    /// blocks changed after it had taken `base_scans` scans (a delta,
+    /// [`RoiMap::write_delta`]): the answer to a standby copy that holds this copy's map as it
+    /// was then ([`TrolleyPlanner::apply_delta`]).
+    pub fn snapshot_delta(
+        &self,
+        tid: &str,
+        pid: &str,
+        base_scans: u64,
+    ) -> Result<MapSnapshot, PlanningError> {
+        let mut map = Vec::new();
+        self.map
+            .write_delta(base_scans, &mut map)
+            .map_err(|e| PlanningError::Snapshot(e.to_string()))?;
+        Ok(self.snapshot_with_map(tid, pid, map))
+    }
+
+    /// Whether a snapshot carries a delta of the map ([`TrolleyPlanner::snapshot_delta`]).
+    pub fn is_delta(snapshot: &MapSnapshot) -> bool {
+        RoiMap::is_delta(&snapshot.map)
+    }
+
+    /// Brings this copy to what a delta snapshot holds: its map takes the delta's blocks, and
+    /// the fruit ids, frame mark, season and hand-eye estimate become the snapshot's, as
+    /// [`TrolleyPlanner::from_snapshot`] makes them from a whole one; the trolley's info, reach
+    /// filter and registration counts are kept. The delta must start from this copy's map (the
+    /// same owner's, at its scan count); on an error nothing changes.
+    pub fn apply_delta(&mut self, snapshot: &MapSnapshot) -> Result<(), PlanningError> {
+        let empty = Self::new(self.settings.clone())?.map;
+        self.map
+            .apply_delta(&snapshot.map)
+            .map_err(|e| PlanningError::Snapshot(e.to_string()))?;
+        let map = std::mem::replace(&mut self.map, empty);
+        // The map passed the same settings check when this copy was made: this cannot fail.
+        let restored = Self::from_map(self.settings.clone(), map, snapshot)?;
+        self.adopt(restored);
+        Ok(())
+    }
+
+    /// A snapshot of this copy's state around `map` (a whole map or a delta).
+    fn snapshot_with_map(&self, tid: &str, pid: &str, map: Vec<u8>) -> MapSnapshot {
         let (tracked, next_fruit_id) = self.tracker.state();
         let tracked_fruits = tracked.into_iter().map(|(id, c)| TrackedFruit {
             id,
             centre_in_world: c.cast(),
             colour: self.colours.sum_of(id),
         });
-        Ok(MapSnapshot {
+        MapSnapshot {
             trolley_id: tid.to_owned(),
             planner_id: pid.to_owned(),
             based_on_seq: self.order.last().map_or(0, |f| f.seq),
@@ -901,7 +945,7 @@ impl TrolleyPlanner {
             visit: self.visit,
             season: self.committed_season(),
             hand_eye: self.hand_eye_on_the_wire(),
-        })
+        }
     }
 
     /// The hand-eye estimator as a snapshot carries it (None while it is off).

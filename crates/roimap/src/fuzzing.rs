@@ -6,7 +6,7 @@
 //! reports it like a crash.
 
 use crate::ply::{read_cloud, write_cloud};
-use crate::snapshot::{crc32, frame, unpack, HEADER_BYTES, KIND_SNAPSHOT};
+use crate::snapshot::{crc32, frame, unpack, HEADER_BYTES, KIND_DELTA, KIND_SNAPSHOT};
 use crate::testdata::Workload;
 use crate::RoiMap;
 use nalgebra::Point3;
@@ -30,6 +30,10 @@ pub const TARGETS: &[Target] = &[
     Target {
         name: "roimap_snapshot_body",
         run: snapshot_body,
+    },
+    Target {
+        name: "roimap_delta_body",
+        run: delta_body,
     },
     Target {
         name: "roimap_ply",
@@ -65,16 +69,86 @@ pub fn snapshot_body(data: &[u8]) -> Verdict {
     read_and_rewrite(&frame_body(data))
 }
 
+/// [`RoiMap::apply_delta`] of a delta whose (decompressed) body is `data`, on the seeds' small
+/// scanned map (two scans): a delta that applies must leave a map that writes a snapshot that
+/// reads back to the same voxels, and one that does not must leave the map as it was.
+pub fn delta_body(data: &[u8]) -> Verdict {
+    let Some(mut map) = seed_map() else {
+        panic!("the seed map does not build");
+    };
+    let before = map.len();
+    match map.apply_delta(&frame_kind(KIND_DELTA, data)) {
+        Ok(()) => read_and_rewrite(&snapshot_of(&map)),
+        Err(e) => {
+            assert_eq!(map.len(), before, "a delta refused changed the map");
+            Err(e.to_string())
+        }
+    }
+}
+
 /// A snapshot file holding `body`.
 fn frame_body(body: &[u8]) -> Vec<u8> {
+    frame_kind(KIND_SNAPSHOT, body)
+}
+
+/// A file of `kind` holding `body`.
+fn frame_kind(kind: u16, body: &[u8]) -> Vec<u8> {
     let mut file = Vec::new();
     // Writing into a Vec cannot fail.
     let _ = frame(
-        KIND_SNAPSHOT,
+        kind,
         &lz4_flex::block::compress_prepend_size(body),
         &mut file,
     );
     file
+}
+
+/// `map`'s snapshot.
+fn snapshot_of(map: &RoiMap) -> Vec<u8> {
+    let mut file = Vec::new();
+    if let Err(e) = map.write_snapshot(&mut file) {
+        panic!("a map does not write: {e}");
+    }
+    file
+}
+
+/// The seeds' scan points: a few short rays, a handful of blocks with free, occupied and ROI
+/// voxels (small seeds, since the fuzzer mutates every byte, with every value encoding).
+fn seed_points() -> (Vec<Point3<f32>>, Vec<bool>) {
+    let points: Vec<Point3<f32>> = (0..12)
+        .map(|i| {
+            let a = f64::from(i) * 0.5;
+            Point3::new(
+                0.06 + 0.01 * a.cos(),
+                0.05 * a.sin(),
+                0.02 * f64::from(i % 3),
+            )
+            .cast()
+        })
+        .collect();
+    let roi = (0..points.len()).map(|i| i % 2 == 0).collect();
+    (points, roi)
+}
+
+/// The seeds' scanned map: the seed points seen from `origins`.
+fn scanned_map(origins: &[Point3<f64>]) -> Option<RoiMap> {
+    let (points, roi) = seed_points();
+    let mut map = RoiMap::new(Workload::small(3, 32, 24, 3, 2).map_config()).ok()?;
+    for origin in origins {
+        map.insert_scan(origin, &points, &roi).ok()?;
+    }
+    Some(map)
+}
+
+const SEED_ORIGINS: [Point3<f64>; 3] = [
+    Point3::new(0.0, 0.0, 0.0),
+    Point3::new(0.01, 0.0, 0.0),
+    Point3::new(0.0, 0.02, 0.01),
+];
+
+/// The map the delta target applies its inputs to: two scans.
+fn seed_map() -> Option<RoiMap> {
+    scanned_map(&SEED_ORIGINS[..2])
 }
 
 /// Reads a snapshot; a map that reads must write a snapshot that reads back to the same voxels.
@@ -101,34 +175,27 @@ pub fn ply(data: &[u8]) -> Verdict {
 /// ASCII). `fuzz/src/bin/make_corpus.rs` writes them.
 pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
     let mut out = Vec::new();
-    let workload = Workload::small(3, 32, 24, 3, 2);
-    // A few short rays: a handful of blocks with free, occupied and ROI voxels keeps the seeds
-    // small (the fuzzer mutates every byte) while every value encoding appears.
-    let origin = Point3::new(0.0, 0.0, 0.0);
-    let points: Vec<Point3<f32>> = (0..12)
-        .map(|i| {
-            let a = f64::from(i) * 0.5;
-            Point3::new(
-                0.06 + 0.01 * a.cos(),
-                0.05 * a.sin(),
-                0.02 * f64::from(i % 3),
-            )
-            .cast()
-        })
-        .collect();
-    let roi: Vec<bool> = (0..points.len()).map(|i| i % 2 == 0).collect();
+    let (points, _) = seed_points();
     let mut maps = Vec::new();
-    if let Ok(mut map) = RoiMap::new(workload.map_config()) {
-        if map.insert_scan(&origin, &points, &roi).is_ok()
-            && map
-                .insert_scan(&Point3::new(0.01, 0.0, 0.0), &points, &roi)
-                .is_ok()
-        {
-            maps.push(("scanned", map));
-        }
+    if let Some(map) = seed_map() {
+        maps.push(("scanned", map));
     }
-    if let Ok(map) = RoiMap::new(workload.map_config()) {
+    if let Some(map) = scanned_map(&[]) {
         maps.push(("empty", map));
+    }
+    // A delta from the scanned map to one more scan, and an empty one.
+    if let Some(three) = scanned_map(&SEED_ORIGINS) {
+        for (name, base) in [("third-scan", 2), ("nothing", 3)] {
+            let mut file = Vec::new();
+            if three.write_delta(base, &mut file).is_ok() {
+                if let Some(body) = file
+                    .get(HEADER_BYTES..file.len().saturating_sub(4))
+                    .and_then(|packed| unpack(packed).ok())
+                {
+                    out.push(("roimap_delta_body", format!("{name}.body"), body));
+                }
+            }
+        }
     }
     for (name, map) in &maps {
         let mut file = Vec::new();

@@ -38,6 +38,7 @@
 
 mod batch;
 mod clusters;
+mod delta;
 mod derived;
 #[doc(hidden)]
 pub mod fuzzing;

@@ -34,6 +34,7 @@ const MAGIC: &[u8; 4] = b"GHRM";
 /// Current format version.
 pub const FORMAT_VERSION: u16 = 4;
 pub(crate) const KIND_SNAPSHOT: u16 = 0;
+pub(crate) const KIND_DELTA: u16 = 1;
 pub(crate) const HEADER_BYTES: usize = 16;
 
 /// Errors reading or writing snapshots and deltas.
@@ -58,6 +59,8 @@ pub enum SnapshotError {
     Corrupt(String),
     #[error("map file has an invalid configuration: {0}")]
     Config(#[from] MapError),
+    #[error("a delta on the map after {base} scans does not apply to a map after {scans}")]
+    DeltaBase { base: u64, scans: u64 },
 }
 
 /// CRC-32 (IEEE 802.3, as zlib and PNG).
@@ -70,6 +73,7 @@ pub fn crc32(bytes: &[u8]) -> u32 {
 fn kind_name(kind: u16) -> &'static str {
     match kind {
         KIND_SNAPSHOT => "snapshot",
+        KIND_DELTA => "delta",
         _ => "unknown kind",
     }
 }
@@ -88,7 +92,7 @@ pub(crate) fn frame(kind: u16, body: &[u8], w: &mut impl Write) -> Result<(), Sn
 }
 
 /// Reads a whole framed file and returns its verified body.
-fn unframe(expected_kind: u16, bytes: &[u8]) -> Result<&[u8], SnapshotError> {
+pub(crate) fn unframe(expected_kind: u16, bytes: &[u8]) -> Result<&[u8], SnapshotError> {
     if bytes.len() < 4 || &bytes[..4] != MAGIC {
         if bytes.len() < 4 && MAGIC.starts_with(bytes) {
             return Err(SnapshotError::Truncated {
@@ -184,10 +188,10 @@ impl<'a> Cursor<'a> {
     fn u16(&mut self) -> Result<u16, SnapshotError> {
         Ok(u16::from_le_bytes(self.take()?))
     }
-    fn u32(&mut self) -> Result<u32, SnapshotError> {
+    pub(crate) fn u32(&mut self) -> Result<u32, SnapshotError> {
         Ok(u32::from_le_bytes(self.take()?))
     }
-    fn u64(&mut self) -> Result<u64, SnapshotError> {
+    pub(crate) fn u64(&mut self) -> Result<u64, SnapshotError> {
         Ok(u64::from_le_bytes(self.take()?))
     }
     fn i32(&mut self) -> Result<i32, SnapshotError> {
@@ -430,13 +434,43 @@ impl RoiMap {
         c: &mut Cursor,
         log: &mut ChangeLog,
     ) -> Result<(), SnapshotError> {
-        let bk = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
-        let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
-        if !(key_ok(bk.x) && key_ok(bk.y) && key_ok(bk.z)) {
-            return Err(SnapshotError::Corrupt(format!("block {bk:?} out of range")));
-        }
+        let record = BlockRecord::read(c)?;
+        let bk = record.key;
         if self.store.index.contains_key(&bk) {
             return Err(SnapshotError::Corrupt(format!("block {bk:?} twice")));
+        }
+        let thr = self.config.roi_threshold_logodds;
+        let bi = self.store.get_or_create(bk);
+        let b = &mut self.store.blocks[bi];
+        let known = record.known;
+        b.occupied = record.occ.mask_where(&known, |v| v > 0.0);
+        b.roi_mask = record.roi.mask_where(&known, |v| v >= thr);
+        b.known = known;
+        b.occ = record.occ;
+        b.roi = record.roi;
+        self.known_count += mask_count(&known);
+        self.occupied_count += mask_count(&b.occupied);
+        log.note(bi as u32, &known, &b.roi_mask);
+        Ok(())
+    }
+}
+
+/// One block as a snapshot or a delta writes it ([`RoiMap::write_block`]), read and checked.
+pub(crate) struct BlockRecord {
+    pub key: VoxelKey,
+    pub known: Mask,
+    pub occ: Values,
+    pub roi: Values,
+}
+
+impl BlockRecord {
+    pub(crate) fn read(c: &mut Cursor) -> Result<Self, SnapshotError> {
+        let key = VoxelKey::new(c.i32()?, c.i32()?, c.i32()?);
+        let key_ok = |v: i32| (-(1 << 17)..(1 << 17)).contains(&v);
+        if !(key_ok(key.x) && key_ok(key.y) && key_ok(key.z)) {
+            return Err(SnapshotError::Corrupt(format!(
+                "block {key:?} out of range"
+            )));
         }
         let mut known: Mask = [0; 8];
         for w in &mut known {
@@ -444,18 +478,12 @@ impl RoiMap {
         }
         let occ = read_values(c, &known)?;
         let roi = read_values(c, &known)?;
-        let thr = self.config.roi_threshold_logodds;
-        let bi = self.store.get_or_create(bk);
-        let b = &mut self.store.blocks[bi];
-        b.occupied = occ.mask_where(&known, |v| v > 0.0);
-        b.roi_mask = roi.mask_where(&known, |v| v >= thr);
-        b.known = known;
-        b.occ = occ;
-        b.roi = roi;
-        self.known_count += mask_count(&known);
-        self.occupied_count += mask_count(&b.occupied);
-        log.note(bi as u32, &known, &b.roi_mask);
-        Ok(())
+        Ok(Self {
+            key,
+            known,
+            occ,
+            roi,
+        })
     }
 }
 

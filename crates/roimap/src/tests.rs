@@ -1796,3 +1796,129 @@ fn damaged_stored_records_are_errors() {
     longer.push(0);
     assert!(RoiMap::from_stored(&header, [longer.as_slice()]).is_err());
 }
+
+/// Every voxel and derived set of two maps that should be equal.
+fn assert_same_map(a: &RoiMap, b: &RoiMap) {
+    assert_eq!(sorted_voxels(a), sorted_voxels(b));
+    assert_eq!(a.counts(), b.counts());
+    assert_eq!(a.scans_inserted(), b.scans_inserted());
+    assert_eq!(a.roi_keys(), b.roi_keys());
+    let everywhere = Aabb::new(Point3::new(-9.0, -9.0, -9.0), Point3::new(9.0, 9.0, 9.0));
+    assert_eq!(
+        a.exploration_frontier(&everywhere),
+        b.exploration_frontier(&everywhere)
+    );
+    assert_eq!(a.roi_frontier(&everywhere), b.roi_frontier(&everywhere));
+}
+
+#[test]
+fn deltas_bring_a_copy_to_the_writers_map_voxel_for_voxel() {
+    let w = Workload::small(7, 96, 72, 8, 6);
+    let config = MapConfig {
+        roi_target_needs_neighbour: true,
+        ..w.map_config()
+    };
+    let mut owner = RoiMap::new(config).expect("valid");
+    let scans = w.filtered_scans();
+    let insert = |m: &mut RoiMap, range: std::ops::Range<usize>| {
+        for s in &scans[range] {
+            m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+        }
+    };
+    insert(&mut owner, 0..2);
+    let mut full = Vec::new();
+    owner.write_snapshot(&mut full).expect("write");
+    let mut copy = RoiMap::read_snapshot(full.as_slice()).expect("read");
+    // Two deltas one after the other, the second on the map the first made.
+    for (from, to) in [(2, 4), (4, 6)] {
+        let base = owner.scans_inserted();
+        insert(&mut owner, from..to);
+        let mut delta = Vec::new();
+        owner.write_delta(base, &mut delta).expect("write delta");
+        assert!(RoiMap::is_delta(&delta) && !RoiMap::is_delta(&full));
+        RoiMap::check_delta(&delta).expect("framed");
+        copy.apply_delta(&delta).expect("applies");
+        assert_same_map(&copy, &owner);
+        assert_eq!(brute_frontiers(&copy).1, brute_frontiers(&owner).1);
+    }
+    // Only the changed blocks travel: nothing changed, nothing but the header.
+    let mut empty = Vec::new();
+    owner
+        .write_delta(owner.scans_inserted(), &mut empty)
+        .expect("write");
+    assert!(empty.len() < 200, "{} bytes", empty.len());
+    copy.apply_delta(&empty).expect("applies");
+    assert_same_map(&copy, &owner);
+    // The copy writes the same snapshot's voxels as the owner.
+    let mut again = Vec::new();
+    copy.write_snapshot(&mut again).expect("write");
+    let back = RoiMap::read_snapshot(again.as_slice()).expect("read");
+    assert_same_map(&back, &owner);
+}
+
+#[test]
+fn a_delta_on_another_base_or_damaged_changes_nothing() {
+    let w = Workload::small(8, 64, 48, 6, 4);
+    let scans = w.filtered_scans();
+    let mut owner = RoiMap::new(w.map_config()).expect("valid");
+    for s in &scans[..2] {
+        owner
+            .insert_scan(&s.origin, &s.points, &s.roi)
+            .expect("valid");
+    }
+    let mut full = Vec::new();
+    owner.write_snapshot(&mut full).expect("write");
+    let mut copy = RoiMap::read_snapshot(full.as_slice()).expect("read");
+    let before = sorted_voxels(&copy);
+    for s in &scans[2..] {
+        owner
+            .insert_scan(&s.origin, &s.points, &s.roi)
+            .expect("valid");
+    }
+    // A base the writer has not reached, and a delta from another base than the copy's.
+    assert!(matches!(
+        owner.write_delta(owner.scans_inserted() + 1, Vec::new()),
+        Err(SnapshotError::DeltaBase { .. })
+    ));
+    let mut from_one = Vec::new();
+    owner.write_delta(1, &mut from_one).expect("write");
+    assert!(matches!(
+        copy.apply_delta(&from_one),
+        Err(SnapshotError::DeltaBase { base: 1, scans: 2 })
+    ));
+    let mut delta = Vec::new();
+    owner.write_delta(2, &mut delta).expect("write");
+    let mut bad = delta.clone();
+    let at = bad.len() / 2;
+    bad[at] ^= 0x04;
+    assert!(matches!(
+        copy.apply_delta(&bad),
+        Err(SnapshotError::ChecksumMismatch { .. })
+    ));
+    assert!(matches!(
+        copy.apply_delta(&full),
+        Err(SnapshotError::WrongKind { .. })
+    ));
+    assert!(matches!(
+        RoiMap::read_snapshot(delta.as_slice()),
+        Err(SnapshotError::WrongKind { .. })
+    ));
+    let other = RoiMap::new(MapConfig {
+        resolution_m: 0.02,
+        ..w.map_config()
+    });
+    let mut other = other.expect("valid");
+    for s in &scans[..2] {
+        other
+            .insert_scan(&s.origin, &s.points, &s.roi)
+            .expect("valid");
+    }
+    assert!(matches!(
+        other.apply_delta(&delta),
+        Err(SnapshotError::Corrupt(_))
+    ));
+    assert_eq!(sorted_voxels(&copy), before);
+    assert_eq!(copy.scans_inserted(), 2);
+    copy.apply_delta(&delta).expect("the right base applies");
+    assert_same_map(&copy, &owner);
+}

@@ -104,7 +104,7 @@ fn asks(actions: &[PlannerAction]) -> Vec<(String, Vec<String>)> {
     actions
         .iter()
         .filter_map(|a| match a {
-            PlannerAction::AskSnapshot { tid, sources } => Some((tid.clone(), sources.clone())),
+            PlannerAction::AskSnapshot { tid, sources, .. } => Some((tid.clone(), sources.clone())),
             _ => None,
         })
         .collect()
@@ -390,6 +390,7 @@ fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
     let refused = p2.handle(PlannerEvent::SnapshotAsked {
         query_id: 9,
         tid: "t1".into(),
+        base: None,
     });
     assert!(matches!(
         &refused[..],
@@ -401,6 +402,7 @@ fn a_late_planner_buffers_clouds_until_the_snapshot_is_loaded() {
     let reply = p1.handle(PlannerEvent::SnapshotAsked {
         query_id: 1,
         tid: "t1".into(),
+        base: None,
     });
     let [PlannerAction::ReplySnapshot {
         answer: Ok((h, snapshot)),
@@ -915,35 +917,34 @@ fn same_map(a: &PlannerNode, b: &PlannerNode, tid: &str) -> bool {
         && a.iter().all(|(key, voxel)| b.get(key) == Some(voxel))
 }
 
-/// Answers the replica's snapshot requests in `actions` from `owner`; returns how many.
+/// Answers the replica's snapshot requests in `actions` from `owner`, with the base each asks
+/// on (a delta where the owner can); returns how many.
 fn answer_refreshes(
     owner: &mut PlannerNode,
     replica: &mut PlannerNode,
     actions: Vec<PlannerAction>,
 ) -> usize {
-    let asked = asks(&actions);
-    for (tid, sources) in &asked {
-        assert_eq!(
-            sources,
-            &vec![owner.pid.clone()],
-            "a standby asks its owner"
-        );
+    let mut asked = 0;
+    for action in actions {
+        let PlannerAction::AskSnapshot { tid, sources, base } = action else {
+            continue;
+        };
+        assert_eq!(sources, vec![owner.pid.clone()], "a standby asks its owner");
         let reply = owner.handle(PlannerEvent::SnapshotAsked {
             query_id: 1,
             tid: tid.clone(),
+            base,
         });
         let snapshot = reply.into_iter().find_map(|a| match a {
             PlannerAction::ReplySnapshot { answer, .. } => answer.ok().map(|(_, s)| s),
             _ => None,
         });
         assert!(snapshot.is_some(), "the owner answers");
-        let loaded = replica.handle(PlannerEvent::SnapshotLoaded {
-            tid: tid.clone(),
-            snapshot,
-        });
+        let loaded = replica.handle(PlannerEvent::SnapshotLoaded { tid, snapshot });
         decode_ahead_as_the_driver_does(replica, loaded);
+        asked += 1;
     }
-    asked.len()
+    asked
 }
 
 /// Performs the node's [`PlannerAction::DecodeAhead`]s among `actions` and feeds the copies back.
@@ -980,6 +981,7 @@ fn a_standby_replica_keeps_clouds_and_refreshes_from_the_owner() {
     replica.handle(PlannerEvent::SnapshotAsked {
         query_id: 2,
         tid: "t1".into(),
+        base: None,
     });
     assert_eq!(replica.stats().clouds_integrated, 1);
     assert!(same_map(&replica, &owner, "t1"));
@@ -1056,6 +1058,7 @@ fn a_standby_replica_asked_for_a_snapshot_answers_with_every_cloud() {
     let reply = replica.handle(PlannerEvent::SnapshotAsked {
         query_id: 4,
         tid: "t1".into(),
+        base: None,
     });
     let [PlannerAction::ReplySnapshot {
         answer: Ok((_, snapshot)),
@@ -1597,6 +1600,7 @@ fn snapshot_from(from: &mut PlannerNode) -> Box<MapSnapshot> {
     let reply = from.handle(PlannerEvent::SnapshotAsked {
         query_id: 1,
         tid: "t1".into(),
+        base: None,
     });
     match reply.into_iter().last() {
         Some(PlannerAction::ReplySnapshot {
@@ -1999,6 +2003,7 @@ fn a_restored_copy_answers_under_its_epoch_and_a_newer_terms_snapshot_wins() {
     let answer = restarted.handle(PlannerEvent::SnapshotAsked {
         query_id: 2,
         tid: "t1".into(),
+        base: None,
     });
     let [PlannerAction::ReplySnapshot {
         answer: Ok((_, stored)),
@@ -2172,4 +2177,160 @@ fn an_owner_that_steps_down_keeps_its_copy_when_the_new_owners_missed_a_cloud() 
     assert_eq!(a.stats().kept_own_copy, 1);
     assert!(a.term("t1").expect("a new term") > term_b);
     assert_eq!(views_of(&resumed)[0].based_on_seq, 3);
+}
+
+/// (owner, replica) of t1 with its info; the replica stands by, refreshed every `refresh`
+/// clouds, and decodes what it holds ahead.
+fn owner_and_decoding_standby(info: &TrolleyInfo, refresh: usize) -> (PlannerNode, PlannerNode) {
+    let (mut owner, mut replica) = roles(pair_with_refresh(refresh));
+    replica.standby_decoded_ahead = true;
+    for n in [&mut owner, &mut replica] {
+        n.handle(info_event(info));
+    }
+    (owner, replica)
+}
+
+/// The owner's answer to a refresh of t1 on `base`.
+fn answer_on(owner: &mut PlannerNode, base: Option<DeltaBase>) -> Box<MapSnapshot> {
+    let reply = owner.handle(PlannerEvent::SnapshotAsked {
+        query_id: 7,
+        tid: "t1".into(),
+        base,
+    });
+    reply
+        .into_iter()
+        .find_map(|a| match a {
+            PlannerAction::ReplySnapshot { answer, .. } => answer.ok().map(|(_, s)| s),
+            _ => None,
+        })
+        .expect("the owner answers")
+}
+
+#[test]
+fn a_standby_copy_refreshes_by_delta_and_takes_over_with_the_owners_map() {
+    let (info, clouds) = trolley_clouds(7);
+    let (mut owner, mut replica) = owner_and_decoding_standby(&info, 2);
+    for cloud in &clouds {
+        owner.handle(cloud_event(cloud));
+        let actions = replica.handle(cloud_event(cloud));
+        answer_refreshes(&mut owner, &mut replica, actions);
+    }
+    // Refreshes after clouds 2, 4 and 6: the first for the whole map (nothing decoded yet), the
+    // others for what changed since the copy's.
+    assert_eq!(owner.stats().snapshot_deltas_sent, 2);
+    assert_eq!(replica.stats().snapshot_deltas_applied, 2);
+    assert_eq!(replica.stats().clouds_integrated, 0);
+    assert_eq!(replica.pending_clouds("t1"), 1);
+    let actions = replica.handle(PlannerEvent::PlannerLeft(owner.pid().to_owned()));
+    let actions = settle(&mut replica, actions);
+    let views = views_of(&actions);
+    assert_eq!(views.len(), 1, "{actions:?}");
+    assert_eq!(views[0].based_on_seq, 7);
+    assert_eq!(
+        replica.stats().decoded_ahead_adopted,
+        1,
+        "nothing decoded again"
+    );
+    assert_eq!(
+        replica.stats().clouds_integrated,
+        1,
+        "only the pending cloud"
+    );
+    assert!(same_map(&replica, &owner, "t1"));
+    let (a, b) = (owner.planner("t1").unwrap(), replica.planner("t1").unwrap());
+    assert_eq!(a.last_frame(), b.last_frame());
+    let (sa, sb) = (
+        a.snapshot("t1", "x").unwrap(),
+        b.snapshot("t1", "x").unwrap(),
+    );
+    assert_eq!(
+        (sa.tracked_fruits, sa.next_fruit_id),
+        (sb.tracked_fruits, sb.next_fruit_id),
+        "the same fruit ids"
+    );
+}
+
+#[test]
+fn an_owner_sends_a_delta_only_on_a_base_of_its_own_current_term() {
+    let (info, clouds) = trolley_clouds(3);
+    let (mut owner, _) = owner_and_decoding_standby(&info, 8);
+    for cloud in &clouds {
+        owner.handle(cloud_event(cloud));
+    }
+    let scans = owner.planner("t1").unwrap().map().scans_inserted();
+    let base = DeltaBase {
+        planner_id: owner.pid().to_owned(),
+        owner_epoch: owner.fence.newest("t1"),
+        visit: 0,
+        scans: scans - 1,
+    };
+    let delta = answer_on(&mut owner, Some(base.clone()));
+    assert!(TrolleyPlanner::is_delta(&delta));
+    assert_eq!(delta.owner_epoch, base.owner_epoch);
+    let others = [
+        None,
+        Some(DeltaBase {
+            planner_id: "p9".into(),
+            ..base.clone()
+        }),
+        Some(DeltaBase {
+            owner_epoch: base.owner_epoch - 1,
+            ..base.clone()
+        }),
+        Some(DeltaBase {
+            visit: 1,
+            ..base.clone()
+        }),
+        Some(DeltaBase {
+            scans: scans + 1,
+            ..base.clone()
+        }),
+    ];
+    for other in others {
+        let answer = answer_on(&mut owner, other.clone());
+        assert!(!TrolleyPlanner::is_delta(&answer), "{other:?}");
+        TrolleyPlanner::check_snapshot(&answer).expect("the whole map");
+    }
+    assert_eq!(owner.stats().snapshot_deltas_sent, 1);
+}
+
+#[test]
+fn a_delta_that_does_not_apply_leaves_the_copy_and_its_clouds_are_integrated() {
+    let (info, clouds) = trolley_clouds(5);
+    let (mut owner, mut replica) = owner_and_decoding_standby(&info, 2);
+    for cloud in &clouds[..4] {
+        owner.handle(cloud_event(cloud));
+        let actions = replica.handle(cloud_event(cloud));
+        answer_refreshes(&mut owner, &mut replica, actions);
+    }
+    assert_eq!(replica.stats().snapshot_deltas_applied, 1);
+    owner.handle(cloud_event(&clouds[4]));
+    replica.handle(cloud_event(&clouds[4]));
+    // A delta from a scan the copy is not at (its copy holds 4 scans).
+    let wrong = DeltaBase {
+        planner_id: owner.pid().to_owned(),
+        owner_epoch: owner.fence.newest("t1"),
+        visit: 0,
+        scans: 3,
+    };
+    let delta = answer_on(&mut owner, Some(wrong));
+    assert!(TrolleyPlanner::is_delta(&delta));
+    if let Some(Slot {
+        stage: Stage::Standby { refresh_asked, .. },
+        ..
+    }) = replica.slots.get_mut("t1")
+    {
+        *refresh_asked = true;
+    }
+    replica.handle(PlannerEvent::SnapshotLoaded {
+        tid: "t1".into(),
+        snapshot: Some(delta),
+    });
+    assert_eq!(replica.stats().snapshot_deltas_applied, 1, "not applied");
+    assert_eq!(
+        replica.stats().clouds_integrated,
+        1,
+        "the kept cloud instead"
+    );
+    assert!(same_map(&replica, &owner, "t1"));
 }

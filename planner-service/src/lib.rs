@@ -187,6 +187,20 @@ pub struct PlannerCounters {
 /// The snapshot query's parameter that carries a standby copy's [`DeltaBase`].
 const DELTA_BASE_PARAMETER: &str = "base";
 
+/// The selector parameters of a standby copy's snapshot query on `base`.
+pub fn snapshot_query_parameters(base: &DeltaBase) -> String {
+    format!("{DELTA_BASE_PARAMETER}={}", base.to_parameter())
+}
+
+/// The base a snapshot query names ([`snapshot_query_parameters`]); a missing or malformed
+/// one is none, and the whole map is sent.
+pub fn delta_base_of(query: &zenoh::query::Query) -> Option<DeltaBase> {
+    query
+        .parameters()
+        .get(DELTA_BASE_PARAMETER)
+        .and_then(DeltaBase::parse)
+}
+
 /// Snapshots are asked of each candidate in turn for this long: a row's map is hundreds of MB and
 /// takes seconds to write and send; a candidate without the map declines at once.
 const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(30);
@@ -311,11 +325,7 @@ impl Inputs {
     async fn snapshot_query(&mut self, query: zenoh::query::Query) -> Option<PlannerEvent> {
         match keys::parse(query.key_expr().as_str()) {
             Some(keys::ParsedKey::PlannerSnapshot { tid, .. }) => {
-                // A malformed base is no base: the whole map is sent.
-                let base = query
-                    .parameters()
-                    .get(DELTA_BASE_PARAMETER)
-                    .and_then(DeltaBase::parse);
+                let base = delta_base_of(&query);
                 self.next_query += 1;
                 self.queries.insert(self.next_query, query);
                 Some(PlannerEvent::SnapshotAsked {
@@ -415,9 +425,9 @@ impl Outputs {
     /// Asks each source in turn for a snapshot of `tid`; the answer comes back as an event.
     fn ask_snapshot(&self, tid: String, sources: Vec<String>, base: Option<DeltaBase>) {
         let (session, pid, tx) = (self.session.clone(), self.pid.clone(), self.events.clone());
-        let parameters = base.map_or_else(String::new, |base| {
-            format!("{DELTA_BASE_PARAMETER}={}", base.to_parameter())
-        });
+        let parameters = base
+            .as_ref()
+            .map_or_else(String::new, snapshot_query_parameters);
         tokio::spawn(async move {
             let mut loaded = None;
             for source in sources {

@@ -135,6 +135,7 @@ impl PlannerNode {
             })
             .map_err(|e| e.to_string());
         self.stats.snapshot_deltas_sent += u64::from(answer.is_ok());
+        tracing::info!(planner = %self.pid, trolley = %tid, since_scans = base.scans, "delta asked");
         Some(answer)
     }
 

@@ -569,8 +569,31 @@ pub async fn run(
     let mut inputs = Inputs::declare(&session, &settings, &drops, events_rx).await?;
     let mut out = Outputs::declare(&session, &pid, &drops, events_tx).await?;
     let _alive = declare_alive(&session, MemberKind::Planner, &pid).await?;
-    let epoch_ns = wall_clock_ns();
-    let node = PlannerNode::new(&pid, settings.planning.clone(), epoch_ns)
+    let mut node = start_node(&settings, &mut out, &counters).await?;
+    tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
+    while let Some(event) = inputs.next(&mut shutdown, &drops).await {
+        node = step(node, event, &mut inputs, &mut out, &counters).await?;
+    }
+    if let Some(store) = out.store.take() {
+        // The checkpoints still queued are written before the planner stops.
+        if let Err(e) = tokio::task::spawn_blocking(move || store.close()).await {
+            tracing::error!(planner = %pid, error = %e, "closing the store failed");
+        }
+    }
+    out.close().await;
+    tracing::info!(planner = %pid, clouds = node.stats().clouds_integrated, dropped = drops.total(), "planner stopped");
+    Ok(())
+}
+
+/// The node as `settings` make it, with the standby decoder and the store it uses started
+/// (the store's trolleys restored into it).
+async fn start_node(
+    settings: &PlannerSettings,
+    out: &mut Outputs,
+    counters: &Arc<PlannerCounters>,
+) -> anyhow::Result<Box<PlannerNode>> {
+    let pid = &settings.planner_id;
+    let node = PlannerNode::new(pid, settings.planning.clone(), wall_clock_ns())
         .with_replica_refresh(settings.replica_refresh_clouds)
         .with_takeover_decode_threads(settings.takeover_decode_threads)
         .with_standby_decoded_ahead(settings.standby_decoded_ahead)
@@ -584,7 +607,7 @@ pub async fn run(
     }
     let mut node = Box::new(node);
     if let Some(store) = &settings.store {
-        let (restored, opened) = open_store(store, node, &pid).await?;
+        let (restored, opened) = open_store(store, node, pid).await?;
         node = restored;
         let events = out.events.clone();
         out.store = Some(storage::StoreWriter::start(
@@ -593,60 +616,60 @@ pub async fn run(
             events,
         )?);
     }
-    tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
-    while let Some(event) = inputs.next(&mut shutdown, &drops).await {
-        // Integration, fits and planning are heavy: the node works on a blocking thread.
-        let stages_before = node.stats().stages;
-        let (kind, batch) = (event.kind(), event_clouds(&event));
-        let step_started = Instant::now();
-        let (back, actions, cpu_ms) = tokio::task::spawn_blocking(move || {
-            let cpu_before = thread_cpu_ms();
-            let actions = node.handle(event);
-            (node, actions, thread_cpu_ms() - cpu_before)
-        })
-        .await
-        .context("planner task failed")?;
-        node = back;
-        let handled = step_started.elapsed();
-        mirror_stats(&counters, &stages_before, &node.stats());
-        let stages = stage_lap(&stages_before, &node.stats().stages);
-        let n_actions = actions.len();
-        for action in actions {
-            if let PlannerAction::PublishStatus { status, .. } = &action {
-                if let Ok(mut last) = counters.status.lock() {
-                    *last = Some(status.clone());
-                }
+    Ok(node)
+}
+
+/// One event through the node (on a blocking thread: integration, fits and planning are
+/// heavy), its actions performed in order, its time logged at debug level.
+async fn step(
+    mut node: Box<PlannerNode>,
+    event: PlannerEvent,
+    inputs: &mut Inputs,
+    out: &mut Outputs,
+    counters: &PlannerCounters,
+) -> anyhow::Result<Box<PlannerNode>> {
+    let stages_before = node.stats().stages;
+    let (kind, batch) = (event.kind(), event_clouds(&event));
+    let step_started = Instant::now();
+    let (back, actions, cpu_ms) = tokio::task::spawn_blocking(move || {
+        let cpu_before = thread_cpu_ms();
+        let actions = node.handle(event);
+        (node, actions, thread_cpu_ms() - cpu_before)
+    })
+    .await
+    .context("planner task failed")?;
+    node = back;
+    let handled = step_started.elapsed();
+    mirror_stats(counters, &stages_before, &node.stats());
+    let stages = stage_lap(&stages_before, &node.stats().stages);
+    let n_actions = actions.len();
+    for action in actions {
+        if let PlannerAction::PublishStatus { status, .. } = &action {
+            if let Ok(mut last) = counters.status.lock() {
+                *last = Some(status.clone());
             }
-            let snapshot_bytes = perform(action, &mut inputs, &mut out).await?;
-            counters
-                .snapshot_bytes_sent
-                .fetch_add(snapshot_bytes, Ordering::Relaxed);
         }
-        // Where a planner's wall time goes, step by step (RUST_LOG=glasshouse_planner=debug).
-        tracing::debug!(
-            planner = %pid,
-            event = kind,
-            clouds = batch,
-            actions = n_actions,
-            handle_ms = handled.as_secs_f64() * 1e3,
-            handle_cpu_ms = cpu_ms,
-            perform_ms = (step_started.elapsed() - handled).as_secs_f64() * 1e3,
-            integrate_ms = stages.integrate_ms,
-            fit_ms = stages.fit_ms,
-            plan_ms = stages.plan_ms,
-            publish_ms = stages.publish_ms,
-            "step"
-        );
+        let snapshot_bytes = perform(action, inputs, out).await?;
+        counters
+            .snapshot_bytes_sent
+            .fetch_add(snapshot_bytes, Ordering::Relaxed);
     }
-    if let Some(store) = out.store.take() {
-        // The checkpoints still queued are written before the planner stops.
-        if let Err(e) = tokio::task::spawn_blocking(move || store.close()).await {
-            tracing::error!(planner = %pid, error = %e, "closing the store failed");
-        }
-    }
-    out.close().await;
-    tracing::info!(planner = %pid, clouds = node.stats().clouds_integrated, dropped = drops.total(), "planner stopped");
-    Ok(())
+    // Where a planner's wall time goes, step by step (RUST_LOG=glasshouse_planner=debug).
+    tracing::debug!(
+        planner = %node.pid(),
+        event = kind,
+        clouds = batch,
+        actions = n_actions,
+        handle_ms = handled.as_secs_f64() * 1e3,
+        handle_cpu_ms = cpu_ms,
+        perform_ms = (step_started.elapsed() - handled).as_secs_f64() * 1e3,
+        integrate_ms = stages.integrate_ms,
+        fit_ms = stages.fit_ms,
+        plan_ms = stages.plan_ms,
+        publish_ms = stages.publish_ms,
+        "step"
+    );
+    Ok(node)
 }
 
 /// CPU time of the calling thread, ms (0 where the clock cannot be read): a step's CPU beside

@@ -1057,7 +1057,9 @@ impl PlannerNode {
         *refresh_asked = false;
         // A replaced owner's copy is not kept: the replica integrates its clouds instead.
         let snapshot = match self.fresh(tid, snapshot) {
-            Some(delta) if refresh::is_delta(&delta) => return self.on_refresh_delta(tid, delta),
+            Some(delta) if TrolleyPlanner::is_delta(&delta) => {
+                return self.on_refresh_delta(tid, delta)
+            }
             whole => whole,
         };
         let Some(slot) = self.slots.get_mut(tid) else {

@@ -20,7 +20,10 @@ pub(crate) struct ReceivedCloud {
 }
 
 /// The owner's snapshot a standby copy holds, and, once decoded ahead of a takeover (on a
-/// background thread, when the planner's cores are idle), the copy decoded from it.
+/// background thread, when the planner's cores are idle), the copy decoded from it. Once a
+/// delta of the owner's has been applied to the decoded copy ([`Slot::apply_delta`]) the delta
+/// stands in for the snapshot (its frame mark, term and visit), and `decoded` is what it
+/// stands for: a held delta always has its decoded copy, so nothing ever decodes a delta.
 pub(crate) struct Held {
     pub snapshot: Arc<MapSnapshot>,
     pub decoded: Option<Box<TrolleyPlanner>>,

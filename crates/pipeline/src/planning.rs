@@ -913,7 +913,8 @@ impl TrolleyPlanner {
     /// filter and registration counts are kept. The delta must start from this copy's map (the
     /// same owner's, at its scan count); on an error nothing changes.
     pub fn apply_delta(&mut self, snapshot: &MapSnapshot) -> Result<(), PlanningError> {
-        let empty = Self::new(self.settings.clone())?.map;
+        let empty =
+            RoiMap::new(*self.map.config()).map_err(|e| PlanningError::Snapshot(e.to_string()))?;
         self.map
             .apply_delta(&snapshot.map)
             .map_err(|e| PlanningError::Snapshot(e.to_string()))?;

@@ -1,8 +1,8 @@
 //! A standby copy's refresh by delta: the copy tells its owner what it holds (a snapshot of that
 //! owner's, under which term and visit, decoded ahead to a map of so many scans: a
 //! [`DeltaBase`]), and an owner still in that term answers with only the map's blocks changed
-//! since ([`TrolleyPlanner::snapshot_delta`]) instead of the whole map. The copy applies them to
-//! its decoded map ([`TrolleyPlanner::apply_delta`]). The owner's cost of a refresh then follows
+//! since ([`glasshouse_pipeline::TrolleyPlanner::snapshot_delta`]) instead of the whole map. The copy applies them to
+//! its decoded map ([`glasshouse_pipeline::TrolleyPlanner::apply_delta`]). The owner's cost of a refresh then follows
 //! what changed, not the map's size, and the copy decodes nothing.
 //!
 //! An owner's map changes only by its own scans within one term (a new term begins after a
@@ -14,7 +14,6 @@
 
 use std::sync::Arc;
 
-use glasshouse_pipeline::TrolleyPlanner;
 use glasshouse_proto::{Header, MapSnapshot};
 
 use super::{PlannerAction, PlannerNode};
@@ -161,11 +160,6 @@ impl PlannerNode {
             }
         }
     }
-}
-
-/// Whether `snapshot` carries a delta of its map rather than the whole map.
-pub(super) fn is_delta(snapshot: &MapSnapshot) -> bool {
-    TrolleyPlanner::is_delta(snapshot)
 }
 
 #[cfg(test)]

@@ -4,7 +4,8 @@
 //! ([`glasshouse_eval::visits`]). Writes `visits.md` (per method: the paper's figures per visit,
 //! identity precision / recall / F1 against the simulator's ids, growth error, time to 95 % of
 //! the fruits on a revisit against the first visit), `visits.json` (every trial's figures) and
-//! the per-visit trial CSVs.
+//! per visit the trial's CSVs (`trials/<method>-<trial>-visit<k>.csv`, `…-fruits.csv`,
+//! `…-clusters.csv`, as `eval` writes them for a single visit).
 
 use anyhow::bail;
 use glasshouse_eval::visits::{season_figures, IdentityCounts, SeasonFigures, GROWTH_TOLERANCE};
@@ -58,12 +59,16 @@ pub(super) fn run(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<
             );
         };
         let (trial, visit) = (i / days.len(), i % days.len());
-        let path = trials_dir.join(format!(
-            "{}-{}-visit{visit}.csv",
+        let stem = format!(
+            "{}-{}-visit{visit}",
             config.method,
             trial % args.trials as usize
-        ));
-        write(&path, report::trial_csv(&result))?;
+        );
+        write(&trials_dir.join(format!("{stem}.csv")), report::trial_csv(&result))?;
+        let fruits = report::fruits_csv(&result);
+        write(&trials_dir.join(format!("{stem}-fruits.csv")), fruits)?;
+        let clusters = report::clusters_csv(&result);
+        write(&trials_dir.join(format!("{stem}-clusters.csv")), clusters)?;
         if visit == 0 {
             per_trial.push(Vec::new());
         }

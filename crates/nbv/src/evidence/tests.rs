@@ -461,3 +461,39 @@ fn a_filled_round_solid_passes_without_unknown_voxels() {
     assert!(!interior_holds(&inside(2, 22), &shallow_bulge, &config));
     assert!(!interior_holds(&inside(0, 0), &young_fruit, &config));
 }
+
+/// A revisit's prior holds the last visit's fruit skin as hints; the grown fruit hides them
+/// inside its new skin, where no ray of this visit reaches. They are no knowledge of its
+/// inside: its solid hides what it would in a map without them (counted as free, a grown
+/// fruit looked like a sheet).
+#[test]
+fn a_grown_fruit_hides_the_last_visits_skin() {
+    let young = capsicum(centre(), 4, 25.0, Vector3::new(0.022, 0.020, 0.036));
+    let grown = capsicum(centre(), 4, 25.0, Vector3::new(0.026, 0.024, 0.043));
+    let views = eyes(centre(), &all_round());
+    let (first_visit, _, _) = scanned(&views, |o, d| first_hit(&young, o, d));
+    let mut revisit = first_visit.prior(&glasshouse_roimap::PriorRules::default());
+    let mut fresh = map();
+    for eye in &views {
+        scan_with(&mut revisit, centre(), *eye, |o, d| first_hit(&grown, o, d));
+        scan_with(&mut fresh, centre(), *eye, |o, d| first_hit(&grown, o, d));
+    }
+    let clusters = fresh.clusters(1);
+    let cluster = clusters.iter().max_by_key(|c| c.voxels.len()).unwrap();
+    let fit = fit_ellipsoid(&fresh, cluster, &clean_scan_config());
+    let body = Superellipsoid::from(&fit);
+    let deep = 0.5 * revisit.config().resolution_m;
+    let hints_inside = revisit
+        .unobserved_hints()
+        .into_iter()
+        .filter(|&k| body.holds(&revisit.centre_of(k), deep))
+        .count();
+    assert!(hints_inside >= 10, "{hints_inside} hints inside the grown fruit");
+    let (on_prior, on_empty) = (
+        Interior::of_fruit(&revisit, &fit),
+        Interior::of_fruit(&fresh, &fit),
+    );
+    let counts = |i: Interior| (i.unknown, i.free, i.occupied);
+    assert_eq!(counts(on_prior), counts(on_empty));
+    assert!(on_prior.unknown >= 20, "{on_prior:?}");
+}

@@ -64,7 +64,10 @@ pub(super) fn run(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<
             config.method,
             trial % args.trials as usize
         );
-        write(&trials_dir.join(format!("{stem}.csv")), report::trial_csv(&result))?;
+        write(
+            &trials_dir.join(format!("{stem}.csv")),
+            report::trial_csv(&result),
+        )?;
         let fruits = report::fruits_csv(&result);
         write(&trials_dir.join(format!("{stem}-fruits.csv")), fruits)?;
         let clusters = report::clusters_csv(&result);

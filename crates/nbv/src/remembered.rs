@@ -150,7 +150,9 @@ mod tests {
         let (map, hints) = two_fruit();
         let remembered = RememberedFruit::new(&map, &hints, &PlannerConfig::default());
         assert_eq!(remembered.len(), 2);
-        let near = |p: &Point3<f64>| (p - map.centre_of(map.key_of(&Point3::new(1.0, 0.0, 0.0)))).norm() < 1e-9;
+        let near = |p: &Point3<f64>| {
+            (p - map.centre_of(map.key_of(&Point3::new(1.0, 0.0, 0.0)))).norm() < 1e-9
+        };
         assert!(remembered.centres.iter().any(near));
     }
 

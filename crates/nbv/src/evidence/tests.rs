@@ -488,7 +488,10 @@ fn a_grown_fruit_hides_the_last_visits_skin() {
         .into_iter()
         .filter(|&k| body.holds(&revisit.centre_of(k), deep))
         .count();
-    assert!(hints_inside >= 10, "{hints_inside} hints inside the grown fruit");
+    assert!(
+        hints_inside >= 10,
+        "{hints_inside} hints inside the grown fruit"
+    );
     let (on_prior, on_empty) = (
         Interior::of_fruit(&revisit, &fit),
         Interior::of_fruit(&fresh, &fit),

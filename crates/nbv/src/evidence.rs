@@ -502,11 +502,8 @@ impl Interior {
                 for z in a.z..=b.z {
                     let k = VoxelKey::new(x, y, z);
                     if body.holds(&map.centre_of(k), depth_m) {
-                        match map.occupancy(k) {
+                        match map.observed_occupancy(k) {
                             Occupancy::Unknown => inside.unknown += 1,
-                            // A revisit's prior hint no scan has touched: the previous visit's
-                            // skin, now inside the grown fruit; no ray of this visit saw it.
-                            Occupancy::Free if map.is_unobserved_hint(k) => inside.unknown += 1,
                             Occupancy::Free => inside.free += 1,
                             Occupancy::Occupied => {
                                 inside.occupied += 1;

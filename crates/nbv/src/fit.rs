@@ -389,13 +389,14 @@ fn observed_share(map: &RoiMap, centre: &Point3<f64>, axes: &Vector3<f64>, sampl
         .filter(|u| {
             let p = centre + axes.component_mul(u);
             map.try_key_of(&p)
-                .is_some_and(|k| map.occupancy(k) != Occupancy::Unknown)
+                .is_some_and(|k| map.observed_occupancy(k) != Occupancy::Unknown)
         })
         .count();
     known as f64 / samples as f64
 }
 
-/// Keys of free voxels whose centres lie in the box `[lo, hi]` (world coordinates).
+/// Centres of the voxels this visit saw free ([`RoiMap::observed_occupancy`]) in the box
+/// `[lo, hi]` (world coordinates).
 fn free_voxels_in(map: &RoiMap, lo: &Point3<f64>, hi: &Point3<f64>) -> Vec<Point3<f64>> {
     let (Some(a), Some(b)) = (map.try_key_of(lo), map.try_key_of(hi)) else {
         return Vec::new();
@@ -410,7 +411,7 @@ fn free_voxels_in(map: &RoiMap, lo: &Point3<f64>, hi: &Point3<f64>) -> Vec<Point
         for y in a.y..=b.y {
             for z in a.z..=b.z {
                 let k = VoxelKey::new(x, y, z);
-                if map.occupancy(k) == Occupancy::Free {
+                if map.observed_occupancy(k) == Occupancy::Free {
                     out.push(map.centre_of(k));
                 }
             }

@@ -15,7 +15,7 @@
 //! tuning seeds (docs/seasons.md), a revisit on such a prior reached the previous visit's
 //! level of fruit later than one from an empty map, one on fruit hints alone much earlier.
 
-use crate::{RoiMap, Voxel, VoxelKey};
+use crate::{Occupancy, RoiMap, Voxel, VoxelKey};
 
 /// How a revisit's prior is made from the previous visit's map.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -108,6 +108,18 @@ impl RoiMap {
         })
     }
 
+    /// The occupancy this visit's scans gave `key`: [`RoiMap::occupancy`], except that an
+    /// unobserved hint ([`RoiMap::is_unobserved_hint`]) is unknown. The map holds a hint as a
+    /// known voxel (free by the occupancy rule), but no ray of this visit has seen it: a grown
+    /// fruit hides the last visit's skin inside its own, where a fit or an inside test that
+    /// took it for free space would shrink the fruit or call it a sheet.
+    pub fn observed_occupancy(&self, key: VoxelKey) -> Occupancy {
+        match self.occupancy(key) {
+            Occupancy::Free if self.is_unobserved_hint(key) => Occupancy::Unknown,
+            seen => seen,
+        }
+    }
+
     /// Every [`RoiMap::is_unobserved_hint`] voxel, sorted: where the previous visit's fruit
     /// were and this visit has not looked yet (a walk over the whole map).
     pub fn unobserved_hints(&self) -> Vec<VoxelKey> {
@@ -126,7 +138,7 @@ mod tests {
     #![allow(clippy::unwrap_used)]
 
     use super::*;
-    use crate::{MapConfig, Occupancy};
+    use crate::MapConfig;
     use nalgebra::Point3;
 
     /// Points of a wall at x = 1 m, (y, z) on a 1 cm grid within `half` cm of the middle.
@@ -168,6 +180,7 @@ mod tests {
         );
         let fruit = map.key_of(&Point3::new(1.005, 0.005, 0.005));
         assert_eq!(prior.occupancy(fruit), Occupancy::Free);
+        assert_eq!(prior.observed_occupancy(fruit), Occupancy::Unknown);
         assert_eq!(prior.roi_logodds(fruit), Some(1.0 - 0.05));
         let leaf = map.key_of(&Point3::new(1.005, 0.095, 0.095));
         assert_eq!(prior.occupancy(leaf), Occupancy::Unknown);
@@ -204,6 +217,12 @@ mod tests {
             .insert_scan(&Point3::origin(), &middle, &vec![true; middle.len()])
             .unwrap();
         assert_eq!(prior.roi_voxels().len(), 25, "one hit on a hint is fruit");
+        // Seen, a hint is what the scan made it; the hints the scan missed stay unseen.
+        let seen = map.key_of(&Point3::new(1.005, 0.005, 0.005));
+        assert_eq!(prior.observed_occupancy(seen), Occupancy::Occupied);
+        let unseen = map.key_of(&Point3::new(1.005, -0.025, -0.025));
+        assert_eq!(prior.observed_occupancy(unseen), Occupancy::Unknown);
+        assert_eq!(prior.occupancy(unseen), Occupancy::Free);
         let mut cleared = map.prior(&PriorRules::default());
         cleared
             .insert_scan(&Point3::origin(), &middle, &vec![false; middle.len()])

@@ -499,4 +499,7 @@ fn a_grown_fruit_hides_the_last_visits_skin() {
     let counts = |i: Interior| (i.unknown, i.free, i.occupied);
     assert_eq!(counts(on_prior), counts(on_empty));
     assert!(on_prior.unknown >= 20, "{on_prior:?}");
+    // Nor do they bound the fit as free space would: the same cluster fits the same solid.
+    let refit = fit_ellipsoid(&revisit, cluster, &clean_scan_config());
+    assert_eq!(refit.semi_axes_m, fit.semi_axes_m);
 }

@@ -222,7 +222,7 @@ fn observed_share(map: &RoiMap, s: &Superellipsoid, samples: usize) -> f64 {
         .filter(|u| {
             let p = s.surface_point(&u.component_mul(&s.semi_axes_m));
             map.try_key_of(&p)
-                .is_some_and(|k| map.occupancy(k) != Occupancy::Unknown)
+                .is_some_and(|k| map.observed_occupancy(k) != Occupancy::Unknown)
         })
         .count();
     known as f64 / samples.max(1) as f64

@@ -160,11 +160,6 @@ pub struct EvalArgs {
     /// hints only), to compare.
     #[arg(long)]
     pub no_revisit_aim: bool,
-    /// With `--days`: the gain a revisit's candidate view adds for each of the previous
-    /// visit's fruit not yet seen again that it sees (in its field of view, within 1 m, nothing
-    /// occupied in between); 0: none, the unobserved-voxel gain alone.
-    #[arg(long, value_name = "GAIN", default_value_t = glasshouse_pipeline::DEFAULT_REMEMBERED_FRUIT_GAIN)]
-    pub remembered_fruit_gain: f64,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -341,7 +336,6 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 clutter_settles_after_views: args.clutter_settles_after,
                 fruit_settles_after_views: args.fruit_settles_after,
                 revisit_aim: !args.no_revisit_aim,
-                remembered_fruit_gain: args.remembered_fruit_gain,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -640,7 +634,6 @@ mod tests {
             prior_fruit_below: PriorRules::default().fruit_below_threshold_logodds,
             prior_free_share: PriorRules::default().free_share,
             no_revisit_aim: false,
-            remembered_fruit_gain: glasshouse_pipeline::DEFAULT_REMEMBERED_FRUIT_GAIN,
             perception: PerceptionArgs::default(),
         }
     }

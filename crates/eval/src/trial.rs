@@ -88,9 +88,6 @@ pub struct TrialConfig {
     /// A revisit's plans aim at the previous visit's fruit
     /// (`PlanningSettings::aim_at_remembered_fruit`).
     pub revisit_aim: bool,
-    /// A revisit's gain per remembered fruit a view sees
-    /// (`PlanningSettings::remembered_fruit_gain`).
-    pub remembered_fruit_gain: f64,
     /// The ranking's cost per second of robot motion (`PlanningSettings::cost_weight_per_s`;
     /// 0: the paper's ranking).
     pub motion_cost_per_s: f64,
@@ -121,7 +118,6 @@ impl TrialConfig {
             registration: false,
             hand_eye: true,
             revisit_aim: true,
-            remembered_fruit_gain: glasshouse_pipeline::DEFAULT_REMEMBERED_FRUIT_GAIN,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
@@ -170,7 +166,6 @@ impl TrialConfig {
         settings.registration.enabled = self.registration;
         settings.hand_eye.enabled = self.hand_eye;
         settings.aim_at_remembered_fruit = self.revisit_aim;
-        settings.remembered_fruit_gain = self.remembered_fruit_gain;
         settings.cost_weight_per_s = self.motion_cost_per_s;
         settings.clutter_settles_after_views = self.clutter_settles_after_views;
         settings.fruit_settles_after_views = self.fruit_settles_after_views;

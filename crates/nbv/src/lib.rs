@@ -43,7 +43,6 @@
 pub mod evidence;
 pub mod fit;
 pub mod growth;
-pub mod remembered;
 pub mod season;
 pub mod split;
 pub mod superellipsoid;
@@ -60,8 +59,6 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-
-use crate::remembered::RememberedFruit;
 
 /// Which sampler produced a view.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -186,10 +183,6 @@ pub struct PlannerConfig {
     pub max_ranked_views: usize,
     /// Threads that score candidates; 0 means one per core. Any value gives the same plan.
     pub scoring_threads: usize,
-    /// Gain a candidate adds for each of a revisit's remembered fruit it sees
-    /// ([`remembered::RememberedFruit`]; [`PlanningContext::remembered_fruit`]); 0: none, the
-    /// paper's gain.
-    pub remembered_fruit_gain: f64,
 }
 
 impl Default for PlannerConfig {
@@ -213,7 +206,6 @@ impl Default for PlannerConfig {
             occlusion_occupancy_logodds: (0.6f32 / 0.4).ln(),
             max_ranked_views: 20,
             scoring_threads: 0,
-            remembered_fruit_gain: 0.0,
         }
     }
 }
@@ -258,9 +250,6 @@ impl PlannerConfig {
         }
         if self.max_ranked_views == 0 {
             return bad("max_ranked_views must be >= 1");
-        }
-        if !(self.remembered_fruit_gain.is_finite() && self.remembered_fruit_gain >= 0.0) {
-            return bad("remembered_fruit_gain must be finite and >= 0");
         }
         if self.scoring_threads > 256 {
             return bad("scoring_threads must be <= 256 (0 = one per core)");
@@ -440,8 +429,6 @@ pub struct GainEvaluator<'a> {
     fan_in_camera: Vec<Vector3<f64>>,
     /// Present for U_P.
     proximity: Option<RoiDistanceField>,
-    /// A revisit's remembered fruit and the gain per fruit seen (present when both are).
-    remembered: Option<(RememberedFruit, f64)>,
 }
 
 impl<'a> GainEvaluator<'a> {
@@ -466,26 +453,7 @@ impl<'a> GainEvaluator<'a> {
             ray_range_m: config.gain_ray_range_m,
             fan_in_camera,
             proximity,
-            remembered: None,
         }
-    }
-
-    /// Adds [`PlannerConfig::remembered_fruit_gain`] for each of `hints`' fruit a view sees
-    /// ([`Self::remembered_gain`]).
-    pub fn with_remembered_fruit(mut self, hints: &[VoxelKey], config: &PlannerConfig) -> Self {
-        let weight = config.remembered_fruit_gain;
-        if weight > 0.0 && !hints.is_empty() {
-            let remembered = RememberedFruit::new(self.map, hints, config);
-            self.remembered = Some((remembered, weight));
-        }
-        self
-    }
-
-    /// The gain for the remembered fruit a view sees; 0 without them.
-    pub fn remembered_gain(&self, world_from_camera: &Isometry3<f64>) -> f64 {
-        self.remembered.as_ref().map_or(0.0, |(fruit, weight)| {
-            weight * fruit.seen_from(self.map, world_from_camera) as f64
-        })
     }
 
     /// Mean over the fan of the per-ray weighted share of unknown voxels, in [0, 1].
@@ -728,7 +696,7 @@ fn score(
     let camera_in_world = Point3::from(ctx.world_from_camera.translation.vector);
     let timed = ctx.motion_time.filter(|_| config.cost_weight_per_s > 0.0);
     let score_one = |pose: &Isometry3<f64>| {
-        let gain = evaluator.gain(pose) + evaluator.remembered_gain(pose);
+        let gain = evaluator.gain(pose);
         let cost_m = (Point3::from(pose.translation.vector) - camera_in_world).norm();
         let motion_s = timed.and_then(|time| time(pose));
         let utility = gain - config.cost_weight_per_m * cost_m;
@@ -836,8 +804,7 @@ pub fn plan_views(
     {
         return Err(PlanError::NonFinitePose);
     }
-    let evaluator =
-        GainEvaluator::new(ctx.map, config).with_remembered_fruit(ctx.remembered_fruit, config);
+    let evaluator = GainEvaluator::new(ctx.map, config);
 
     let (roi_targets, roi_views) = if config.method.uses_roi_sampling() {
         let targets = roi_targets_of(ctx);

@@ -78,10 +78,6 @@ pub struct PlanningSettings {
     /// On a revisit, ROI-targeted sampling also aims at the previous visit's fruit voxels no
     /// scan has touched and no fruit found again covers ([`TrolleyPlanner::remembered_fruit`]).
     pub aim_at_remembered_fruit: bool,
-    /// On a revisit, the gain a candidate view adds for each remembered fruit (a group of the
-    /// previous visit's fruit voxels no scan has touched) it sees in its field of view, within
-    /// range and unoccluded (`PlannerConfig::remembered_fruit_gain`); 0: none.
-    pub remembered_fruit_gain: f64,
     /// Utility lost per second the trolley's robot takes to reach a view, by which the views
     /// of the chosen list are ranked (the threshold and the choice between the ROI and the
     /// exploration list stay the paper's). 0: the paper's ranking, by utility alone. Known
@@ -191,7 +187,6 @@ impl Default for PlanningSettings {
             registration: RegisterSettings::default(),
             hand_eye: HandEyeSettings::default(),
             aim_at_remembered_fruit: true,
-            remembered_fruit_gain: DEFAULT_REMEMBERED_FRUIT_GAIN,
             cost_weight_per_s: DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
@@ -207,8 +202,6 @@ fn threads_or_cores(threads: usize) -> usize {
     }
 }
 
-/// [`PlanningSettings::remembered_fruit_gain`] by default.
-pub const DEFAULT_REMEMBERED_FRUIT_GAIN: f64 = 0.0;
 /// [`PlanningSettings::clutter_settles_after_views`] by default: off.
 pub const DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS: u32 = 0;
 /// [`PlanningSettings::fruit_settles_after_views`] by default: off.
@@ -256,7 +249,6 @@ impl PlanningSettings {
             method: self.method,
             scoring_threads: self.scoring_threads,
             cost_weight_per_s: self.cost_weight_per_s,
-            remembered_fruit_gain: self.remembered_fruit_gain,
             ..PlannerConfig::default()
         }
     }

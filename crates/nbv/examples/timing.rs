@@ -86,6 +86,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
+        remembered_views: &[],
         settled_voxels: &[],
     };
     for method in Method::ALL {

@@ -224,3 +224,58 @@ fn a_revisits_growth_is_measured_on_one_shape_against_what_a_snapshot_carries() 
         assert!((a - b).abs() < 1e-3, "{owner:?} against {copied:?}");
     }
 }
+
+#[test]
+fn a_revisit_scores_the_views_that_saw_each_fruit_once_until_it_is_found_again() {
+    let (mut planner, seen) = planner_with_fruit();
+    assert!(!seen.is_empty(), "no fruit in the first view");
+    let mut trolley = SimTrolley::new(SimTrolleySettings::new(
+        ScenarioKind::Two,
+        3,
+        (320, 240),
+        1.0,
+    ))
+    .unwrap();
+    let camera = trolley.world_from_camera().translation.vector;
+    planner.start_visit(1, &PriorRules::default()).unwrap();
+    // Three scans from one pose: each fruit reported was seen from that one direction.
+    let remembered = planner.remembered_views().to_vec();
+    assert_eq!(remembered.len(), seen.len(), "{remembered:?}");
+    for (view, fruit) in remembered.iter().zip(&seen) {
+        assert_eq!(view.fruit_in_world, fruit.centre);
+        let off_m = (view.sensor_in_world.coords - camera).norm();
+        assert!(off_m < 0.02, "sensor {off_m} m from the camera");
+    }
+    // A scan 10 cm beside the remembered position finds the fruit again: their views are no
+    // longer scored (none was taken).
+    let frame = trolley.capture(1).unwrap().unwrap();
+    let cloud = detect_frame(&frame, FrameId::new(0, 1), "d", &DetectorConfig::default()).unwrap();
+    let mut beside = cloud.clone();
+    beside.sensor_origin_in_world.x += 0.1;
+    beside.world_from_camera.translation.vector.x += 0.1;
+    planner.integrate(&beside, 0).unwrap();
+    let found = planner.fruits();
+    assert!(!found.is_empty());
+    let left = planner.remembered_views().len();
+    assert!(left < remembered.len(), "{left} of {}", remembered.len());
+    let inside = |p: &nalgebra::Point3<f64>, f: &glasshouse_geom::FruitEstimate| {
+        (0..3).all(|i| f.min[i] <= p[i] && p[i] <= f.max[i])
+    };
+    assert!(!planner
+        .remembered_views()
+        .iter()
+        .any(|v| found.iter().any(|f| inside(&v.fruit_in_world, f))));
+    // A scan from the remembered position takes its views, whatever it finds (here nothing).
+    let (mut again, _) = planner_with_fruit();
+    again.start_visit(1, &PriorRules::default()).unwrap();
+    assert!(!again.remembered_views().is_empty());
+    let mut nothing_found = cloud;
+    nothing_found.roi.iter_mut().for_each(|roi| *roi = false);
+    again.integrate(&nothing_found, 0).unwrap();
+    assert!(again.fruits().is_empty());
+    assert!(
+        again.remembered_views().is_empty(),
+        "{:?}",
+        again.remembered_views()
+    );
+}

@@ -36,8 +36,7 @@ use glasshouse_eval::report::{self, method_label, MethodRuns};
 use glasshouse_eval::{ComputeTime, Trial, TrialConfig, TrialResult};
 use glasshouse_eval::{RoiEvidence, RoiTargets};
 use glasshouse_nbv::Method;
-use glasshouse_pipeline::{TrolleyPlanner, VisitPrior};
-use glasshouse_roimap::PriorRules;
+use glasshouse_roimap::{PriorRules, RoiMap};
 use glasshouse_sim::{ScenarioKind, WorldSettings};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -161,10 +160,6 @@ pub struct EvalArgs {
     /// hints only), to compare.
     #[arg(long)]
     pub no_revisit_aim: bool,
-    /// With `--days`: plan a revisit without scoring the views the previous visit saw its
-    /// fruit from, to compare.
-    #[arg(long)]
-    pub no_revisit_views: bool,
     #[command(flatten)]
     pub perception: PerceptionArgs,
 }
@@ -341,7 +336,6 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 clutter_settles_after_views: args.clutter_settles_after,
                 fruit_settles_after_views: args.fruit_settles_after,
                 revisit_aim: !args.no_revisit_aim,
-                revisit_views: !args.no_revisit_views,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -445,9 +439,7 @@ impl TrialQueue<'_> {
                     return;
                 }
                 match self.run_one(index, prior.take()) {
-                    Ok(mut planner) => {
-                        prior = self.season.prior.map(|rules| planner.visit_prior(&rules))
-                    }
+                    Ok(map) => prior = self.season.prior.map(|rules| map.prior(&rules)),
                     Err(e) => {
                         if let Ok(mut slot) = self.first_error.lock() {
                             slot.get_or_insert(e);
@@ -459,8 +451,8 @@ impl TrialQueue<'_> {
         }
     }
 
-    /// Runs config `index` (from `prior` when given), stores its result; returns its planner.
-    fn run_one(&self, index: usize, prior: Option<VisitPrior>) -> anyhow::Result<TrolleyPlanner> {
+    /// Runs config `index` (from `prior` when given), stores its result; returns its final map.
+    fn run_one(&self, index: usize, prior: Option<RoiMap>) -> anyhow::Result<RoiMap> {
         let config = self.configs[index];
         let failed = || format!("trial {} seed {} failed", config.method, config.seed);
         let trial_started = Instant::now();
@@ -471,8 +463,8 @@ impl TrialQueue<'_> {
         if let Some(prior) = prior {
             trial = trial.with_prior(prior).with_context(failed)?;
         }
-        let (result, planner) = trial
-            .run_keeping_planner(|clock_s| {
+        let (result, map) = trial
+            .run_keeping_map(|clock_s| {
                 let step = ((clock_s - reported) * 10.0).max(0.0);
                 self.bar.inc(step.round() as u64);
                 reported += step.round() / 10.0;
@@ -484,7 +476,7 @@ impl TrialQueue<'_> {
         }
         let n = self.done.fetch_add(1, Ordering::Relaxed) + 1;
         self.bar.set_message(format!("{n}/{}", self.configs.len()));
-        Ok(planner)
+        Ok(map)
     }
 }
 
@@ -642,7 +634,6 @@ mod tests {
             prior_fruit_below: PriorRules::default().fruit_below_threshold_logodds,
             prior_free_share: PriorRules::default().free_share,
             no_revisit_aim: false,
-            no_revisit_views: false,
             perception: PerceptionArgs::default(),
         }
     }

@@ -23,7 +23,7 @@ use glasshouse_nbv::Method;
 use glasshouse_pipeline::{
     detect_frame_with, ranked_views, ClusterOutcome, EdgeAction, EdgeEvent, EdgeInput, EdgeNode,
     EdgeSettings, PlanningError, PlanningSettings, RoiEvidence, RoiTargets, TrolleyPlanner,
-    TrolleySource, VisitPrior,
+    TrolleySource,
 };
 use glasshouse_proto::{FrameId, Header, RankedViews, RgbdFrame, RoiCloud, TrolleyInfo};
 use glasshouse_sim::{FruitTruth, ScenarioKind, Scene, WorldSettings};
@@ -88,9 +88,6 @@ pub struct TrialConfig {
     /// A revisit's plans aim at the previous visit's fruit
     /// (`PlanningSettings::aim_at_remembered_fruit`).
     pub revisit_aim: bool,
-    /// A revisit's plans also score the views the previous visit saw its fruit from
-    /// (`PlanningSettings::aim_from_remembered_views`).
-    pub revisit_views: bool,
     /// The ranking's cost per second of robot motion (`PlanningSettings::cost_weight_per_s`;
     /// 0: the paper's ranking).
     pub motion_cost_per_s: f64,
@@ -121,7 +118,6 @@ impl TrialConfig {
             registration: false,
             hand_eye: true,
             revisit_aim: true,
-            revisit_views: true,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
@@ -170,7 +166,6 @@ impl TrialConfig {
         settings.registration.enabled = self.registration;
         settings.hand_eye.enabled = self.hand_eye;
         settings.aim_at_remembered_fruit = self.revisit_aim;
-        settings.aim_from_remembered_views = self.revisit_views;
         settings.cost_weight_per_s = self.motion_cost_per_s;
         settings.clutter_settles_after_views = self.clutter_settles_after_views;
         settings.fruit_settles_after_views = self.fruit_settles_after_views;
@@ -353,9 +348,9 @@ impl<S: TrolleySource> Trial<S> {
         self
     }
 
-    /// The same trial starting from `prior` instead of an empty map (a revisit: what the
-    /// previous visit left, [`TrolleyPlanner::visit_prior`]).
-    pub fn with_prior(mut self, prior: VisitPrior) -> Result<Self, EvalError> {
+    /// The same trial starting from `prior` instead of an empty map (a revisit: the previous
+    /// visit's map made into a prior, [`glasshouse_roimap::RoiMap::prior`]).
+    pub fn with_prior(mut self, prior: glasshouse_roimap::RoiMap) -> Result<Self, EvalError> {
         self.planner = TrolleyPlanner::on_prior(self.config.planning(), prior)?;
         Ok(self)
     }
@@ -570,16 +565,14 @@ impl<S: TrolleySource> Trial<S> {
 
     /// Runs to the end of the budget; `progress` gets the simulated clock after every step.
     pub fn run(self, progress: impl FnMut(f64)) -> Result<TrialResult, EvalError> {
-        Ok(self.run_keeping_planner(progress)?.0)
+        Ok(self.run_keeping_map(progress)?.0)
     }
 
     /// [`Trial::run`], and the planner's map at the end (a season's next visit starts from it).
-    /// Runs the trial and keeps its planner (a season's next visit starts from what it left,
-    /// [`TrolleyPlanner::visit_prior`]).
-    pub fn run_keeping_planner(
+    pub fn run_keeping_map(
         mut self,
         mut progress: impl FnMut(f64),
-    ) -> Result<(TrialResult, TrolleyPlanner), EvalError> {
+    ) -> Result<(TrialResult, glasshouse_roimap::RoiMap), EvalError> {
         while self.step()? {
             progress(self.clock_s.min(self.config.budget_s));
         }
@@ -604,7 +597,7 @@ impl<S: TrolleySource> Trial<S> {
             registration,
             plans: self.plans,
         };
-        Ok((result, self.planner))
+        Ok((result, self.planner.into_map()))
     }
 }
 

@@ -86,7 +86,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        remembered_views: &[],
         settled_voxels: &[],
     };
     for method in Method::ALL {

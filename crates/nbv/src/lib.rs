@@ -286,12 +286,6 @@ pub struct PlanningContext<'a> {
     /// [`RoiMap::unobserved_hints`]): ROI-targeted sampling aims at those no scan of this visit
     /// has touched yet as at the ROI frontier. Empty on a first visit.
     pub remembered_fruit: &'a [VoxelKey],
-    /// Where the previous visit's scans saw its fruit from (a revisit's, empty on a first
-    /// visit): ROI-targeted sampling scores each, looking at its fruit, beside its own draws,
-    /// when the camera position is in the workspace, reachable and not hidden behind what this
-    /// visit's map holds. A view that saw a fruit last time is likely to see it again; a
-    /// random draw around a fruit hidden deep in the canopy seldom does.
-    pub remembered_views: &'a [RememberedView],
     /// The voxels, sorted, of settled ROI clusters: judged not fruit by their shape after being
     /// seen from several directions (a red leaf, a clip, a label, a stem), or found fruit seen
     /// from enough directions (their backs, pressed against a leaf, are never seen). An ROI
@@ -311,7 +305,6 @@ impl fmt::Debug for PlanningContext<'_> {
             .field("reach", &self.reach.map(|_| "predicate"))
             .field("motion_time", &self.motion_time.map(|_| "function"))
             .field("remembered_fruit", &self.remembered_fruit.len())
-            .field("remembered_views", &self.remembered_views.len())
             .field("settled_voxels", &self.settled_voxels.len())
             .finish()
     }
@@ -594,7 +587,14 @@ fn sample_roi_views(
         if !ctx.camera_workspace.contains(&camera_in_world) {
             continue;
         }
-        if hidden(ctx, config, &target_in_world, &direction, radius_m) {
+        let mut occluded = false;
+        ctx.map
+            .walk_ray(&target_in_world, &direction, radius_m, |_, voxel| {
+                occluded =
+                    voxel.is_some_and(|v| v.occupancy_logodds > config.occlusion_occupancy_logodds);
+                !occluded
+            });
+        if occluded {
             continue;
         }
         let pose = look_at(&camera_in_world, &target_in_world);
@@ -604,63 +604,6 @@ fn sample_roi_views(
         }
     }
     poses
-}
-
-/// Whether an occupied voxel of the map (above the sampler's occlusion log-odds) lies on the
-/// ray from `from_in_world` along `direction` within `distance_m`: the two ends do not see
-/// each other.
-fn hidden(
-    ctx: &PlanningContext,
-    config: &PlannerConfig,
-    from_in_world: &Point3<f64>,
-    direction: &Vector3<f64>,
-    distance_m: f64,
-) -> bool {
-    let mut occluded = false;
-    ctx.map
-        .walk_ray(from_in_world, direction, distance_m, |_, voxel| {
-            occluded =
-                voxel.is_some_and(|v| v.occupancy_logodds > config.occlusion_occupancy_logodds);
-            !occluded
-        });
-    occluded
-}
-
-/// A view a scan of the previous visit saw a fruit from ([`PlanningContext::remembered_views`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct RememberedView {
-    /// The fruit's centre on the previous visit.
-    pub fruit_in_world: Point3<f64>,
-    /// Where the sensor was when its scan hit the fruit.
-    pub sensor_in_world: Point3<f64>,
-}
-
-/// How far from a remembered fruit's centre the occlusion test of its remembered views stops:
-/// about the largest fruit's radius.
-const REMEMBERED_FRUIT_RADIUS_M: f64 = 0.06;
-
-/// The remembered views' poses, each looking at its fruit, that ROI-targeted sampling may score:
-/// in the camera workspace, not hidden behind an occupied voxel of this visit's map (the
-/// sampler's own occlusion test) and reachable.
-fn remembered_view_poses<'c>(
-    ctx: &'c PlanningContext,
-    config: &'c PlannerConfig,
-) -> impl Iterator<Item = Isometry3<f64>> + 'c {
-    ctx.remembered_views.iter().filter_map(move |view| {
-        let towards_fruit = view.fruit_in_world - view.sensor_in_world;
-        let distance_m = towards_fruit.norm();
-        let direction = towards_fruit.try_normalize(1e-9)?;
-        if !ctx.camera_workspace.contains(&view.sensor_in_world) {
-            return None;
-        }
-        // Up to the fruit's skin: the fruit itself, found again, hides nothing.
-        let clear_m = distance_m - REMEMBERED_FRUIT_RADIUS_M;
-        if clear_m > 0.0 && hidden(ctx, config, &view.sensor_in_world, &direction, clear_m) {
-            return None;
-        }
-        let pose = look_at(&view.sensor_in_world, &view.fruit_in_world);
-        ctx.reachable(&pose).then_some(pose)
-    })
 }
 
 /// Exploration candidate poses from the frontier.
@@ -865,8 +808,7 @@ pub fn plan_views(
 
     let (roi_targets, roi_views) = if config.method.uses_roi_sampling() {
         let targets = roi_targets_of(ctx);
-        let mut poses = sample_roi_views(ctx, config, &targets, &mut rng_stream(seed, 0));
-        poses.extend(remembered_view_poses(ctx, config));
+        let poses = sample_roi_views(ctx, config, &targets, &mut rng_stream(seed, 0));
         let views = score(poses, ViewKind::Roi, &evaluator, ctx, config);
         (targets.len(), views)
     } else {
@@ -961,9 +903,8 @@ struct ScanHits {
 pub struct FruitTracker {
     previous: Vec<(u32, Point3<f64>)>,
     next_id: u32,
-    /// Where the sensors whose scans hit each tracked fruit were, one per distinct direction
-    /// from the fruit ([`VIEW_SEPARATION_DEG`]), the first scan of each.
-    views: HashMap<u32, Vec<Point3<f64>>>,
+    /// Unit directions from each tracked fruit towards the sensors whose scans hit it.
+    views: HashMap<u32, Vec<Vector3<f64>>>,
     /// Scans noted since the last update.
     pending: Vec<ScanHits>,
 }
@@ -1002,22 +943,15 @@ impl FruitTracker {
         });
     }
 
-    /// Where the sensors whose scans hit fruit `id` were: one per distinct direction from the
-    /// fruit ([`VIEW_SEPARATION_DEG`]), the first scan of each. Empty for an id the last update
-    /// did not give.
-    pub fn sightings(&self, id: u32) -> &[Point3<f64>] {
-        self.views.get(&id).map_or(&[], Vec::as_slice)
-    }
-
-    /// The sightings of fruit `id` at `centre` (a cluster of `voxels`) after the noted scans:
-    /// its former ones plus each new one whose direction is distinct from all of theirs.
+    /// The view directions of fruit `id` at `centre` (a cluster of `voxels`) after the noted
+    /// scans: its former directions plus each new one that is distinct from all of them.
     fn seen_from(
         &mut self,
         id: u32,
         centre: &Point3<f64>,
         voxels: &[VoxelKey],
-    ) -> Vec<Point3<f64>> {
-        let mut sensors = self.views.remove(&id).unwrap_or_default();
+    ) -> Vec<Vector3<f64>> {
+        let mut directions = self.views.remove(&id).unwrap_or_default();
         let distinct = VIEW_SEPARATION_DEG.to_radians().cos();
         for scan in &self.pending {
             let hits = voxels
@@ -1027,19 +961,14 @@ impl FruitTracker {
             let Some(towards) = (scan.sensor_origin_in_world - centre).try_normalize(1e-9) else {
                 continue;
             };
-            let distinct_from = |sensor: &Point3<f64>| {
-                (sensor - centre)
-                    .try_normalize(1e-9)
-                    .is_none_or(|seen| seen.dot(&towards) < distinct)
-            };
             if hits >= MIN_VIEW_HITS
-                && sensors.len() < MAX_VIEW_DIRECTIONS
-                && sensors.iter().all(distinct_from)
+                && directions.len() < MAX_VIEW_DIRECTIONS
+                && directions.iter().all(|d| d.dot(&towards) < distinct)
             {
-                sensors.push(scan.sensor_origin_in_world);
+                directions.push(towards);
             }
         }
-        sensors
+        directions
     }
 }
 

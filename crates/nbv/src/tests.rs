@@ -64,7 +64,6 @@ fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        remembered_views: &[],
         settled_voxels: &[],
     }
 }
@@ -315,7 +314,6 @@ fn exploration_when_there_is_no_roi() {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        remembered_views: &[],
         settled_voxels: &[],
     };
     for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
@@ -349,7 +347,6 @@ fn never_empty_on_an_empty_map() {
         reach: None,
         motion_time: None,
         remembered_fruit: &[],
-        remembered_views: &[],
         settled_voxels: &[],
     };
     for method in Method::ALL {
@@ -483,7 +480,6 @@ fn a_reach_predicate_drops_the_poses_it_rejects() {
     let ctx = PlanningContext {
         reach: Some(&left_only),
         remembered_fruit: &[],
-        remembered_views: &[],
         ..blob_context(&map)
     };
     for method in Method::ALL {
@@ -511,7 +507,6 @@ fn an_accepting_predicate_changes_nothing() {
     let with = PlanningContext {
         reach: Some(&accept),
         remembered_fruit: &[],
-        remembered_views: &[],
         ..blob_context(&map)
     };
     let without = blob_context(&map);
@@ -541,7 +536,6 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         reach: Some(&reject),
         motion_time: None,
         remembered_fruit: &[],
-        remembered_views: &[],
         settled_voxels: &[],
     };
     for method in Method::ALL {
@@ -605,51 +599,4 @@ fn a_motion_time_ranks_quicker_views_first_and_leaves_the_choice_of_list_alone()
         views_of(&a.expect("valid plan")),
         views_of(&b.expect("valid plan"))
     );
-}
-
-#[test]
-fn a_remembered_view_is_scored_where_it_still_sees_its_fruit() {
-    let mut map = blob_map();
-    let fruit_in_world = Point3::from(BLOB_CENTRE);
-    let sensor_in_world = Point3::new(0.1, -0.35, 1.05);
-    let outside_workspace = Point3::new(0.1, 0.35, 1.05);
-    let remembered = [
-        RememberedView {
-            fruit_in_world,
-            sensor_in_world,
-        },
-        RememberedView {
-            fruit_in_world,
-            sensor_in_world: outside_workspace,
-        },
-    ];
-    // Only the remembered views: no ROI or exploration draws.
-    let config = PlannerConfig {
-        roi_samples: 0,
-        exploration_samples: 0,
-        ..PlannerConfig::default()
-    };
-    let plan_with = |map: &RoiMap, views: &[RememberedView]| {
-        let ctx = PlanningContext {
-            remembered_views: views,
-            ..blob_context(map)
-        };
-        plan_views(&ctx, &config, 3).expect("valid plan")
-    };
-    let plan = plan_with(&map, &remembered);
-    assert_eq!(plan.candidates_scored, 1, "{plan:?}");
-    let view = &plan.views[0];
-    assert!(
-        (position(&view.world_from_camera) - sensor_in_world).norm() < 1e-9,
-        "{plan:?}"
-    );
-    let towards_fruit = fruit_in_world - sensor_in_world;
-    assert!(angle_deg(&optical_axis(&view.world_from_camera), &towards_fruit) < 1e-6);
-    assert_eq!(plan.views[0].kind, ViewKind::Roi);
-    // Nothing remembered, or the remembered view hidden: only the fallback's views, no ROI view.
-    let has_roi_view = |plan: &Plan| plan.views.iter().any(|v| v.kind == ViewKind::Roi);
-    assert!(!has_roi_view(&plan_with(&map, &[])));
-    // A leaf this visit's scans found between the sensor and the fruit hides it.
-    set_box(&mut map, k(0, -17, 97), k(9, -13, 107), 2.0, 0.0);
-    assert!(!has_roi_view(&plan_with(&map, &remembered)));
 }

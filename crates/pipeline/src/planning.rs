@@ -10,7 +10,7 @@ use glasshouse_nbv::season::SeasonTracker;
 use glasshouse_nbv::split::fragments;
 use glasshouse_nbv::{
     plan_views, FruitEstimate, FruitTracker, Method, MotionTime, Plan, PlanError, PlannerConfig,
-    PlanningContext, ReachPredicate, RememberedView,
+    PlanningContext, ReachPredicate,
 };
 use glasshouse_proto::{
     FrameId, HandEye, HandEyeScan, MapSnapshot, MapUpdate, RankedView, RankedViews, RoiCloud,
@@ -21,7 +21,7 @@ use glasshouse_register::{
     HandEyeState, KeyScan, RegisterSettings, ScanInWorld, Surfel,
 };
 use glasshouse_roimap::{
-    Clusters, MapConfig, MapError, Occupancy, PriorRules, RoiCluster, RoiMap, Voxel, VoxelKey,
+    Clusters, MapConfig, MapError, Occupancy, RoiCluster, RoiMap, Voxel, VoxelKey,
 };
 use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
@@ -30,18 +30,6 @@ use crate::colour::FruitColours;
 use crate::fits::{FitCache, SplitCache};
 use crate::published::PublishedSolid;
 use crate::{FrameOrder, FrameVerdict, ReachFilter};
-
-/// A scan taken this close to a remembered view's sensor position takes that view.
-const REMEMBERED_VIEW_TAKEN_WITHIN_M: f64 = 0.05;
-
-/// What a visit leaves the next visit of its row ([`TrolleyPlanner::visit_prior`]).
-#[derive(Clone, Debug)]
-pub struct VisitPrior {
-    /// The visit's map made into a prior.
-    pub map: RoiMap,
-    /// Where the visit's scans saw its fruit from.
-    pub views: Vec<RememberedView>,
-}
 
 /// Why a planning step failed; the trolley's state is left as it was before the step.
 #[derive(thiserror::Error, Debug, Clone, PartialEq)]
@@ -90,12 +78,6 @@ pub struct PlanningSettings {
     /// On a revisit, ROI-targeted sampling also aims at the previous visit's fruit voxels no
     /// scan has touched and no fruit found again covers ([`TrolleyPlanner::remembered_fruit`]).
     pub aim_at_remembered_fruit: bool,
-    /// On a revisit, ROI-targeted sampling also scores the views the previous visit's scans saw
-    /// its fruit from, each looking at its fruit, until that fruit is found again
-    /// ([`TrolleyPlanner::remembered_views`]).
-    pub aim_from_remembered_views: bool,
-    /// Remembered views kept per fruit, the first sightings (the scan that found it first).
-    pub remembered_views_per_fruit: usize,
     /// Utility lost per second the trolley's robot takes to reach a view, by which the views
     /// of the chosen list are ranked (the threshold and the choice between the ROI and the
     /// exploration list stay the paper's). 0: the paper's ranking, by utility alone. Known
@@ -205,8 +187,6 @@ impl Default for PlanningSettings {
             registration: RegisterSettings::default(),
             hand_eye: HandEyeSettings::default(),
             aim_at_remembered_fruit: true,
-            aim_from_remembered_views: true,
-            remembered_views_per_fruit: 8,
             cost_weight_per_s: DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
@@ -397,9 +377,6 @@ pub struct TrolleyPlanner {
     pub(crate) season: SeasonTracker,
     /// The prior's fruit hints a plan aims at until a scan touches them (empty on a first visit).
     remembered_fruit: Vec<VoxelKey>,
-    /// Where the previous visit's scans saw its fruit from, for the fruit not found again yet
-    /// (empty on a first visit).
-    remembered_views: Vec<RememberedView>,
     /// The voxels, sorted, of the latest clusters that are settled (clutter and found fruit)
     /// ([`TrolleyPlanner::track`]).
     settled_voxels: Vec<VoxelKey>,
@@ -434,7 +411,6 @@ impl TrolleyPlanner {
             visit: 0,
             season: SeasonTracker::default(),
             remembered_fruit: Vec::new(),
-            remembered_views: Vec::new(),
             settled_voxels: Vec::new(),
         })
     }
@@ -534,10 +510,6 @@ impl TrolleyPlanner {
         self.colours.note_cloud(&self.map, &points, cloud);
         let map = &self.map;
         self.remembered_fruit.retain(|&k| map.is_unobserved_hint(k));
-        // A remembered view is taken once: what it sees now is in the map, and a fruit it no
-        // longer sees (a leaf moved in front) would draw the camera back to it for ever.
-        self.remembered_views
-            .retain(|view| (view.sensor_in_world - origin).norm() > REMEMBERED_VIEW_TAKEN_WITHIN_M);
         self.order.integrated(frame);
         Ok(verdict)
     }
@@ -662,19 +634,17 @@ impl TrolleyPlanner {
     /// again, and as it grew its new surface hides the old one (no scan would ever touch those
     /// voxels); the ROI frontier aims at the fruit from now on. (Boxes grown by 1 or 3 cm
     /// were no better on the tuning seeds, docs/seasons.md.)
-    /// The same holds for the views that saw a remembered fruit last time.
     fn forget_found_again(&mut self) {
-        let clusters = &self.clusters;
-        let found_again = |p: &Point3<f64>| {
-            clusters
+        if self.remembered_fruit.is_empty() {
+            return;
+        }
+        let (clusters, map) = (&self.clusters, &self.map);
+        self.remembered_fruit.retain(|&k| {
+            let p = map.centre_of(k);
+            !clusters
                 .iter()
                 .any(|c| (0..3).all(|i| c.min[i] <= p[i] && p[i] <= c.max[i]))
-        };
-        let map = &self.map;
-        self.remembered_fruit
-            .retain(|&k| !found_again(&map.centre_of(k)));
-        self.remembered_views
-            .retain(|v| !found_again(&v.fruit_in_world));
+        });
     }
 
     /// Notes where a cloud the map took was taken from and which voxels its ROI points fell in
@@ -867,10 +837,6 @@ impl TrolleyPlanner {
             motion_time: None,
             remembered_fruit: match self.settings.aim_at_remembered_fruit {
                 true => &self.remembered_fruit,
-                false => &[],
-            },
-            remembered_views: match self.settings.aim_from_remembered_views {
-                true => &self.remembered_views,
                 false => &[],
             },
             settled_voxels: &self.settled_voxels,
@@ -1083,45 +1049,12 @@ impl TrolleyPlanner {
     }
 
     /// A planner starting a new visit of its trolley's row on `prior` (the previous visit's map
-    /// made into a prior and where its scans saw its fruit from,
-    /// [`TrolleyPlanner::visit_prior`]): no fruit ids, no frame yet.
-    pub fn on_prior(settings: PlanningSettings, prior: VisitPrior) -> Result<Self, PlanningError> {
-        let remembered_fruit = prior.map.unobserved_hints();
-        let mut planner = Self::with_map(settings, prior.map)?;
+    /// made into a prior, [`glasshouse_roimap::RoiMap::prior`]): no fruit ids, no frame yet.
+    pub fn on_prior(settings: PlanningSettings, prior: RoiMap) -> Result<Self, PlanningError> {
+        let remembered_fruit = prior.unobserved_hints();
+        let mut planner = Self::with_map(settings, prior)?;
         planner.remembered_fruit = remembered_fruit;
-        planner.remembered_views = prior.views;
         Ok(planner)
-    }
-
-    /// What the next visit of the row starts from: the map made into a prior
-    /// ([`glasshouse_roimap::RoiMap::prior`]) and where this visit's scans saw each fruit it
-    /// reports from ([`glasshouse_nbv::FruitTracker::sightings`]).
-    pub fn visit_prior(&mut self, rules: &PriorRules) -> VisitPrior {
-        let views = self
-            .fruits()
-            .iter()
-            .flat_map(|fruit| {
-                let centre = fruit.centre;
-                let sightings = self.tracker.sightings(fruit.id);
-                sightings[..sightings
-                    .len()
-                    .min(self.settings.remembered_views_per_fruit)]
-                    .iter()
-                    .map(move |&sensor_in_world| RememberedView {
-                        fruit_in_world: centre,
-                        sensor_in_world,
-                    })
-            })
-            .collect();
-        VisitPrior {
-            map: self.map.prior(rules),
-            views,
-        }
-    }
-
-    /// The views of the previous visit a plan still scores (their fruit not found again yet).
-    pub fn remembered_views(&self) -> &[RememberedView] {
-        &self.remembered_views
     }
 
     /// The voxels, sorted, of the latest clusters that are settled: ROI-targeted sampling does

@@ -31,7 +31,7 @@ impl TrolleyPlanner {
         let surfaces = self.fruit_voxel_centres(&ids);
         self.season
             .observe_visit_measured(self.visit as usize, &fruits, &surfaces);
-        let prior = self.visit_prior(rules);
+        let prior = self.map.prior(rules);
         let mut next = Self::on_prior(self.settings.clone(), prior)?;
         next.info = self.info.take();
         next.reach = self.reach.take();

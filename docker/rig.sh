@@ -248,7 +248,28 @@ cmd_up() {
 }
 
 cmd_down() {
-    dc down --remove-orphans --volumes
+    # docker-compose v1 removes the network right after the containers; the daemon sometimes
+    # keeps an endpoint of a removed container ("network ... has active endpoints", with no
+    # container left on it) and compose stops there, before the volumes. The containers are
+    # gone by then and a later `up` attaches to the same network as it is, so the volumes are
+    # removed here, and the network is waited for a while and otherwise left with a warning.
+    if ! dc down --remove-orphans --volumes; then
+        if [[ -n "$(dc ps -q)" ]]; then
+            echo "${DC[*]} down left containers behind" >&2
+            return 1
+        fi
+        docker volume ls -q --filter "label=com.docker.compose.project=$PROJECT" \
+            | xargs -r docker volume rm >/dev/null || return 1
+        local network="${PROJECT}_default" deadline=$((SECONDS + 30))
+        until docker network rm "$network" >/dev/null 2>&1 \
+            || ! docker network inspect "$network" >/dev/null 2>&1; do
+            if ((SECONDS >= deadline)); then
+                log "warning: network $network kept by a stale endpoint of the daemon; no container or volume is left, and the next up reuses it"
+                return 0
+            fi
+            sleep 1
+        done
+    fi
     log "rig removed (images kept)"
 }
 

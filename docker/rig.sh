@@ -264,6 +264,12 @@ cmd_down() {
         until docker network rm "$network" >/dev/null 2>&1 \
             || ! docker network inspect "$network" >/dev/null 2>&1; do
             if ((SECONDS >= deadline)); then
+                local attached
+                attached="$(docker network inspect -f '{{range .Containers}}{{.Name}} {{end}}' "$network")"
+                if [[ -n "$attached" ]]; then
+                    echo "network $network still has containers on it: $attached" >&2
+                    return 1
+                fi
                 log "warning: network $network kept by a stale endpoint of the daemon; no container or volume is left, and the next up reuses it"
                 return 0
             fi

@@ -741,8 +741,17 @@ def sha256(path):
 # ---------------------------------------------------------------- main
 
 
+def require_onnx():
+    """Exits before any training when the export would fail at its end."""
+    import importlib.util
+    if importlib.util.find_spec("onnx") is None:
+        sys.exit("the onnx package is missing: the model could not be exported after training "
+                 "(scripts/train-detector installs onnx 1.17.0 into .venv); nothing was trained")
+
+
 def main(argv=None):
     args = parse_args(sys.argv[1:] if argv is None else argv)
+    require_onnx()
     started_s = time.monotonic()
     data = Dataset(args.data, args.depth)
     if args.test:

@@ -61,14 +61,27 @@ pub struct BenchReplicaArgs {
     /// with `--decoded-ahead`), `false` always with the whole map.
     #[arg(long, value_delimiter = ',', default_value = "true")]
     refresh_by_delta: Vec<bool>,
+    /// Ranges, metres, up to which owner and replica integrate each cloud's rays (the
+    /// planner's `max_range_m`), side by side on the same clouds (recorded by a trolley whose
+    /// planner integrates up to the planner's default, 2 m).
+    #[arg(long, value_name = "M", value_delimiter = ',', default_values_t = [glasshouse_pipeline::PlanningSettings::default().max_range_m])]
+    max_range: Vec<f64>,
+    /// Write the owner's time on every frame of the first run, by stage, with the cloud's size
+    /// and ranges, as CSV (which clouds make the tail).
+    #[arg(long, value_name = "FILE")]
+    frames_csv: Option<PathBuf>,
 }
 
 /// One replica setting's figures (times in ms on this thread).
 #[derive(Debug, Serialize)]
 struct ReplicaRun {
     replica_refresh_clouds: usize,
+    /// Range up to which owner and replica integrated the rays.
+    max_range_m: f64,
     frames: usize,
     owner_ms_per_frame: f64,
+    /// The owner's time per frame: median, 90th and 99th percentile, and the slowest frame.
+    owner_ms_p50_p90_p99_max: [f64; 4],
     /// The replica's own handling plus the owner's answers to its snapshot queries (without
     /// the decodes ahead, reported apart).
     replica_ms_per_frame: f64,
@@ -95,6 +108,74 @@ struct ReplicaRun {
     takeover_plans: bool,
     maps_equal: bool,
     map_voxels: usize,
+    #[serde(skip)]
+    frame_costs: Vec<FrameCost>,
+}
+
+/// The owner's time on one frame and what the frame's cloud holds (`--frames-csv`).
+#[derive(Debug)]
+struct FrameCost {
+    points: usize,
+    roi_points: usize,
+    range_median_m: f64,
+    range_p90_m: f64,
+    owner_ms: f64,
+    stages: StageTimes,
+}
+
+impl FrameCost {
+    const CSV_HEADER: &'static str =
+        "seq,points,roi_points,range_median_m,range_p90_m,owner_ms,integrate_ms,cluster_ms,track_ms,fit_ms,plan_ms,publish_ms";
+
+    fn new(cloud: &RoiCloud, owner_ms: f64, stages: StageTimes) -> Self {
+        let origin = cloud.sensor_origin_in_world.cast::<f32>();
+        let mut ranges_m: Vec<f64> = cloud
+            .points_in_world
+            .iter()
+            .map(|p| f64::from((p - origin).norm()))
+            .filter(|r| r.is_finite())
+            .collect();
+        ranges_m.sort_by(f64::total_cmp);
+        let quantile = |q: f64| match ranges_m.len() {
+            0 => f64::NAN,
+            n => ranges_m[((n - 1) as f64 * q).round() as usize],
+        };
+        Self {
+            points: cloud.points_in_world.len(),
+            roi_points: cloud.roi.iter().filter(|&&r| r).count(),
+            range_median_m: quantile(0.5),
+            range_p90_m: quantile(0.9),
+            owner_ms,
+            stages,
+        }
+    }
+
+    fn csv_row(&self, seq: usize) -> String {
+        let stages: Vec<String> = self
+            .stages
+            .named()
+            .iter()
+            .map(|(_, ms)| format!("{ms:.3}"))
+            .collect();
+        format!(
+            "{seq},{},{},{:.3},{:.3},{:.3},{}",
+            self.points,
+            self.roi_points,
+            self.range_median_m,
+            self.range_p90_m,
+            self.owner_ms,
+            stages.join(",")
+        )
+    }
+}
+
+fn write_frames_csv(path: &std::path::Path, frames: &[FrameCost]) -> anyhow::Result<()> {
+    let mut text = format!("{}\n", FrameCost::CSV_HEADER);
+    for (seq, frame) in frames.iter().enumerate() {
+        text.push_str(&frame.csv_row(seq));
+        text.push('\n');
+    }
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
 }
 
 pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
@@ -106,22 +187,42 @@ pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
         compute_time: ComputeTime::Fixed { ms: 100.0 },
         ..TrialConfig::new(args.scenario, Method::OursUu, args.seed)
     };
+    if args.max_range.is_empty() {
+        bail!("--max-range needs at least one value");
+    }
+    for &max_range_m in &args.max_range {
+        TrialConfig {
+            max_range_m,
+            ..config
+        }
+        .validate()
+        .with_context(|| format!("--max-range {max_range_m}"))?;
+    }
     let (info, mut clouds) = record_stream(&config, args.frames)?;
     if args.without_colours {
         clouds.iter_mut().for_each(|c| c.roi_rgb.clear());
     }
     let mut runs = Vec::new();
-    for &refresh in &args.refresh {
-        for &by_delta in &args.refresh_by_delta {
-            let replica = ReplicaSetup {
-                refresh,
-                decoded_ahead: args.decoded_ahead,
-                by_delta,
-            };
-            let run = replay(&config, args.window, replica, &info, &clouds)?;
-            print_run(&run);
-            runs.push(run);
+    for &max_range_m in &args.max_range {
+        let config = TrialConfig {
+            max_range_m,
+            ..config
+        };
+        for &refresh in &args.refresh {
+            for &by_delta in &args.refresh_by_delta {
+                let replica = ReplicaSetup {
+                    refresh,
+                    decoded_ahead: args.decoded_ahead,
+                    by_delta,
+                };
+                let run = replay(&config, args.window, replica, &info, &clouds)?;
+                print_run(&run);
+                runs.push(run);
+            }
         }
+    }
+    if let (Some(path), Some(first)) = (&args.frames_csv, runs.first()) {
+        write_frames_csv(path, &first.frame_costs)?;
     }
     if let Some(path) = &args.json {
         let text = serde_json::to_string_pretty(&runs)?;
@@ -139,7 +240,7 @@ pub(crate) fn record_stream(
     frames: usize,
 ) -> anyhow::Result<(TrolleyInfo, Vec<RoiCloud>)> {
     let mut trial = Trial::new(*config)?;
-    let bar = indicatif::ProgressBar::new(frames as u64);
+    let bar = crate::progress::Progress::new("recording", frames as u64);
     let mut clouds = Vec::with_capacity(frames);
     while clouds.len() < frames && trial.step()? {
         clouds.extend(trial.take_last_cloud());
@@ -326,11 +427,12 @@ fn replay(
     let mut pair = Pair::new(config, replica, info)?;
     let (mut owner_ms, mut replica_ms) = (Vec::new(), 0.0);
     let mut snapshots = 0;
+    let mut frame_costs = Vec::with_capacity(clouds.len());
     let frames = clouds.len();
     let window = window.clamp(1, frames);
     // The owner's stage totals after the first window and before the last one.
     let mut stages_at = (StageTimes::default(), StageTimes::default());
-    let bar = indicatif::ProgressBar::new(clouds.len() as u64);
+    let bar = crate::progress::Progress::new("replay", clouds.len() as u64);
     for (seq, cloud) in clouds.iter().enumerate() {
         if seq == window {
             stages_at.0 = pair.owner.stats().stages;
@@ -338,9 +440,12 @@ fn replay(
         if seq == frames - window {
             stages_at.1 = pair.owner.stats().stages;
         }
+        let stages_before = pair.owner.stats().stages;
         let started = Instant::now();
         pair.owner.handle(cloud_event(seq, cloud));
         owner_ms.push(ms_since(started));
+        let stages = stage_difference(&stages_before, &pair.owner.stats().stages);
+        frame_costs.push(FrameCost::new(cloud, owner_ms[seq], stages));
         let started = Instant::now();
         let actions = pair.replica.handle(cloud_event(seq, cloud));
         snapshots += pair.answer(actions);
@@ -368,10 +473,15 @@ fn replay(
         from.iter().zip(to.iter()).map(stage).collect()
     };
     let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
+    let mut sorted_ms = owner_ms.clone();
+    sorted_ms.sort_by(f64::total_cmp);
+    let quantile = |q: f64| sorted_ms[((frames - 1) as f64 * q).round() as usize];
     Ok(ReplicaRun {
         replica_refresh_clouds: replica.refresh,
+        max_range_m: config.max_range_m,
         frames,
         owner_ms_per_frame: owner_total / frames as f64,
+        owner_ms_p50_p90_p99_max: [0.5, 0.9, 0.99, 1.0].map(quantile),
         replica_ms_per_frame: replica_ms / frames as f64,
         replica_share_of_owner: replica_ms / owner_total,
         replica_decode_ahead_ms_per_frame: pair.decode_ahead_ms / frames as f64,
@@ -389,6 +499,7 @@ fn replay(
         takeover_plans,
         maps_equal: same_map(owner_map, replica_map),
         map_voxels: owner_map.len(),
+        frame_costs,
     })
 }
 
@@ -404,7 +515,10 @@ fn print_run(run: &ReplicaRun) {
         0 => "hot replica (integrates every cloud)".to_string(),
         n => format!("standby replica (snapshot every {n} clouds)"),
     };
-    println!("{mode}, {} frames:", run.frames);
+    println!(
+        "{mode}, rays integrated up to {} m, {} frames:",
+        run.max_range_m, run.frames
+    );
     println!(
         "  refreshes answered by delta where they can be: {} ({} of {} were); {:.1} ms per answer, {:.2} MB of map in all",
         run.refresh_by_delta,
@@ -420,6 +534,8 @@ fn print_run(run: &ReplicaRun) {
         run.replica_share_of_owner * 100.0,
         run.snapshots
     );
+    let [p50, p90, p99, max] = run.owner_ms_p50_p90_p99_max;
+    println!("  owner per frame: p50 {p50:.1}, p90 {p90:.1}, p99 {p99:.1}, slowest {max:.1} ms");
     if run.replica_decode_ahead_ms_per_frame > 0.0 {
         println!(
             "  and the replica's decodes ahead of a takeover (on idle cores in the service): {:.1} ms/frame",
@@ -451,4 +567,16 @@ fn print_run(run: &ReplicaRun) {
         "  takeover {:.1} ms to views (plans: {}), then {:.1} ms of clusters and fits; maps equal voxel for voxel: {} ({} voxels)",
         run.takeover_ms, run.takeover_plans, run.takeover_finish_ms, run.maps_equal, run.map_voxels
     );
+}
+
+/// The stage times spent between two readings of a node's running totals.
+fn stage_difference(before: &StageTimes, after: &StageTimes) -> StageTimes {
+    StageTimes {
+        integrate_ms: after.integrate_ms - before.integrate_ms,
+        cluster_ms: after.cluster_ms - before.cluster_ms,
+        track_ms: after.track_ms - before.track_ms,
+        fit_ms: after.fit_ms - before.fit_ms,
+        plan_ms: after.plan_ms - before.plan_ms,
+        publish_ms: after.publish_ms - before.publish_ms,
+    }
 }

@@ -138,7 +138,7 @@ fn measure(
         ..StoreRun::default()
     };
     let (mut owner_ms, mut cloud_ms, mut checkpoint_ms) = (0.0, Vec::new(), Vec::new());
-    let bar = indicatif::ProgressBar::new(clouds.len() as u64);
+    let bar = crate::progress::Progress::new("bench-store", clouds.len() as u64);
     for (seq, cloud) in clouds.iter().enumerate() {
         let started = Instant::now();
         let mut actions = owner.handle(cloud_event(seq, cloud));

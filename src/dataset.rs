@@ -85,7 +85,7 @@ pub fn run(args: DatasetArgs) -> anyhow::Result<()> {
     let mut labels = Vec::with_capacity(args.frames as usize * pixels);
     let mut frame_colours = Vec::new();
     let mut fruit_pixels = 0usize;
-    let progress = indicatif::ProgressBar::new(args.frames as u64);
+    let progress = crate::progress::Progress::new("dataset", args.frames as u64);
     let combos = (scenarios.len() * colours.len()) as u64;
     for frame in 0..args.frames as u64 {
         let spec = FrameSpec {

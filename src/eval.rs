@@ -38,7 +38,9 @@ use glasshouse_eval::{RoiEvidence, RoiTargets};
 use glasshouse_nbv::Method;
 use glasshouse_roimap::{PriorRules, RoiMap};
 use glasshouse_sim::{ScenarioKind, WorldSettings};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressStyle;
+
+use crate::progress::Progress;
 
 mod visits;
 
@@ -118,6 +120,10 @@ pub struct EvalArgs {
     /// for a side-by-side run.
     #[arg(long)]
     pub no_hand_eye: bool,
+    /// Integrate each cloud's rays up to this range, metres (the planner's `max_range_m`;
+    /// points further away free their ray up to it and mark nothing), for a side-by-side run.
+    #[arg(long, value_name = "M", default_value_t = glasshouse_pipeline::PlanningSettings::default().max_range_m)]
+    pub max_range: f64,
     /// Rank views by utility less this much per second the robot takes to reach them (the
     /// planner's default); 0 ranks by the paper's utility alone, for a side-by-side run.
     #[arg(long, value_name = "W", default_value_t = glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S)]
@@ -202,6 +208,10 @@ fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
     ensure!(
         (16..=1280).contains(&args.width),
         "--width must be within 16..=1280"
+    );
+    ensure!(
+        args.max_range.is_finite() && args.max_range > 0.0 && args.max_range <= 10.0,
+        "--max-range must be in (0, 10] m"
     );
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let jobs = args.jobs.unwrap_or(cores);
@@ -336,6 +346,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 clutter_settles_after_views: args.clutter_settles_after,
                 fruit_settles_after_views: args.fruit_settles_after,
                 revisit_aim: !args.no_revisit_aim,
+                max_range_m: args.max_range,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -358,7 +369,7 @@ struct TrialQueue<'a> {
     done: AtomicUsize,
     results: Mutex<Vec<Option<(TrialResult, f64)>>>,
     first_error: Mutex<Option<anyhow::Error>>,
-    bar: ProgressBar,
+    bar: Progress,
 }
 
 /// How consecutive trials belong together: one trial each (`visits: 1`), or a season's visits.
@@ -384,14 +395,13 @@ fn run_trials(
 ) -> anyhow::Result<Vec<Option<(TrialResult, f64)>>> {
     // Progress in simulated seconds over all trials; the message counts finished trials.
     let total_s = budget_s * configs.len() as f64;
-    let bar = ProgressBar::new((total_s * 10.0).round() as u64);
-    bar.set_style(
+    let bar = Progress::new("eval", (total_s * 10.0).round() as u64).with_style(
         ProgressStyle::with_template(
-            "{bar:40} {msg} trials done, {elapsed_precise} elapsed, {eta_precise} left",
+            "{bar:40} {msg} done, {elapsed_precise} elapsed, {eta_precise} left",
         )
         .context("progress bar template")?,
     );
-    bar.set_message(format!("0/{}", configs.len()));
+    bar.set_message(format!("0/{} trials", configs.len()));
     bar.enable_steady_tick(Duration::from_millis(500));
     let jobs = plan.jobs;
     let queue = TrialQueue {
@@ -475,7 +485,8 @@ impl TrialQueue<'_> {
             r[index] = Some((result, wall_s));
         }
         let n = self.done.fetch_add(1, Ordering::Relaxed) + 1;
-        self.bar.set_message(format!("{n}/{}", self.configs.len()));
+        self.bar
+            .set_message(format!("{n}/{} trials", self.configs.len()));
         Ok(map)
     }
 }
@@ -626,6 +637,7 @@ mod tests {
             registration: false,
             no_hand_eye: false,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
+            max_range: glasshouse_pipeline::PlanningSettings::default().max_range_m,
             clutter_settles_after: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             days: None,
@@ -664,6 +676,10 @@ mod tests {
             },
             EvalArgs {
                 jobs: Some(0),
+                ..args(out.clone())
+            },
+            EvalArgs {
+                max_range: 0.0,
                 ..args(out.clone())
             },
             EvalArgs {

@@ -30,7 +30,9 @@ use anyhow::{ensure, Context};
 use glasshouse_bus::BusArgs;
 use glasshouse_proto::keys::{self, ParsedKey, TrolleyTopic};
 use glasshouse_proto::{decode_as, Header, Message, StageTimes};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressStyle;
+
+use crate::progress::Progress;
 use serde::Serialize;
 
 #[derive(clap::Args, Debug)]
@@ -123,6 +125,10 @@ pub struct FleetBenchArgs {
     /// (planner default 0: one per core; the map is the same for any count).
     #[arg(long, value_name = "N")]
     pub insert_threads: Option<usize>,
+    /// Every planner's `--max-range`: the range, metres, up to which a cloud's rays are
+    /// integrated (planner default 2.0).
+    #[arg(long, value_name = "M")]
+    pub max_range: Option<f64>,
     /// The simulated trolleys (edge processes) run at this nice value. On a real fleet each
     /// trolley renders nothing and runs on its own computer; here 16 simulators share the
     /// services' cores, and at nice 0 they take them from the planners in turn. 0 runs them
@@ -292,6 +298,8 @@ struct Report {
     refresh_by_delta: Option<bool>,
     /// The planners' `--insert-threads` (None: their default).
     insert_threads: Option<usize>,
+    /// The planners' `--max-range` (None: their default).
+    max_range_m: Option<f64>,
     /// The simulated trolleys' nice value.
     trolley_nice: i32,
     width: u32,
@@ -426,7 +434,8 @@ async fn run_fleet(args: &FleetBenchArgs) -> anyhow::Result<Report> {
     };
     if let Some(fault) = report.fault.as_mut() {
         let moved: Vec<String> = fault.moved.keys().cloned().collect();
-        let mut maps = lost::check(&observer, &observed, &mut fleet.procs, &moved).await;
+        let settings = args.planning_settings();
+        let mut maps = lost::check(&observer, &observed, &mut fleet.procs, &moved, &settings).await;
         for (tid, trolley) in fault.moved.iter_mut() {
             trolley.map = maps.remove(tid);
         }
@@ -498,7 +507,21 @@ fn validate(args: &FleetBenchArgs) -> anyhow::Result<()> {
         .contains(&args.scenario.as_str())
         .then_some(())
         .context("--scenario must be 1, 2 or row")?;
+    args.planning_settings()
+        .validate()
+        .context("the planners' settings (--max-range)")?;
     Ok(())
+}
+
+impl FleetBenchArgs {
+    /// What the planners integrate with: their defaults and the flags passed on to them.
+    fn planning_settings(&self) -> glasshouse_pipeline::PlanningSettings {
+        let default = glasshouse_pipeline::PlanningSettings::default();
+        glasshouse_pipeline::PlanningSettings {
+            max_range_m: self.max_range.unwrap_or(default.max_range_m),
+            ..default
+        }
+    }
 }
 
 /// The observer's identity in a secured bench (a dashboard: it reads everything).
@@ -685,6 +708,9 @@ impl Fleet {
             }
             if let Some(n) = args.insert_threads {
                 extra.extend(["--insert-threads".into(), n.to_string()]);
+            }
+            if let Some(range_m) = args.max_range {
+                extra.extend(["--max-range".into(), range_m.to_string()]);
             }
             if let Some(dir) = self.store_dir(args) {
                 let file = dir.join(format!("p{i}.redb"));
@@ -1013,14 +1039,11 @@ fn reset_observer(
     }
 }
 
-fn progress_bar(measured: Duration) -> ProgressBar {
-    let bar = ProgressBar::new(measured.as_secs());
-    bar.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} s (eta {eta})")
+fn progress_bar(measured: Duration) -> Progress {
+    Progress::new("fleet-bench", measured.as_secs()).with_style(
+        ProgressStyle::with_template("fleet-bench [{bar:30}] {pos}/{len} s (eta {eta})")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    bar.set_message("fleet-bench");
-    bar
+    )
 }
 
 /// Raises each live process's peak resident memory to what it uses now.
@@ -1113,7 +1136,7 @@ fn step_fault(
     started: Instant,
     injected: &mut Option<fault::Injected>,
     cpu_at_kill: &mut HashMap<String, f64>,
-    bar: &ProgressBar,
+    bar: &Progress,
 ) -> anyhow::Result<()> {
     let elapsed = started.elapsed();
     match injected {
@@ -1257,6 +1280,7 @@ fn build_report(
         standby_decoded_ahead: args.standby_decoded_ahead,
         refresh_by_delta: args.refresh_by_delta,
         insert_threads: args.insert_threads,
+        max_range_m: args.max_range,
         trolley_nice: args.trolley_nice,
         width: args.width,
         fps_per_trolley_max: args.fps,

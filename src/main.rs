@@ -9,6 +9,7 @@ mod demo;
 mod eval;
 mod fleet_bench;
 mod probe;
+mod progress;
 mod record;
 mod relay;
 mod render;

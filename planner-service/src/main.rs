@@ -50,6 +50,10 @@ struct Cli {
     /// the same, voxel for voxel, for any count).
     #[arg(long, value_name = "N")]
     insert_threads: Option<usize>,
+    /// Integrate each cloud's rays up to this range, metres (default 2.0; points further
+    /// away free their ray up to it and mark nothing).
+    #[arg(long, value_name = "M")]
+    max_range: Option<f64>,
     /// Keep every trolley this planner owns in this store file (created if missing; one per
     /// planner), so that maps and fruit ids survive a restart of every planner. Without it maps
     /// live in memory only. The planner then waits `store.settle_ms` (3 s) for its peers
@@ -72,6 +76,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.standby_decoded_ahead, cli.standby_decoded_ahead);
     set_flag(&mut s.refresh_by_delta, cli.refresh_by_delta);
     set_flag(&mut s.planning.insert_threads, cli.insert_threads);
+    set_flag(&mut s.planning.max_range_m, cli.max_range);
     if let Some(path) = cli.store {
         s.store = Some(StoreSettings {
             path,

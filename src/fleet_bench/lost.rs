@@ -38,6 +38,7 @@ pub(super) async fn check(
     observed: &Mutex<Observed>,
     procs: &mut [Proc],
     tids: &[String],
+    settings: &PlanningSettings,
 ) -> BTreeMap<String, LostReport> {
     for edge in procs
         .iter_mut()
@@ -50,7 +51,7 @@ pub(super) async fn check(
     let deadline = Instant::now() + SETTLE;
     let mut reports = BTreeMap::new();
     for tid in tids {
-        match check_one(observer, observed, tid, deadline).await {
+        match check_one(observer, observed, tid, deadline, settings).await {
             Ok(report) => {
                 reports.insert(tid.clone(), report);
             }
@@ -83,6 +84,7 @@ async fn check_one(
     observed: &Mutex<Observed>,
     tid: &str,
     deadline: Instant,
+    settings: &PlanningSettings,
 ) -> anyhow::Result<LostReport> {
     // What each planner asked last answered: its snapshot's frame, or why it did not answer.
     let mut answers = BTreeMap::new();
@@ -94,7 +96,7 @@ async fn check_one(
             match glasshouse_bus::ask(observer, &key, Duration::from_secs(5)).await {
                 Ok((_, s)) if Some(FrameId::new(s.based_on_epoch_ns, s.based_on_seq)) == last => {
                     let survivor = RoiMap::read_snapshot(s.map.as_slice())?;
-                    return compare(owner, &survivor, &clouds);
+                    return compare(owner, &survivor, &clouds, settings);
                 }
                 Ok((_, s)) => {
                     answers.insert(owner, format!("a snapshot at frame {}", s.based_on_seq))
@@ -114,8 +116,14 @@ async fn check_one(
     }
 }
 
-fn compare(survivor: String, map: &RoiMap, clouds: &[RoiCloud]) -> anyhow::Result<LostReport> {
-    let mut rebuilt = TrolleyPlanner::new(PlanningSettings::default())?;
+/// `settings`: the planners' (the rebuild must integrate as they do).
+fn compare(
+    survivor: String,
+    map: &RoiMap,
+    clouds: &[RoiCloud],
+    settings: &PlanningSettings,
+) -> anyhow::Result<LostReport> {
+    let mut rebuilt = TrolleyPlanner::new(settings.clone())?;
     // Later than every frame's stamp: no frame is judged to come from the future.
     let now_ns = u64::try_from(
         std::time::SystemTime::now()

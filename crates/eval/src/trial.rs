@@ -97,6 +97,8 @@ pub struct TrialConfig {
     /// Scan directions after which a cluster taken for a fruit stops drawing ROI views
     /// (`PlanningSettings::fruit_settles_after_views`; 0: never).
     pub fruit_settles_after_views: u32,
+    /// Rays are integrated up to this range, metres (`PlanningSettings::max_range_m`).
+    pub max_range_m: f64,
 }
 
 impl TrialConfig {
@@ -121,6 +123,7 @@ impl TrialConfig {
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
+            max_range_m: PlanningSettings::default().max_range_m,
         }
     }
 
@@ -161,6 +164,7 @@ impl TrialConfig {
             scoring_threads: 1,
             roi_evidence: self.roi_evidence,
             roi_targets: self.roi_targets,
+            max_range_m: self.max_range_m,
             ..PlanningSettings::default()
         };
         settings.registration.enabled = self.registration;

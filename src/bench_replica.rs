@@ -444,7 +444,7 @@ fn replay(
         let started = Instant::now();
         pair.owner.handle(cloud_event(seq, cloud));
         owner_ms.push(ms_since(started));
-        let stages = stage_difference(&stages_before, &pair.owner.stats().stages);
+        let stages = pair.owner.stats().stages.since(&stages_before);
         frame_costs.push(FrameCost::new(cloud, owner_ms[seq], stages));
         let started = Instant::now();
         let actions = pair.replica.handle(cloud_event(seq, cloud));
@@ -567,16 +567,4 @@ fn print_run(run: &ReplicaRun) {
         "  takeover {:.1} ms to views (plans: {}), then {:.1} ms of clusters and fits; maps equal voxel for voxel: {} ({} voxels)",
         run.takeover_ms, run.takeover_plans, run.takeover_finish_ms, run.maps_equal, run.map_voxels
     );
-}
-
-/// The stage times spent between two readings of a node's running totals.
-fn stage_difference(before: &StageTimes, after: &StageTimes) -> StageTimes {
-    StageTimes {
-        integrate_ms: after.integrate_ms - before.integrate_ms,
-        cluster_ms: after.cluster_ms - before.cluster_ms,
-        track_ms: after.track_ms - before.track_ms,
-        fit_ms: after.fit_ms - before.fit_ms,
-        plan_ms: after.plan_ms - before.plan_ms,
-        publish_ms: after.publish_ms - before.publish_ms,
-    }
 }

@@ -641,7 +641,7 @@ async fn step(
     node = back;
     let handled = step_started.elapsed();
     mirror_stats(counters, &stages_before, &node.stats());
-    let stages = stage_lap(&stages_before, &node.stats().stages);
+    let stages = node.stats().stages.since(&stages_before);
     let n_actions = actions.len();
     for action in actions {
         if let PlannerAction::PublishStatus { status, .. } = &action {
@@ -684,18 +684,6 @@ fn thread_cpu_ms() -> f64 {
     match unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut now) } {
         0 => now.tv_sec as f64 * 1e3 + now.tv_nsec as f64 / 1e6,
         _ => 0.0,
-    }
-}
-
-/// The time each stage took between two readings of the node's totals.
-fn stage_lap(before: &StageTimes, after: &StageTimes) -> StageTimes {
-    StageTimes {
-        integrate_ms: after.integrate_ms - before.integrate_ms,
-        cluster_ms: after.cluster_ms - before.cluster_ms,
-        track_ms: after.track_ms - before.track_ms,
-        fit_ms: after.fit_ms - before.fit_ms,
-        plan_ms: after.plan_ms - before.plan_ms,
-        publish_ms: after.publish_ms - before.publish_ms,
     }
 }
 

@@ -97,6 +97,18 @@ impl StageTimes {
         ]
     }
 
+    /// The time each stage took since `before`, an earlier reading of the same running totals.
+    pub fn since(&self, before: &StageTimes) -> StageTimes {
+        StageTimes {
+            integrate_ms: self.integrate_ms - before.integrate_ms,
+            cluster_ms: self.cluster_ms - before.cluster_ms,
+            track_ms: self.track_ms - before.track_ms,
+            fit_ms: self.fit_ms - before.fit_ms,
+            plan_ms: self.plan_ms - before.plan_ms,
+            publish_ms: self.publish_ms - before.publish_ms,
+        }
+    }
+
     pub fn total_ms(&self) -> f64 {
         self.named().iter().map(|(_, ms)| ms).sum()
     }
@@ -200,6 +212,28 @@ impl Wire for PlannerStatus {
 mod tests {
     use super::*;
     use crate::{decode_typed, encode, samples, Message};
+
+    #[test]
+    fn the_stages_since_an_earlier_reading_are_the_differences() {
+        let earlier = StageTimes {
+            integrate_ms: 10.0,
+            fit_ms: 2.0,
+            ..StageTimes::default()
+        };
+        let later = StageTimes {
+            integrate_ms: 25.0,
+            cluster_ms: 1.0,
+            fit_ms: 2.5,
+            publish_ms: 4.0,
+            ..StageTimes::default()
+        };
+        let lap = later.since(&earlier);
+        assert_eq!(
+            lap.named().map(|(_, ms)| ms),
+            [15.0, 1.0, 0.0, 0.5, 0.0, 4.0]
+        );
+        assert_eq!(later.since(&later).total_ms(), 0.0);
+    }
 
     /// A PlannerStatus as a planner from before the registration totals writes it.
     #[derive(Clone, Debug)]

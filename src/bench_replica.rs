@@ -136,15 +136,11 @@ impl FrameCost {
             .filter(|r| r.is_finite())
             .collect();
         ranges_m.sort_by(f64::total_cmp);
-        let quantile = |q: f64| match ranges_m.len() {
-            0 => f64::NAN,
-            n => ranges_m[((n - 1) as f64 * q).round() as usize],
-        };
         Self {
             points: cloud.points_in_world.len(),
             roi_points: cloud.roi.iter().filter(|&&r| r).count(),
-            range_median_m: quantile(0.5),
-            range_p90_m: quantile(0.9),
+            range_median_m: quantile(&ranges_m, 0.5),
+            range_p90_m: quantile(&ranges_m, 0.9),
             owner_ms,
             stages,
         }
@@ -417,6 +413,58 @@ pub(crate) fn ms_since(started: Instant) -> f64 {
     started.elapsed().as_secs_f64() * 1e3
 }
 
+/// What feeding a run's clouds to owner and replica measured.
+struct Fed {
+    frame_costs: Vec<FrameCost>,
+    replica_ms: f64,
+    snapshots: usize,
+    /// The owner's stage totals after the first window and before the last one.
+    stages_at: (StageTimes, StageTimes),
+}
+
+/// Hands every cloud to the owner, then to the replica (answering its snapshot queries), and
+/// times each.
+fn feed(pair: &mut Pair, clouds: &[RoiCloud], window: usize) -> Fed {
+    let frames = clouds.len();
+    let mut fed = Fed {
+        frame_costs: Vec::with_capacity(frames),
+        replica_ms: 0.0,
+        snapshots: 0,
+        stages_at: (StageTimes::default(), StageTimes::default()),
+    };
+    let bar = crate::progress::Progress::new("replay", frames as u64);
+    for (seq, cloud) in clouds.iter().enumerate() {
+        let stages_before = pair.owner.stats().stages;
+        if seq == window {
+            fed.stages_at.0 = stages_before;
+        }
+        if seq == frames - window {
+            fed.stages_at.1 = stages_before;
+        }
+        let started = Instant::now();
+        pair.owner.handle(cloud_event(seq, cloud));
+        let owner_ms = ms_since(started);
+        let stages = pair.owner.stats().stages.since(&stages_before);
+        fed.frame_costs
+            .push(FrameCost::new(cloud, owner_ms, stages));
+        let started = Instant::now();
+        let actions = pair.replica.handle(cloud_event(seq, cloud));
+        fed.snapshots += pair.answer(actions);
+        fed.replica_ms += ms_since(started);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    fed
+}
+
+/// The value at quantile `q` (0..=1) of ascending `sorted`, NaN when empty.
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    match sorted.len() {
+        0 => f64::NAN,
+        n => sorted[((n - 1) as f64 * q).round() as usize],
+    }
+}
+
 fn replay(
     config: &TrialConfig,
     window: usize,
@@ -425,37 +473,12 @@ fn replay(
     clouds: &[RoiCloud],
 ) -> anyhow::Result<ReplicaRun> {
     let mut pair = Pair::new(config, replica, info)?;
-    let (mut owner_ms, mut replica_ms) = (Vec::new(), 0.0);
-    let mut snapshots = 0;
-    let mut frame_costs = Vec::with_capacity(clouds.len());
     let frames = clouds.len();
     let window = window.clamp(1, frames);
-    // The owner's stage totals after the first window and before the last one.
-    let mut stages_at = (StageTimes::default(), StageTimes::default());
-    let bar = crate::progress::Progress::new("replay", clouds.len() as u64);
-    for (seq, cloud) in clouds.iter().enumerate() {
-        if seq == window {
-            stages_at.0 = pair.owner.stats().stages;
-        }
-        if seq == frames - window {
-            stages_at.1 = pair.owner.stats().stages;
-        }
-        let stages_before = pair.owner.stats().stages;
-        let started = Instant::now();
-        pair.owner.handle(cloud_event(seq, cloud));
-        owner_ms.push(ms_since(started));
-        let stages = pair.owner.stats().stages.since(&stages_before);
-        frame_costs.push(FrameCost::new(cloud, owner_ms[seq], stages));
-        let started = Instant::now();
-        let actions = pair.replica.handle(cloud_event(seq, cloud));
-        snapshots += pair.answer(actions);
-        replica_ms += ms_since(started);
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
+    let fed = feed(&mut pair, clouds, window);
     // The decodes ahead ran inside the replica's turn here; the service runs them on idle
     // cores, so they are reported apart.
-    let replica_ms = replica_ms - pair.decode_ahead_ms;
+    let replica_ms = fed.replica_ms - pair.decode_ahead_ms;
     let owner_pid = pair.owner.pid().to_string();
     let (takeover_ms, takeover_finish_ms, takeover_plans) = take_over(&mut pair.replica, owner_pid);
     let owner_map = pair.owner.planner(TROLLEY).context("owner holds t1")?.map();
@@ -464,42 +487,41 @@ fn replay(
         .planner(TROLLEY)
         .context("replica holds t1")?
         .map();
+    let owner_ms: Vec<f64> = fed.frame_costs.iter().map(|f| f.owner_ms).collect();
     let owner_total: f64 = owner_ms.iter().sum();
     let per_frame = |from: &StageTimes, to: &StageTimes| {
-        let (from, to) = (from.named(), to.named());
-        let stage = |((name, a), (_, b)): (&(&'static str, f64), &(&'static str, f64))| {
-            (*name, (b - a) / window as f64)
-        };
-        from.iter().zip(to.iter()).map(stage).collect()
+        let lap = to.since(from).named();
+        lap.iter()
+            .map(|&(name, ms)| (name, ms / window as f64))
+            .collect()
     };
     let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
     let mut sorted_ms = owner_ms.clone();
     sorted_ms.sort_by(f64::total_cmp);
-    let quantile = |q: f64| sorted_ms[((frames - 1) as f64 * q).round() as usize];
     Ok(ReplicaRun {
         replica_refresh_clouds: replica.refresh,
         max_range_m: config.max_range_m,
         frames,
         owner_ms_per_frame: owner_total / frames as f64,
-        owner_ms_p50_p90_p99_max: [0.5, 0.9, 0.99, 1.0].map(quantile),
+        owner_ms_p50_p90_p99_max: [0.5, 0.9, 0.99, 1.0].map(|q| quantile(&sorted_ms, q)),
         replica_ms_per_frame: replica_ms / frames as f64,
         replica_share_of_owner: replica_ms / owner_total,
         replica_decode_ahead_ms_per_frame: pair.decode_ahead_ms / frames as f64,
-        snapshots,
+        snapshots: fed.snapshots,
         refresh_by_delta: replica.by_delta,
         deltas: pair.owner.stats().snapshot_deltas_sent,
         snapshot_map_bytes: pair.answer_map_bytes,
-        owner_ms_per_answer: pair.answer_ms / snapshots.max(1) as f64,
+        owner_ms_per_answer: pair.answer_ms / fed.snapshots.max(1) as f64,
         owner_ms_first_frames: mean(&owner_ms[..window]),
         owner_ms_last_frames: mean(&owner_ms[frames - window..]),
-        owner_stages_first_frames: per_frame(&StageTimes::default(), &stages_at.0),
-        owner_stages_last_frames: per_frame(&stages_at.1, &pair.owner.stats().stages),
+        owner_stages_first_frames: per_frame(&StageTimes::default(), &fed.stages_at.0),
+        owner_stages_last_frames: per_frame(&fed.stages_at.1, &pair.owner.stats().stages),
         takeover_ms,
         takeover_finish_ms,
         takeover_plans,
         maps_equal: same_map(owner_map, replica_map),
         map_voxels: owner_map.len(),
-        frame_costs,
+        frame_costs: fed.frame_costs,
     })
 }
 

@@ -210,8 +210,8 @@ fn check(args: &EvalArgs) -> anyhow::Result<Plan> {
         "--width must be within 16..=1280"
     );
     ensure!(
-        args.max_range.is_finite() && args.max_range > 0.0 && args.max_range <= 10.0,
-        "--max-range must be in (0, 10] m"
+        args.max_range.is_finite() && args.max_range > 0.0,
+        "--max-range must be finite and > 0 (metres), as the planner's max_range_m"
     );
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let jobs = args.jobs.unwrap_or(cores);

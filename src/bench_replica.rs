@@ -66,6 +66,10 @@ pub struct BenchReplicaArgs {
     /// planner integrates up to the planner's default, 2 m).
     #[arg(long, value_name = "M", value_delimiter = ',', default_values_t = [glasshouse_pipeline::PlanningSettings::default().max_range_m])]
     max_range: Vec<f64>,
+    /// Whether owner and replica free one ray per voxel at the range for the points beyond it
+    /// (the planner's `merge_far_rays`), side by side on the same clouds: `false,true`.
+    #[arg(long, value_name = "BOOL", value_delimiter = ',', default_values_t = [glasshouse_pipeline::PlanningSettings::default().merge_far_rays])]
+    merge_far_rays: Vec<bool>,
     /// Write the owner's time on every frame of the first run, by stage, with the cloud's size
     /// and ranges, as CSV (which clouds make the tail).
     #[arg(long, value_name = "FILE")]
@@ -78,6 +82,8 @@ struct ReplicaRun {
     replica_refresh_clouds: usize,
     /// Range up to which owner and replica integrated the rays.
     max_range_m: f64,
+    /// Whether the points beyond the range freed one ray per voxel at the range.
+    merge_far_rays: bool,
     frames: usize,
     owner_ms_per_frame: f64,
     /// The owner's time per frame: median, 90th and 99th percentile, and the slowest frame.
@@ -183,27 +189,13 @@ pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
         compute_time: ComputeTime::Fixed { ms: 100.0 },
         ..TrialConfig::new(args.scenario, Method::OursUu, args.seed)
     };
-    if args.max_range.is_empty() {
-        bail!("--max-range needs at least one value");
-    }
-    for &max_range_m in &args.max_range {
-        TrialConfig {
-            max_range_m,
-            ..config
-        }
-        .validate()
-        .with_context(|| format!("--max-range {max_range_m}"))?;
-    }
+    let integrations = integration_configs(&args, &config)?;
     let (info, mut clouds) = record_stream(&config, args.frames)?;
     if args.without_colours {
         clouds.iter_mut().for_each(|c| c.roi_rgb.clear());
     }
     let mut runs = Vec::new();
-    for &max_range_m in &args.max_range {
-        let config = TrialConfig {
-            max_range_m,
-            ..config
-        };
+    for config in &integrations {
         for &refresh in &args.refresh {
             for &by_delta in &args.refresh_by_delta {
                 let replica = ReplicaSetup {
@@ -211,7 +203,7 @@ pub fn run(args: BenchReplicaArgs) -> anyhow::Result<()> {
                     decoded_ahead: args.decoded_ahead,
                     by_delta,
                 };
-                let run = replay(&config, args.window, replica, &info, &clouds)?;
+                let run = replay(config, args.window, replica, &info, &clouds)?;
                 print_run(&run);
                 runs.push(run);
             }
@@ -501,6 +493,7 @@ fn replay(
     Ok(ReplicaRun {
         replica_refresh_clouds: replica.refresh,
         max_range_m: config.max_range_m,
+        merge_far_rays: config.merge_far_rays,
         frames,
         owner_ms_per_frame: owner_total / frames as f64,
         owner_ms_p50_p90_p99_max: [0.5, 0.9, 0.99, 1.0].map(|q| quantile(&sorted_ms, q)),
@@ -525,6 +518,31 @@ fn replay(
     })
 }
 
+/// The recording's settings with each `--max-range` and `--merge-far-rays` value, checked.
+fn integration_configs(
+    args: &BenchReplicaArgs,
+    recording: &TrialConfig,
+) -> anyhow::Result<Vec<TrialConfig>> {
+    if args.max_range.is_empty() || args.merge_far_rays.is_empty() {
+        bail!("--max-range and --merge-far-rays need at least one value each");
+    }
+    let mut configs = Vec::new();
+    for &max_range_m in &args.max_range {
+        for &merge_far_rays in &args.merge_far_rays {
+            let config = TrialConfig {
+                max_range_m,
+                merge_far_rays,
+                ..*recording
+            };
+            config
+                .validate()
+                .with_context(|| format!("--max-range {max_range_m}"))?;
+            configs.push(config);
+        }
+    }
+    Ok(configs)
+}
+
 /// Whether both maps hold the same voxels with the same values and scan count.
 pub(crate) fn same_map(a: &RoiMap, b: &RoiMap) -> bool {
     a.len() == b.len()
@@ -538,8 +556,14 @@ fn print_run(run: &ReplicaRun) {
         n => format!("standby replica (snapshot every {n} clouds)"),
     };
     println!(
-        "{mode}, rays integrated up to {} m, {} frames:",
-        run.max_range_m, run.frames
+        "{mode}, rays integrated up to {} m{}, {} frames:",
+        run.max_range_m,
+        if run.merge_far_rays {
+            ", far rays merged"
+        } else {
+            ""
+        },
+        run.frames
     );
     println!(
         "  refreshes answered by delta where they can be: {} ({} of {} were); {:.1} ms per answer, {:.2} MB of map in all",

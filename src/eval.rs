@@ -124,6 +124,10 @@ pub struct EvalArgs {
     /// points further away free their ray up to it and mark nothing), for a side-by-side run.
     #[arg(long, value_name = "M", default_value_t = glasshouse_pipeline::PlanningSettings::default().max_range_m)]
     pub max_range: f64,
+    /// Points beyond the range free one ray per voxel at the range instead of one each (the
+    /// planner's `merge_far_rays`), for a side-by-side run.
+    #[arg(long, value_name = "BOOL", action = clap::ArgAction::Set, default_value_t = glasshouse_pipeline::PlanningSettings::default().merge_far_rays)]
+    pub merge_far_rays: bool,
     /// Rank views by utility less this much per second the robot takes to reach them (the
     /// planner's default); 0 ranks by the paper's utility alone, for a side-by-side run.
     #[arg(long, value_name = "W", default_value_t = glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S)]
@@ -347,6 +351,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 fruit_settles_after_views: args.fruit_settles_after,
                 revisit_aim: !args.no_revisit_aim,
                 max_range_m: args.max_range,
+                merge_far_rays: args.merge_far_rays,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -638,6 +643,7 @@ mod tests {
             no_hand_eye: false,
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             max_range: glasshouse_pipeline::PlanningSettings::default().max_range_m,
+            merge_far_rays: glasshouse_pipeline::PlanningSettings::default().merge_far_rays,
             clutter_settles_after: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             days: None,

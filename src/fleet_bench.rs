@@ -129,6 +129,10 @@ pub struct FleetBenchArgs {
     /// integrated (planner default 2.0).
     #[arg(long, value_name = "M")]
     pub max_range: Option<f64>,
+    /// Every planner's `--merge-far-rays`: points beyond the range free one ray per voxel at
+    /// the range instead of one each (planner default true).
+    #[arg(long, value_name = "BOOL")]
+    pub merge_far_rays: Option<bool>,
     /// The simulated trolleys (edge processes) run at this nice value. On a real fleet each
     /// trolley renders nothing and runs on its own computer; here 16 simulators share the
     /// services' cores, and at nice 0 they take them from the planners in turn. 0 runs them
@@ -300,6 +304,8 @@ struct Report {
     insert_threads: Option<usize>,
     /// The planners' `--max-range` (None: their default).
     max_range_m: Option<f64>,
+    /// The planners' `--merge-far-rays` (None: their default).
+    merge_far_rays: Option<bool>,
     /// The simulated trolleys' nice value.
     trolley_nice: i32,
     width: u32,
@@ -519,6 +525,7 @@ impl FleetBenchArgs {
         let default = glasshouse_pipeline::PlanningSettings::default();
         glasshouse_pipeline::PlanningSettings {
             max_range_m: self.max_range.unwrap_or(default.max_range_m),
+            merge_far_rays: self.merge_far_rays.unwrap_or(default.merge_far_rays),
             ..default
         }
     }
@@ -711,6 +718,9 @@ impl Fleet {
             }
             if let Some(range_m) = args.max_range {
                 extra.extend(["--max-range".into(), range_m.to_string()]);
+            }
+            if let Some(merge) = args.merge_far_rays {
+                extra.extend(["--merge-far-rays".into(), merge.to_string()]);
             }
             if let Some(dir) = self.store_dir(args) {
                 let file = dir.join(format!("p{i}.redb"));
@@ -1281,6 +1291,7 @@ fn build_report(
         refresh_by_delta: args.refresh_by_delta,
         insert_threads: args.insert_threads,
         max_range_m: args.max_range,
+        merge_far_rays: args.merge_far_rays,
         trolley_nice: args.trolley_nice,
         width: args.width,
         fps_per_trolley_max: args.fps,

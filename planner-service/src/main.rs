@@ -11,7 +11,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
 /// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, refresh_by_delta, `store: { path, checkpoint_clouds, settle_ms }` and
-/// `planning: { method, seed, resolution_m, max_range_m, min_cluster_voxels, fit,
+/// `planning: { method, seed, resolution_m, max_range_m, merge_far_rays, min_cluster_voxels, fit,
 /// scoring_threads, insert_threads }`), then the flags below.
 ///
 /// Environment: GLASSHOUSE_SIMD=portable|avx2|avx512 caps the vector unit of the map's voxel
@@ -54,6 +54,11 @@ struct Cli {
     /// away free their ray up to it and mark nothing).
     #[arg(long, value_name = "M")]
     max_range: Option<f64>,
+    /// Points beyond the range free one ray per voxel at the range (aimed at its centre)
+    /// instead of one each (default true; false: one ray per point, as OctoMap); points within
+    /// the range are unaffected.
+    #[arg(long, value_name = "BOOL")]
+    merge_far_rays: Option<bool>,
     /// Keep every trolley this planner owns in this store file (created if missing; one per
     /// planner), so that maps and fruit ids survive a restart of every planner. Without it maps
     /// live in memory only. The planner then waits `store.settle_ms` (3 s) for its peers
@@ -77,6 +82,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.refresh_by_delta, cli.refresh_by_delta);
     set_flag(&mut s.planning.insert_threads, cli.insert_threads);
     set_flag(&mut s.planning.max_range_m, cli.max_range);
+    set_flag(&mut s.planning.merge_far_rays, cli.merge_far_rays);
     if let Some(path) = cli.store {
         s.store = Some(StoreSettings {
             path,

@@ -99,6 +99,9 @@ pub struct TrialConfig {
     pub fruit_settles_after_views: u32,
     /// Rays are integrated up to this range, metres (`PlanningSettings::max_range_m`).
     pub max_range_m: f64,
+    /// Points beyond the range free one ray per voxel at the range
+    /// (`PlanningSettings::merge_far_rays`).
+    pub merge_far_rays: bool,
 }
 
 impl TrialConfig {
@@ -124,6 +127,7 @@ impl TrialConfig {
             clutter_settles_after_views: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             max_range_m: PlanningSettings::default().max_range_m,
+            merge_far_rays: PlanningSettings::default().merge_far_rays,
         }
     }
 
@@ -165,6 +169,7 @@ impl TrialConfig {
             roi_evidence: self.roi_evidence,
             roi_targets: self.roi_targets,
             max_range_m: self.max_range_m,
+            merge_far_rays: self.merge_far_rays,
             ..PlanningSettings::default()
         };
         settings.registration.enabled = self.registration;

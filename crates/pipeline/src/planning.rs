@@ -55,6 +55,11 @@ pub struct PlanningSettings {
     pub resolution_m: f64,
     /// Rays are integrated up to this range (points further away free the ray only).
     pub max_range_m: f64,
+    /// A cloud's points beyond `max_range_m` free one ray per voxel at the range instead of one
+    /// each (`MapConfig::merge_far_rays`; on by default): more than half of a row's points lie
+    /// beyond it, and their rays are the longest. Points within the range, so every occupied
+    /// and ROI voxel, are unaffected; the free voxels are 99 % the same (docs/fleet.md).
+    pub merge_far_rays: bool,
     /// ROI clusters smaller than this are not fruits.
     pub min_cluster_voxels: usize,
     /// The whole-fruit ellipsoid fit published with every fruit.
@@ -178,6 +183,7 @@ impl Default for PlanningSettings {
             seed: 1,
             resolution_m: 0.01,
             max_range_m: 2.0,
+            merge_far_rays: true,
             min_cluster_voxels: 10,
             fit: FitConfig::default(),
             scoring_threads: 0,
@@ -234,6 +240,7 @@ impl PlanningSettings {
         MapConfig {
             resolution_m: self.resolution_m,
             max_range_m: Some(self.max_range_m),
+            merge_far_rays: self.merge_far_rays,
             // A symmetric ROI sensor model: a non-fruit label is as strong evidence as a fruit
             // label, so sporadic false labels (a noisy detector) fade instead of adding up to
             // fruit; two more fruit than non-fruit labels still make an ROI voxel.
@@ -1075,16 +1082,19 @@ impl TrolleyPlanner {
         self.map
     }
 
-    /// A planner on `map` (its resolution and range must be this planner's), no fruit ids yet.
-    fn with_map(settings: PlanningSettings, map: RoiMap) -> Result<Self, PlanningError> {
+    /// A planner on `map` (its resolution must be this planner's), no fruit ids yet. Later
+    /// clouds go in with this planner's ray rules (range, merged far rays), whatever rules made
+    /// the map: a map kept before the settings changed is carried on, not refused.
+    fn with_map(settings: PlanningSettings, mut map: RoiMap) -> Result<Self, PlanningError> {
         let wanted = settings.map_config();
-        if map.config().resolution_m != wanted.resolution_m
-            || map.config().max_range_m != wanted.max_range_m
-        {
-            return Err(PlanningError::Snapshot(
-                "its map settings differ from this planner's".into(),
-            ));
+        if map.config().resolution_m != wanted.resolution_m {
+            return Err(PlanningError::Snapshot(format!(
+                "its map has {} m voxels, this planner {} m",
+                map.config().resolution_m,
+                wanted.resolution_m
+            )));
         }
+        map.set_ray_rules(wanted.max_range_m, wanted.merge_far_rays)?;
         let mut planner = Self::new(settings)?;
         planner.published_solid = PublishedSolid::from_cells(map.solid_blocks());
         planner.map = map;

@@ -220,6 +220,8 @@ impl ScanGrid {
 #[derive(Clone, Default)]
 pub(crate) struct Scratch {
     ends: Vec<RayEnd>,
+    /// With `merge_far_rays`: the voxels at the range already given a ray.
+    far_ray_of_voxel: KeySet,
     grid: ScanGrid,
     workers: Vec<Worker>,
 }
@@ -229,6 +231,7 @@ impl Scratch {
         let g = &self.grid;
         let set = |s: &KeySet| s.capacity() * (std::mem::size_of::<VoxelKey>() + 1);
         self.ends.capacity() * std::mem::size_of::<RayEnd>()
+            + self.far_ray_of_voxel.capacity() * (std::mem::size_of::<VoxelKey>() + 1)
             + (g.occ.capacity() + g.roi.capacity() + g.non_roi.capacity()) * 8
             + set(&g.overflow_occ)
             + set(&g.overflow_roi)
@@ -238,6 +241,28 @@ impl Scratch {
                 .iter()
                 .map(|w| w.free.capacity() * 8 + set(&w.overflow))
                 .sum::<usize>()
+    }
+}
+
+/// Where the ray from `origin` towards `p` ends, and whether that end is a hit: `p` itself, or
+/// beyond the maximum range the point at the range along the ray (OctoMap's `float` arithmetic:
+/// `origin + (p - origin).normalized() * (float) maxrange`).
+fn ray_end(origin: [f32; 3], p: [f32; 3], max_range: Option<f64>) -> ([f32; 3], bool) {
+    let diff = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
+    let len = norm_f32(diff);
+    match max_range {
+        Some(range) if len > range => {
+            let mut d = diff;
+            if len > 0.0 {
+                for v in &mut d {
+                    *v /= len as f32;
+                }
+            }
+            let r = range as f32;
+            let end = [0, 1, 2].map(|i| origin[i] + d[i] * r);
+            (end, false)
+        }
+        _ => (p, true),
     }
 }
 
@@ -317,41 +342,28 @@ impl RoiMap {
         // Pass 1: ray ends in OctoMap's precision and the key box.
         let (mut lo, mut hi) = (key_origin, key_origin);
         let (roi_hit, roi_miss) = (self.config.roi_hit_logodds, self.config.roi_miss_logodds);
+        let mut far_ray_of_voxel = std::mem::take(&mut s.far_ray_of_voxel);
+        far_ray_of_voxel.clear();
         for (i, p) in points_in_world.iter().enumerate() {
             if !p.iter().all(|c| c.is_finite()) {
                 stats.skipped_non_finite += 1;
                 continue;
             }
-            let p = [p.x, p.y, p.z];
-            let diff = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
-            let (end, hit) = match max_range {
-                Some(range) if norm_f32(diff) > range => {
-                    // point3d direction = (p - origin).normalized(); origin + direction * (float) maxrange
-                    let len = norm_f32(diff);
-                    let mut d = diff;
-                    if len > 0.0 {
-                        for v in &mut d {
-                            *v /= len as f32;
-                        }
-                    }
-                    let r = range as f32;
-                    (
-                        [
-                            origin[0] + d[0] * r,
-                            origin[1] + d[1] * r,
-                            origin[2] + d[2] * r,
-                        ],
-                        false,
-                    )
-                }
-                _ => (p, true),
-            };
+            let (mut end, hit) = ray_end(origin, [p.x, p.y, p.z], max_range);
             let Some(key_end) = key_of_f32(end, inv_res) else {
                 stats.skipped_out_of_bounds += 1;
                 continue;
             };
             if !hit {
                 stats.beyond_range += 1;
+                if self.config.merge_far_rays {
+                    // One ray per voxel at the range, aimed at its centre: rays that end in
+                    // the same voxel cross nearly the same voxels on the way.
+                    if !far_ray_of_voxel.insert(key_end) {
+                        continue;
+                    }
+                    end = self.centre_of(key_end).map(|c| c as f32).into();
+                }
             }
             lo = VoxelKey::new(
                 lo.x.min(key_end.x),
@@ -370,6 +382,8 @@ impl RoiMap {
                 roi_delta: roi.delta(i, roi_hit, roi_miss),
             });
         }
+        s.far_ray_of_voxel = far_ray_of_voxel;
+        stats.rays = s.ends.len();
 
         // Pass 2: free marks, in parallel over contiguous chunks of rays.
         let threads = threads.clamp(1, 64).min(s.ends.len().max(1));

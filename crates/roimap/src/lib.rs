@@ -12,7 +12,8 @@
 //!   A point farther than the maximum range frees its ray up to the range and marks nothing. Like
 //!   OctoMap, the origin and points are `f32` and the ray set-up uses OctoMap's float roundings
 //!   (see `walk.rs`), so the map agrees with OctoMap 1.9 voxel for voxel (`scripts/octomap-compare
-//!   --check`).
+//!   --check`). [`MapConfig::merge_far_rays`] (off by default) departs from it on purpose: the
+//!   points beyond the range free one ray per voxel at the range.
 //! - **ROI** (fruit), updated from the scan's hit end points only: ROI points' voxels get a hit, the
 //!   other end-point voxels a miss unless some ROI point of the same scan fell in them (ROI wins). A
 //!   voxel is an ROI voxel when its ROI log-odds is at least the threshold (1.0 by default: two
@@ -161,6 +162,10 @@ pub struct MapConfig {
     pub roi_target_needs_neighbour: bool,
     /// Sensor range in metres; `None` means unlimited (OctoMap's `maxrange < 0`).
     pub max_range_m: Option<f64>,
+    /// Points beyond the maximum range whose rays end in the same voxel at the range free one
+    /// ray, aimed at that voxel's centre, instead of one each (their rays cross nearly the same
+    /// voxels). `false` (OctoMap): one ray per point. Points within the range are unaffected.
+    pub merge_far_rays: bool,
 }
 
 impl Default for MapConfig {
@@ -176,6 +181,7 @@ impl Default for MapConfig {
             roi_threshold_logodds: 1.0,
             roi_target_needs_neighbour: false,
             max_range_m: None,
+            merge_far_rays: false,
         }
     }
 }
@@ -306,8 +312,11 @@ pub struct ScanStats {
     pub skipped_non_finite: usize,
     /// Finite points (or range-limited ray ends) outside the map's key range, ignored.
     pub skipped_out_of_bounds: usize,
-    /// Points farther than the maximum range: their ray is freed up to the range, nothing occupied.
+    /// Points farther than the maximum range: their ray is freed up to the range, nothing occupied
     pub beyond_range: usize,
+    /// Rays walked: one per usable point, or with `merge_far_rays` one per voxel at the range
+    /// for the points beyond it.
+    pub rays: usize,
     /// Voxels updated with a miss (once each): the scan's unique free voxels.
     pub free_updates: usize,
     /// Voxels updated with a hit (once each): the scan's unique occupied voxels.
@@ -522,6 +531,24 @@ impl RoiMap {
 
     pub fn config(&self) -> &MapConfig {
         &self.config
+    }
+
+    /// Sets how later scans cast their rays (`max_range_m`, `merge_far_rays`), for a map made
+    /// with other rules: the voxels already in the map do not depend on them. An invalid range is
+    /// an error and changes nothing.
+    pub fn set_ray_rules(
+        &mut self,
+        max_range_m: Option<f64>,
+        merge_far_rays: bool,
+    ) -> Result<(), MapError> {
+        let config = MapConfig {
+            max_range_m,
+            merge_far_rays,
+            ..self.config
+        };
+        config.validate()?;
+        self.config = config;
+        Ok(())
     }
 
     /// Voxel holding `p`: `floor(p * (1 / res))` per axis (OctoMap's `coordToKey`). Non-finite or

@@ -12,8 +12,8 @@
 //! | 4 | CRC-32 (IEEE) of everything before it |
 //!
 //! Body: the configuration (`resolution_m` f64, hit, miss, clamp min, clamp max, ROI threshold,
-//! ROI hit, ROI miss as f32, `max_range_m` f64 with −1 for none, whether an ROI target needs an ROI
-//! neighbour as a u8), `scans_inserted` u64, the block count u32, then per
+//! ROI hit, ROI miss as f32, `max_range_m` f64 with −1 for none, the rule flags as a u8: bit 0
+//! whether an ROI target needs an ROI neighbour, bit 1 whether far rays are merged), `scans_inserted` u64, the block count u32, then per
 //! block its coordinate (3 × i32), its known mask (8 × u64, bit `z*64 + y*8 + x`) and the
 //! occupancy, then the ROI log-odds of its known voxels: tag 0 and one f32 (all equal), tag 1, the
 //! palette size − 1 (u8), the palette (f32 each) and each known voxel's index in bit order packed
@@ -377,7 +377,7 @@ impl RoiMap {
             body.extend_from_slice(&v.to_le_bytes());
         }
         body.extend_from_slice(&c.max_range_m.unwrap_or(-1.0).to_le_bytes());
-        body.push(u8::from(c.roi_target_needs_neighbour));
+        body.push(u8::from(c.roi_target_needs_neighbour) | u8::from(c.merge_far_rays) << 1);
         body.extend_from_slice(&self.scans_inserted.to_le_bytes());
     }
 
@@ -406,11 +406,11 @@ impl RoiMap {
         let roi_hit_logodds = c.f32()?;
         let roi_miss_logodds = c.f32()?;
         let max_range = c.f64()?;
-        let roi_target_needs_neighbour = match c.u8()? {
-            0 => false,
-            1 => true,
-            v => return Err(SnapshotError::Corrupt(format!("ROI target rule {v}"))),
-        };
+        let flags = c.u8()?;
+        if flags > 0b11 {
+            return Err(SnapshotError::Corrupt(format!("rule flags {flags:#b}")));
+        }
+        let (roi_target_needs_neighbour, merge_far_rays) = (flags & 1 != 0, flags & 2 != 0);
         let config = MapConfig {
             resolution_m,
             hit_logodds,
@@ -422,6 +422,7 @@ impl RoiMap {
             roi_miss_logodds,
             roi_target_needs_neighbour,
             max_range_m: (max_range >= 0.0).then_some(max_range),
+            merge_far_rays,
         };
         let mut map = RoiMap::new(config)?;
         map.scans_inserted = c.u64()?;

@@ -483,7 +483,31 @@ impl Reference {
     }
 
     fn insert(&mut self, origin: &Point3<f64>, pts: &[Point3<f32>], roi: &[bool], max_range: f64) {
+        self.insert_with(origin, pts, roi, max_range, false);
+    }
+
+    /// As [`Reference::insert`], the points beyond the range freeing one ray per end voxel, to
+    /// its centre.
+    fn insert_merging_far_rays(
+        &mut self,
+        origin: &Point3<f64>,
+        pts: &[Point3<f32>],
+        roi: &[bool],
+        max_range: f64,
+    ) {
+        self.insert_with(origin, pts, roi, max_range, true);
+    }
+
+    fn insert_with(
+        &mut self,
+        origin: &Point3<f64>,
+        pts: &[Point3<f32>],
+        roi: &[bool],
+        max_range: f64,
+        merge_far_rays: bool,
+    ) {
         let c = MapConfig::default();
+        let mut far_ends = BTreeSet::new();
         let o: P3 = [origin.x as f32, origin.y as f32, origin.z as f32];
         let mut free = BTreeSet::new();
         let mut occ = BTreeSet::new();
@@ -509,7 +533,14 @@ impl Reference {
                     *v /= d as f32;
                 }
                 let m = max_range as f32;
-                let end = [o[0] + dir[0] * m, o[1] + dir[1] * m, o[2] + dir[2] * m];
+                let mut end = [o[0] + dir[0] * m, o[1] + dir[1] * m, o[2] + dir[2] * m];
+                if merge_far_rays {
+                    let key = self.key(end);
+                    if !far_ends.insert(key) {
+                        continue;
+                    }
+                    end = [key.x, key.y, key.z].map(|k| ((f64::from(k) + 0.5) * self.res) as f32);
+                }
                 free.extend(self.ray_keys(o, end));
             }
         }
@@ -933,6 +964,71 @@ fn workload_scans_match_the_reference_with_range_limit() {
     assert!(got == reference.cells);
 }
 
+#[test]
+fn merged_far_rays_match_the_reference() {
+    let w = Workload::small(9, 320, 240, 10, 2);
+    let config = MapConfig {
+        merge_far_rays: true,
+        ..w.map_config()
+    };
+    let mut m = RoiMap::new(config).expect("valid");
+    let mut threaded = RoiMap::new(config).expect("valid");
+    let mut reference = Reference::new(0.01);
+    for s in w.raw_scans() {
+        let stats = m.insert_scan(&s.origin, &s.points, &s.roi).expect("valid");
+        assert!(stats.beyond_range > 0, "corner rays pass the range");
+        assert!(stats.rays < s.points.len(), "{} rays", stats.rays);
+        reference.insert_merging_far_rays(&s.origin, &s.points, &s.roi, w.max_range_m);
+        let threaded_stats = threaded
+            .insert_scan_threaded(&s.origin, &s.points, &s.roi, 3)
+            .expect("valid");
+        assert_eq!(stats, threaded_stats);
+    }
+    let got: BTreeMap<VoxelKey, Voxel> = m.iter().collect();
+    assert_eq!(got.len(), reference.cells.len());
+    assert!(got == reference.cells);
+    assert_eq!(sorted_voxels(&m), sorted_voxels(&threaded));
+}
+
+#[test]
+fn merged_far_rays_leave_the_hits_alone() {
+    let w = Workload::small(10, 320, 240, 10, 1);
+    let scan = &w.raw_scans()[0];
+    let mut config = w.map_config();
+    let mut per_point = RoiMap::new(config).expect("valid");
+    let one_each = per_point
+        .insert_scan(&scan.origin, &scan.points, &scan.roi)
+        .expect("valid");
+    config.merge_far_rays = true;
+    let mut merged = RoiMap::new(config).expect("valid");
+    let one_per_voxel = merged
+        .insert_scan(&scan.origin, &scan.points, &scan.roi)
+        .expect("valid");
+    assert_eq!(one_per_voxel.occupied_updates, one_each.occupied_updates);
+    assert_eq!(one_per_voxel.roi_updates, one_each.roi_updates);
+    assert_eq!(one_per_voxel.non_roi_updates, one_each.non_roi_updates);
+    assert_eq!(one_per_voxel.beyond_range, one_each.beyond_range);
+    let usable = scan.points.len() - one_each.skipped_non_finite;
+    assert_eq!(one_each.rays, usable);
+    assert!(one_per_voxel.rays < one_each.rays);
+    // The merged rays free nearly the voxels the per-point rays do.
+    let free = |m: &RoiMap| -> BTreeSet<VoxelKey> {
+        m.iter()
+            .filter(|(_, v)| v.occupancy_logodds < 0.0)
+            .map(|(k, _)| k)
+            .collect()
+    };
+    let (all, some) = (free(&per_point), free(&merged));
+    let shared = all.intersection(&some).count();
+    eprintln!(
+        "free voxels: per point {}, merged {}, shared {shared}",
+        all.len(),
+        some.len()
+    );
+    assert!(shared as f64 >= 0.97 * all.len() as f64);
+    assert!(some.len() <= all.len());
+}
+
 /// Brute-force frontier definitions (paper-method §3), over all known voxels; ROI targets are
 /// the ROI voxels, with an ROI face neighbour when the configuration asks for one.
 fn brute_frontiers(m: &RoiMap) -> (Vec<VoxelKey>, Vec<VoxelKey>) {
@@ -975,6 +1071,7 @@ fn incremental_frontiers_match_recomputation_with_lone_roi_voxels_untargeted() {
     let config = MapConfig {
         roi_miss_logodds: -0.8473,
         roi_target_needs_neighbour: true,
+        merge_far_rays: true,
         ..w.map_config()
     };
     check_incremental_state(&w, config);
@@ -1033,7 +1130,7 @@ fn check_incremental_state(w: &Workload, config: MapConfig) {
 }
 
 #[test]
-fn snapshot_keeps_the_roi_target_rule_and_its_frontier() {
+fn snapshot_keeps_the_rules_and_the_roi_frontier() {
     let w = Workload::small(6, 64, 48, 4, 2);
     let config = MapConfig {
         roi_miss_logodds: -0.8473,

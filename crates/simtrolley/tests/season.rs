@@ -224,3 +224,32 @@ fn a_revisits_growth_is_measured_on_one_shape_against_what_a_snapshot_carries() 
         assert!((a - b).abs() < 1e-3, "{owner:?} against {copied:?}");
     }
 }
+
+#[test]
+fn a_map_kept_under_other_ray_rules_is_carried_on_with_the_planners() {
+    let (planner, _) = planner_with_fruit();
+    let snapshot = planner.snapshot("t1", "p1").unwrap();
+    let defaults = planner.settings().clone();
+    // Settings changed since the map was kept: the map is adopted, later clouds follow them.
+    let changed = PlanningSettings {
+        max_range_m: 1.5,
+        merge_far_rays: !defaults.merge_far_rays,
+        ..defaults.clone()
+    };
+    let copy = TrolleyPlanner::from_snapshot(changed, &snapshot).unwrap();
+    assert_eq!(copy.map().config().max_range_m, Some(1.5));
+    assert_eq!(copy.map().config().merge_far_rays, !defaults.merge_far_rays);
+    assert_eq!(copy.map().len(), planner.map().len());
+    assert_eq!(copy.map().scans_inserted(), planner.map().scans_inserted());
+    // Another voxel size cannot be carried on: a clear error.
+    let coarser = PlanningSettings {
+        resolution_m: 0.02,
+        ..defaults
+    };
+    let refused = TrolleyPlanner::from_snapshot(coarser, &snapshot);
+    assert!(
+        matches!(&refused, Err(PlanningError::Snapshot(m)) if m.contains("0.02 m")),
+        "{:?}",
+        refused.err()
+    );
+}

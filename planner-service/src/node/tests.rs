@@ -673,6 +673,74 @@ fn a_trolleys_views_go_out_before_the_next_trolleys_cloud_is_integrated() {
     assert_eq!(solo.stats().plans, 3);
 }
 
+/// Where in `actions` trolley `tid`'s first output of `kind` (0 views, 1 fruits) is.
+fn first_output(actions: &[PlannerAction], tid: &str, kind: usize) -> Option<usize> {
+    actions.iter().position(|a| match a {
+        PlannerAction::Publish { tid: t, output, .. } if t == tid => matches!(
+            (kind, output),
+            (0, TrolleyOutput::Views(_)) | (1, TrolleyOutput::Fruits(_))
+        ),
+        _ => false,
+    })
+}
+
+#[test]
+fn in_a_burst_views_go_out_before_the_fits_and_the_outputs_stay_the_same() {
+    let (info, clouds) = trolley_clouds(2);
+    let burst = || PlannerEvent::Clouds {
+        clouds: vec![
+            keyed_as("t1", &clouds[0]),
+            keyed_as("t2", &clouds[0]),
+            keyed_as("t1", &clouds[1]),
+        ],
+        received_ns: NOW_NS,
+    };
+    let mut fits_first = owning_t1_and_t2(&info);
+    let before = feed(&mut fits_first, burst());
+    let mut views_first = owning_t1_and_t2(&info);
+    views_first.views_first_in_a_burst = true;
+    // t2's cloud has t1's behind it: its views go out, its fits wait for the batch.
+    let first = views_first.handle(burst());
+    assert_eq!(
+        views_for(&first),
+        Vec::<(String, u64)>::new(),
+        "t1's next is queued"
+    );
+    let second = views_first.handle(PlannerEvent::NextCloud);
+    assert_eq!(views_for(&second), vec![("t2".into(), 1)]);
+    assert_eq!(first_output(&second, "t2", 1), None, "t2's fruits wait");
+    assert_eq!(second.last(), Some(&PlannerAction::NextCloud));
+    // The last cloud is planned with its fits; then t2's are made.
+    let handled = views_first.handle(PlannerEvent::NextCloud);
+    let last = settle(&mut views_first, handled);
+    assert_eq!(views_for(&last), vec![("t1".into(), 2)]);
+    let t2_fruits = first_output(&last, "t2", 1).expect("t2's fruits after the batch");
+    assert!(first_output(&last, "t1", 0) < Some(t2_fruits));
+    // Every output is what it was with the fits first, only later.
+    let after = [first, second, last].concat();
+    for tid in ["t1", "t2"] {
+        assert_eq!(outputs_for(&after, tid), outputs_for(&before, tid));
+        assert_eq!(fruits_of(&after, tid), fruits_of(&before, tid));
+    }
+    assert_eq!(views_for(&after), views_for(&before));
+}
+
+/// The fruits trolley `tid`'s outputs in `actions` publish.
+fn fruits_of(actions: &[PlannerAction], tid: &str) -> Vec<glasshouse_geom::FruitEstimate> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            PlannerAction::Publish {
+                tid: t,
+                output: TrolleyOutput::Fruits(f),
+                ..
+            } if t == tid => Some(f.fruits.clone()),
+            _ => None,
+        })
+        .flatten()
+        .collect()
+}
+
 /// The owner of t1 with its info and the first cloud integrated.
 fn owner_with_first_cloud(info: &TrolleyInfo, first: &RoiCloud) -> PlannerNode {
     let (mut owner, _) = roles(pair());

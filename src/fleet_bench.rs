@@ -121,10 +121,6 @@ pub struct FleetBenchArgs {
     /// for only the map's blocks changed since (planner default true).
     #[arg(long, value_name = "BOOL")]
     pub refresh_by_delta: Option<bool>,
-    /// Every planner's `--views-first-in-a-burst`: a cloud with other trolleys' clouds queued
-    /// behind it gets its views before its fits (planner default false).
-    #[arg(long, value_name = "BOOL")]
-    pub views_first_in_a_burst: Option<bool>,
     /// Every planner's `--insert-threads`: threads that cast one cloud's rays into its map
     /// (planner default 0: one per core; the map is the same for any count).
     #[arg(long, value_name = "N")]
@@ -304,8 +300,6 @@ struct Report {
     standby_decoded_ahead: Option<bool>,
     /// The planners' `--refresh-by-delta` (None: their default).
     refresh_by_delta: Option<bool>,
-    /// The planners' `--views-first-in-a-burst` (None: their default).
-    views_first_in_a_burst: Option<bool>,
     /// The planners' `--insert-threads` (None: their default).
     insert_threads: Option<usize>,
     /// The planners' `--max-range` (None: their default).
@@ -718,9 +712,6 @@ impl Fleet {
             }
             if let Some(by_delta) = args.refresh_by_delta {
                 extra.extend(["--refresh-by-delta".into(), by_delta.to_string()]);
-            }
-            if let Some(first) = args.views_first_in_a_burst {
-                extra.extend(["--views-first-in-a-burst".into(), first.to_string()]);
             }
             if let Some(n) = args.insert_threads {
                 extra.extend(["--insert-threads".into(), n.to_string()]);
@@ -1298,7 +1289,6 @@ fn build_report(
         takeover_decode_threads: args.takeover_decode_threads,
         standby_decoded_ahead: args.standby_decoded_ahead,
         refresh_by_delta: args.refresh_by_delta,
-        views_first_in_a_burst: args.views_first_in_a_burst,
         insert_threads: args.insert_threads,
         max_range_m: args.max_range,
         merge_far_rays: args.merge_far_rays,

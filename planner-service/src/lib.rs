@@ -76,10 +76,6 @@ pub struct PlannerSettings {
     /// since (a delta), so neither the owner's answer nor the copy's update follows the map's
     /// size; false asks for the whole map every time.
     pub refresh_by_delta: bool,
-    /// A trolley's cloud with other trolleys' clouds queued behind it gets its views at once,
-    /// its clusters, fruit ids and fits once they are handled too
-    /// ([`PlannerNode::with_views_first_in_a_burst`]).
-    pub views_first_in_a_burst: bool,
     /// Method, seed, map and fit settings (the experiments use the same defaults).
     pub planning: PlanningSettings,
     /// Where the planner keeps the trolleys it owns, so that they outlive it (none: in memory
@@ -129,7 +125,6 @@ impl PlannerSettings {
             takeover_decode_threads: node::TAKEOVER_DECODE_THREADS,
             standby_decoded_ahead: true,
             refresh_by_delta: true,
-            views_first_in_a_burst: false,
             // A planner has the machine's cores for itself and its trolleys' clouds: one
             // cloud's rays are cast on all of them (the experiments run trials side by side
             // and keep the shared default, one).
@@ -602,8 +597,7 @@ async fn start_node(
         .with_replica_refresh(settings.replica_refresh_clouds)
         .with_takeover_decode_threads(settings.takeover_decode_threads)
         .with_standby_decoded_ahead(settings.standby_decoded_ahead)
-        .with_refresh_by_delta(settings.refresh_by_delta)
-        .with_views_first_in_a_burst(settings.views_first_in_a_burst);
+        .with_refresh_by_delta(settings.refresh_by_delta);
     if settings.standby_decoded_ahead {
         let events = out.events.clone();
         out.decoder = Some(

@@ -10,8 +10,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 /// fruit estimates.
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
-/// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, refresh_by_delta,
-/// views_first_in_a_burst, `store: { path, checkpoint_clouds, settle_ms }` and
+/// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, refresh_by_delta, `store: { path, checkpoint_clouds, settle_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, merge_far_rays, min_cluster_voxels, fit,
 /// scoring_threads, insert_threads }`), then the flags below.
 ///
@@ -47,10 +46,6 @@ struct Cli {
     /// changed since what it holds (default true); false asks for the whole map every time.
     #[arg(long, value_name = "BOOL")]
     refresh_by_delta: Option<bool>,
-    /// A trolley's cloud with other trolleys' clouds queued behind it gets its views at once,
-    /// its clusters, fruit ids and fits once those are handled too (default false).
-    #[arg(long, value_name = "BOOL")]
-    views_first_in_a_burst: Option<bool>,
     /// Threads that cast one cloud's rays into its map (default 0: one per core; the map is
     /// the same, voxel for voxel, for any count).
     #[arg(long, value_name = "N")]
@@ -85,7 +80,6 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.takeover_decode_threads, cli.takeover_decode_threads);
     set_flag(&mut s.standby_decoded_ahead, cli.standby_decoded_ahead);
     set_flag(&mut s.refresh_by_delta, cli.refresh_by_delta);
-    set_flag(&mut s.views_first_in_a_burst, cli.views_first_in_a_burst);
     set_flag(&mut s.planning.insert_threads, cli.insert_threads);
     set_flag(&mut s.planning.max_range_m, cli.max_range);
     set_flag(&mut s.planning.merge_far_rays, cli.merge_far_rays);

@@ -352,9 +352,6 @@ enum Then {
     Plan,
     /// The views at once, the rest on [`PlannerEvent::Finish`] (a trolley taken over).
     ViewsFirst,
-    /// The views at once, the rest once the batch is handled (a cloud with other trolleys'
-    /// clouds queued behind it, [`PlannerNode::with_views_first_in_a_burst`]).
-    ViewsFirstInABurst,
     /// Clusters, fruit ids and fits, no views (the last cloud a takeover planned past).
     Fit,
 }
@@ -429,10 +426,6 @@ pub struct PlannerNode {
     standby_decoded_ahead: bool,
     /// See [`PlannerNode::with_refresh_by_delta`].
     refresh_by_delta: bool,
-    /// See [`PlannerNode::with_views_first_in_a_burst`].
-    views_first_in_a_burst: bool,
-    /// Trolleys whose clusters, fruit ids and fits wait for the batch to be handled.
-    finish_after_batch: Vec<String>,
     /// See [`PlannerNode::with_store`]; None: no store.
     store: Option<StoreRules>,
     /// How a new visit's prior is made from the previous visit's map.
@@ -520,8 +513,6 @@ impl PlannerNode {
             takeover_decode_threads: TAKEOVER_DECODE_THREADS,
             standby_decoded_ahead: false,
             refresh_by_delta: true,
-            views_first_in_a_burst: false,
-            finish_after_batch: Vec::new(),
             store: None,
             revisit_prior: PriorRules::default(),
             settle_until_ns: epoch_ns,
@@ -565,16 +556,6 @@ impl PlannerNode {
     /// map every time.
     pub fn with_refresh_by_delta(mut self, by_delta: bool) -> Self {
         self.refresh_by_delta = by_delta;
-        self
-    }
-
-    /// Whether an owned trolley's cloud with other trolleys' clouds queued behind it gets its
-    /// views at once and its clusters, fruit ids and fits once the batch is handled (off by
-    /// default): planning reads only the map, so a burst's later trolleys do not wait for the
-    /// earlier ones' fits. A trolley's next cloud, a snapshot of it or a catch-up finishes what
-    /// is left first, as after a takeover.
-    pub fn with_views_first_in_a_burst(mut self, views_first: bool) -> Self {
-        self.views_first_in_a_burst = views_first;
         self
     }
 
@@ -919,14 +900,6 @@ impl PlannerNode {
         }
         let mut actions = self.introduce(&tid);
         let latest = self.queued_clouds.get(&tid).is_none_or(|&n| n == 0);
-        let owner_then = match (
-            latest,
-            self.views_first_in_a_burst && !self.batch.is_empty(),
-        ) {
-            (false, _) => Then::Track,
-            (true, true) => Then::ViewsFirstInABurst,
-            (true, false) => Then::Plan,
-        };
         let Some(slot) = self.slots.get_mut(&tid) else {
             return actions;
         };
@@ -941,7 +914,7 @@ impl PlannerNode {
                 actions.extend(self.catch_up(&tid, latest));
             }
             Stage::CatchingUp { .. } | Stage::Owning { .. } => {
-                actions.extend(self.integrate_then(&tid, received, owner_then))
+                actions.extend(self.integrate(&tid, received, latest))
             }
         }
         actions
@@ -1181,9 +1154,6 @@ impl PlannerNode {
         }
         if !self.batch.is_empty() {
             actions.push(PlannerAction::NextCloud);
-        } else {
-            let finishes = self.finish_after_batch.drain(..);
-            actions.extend(finishes.map(|tid| PlannerAction::Finish { tid }));
         }
         actions
     }
@@ -1538,34 +1508,24 @@ impl PlannerNode {
             frame,
             registration,
         };
-        let finish_after_batch = match then {
-            Then::ViewsFirst => false,
-            Then::ViewsFirstInABurst => true,
-            Then::Track | Then::Plan | Then::Fit => {
-                let plan = then == Then::Plan;
-                let fit = plan || then == Then::Fit;
-                actions.extend(self.track_and_publish(tid, unfinished, (fit, plan), started));
-                return actions;
-            }
-        };
-        actions.extend(self.views_now_fruits_later(
-            tid,
-            &camera,
-            unfinished,
-            (started, finish_after_batch),
-        ));
+        if then != Then::ViewsFirst {
+            let plan = then == Then::Plan;
+            let fit = plan || then == Then::Fit;
+            actions.extend(self.track_and_publish(tid, unfinished, (fit, plan), started));
+            return actions;
+        }
+        actions.extend(self.views_now_fruits_later(tid, &camera, unfinished, started));
         actions
     }
 
     /// Planning reads only the map: the views of `unfinished`'s cloud go out now, its clusters,
-    /// fruit ids and fits once the other trolleys taken over have theirs (a `Finish`), or with
-    /// `finish_after_batch` once the batch is handled.
+    /// fruit ids and fits once the other trolleys taken over have theirs (a `Finish`).
     fn views_now_fruits_later(
         &mut self,
         tid: &str,
         camera: &nalgebra::Isometry3<f64>,
         unfinished: Unfinished,
-        (started, finish_after_batch): (Instant, bool),
+        started: Instant,
     ) -> Vec<PlannerAction> {
         let views = self.plan_views(tid, camera, unfinished.frame, started);
         let Some(slot) = self.slots.get_mut(tid) else {
@@ -1576,13 +1536,9 @@ impl PlannerNode {
         let mut laps = Laps::start();
         let mut actions = self.publish(tid, &header, views, None, None);
         self.stats.stages.publish_ms += laps.lap_ms();
-        if !finish_after_batch {
-            actions.push(PlannerAction::Finish {
-                tid: tid.to_owned(),
-            });
-        } else if !self.finish_after_batch.iter().any(|t| t == tid) {
-            self.finish_after_batch.push(tid.to_owned());
-        }
+        actions.push(PlannerAction::Finish {
+            tid: tid.to_owned(),
+        });
         actions
     }
 

@@ -231,7 +231,7 @@ impl Scratch {
         let g = &self.grid;
         let set = |s: &KeySet| s.capacity() * (std::mem::size_of::<VoxelKey>() + 1);
         self.ends.capacity() * std::mem::size_of::<RayEnd>()
-            + self.far_ray_of_voxel.capacity() * (std::mem::size_of::<VoxelKey>() + 1)
+            + set(&self.far_ray_of_voxel)
             + (g.occ.capacity() + g.roi.capacity() + g.non_roi.capacity()) * 8
             + set(&g.overflow_occ)
             + set(&g.overflow_roi)

@@ -312,7 +312,7 @@ pub struct ScanStats {
     pub skipped_non_finite: usize,
     /// Finite points (or range-limited ray ends) outside the map's key range, ignored.
     pub skipped_out_of_bounds: usize,
-    /// Points farther than the maximum range: their ray is freed up to the range, nothing occupied
+    /// Points farther than the maximum range: their ray is freed up to the range, nothing occupied.
     pub beyond_range: usize,
     /// Rays walked: one per usable point, or with `merge_far_rays` one per voxel at the range
     /// for the points beyond it.

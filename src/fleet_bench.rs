@@ -125,6 +125,10 @@ pub struct FleetBenchArgs {
     /// (planner default 0: one per core; the map is the same for any count).
     #[arg(long, value_name = "N")]
     pub insert_threads: Option<usize>,
+    /// Every planner's `--fit-threads`: threads that split and fit the fruit clusters a cloud
+    /// changed (planner default 0: one per core; the fruits are the same for any count).
+    #[arg(long, value_name = "N")]
+    pub fit_threads: Option<usize>,
     /// Every planner's `--max-range`: the range, metres, up to which a cloud's rays are
     /// integrated (planner default 2.0).
     #[arg(long, value_name = "M")]
@@ -302,6 +306,8 @@ struct Report {
     refresh_by_delta: Option<bool>,
     /// The planners' `--insert-threads` (None: their default).
     insert_threads: Option<usize>,
+    /// The planners' `--fit-threads` (None: their default).
+    fit_threads: Option<usize>,
     /// The planners' `--max-range` (None: their default).
     max_range_m: Option<f64>,
     /// The planners' `--merge-far-rays` (None: their default).
@@ -715,6 +721,9 @@ impl Fleet {
             }
             if let Some(n) = args.insert_threads {
                 extra.extend(["--insert-threads".into(), n.to_string()]);
+            }
+            if let Some(n) = args.fit_threads {
+                extra.extend(["--fit-threads".into(), n.to_string()]);
             }
             if let Some(range_m) = args.max_range {
                 extra.extend(["--max-range".into(), range_m.to_string()]);
@@ -1290,6 +1299,7 @@ fn build_report(
         standby_decoded_ahead: args.standby_decoded_ahead,
         refresh_by_delta: args.refresh_by_delta,
         insert_threads: args.insert_threads,
+        fit_threads: args.fit_threads,
         max_range_m: args.max_range,
         merge_far_rays: args.merge_far_rays,
         trolley_nice: args.trolley_nice,

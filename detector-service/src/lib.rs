@@ -174,7 +174,12 @@ impl Inputs {
                     dropped_messages: self.drops.total(),
                 },
                 received = self.frames.recv() => match received {
-                    Some(r) => DetectorInput::Frame { header: r.header, frame: Box::new(r.message) },
+                    Some(r) => {
+                        // Where a frame's time goes before its cloud (RUST_LOG=glasshouse_detector=debug).
+                        tracing::debug!(trolley = %r.header.trolley_id, seq = r.header.seq,
+                            waited_ms = r.arrived_at.elapsed().as_secs_f64() * 1e3, "frame taken");
+                        DetectorInput::Frame { header: r.header, frame: Box::new(r.message) }
+                    }
                     None => continue,
                 },
             };
@@ -276,6 +281,11 @@ impl Driver {
         })
         .await
         .context("detection task failed")?;
+        tracing::debug!(
+            seq = header.seq,
+            detect_ms = started.elapsed().as_secs_f64() * 1e3,
+            "frame detected"
+        );
         Ok(DetectorInput::Detected {
             header,
             result: result.map(Box::new).map_err(|e| e.to_string()),

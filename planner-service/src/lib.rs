@@ -126,10 +126,11 @@ impl PlannerSettings {
             standby_decoded_ahead: true,
             refresh_by_delta: true,
             // A planner has the machine's cores for itself and its trolleys' clouds: one
-            // cloud's rays are cast on all of them (the experiments run trials side by side
-            // and keep the shared default, one).
+            // cloud's rays are cast, and the clusters it changed fitted, on all of them (the
+            // experiments run trials side by side and keep the shared default, one).
             planning: PlanningSettings {
                 insert_threads: 0,
+                fit_threads: 0,
                 ..PlanningSettings::default()
             },
             store: None,
@@ -296,13 +297,17 @@ impl Inputs {
                 r = self.clouds.recv() => {
                     // Clouds that queued up while the node was busy go in as one batch: each is
                     // integrated, each trolley planned once, on its latest.
-                    let mut clouds = vec![keyed(r?)];
+                    let first = r?;
+                    // The batch is as old as its first cloud: a cloud's wait in the queue
+                    // counts from there (the step's `waited_ms`).
+                    let waited_ns = first.arrived_at.elapsed().as_nanos() as u64;
+                    let mut clouds = vec![keyed(first)];
                     while let Some(received) = self.clouds.try_recv() {
                         clouds.push(keyed(received));
                     }
                     PlannerEvent::Clouds {
                         clouds,
-                        received_ns: wall_clock_ns(),
+                        received_ns: wall_clock_ns().saturating_sub(waited_ns),
                     }
                 }
             };
@@ -631,6 +636,8 @@ async fn step(
     let stages_before = node.stats().stages;
     let (kind, batch) = (event.kind(), event_clouds(&event));
     let step_started = Instant::now();
+    let started_ns = wall_clock_ns();
+    let taken_before = node.stats().clouds_taken;
     let (back, actions, cpu_ms) = tokio::task::spawn_blocking(move || {
         let cpu_before = thread_cpu_ms();
         let actions = node.handle(event);
@@ -640,6 +647,11 @@ async fn step(
     .context("planner task failed")?;
     node = back;
     let handled = step_started.elapsed();
+    // How long the cloud this step took waited since it was received (0: no cloud taken).
+    let waited_ms = match node.stats().clouds_taken != taken_before {
+        true => started_ns.saturating_sub(node.stats().last_cloud_received_ns) as f64 / 1e6,
+        false => 0.0,
+    };
     mirror_stats(counters, &stages_before, &node.stats());
     let stages = node.stats().stages.since(&stages_before);
     let n_actions = actions.len();
@@ -660,6 +672,7 @@ async fn step(
         event = kind,
         clouds = batch,
         actions = n_actions,
+        waited_ms,
         handle_ms = handled.as_secs_f64() * 1e3,
         handle_cpu_ms = cpu_ms,
         perform_ms = (step_started.elapsed() - handled).as_secs_f64() * 1e3,

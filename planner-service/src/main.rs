@@ -12,7 +12,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
 /// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, refresh_by_delta, `store: { path, checkpoint_clouds, settle_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, merge_far_rays, min_cluster_voxels, fit,
-/// scoring_threads, insert_threads }`), then the flags below.
+/// scoring_threads, insert_threads, fit_threads }`), then the flags below.
 ///
 /// Environment: GLASSHOUSE_SIMD=portable|avx2|avx512 caps the vector unit of the map's voxel
 /// walks (default: the widest the CPU has; every unit gives the same map).
@@ -50,6 +50,10 @@ struct Cli {
     /// the same, voxel for voxel, for any count).
     #[arg(long, value_name = "N")]
     insert_threads: Option<usize>,
+    /// Threads that split and fit the fruit clusters a cloud changed (default 0: one per
+    /// core; the fruits are the same for any count).
+    #[arg(long, value_name = "N")]
+    fit_threads: Option<usize>,
     /// Integrate each cloud's rays up to this range, metres (default 2.0; points further
     /// away free their ray up to it and mark nothing).
     #[arg(long, value_name = "M")]
@@ -81,6 +85,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.standby_decoded_ahead, cli.standby_decoded_ahead);
     set_flag(&mut s.refresh_by_delta, cli.refresh_by_delta);
     set_flag(&mut s.planning.insert_threads, cli.insert_threads);
+    set_flag(&mut s.planning.fit_threads, cli.fit_threads);
     set_flag(&mut s.planning.max_range_m, cli.max_range);
     set_flag(&mut s.planning.merge_far_rays, cli.merge_far_rays);
     if let Some(path) = cli.store {

@@ -341,6 +341,11 @@ pub struct PlannerStats {
     pub snapshot_deltas_sent: u64,
     /// Owners' deltas this planner's standby copies applied.
     pub snapshot_deltas_applied: u64,
+    /// When the last cloud taken off the batch was received (the event's `received_ns`): the
+    /// driver logs how long it waited before its step.
+    pub last_cloud_received_ns: u64,
+    /// Clouds taken off the batch, handled or refused.
+    pub clouds_taken: u64,
 }
 
 /// What follows a cloud's insert ([`PlannerNode::integrate_then`]).
@@ -1143,6 +1148,8 @@ impl PlannerNode {
             let Some(received) = self.batch.pop_front() else {
                 break;
             };
+            self.stats.last_cloud_received_ns = received.received_ns;
+            self.stats.clouds_taken += 1;
             let tid = &received.header.trolley_id;
             if let Some(n) = self.queued_clouds.get_mut(tid) {
                 *n -= 1;

@@ -339,11 +339,14 @@ pub struct Received<M> {
     pub message: M,
     /// The verified envelope as it arrived (for recorders that keep the bytes).
     pub payload: Vec<u8>,
+    /// When the subscriber's callback took it off the wire: how long it then waited in the
+    /// queue tells a busy receiver from a slow sender.
+    pub arrived_at: std::time::Instant,
 }
 
 /// The queue between a Zenoh subscriber callback and the decoding `recv` of both subscribers.
 struct Inbox {
-    queue: Arc<SampleQueue<(String, Vec<u8>)>>,
+    queue: Arc<SampleQueue<(String, Vec<u8>, std::time::Instant)>>,
     counters: Arc<DropCounters>,
     _subscriber: recovery::ZenohSubscriber,
 }
@@ -365,7 +368,7 @@ impl Inbox {
         let callback = move |sample: zenoh::sample::Sample| {
             let key = sample.key_expr().as_str().to_owned();
             let bytes = sample.payload().to_bytes().into_owned();
-            cb_queue.push_blocking((key, bytes));
+            cb_queue.push_blocking((key, bytes, std::time::Instant::now()));
         };
         let recovered = delivery == Delivery::Recovered;
         let subscriber = recovery::ZenohSubscriber::declare(
@@ -394,8 +397,8 @@ impl Inbox {
         decode: impl Fn(&str, &[u8]) -> DecodeResult<T>,
     ) -> Option<Received<T>> {
         loop {
-            let (key, bytes) = self.queue.pop().await?;
-            if let Some(received) = self.accept(key, bytes, &decode) {
+            let (key, bytes, arrived_at) = self.queue.pop().await?;
+            if let Some(received) = self.accept(key, bytes, arrived_at, &decode) {
                 return Some(received);
             }
         }
@@ -404,8 +407,8 @@ impl Inbox {
     /// Like [`Inbox::recv`], but only from what has already arrived.
     fn try_recv<T>(&self, decode: impl Fn(&str, &[u8]) -> DecodeResult<T>) -> Option<Received<T>> {
         loop {
-            let (key, bytes) = self.queue.try_pop()?;
-            if let Some(received) = self.accept(key, bytes, &decode) {
+            let (key, bytes, arrived_at) = self.queue.try_pop()?;
+            if let Some(received) = self.accept(key, bytes, arrived_at, &decode) {
                 return Some(received);
             }
         }
@@ -416,6 +419,7 @@ impl Inbox {
         &self,
         key: String,
         bytes: Vec<u8>,
+        arrived_at: std::time::Instant,
         decode: &impl Fn(&str, &[u8]) -> DecodeResult<T>,
     ) -> Option<Received<T>> {
         match decode(&key, &bytes) {
@@ -424,6 +428,7 @@ impl Inbox {
                 header,
                 message,
                 payload: bytes,
+                arrived_at,
             }),
             Err(e) => {
                 let n = self.counters.corrupt.fetch_add(1, Ordering::Relaxed) + 1;

@@ -38,35 +38,85 @@ pub struct FitCache {
 
 impl FitCache {
     /// The fits of `clusters` on `map`, in cluster order, refitting only the clusters whose
-    /// voxels or surroundings changed since their last fit; also returns how many were refitted.
-    /// The result equals fitting every cluster afresh.
+    /// voxels or surroundings changed since their last fit, on `threads` threads; also returns
+    /// how many were refitted. The result equals fitting every cluster afresh, on any number of
+    /// threads.
     pub fn update<'a>(
         &mut self,
         map: &RoiMap,
         clusters: impl IntoIterator<Item = &'a RoiCluster>,
         config: &FitConfig,
+        threads: usize,
     ) -> (Vec<FruitSolid>, usize) {
         let mut previous = std::mem::take(&mut self.by_first_voxel);
-        let mut refits = 0;
-        let shapes = clusters
-            .into_iter()
+        let clusters: Vec<&RoiCluster> = clusters.into_iter().collect();
+        let kept: Vec<Option<CachedFit>> = clusters
+            .iter()
             .map(|cluster| {
-                let first = cluster.voxels[0];
-                let kept = previous.remove(&first).filter(|cached| {
+                previous.remove(&cluster.voxels[0]).filter(|cached| {
                     cached.voxels == cluster.voxels
                         && !map.changed_since(&cached.read_min, &cached.read_max, cached.at_scans)
-                });
-                let cached = kept.unwrap_or_else(|| {
-                    refits += 1;
-                    fit(map, cluster, config)
-                });
+                })
+            })
+            .collect();
+        let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
+        let mut fitted = in_parallel(stale.len(), threads, |j| {
+            fit(map, clusters[stale[j]], config)
+        })
+        .into_iter();
+        let shapes = clusters
+            .iter()
+            .zip(kept)
+            .map(|(cluster, kept)| {
+                let cached =
+                    kept.unwrap_or_else(|| fitted.next().expect("a fit per stale cluster"));
                 let shape = cached.shape;
-                self.by_first_voxel.insert(first, cached);
+                self.by_first_voxel.insert(cluster.voxels[0], cached);
                 shape
             })
             .collect();
-        (shapes, refits)
+        (shapes, stale.len())
     }
+}
+
+/// `work(i)` for every `i < n`, in index order, spread over `threads` threads (the calling one
+/// among them), each taking the next index: fits differ tenfold in cost, so fixed shares
+/// would leave a thread idle. One thread, or one item, runs here without spawning.
+pub(crate) fn in_parallel<T: Send>(
+    n: usize,
+    threads: usize,
+    work: impl Fn(usize) -> T + Sync,
+) -> Vec<T> {
+    let threads = threads.clamp(1, n.max(1));
+    if threads == 1 {
+        return (0..n).map(work).collect();
+    }
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let take = || {
+        let mut done = Vec::new();
+        loop {
+            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            if i >= n {
+                return done;
+            }
+            done.push((i, work(i)));
+        }
+    };
+    let mut results: Vec<(usize, T)> = std::thread::scope(|scope| {
+        let helpers: Vec<_> = (1..threads).map(|_| scope.spawn(take)).collect();
+        let mut all = take();
+        for helper in helpers {
+            // A panic in a helper's fit is the fit's panic, as on one thread.
+            all.extend(
+                helper
+                    .join()
+                    .unwrap_or_else(|e| std::panic::resume_unwind(e)),
+            );
+        }
+        all
+    });
+    results.sort_unstable_by_key(|(i, _)| *i);
+    results.into_iter().map(|(_, r)| r).collect()
 }
 
 impl FitCache {
@@ -171,8 +221,9 @@ pub struct SplitCache {
 impl SplitCache {
     /// The fruit clusters of `clusters` on `map`, ordered by their smallest voxel: equal to
     /// [`glasshouse_nbv::split::split_touching`], trying again only the clusters whose voxels
-    /// or surroundings changed since their last split; also returns how many were tried again.
-    /// The fits a split makes of its parts go to `fits`.
+    /// or surroundings changed since their last split (on `threads` threads, the same splits on
+    /// any number); also returns how many were tried again. The fits a split makes of its parts
+    /// go to `fits`.
     pub fn update<'a>(
         &mut self,
         map: &RoiMap,
@@ -180,21 +231,33 @@ impl SplitCache {
         min_voxels: usize,
         config: &FitConfig,
         fits: &mut FitCache,
+        threads: usize,
     ) -> (Vec<RoiCluster>, usize) {
         let mut previous = std::mem::take(&mut self.by_first_voxel);
+        let clusters: Vec<&RoiCluster> = clusters.collect();
+        let kept: Vec<Option<CachedSplit>> = clusters
+            .iter()
+            .map(|cluster| {
+                previous.remove(&cluster.voxels[0]).filter(|cached| {
+                    cached.voxels == cluster.voxels
+                        && !map.changed_since(&cached.read_min, &cached.read_max, cached.at_scans)
+                })
+            })
+            .collect();
+        let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
+        let mut splits = in_parallel(stale.len(), threads, |j| {
+            split_cluster(map, clusters[stale[j]].clone(), min_voxels, config)
+        })
+        .into_iter();
         let (mut out, mut tries) = (Vec::new(), 0);
-        for cluster in clusters {
+        for (cluster, kept) in clusters.into_iter().zip(kept) {
             let first = cluster.voxels[0];
-            let kept = previous.remove(&first).filter(|cached| {
-                cached.voxels == cluster.voxels
-                    && !map.changed_since(&cached.read_min, &cached.read_max, cached.at_scans)
-            });
             if let Some(cached) = kept {
                 out.extend(cached.parts.iter().cloned());
                 self.by_first_voxel.insert(first, cached);
                 continue;
             }
-            let split = split_cluster(map, cluster.clone(), min_voxels, config);
+            let split = splits.next().expect("a split per stale cluster");
             out.extend(split.parts.iter().cloned());
             for (part, fit) in split.parts.iter().zip(split.fits) {
                 if let Some((shape, read)) = fit {

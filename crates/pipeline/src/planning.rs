@@ -69,6 +69,9 @@ pub struct PlanningSettings {
     /// Threads that cast a cloud's rays into the map (0: one per core); any count gives the
     /// same map, voxel for voxel.
     pub insert_threads: usize,
+    /// Threads that split and fit the clusters a cloud changed (0: one per core); any count
+    /// gives the same fruits.
+    pub fit_threads: usize,
     /// How a cloud's detections enter the ROI map.
     pub roi_evidence: RoiEvidence,
     /// Which ROI voxels ROI-targeted sampling aims at.
@@ -188,6 +191,7 @@ impl Default for PlanningSettings {
             fit: FitConfig::default(),
             scoring_threads: 0,
             insert_threads: 1,
+            fit_threads: 1,
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
             registration: RegisterSettings::default(),
@@ -227,11 +231,15 @@ impl PlanningSettings {
         registration.map_err(|e| PlanningError::Settings(e.to_string()))?;
         let hand_eye = self.hand_eye.validate();
         hand_eye.map_err(|e| PlanningError::Settings(e.to_string()))?;
-        if self.insert_threads > 64 {
-            return Err(PlanningError::Settings(format!(
-                "insert_threads must be <= 64 (0 = one per core), got {}",
-                self.insert_threads
-            )));
+        for (name, threads) in [
+            ("insert_threads", self.insert_threads),
+            ("fit_threads", self.fit_threads),
+        ] {
+            if threads > 64 {
+                return Err(PlanningError::Settings(format!(
+                    "{name} must be <= 64 (0 = one per core), got {threads}"
+                )));
+            }
         }
         Ok(())
     }
@@ -598,6 +606,7 @@ impl TrolleyPlanner {
             min_voxels,
             &self.settings.fit,
             &mut self.fit_cache,
+            threads_or_cores(self.settings.fit_threads),
         );
     }
 
@@ -725,9 +734,10 @@ impl TrolleyPlanner {
             .collect();
         if self.fits_stale {
             let clusters = shaped.iter().map(|&i| &self.clusters[i]);
+            let threads = threads_or_cores(self.settings.fit_threads);
             (self.fits, self.last_refits) =
                 self.fit_cache
-                    .update(&self.map, clusters, &self.settings.fit);
+                    .update(&self.map, clusters, &self.settings.fit, threads);
             self.fits_stale = false;
         }
         for (&i, fitted) in shaped.iter().zip(&self.fits) {

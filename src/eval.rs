@@ -128,6 +128,11 @@ pub struct EvalArgs {
     /// planner's `merge_far_rays`), for a side-by-side run.
     #[arg(long, value_name = "BOOL", action = clap::ArgAction::Set, default_value_t = glasshouse_pipeline::PlanningSettings::default().merge_far_rays)]
     pub merge_far_rays: bool,
+    /// Draw ROI targets nearer the camera more often, weight `exp(−distance / M)` (the
+    /// planner's `roi_target_near_m`; 0, the default, draws them uniformly as the paper), for a
+    /// side-by-side run.
+    #[arg(long, value_name = "M", default_value_t = glasshouse_pipeline::PlanningSettings::default().roi_target_near_m)]
+    pub roi_target_near: f64,
     /// Rank views by utility less this much per second the robot takes to reach them (the
     /// planner's default); 0 ranks by the paper's utility alone, for a side-by-side run.
     #[arg(long, value_name = "W", default_value_t = glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S)]
@@ -282,6 +287,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "registration": args.registration,
         "hand_eye": !args.no_hand_eye,
         "motion_cost_per_s": args.motion_cost_per_s,
+        "roi_target_near_m": args.roi_target_near,
         "clutter_settles_after": args.clutter_settles_after,
         "fruit_settles_after": args.fruit_settles_after,
         "detector": plan.fruit_detector.name(),
@@ -352,6 +358,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 revisit_aim: !args.no_revisit_aim,
                 max_range_m: args.max_range,
                 merge_far_rays: args.merge_far_rays,
+                roi_target_near_m: args.roi_target_near,
                 ..TrialConfig::new(plan.scenario, method, args.seed.wrapping_add(u64::from(t)))
             })
         })
@@ -644,6 +651,7 @@ mod tests {
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             max_range: glasshouse_pipeline::PlanningSettings::default().max_range_m,
             merge_far_rays: glasshouse_pipeline::PlanningSettings::default().merge_far_rays,
+            roi_target_near: glasshouse_pipeline::PlanningSettings::default().roi_target_near_m,
             clutter_settles_after: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             days: None,

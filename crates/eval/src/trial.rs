@@ -102,6 +102,8 @@ pub struct TrialConfig {
     /// Points beyond the range free one ray per voxel at the range
     /// (`PlanningSettings::merge_far_rays`).
     pub merge_far_rays: bool,
+    /// ROI targets nearer the camera drawn more often (`PlanningSettings::roi_target_near_m`).
+    pub roi_target_near_m: f64,
 }
 
 impl TrialConfig {
@@ -128,6 +130,7 @@ impl TrialConfig {
             fruit_settles_after_views: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             max_range_m: PlanningSettings::default().max_range_m,
             merge_far_rays: PlanningSettings::default().merge_far_rays,
+            roi_target_near_m: PlanningSettings::default().roi_target_near_m,
         }
     }
 
@@ -170,6 +173,7 @@ impl TrialConfig {
             roi_targets: self.roi_targets,
             max_range_m: self.max_range_m,
             merge_far_rays: self.merge_far_rays,
+            roi_target_near_m: self.roi_target_near_m,
             ..PlanningSettings::default()
         };
         settings.registration.enabled = self.registration;

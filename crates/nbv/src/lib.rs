@@ -56,6 +56,7 @@ use std::str::FromStr;
 use glasshouse_geom::{look_along, look_at, Aabb};
 use glasshouse_roimap::{KeyBuildHasher, Neighbourhood, Occupancy, RoiCluster, RoiMap, VoxelKey};
 use nalgebra::{Isometry3, Point3, Vector3};
+use rand::distributions::{Distribution, WeightedIndex};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -183,6 +184,9 @@ pub struct PlannerConfig {
     pub max_ranked_views: usize,
     /// Threads that score candidates; 0 means one per core. Any value gives the same plan.
     pub scoring_threads: usize,
+    /// ROI targets drawn nearer the camera more often: target `t` with weight
+    /// `exp(−|t − camera| / roi_target_near_m)`, metres; 0 draws them uniformly, as the paper.
+    pub roi_target_near_m: f64,
 }
 
 impl Default for PlannerConfig {
@@ -206,6 +210,7 @@ impl Default for PlannerConfig {
             occlusion_occupancy_logodds: (0.6f32 / 0.4).ln(),
             max_ranked_views: 20,
             scoring_threads: 0,
+            roi_target_near_m: 0.0,
         }
     }
 }
@@ -235,6 +240,9 @@ impl PlannerConfig {
         }
         if !(self.cost_weight_per_m.is_finite() && self.cost_weight_per_m >= 0.0) {
             return bad("cost_weight_per_m must be finite and >= 0");
+        }
+        if !(self.roi_target_near_m.is_finite() && self.roi_target_near_m >= 0.0) {
+            return bad("roi_target_near_m must be finite and >= 0");
         }
         if !(self.cost_weight_per_s.is_finite() && self.cost_weight_per_s >= 0.0) {
             return bad("cost_weight_per_s must be finite and >= 0");
@@ -579,8 +587,13 @@ fn sample_roi_views(
     if targets.is_empty() {
         return poses;
     }
+    let near = near_camera_weights(ctx, config, targets);
     for _ in 0..config.roi_samples {
-        let target_in_world = ctx.map.centre_of(targets[rng.gen_range(0..targets.len())]);
+        let pick = match &near {
+            Some(weights) => weights.sample(rng),
+            None => rng.gen_range(0..targets.len()),
+        };
+        let target_in_world = ctx.map.centre_of(targets[pick]);
         let direction = uniform_unit_vector(rng);
         let radius_m = uniform_in(rng, config.min_view_distance_m, config.max_view_distance_m);
         let camera_in_world = target_in_world + direction * radius_m;
@@ -604,6 +617,25 @@ fn sample_roi_views(
         }
     }
     poses
+}
+
+/// The draw of ROI targets weighted towards the camera ([`PlannerConfig::roi_target_near_m`]);
+/// `None` for the paper's uniform draw.
+fn near_camera_weights(
+    ctx: &PlanningContext,
+    config: &PlannerConfig,
+    targets: &[VoxelKey],
+) -> Option<WeightedIndex<f64>> {
+    if config.roi_target_near_m <= 0.0 {
+        return None;
+    }
+    let camera = Point3::from(ctx.world_from_camera.translation.vector);
+    let weights = targets.iter().map(|&k| {
+        let distance_m = (ctx.map.centre_of(k) - camera).norm();
+        // Never 0: a far target stays possible (and the weights never all vanish).
+        (-distance_m / config.roi_target_near_m).exp().max(1e-12)
+    });
+    WeightedIndex::new(weights).ok()
 }
 
 /// Exploration candidate poses from the frontier.

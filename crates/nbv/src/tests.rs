@@ -600,3 +600,40 @@ fn a_motion_time_ranks_quicker_views_first_and_leaves_the_choice_of_list_alone()
         views_of(&b.expect("valid plan"))
     );
 }
+
+#[test]
+fn roi_targets_near_the_camera_are_drawn_more_often_when_asked() {
+    let map = empty_map();
+    let mut ctx = blob_context(&map);
+    ctx.camera_workspace = aabb([-2.0, -2.0, -1.0], [3.0, 2.0, 3.0]);
+    // The camera at (0, -0.4, 1.0): one target 0.4 m away, one 1.27 m away.
+    let (near, far) = (
+        map.key_of(&Point3::new(0.0, 0.0, 1.0)),
+        map.key_of(&Point3::new(1.2, 0.0, 1.0)),
+    );
+    let near_share = |config: &PlannerConfig| {
+        let poses = sample_roi_views(&ctx, config, &[near, far], &mut rng_stream(7, 0));
+        let at_near = poses
+            .iter()
+            .filter(|p| {
+                (position(p) - map.centre_of(near)).norm() <= config.max_view_distance_m + 0.01
+            })
+            .count();
+        at_near as f64 / poses.len() as f64
+    };
+    let uniform = near_share(&PlannerConfig::default());
+    assert!(
+        (0.35..=0.65).contains(&uniform),
+        "uniform draw: {uniform} near"
+    );
+    let weighted = near_share(&PlannerConfig {
+        roi_target_near_m: 0.2,
+        ..PlannerConfig::default()
+    });
+    assert!(weighted > 0.95, "weighted draw: {weighted} near");
+    let bad = PlannerConfig {
+        roi_target_near_m: f64::NAN,
+        ..PlannerConfig::default()
+    };
+    assert!(bad.validate().is_err());
+}

@@ -69,6 +69,9 @@ pub struct PlanningSettings {
     /// Threads that cast a cloud's rays into the map (0: one per core); any count gives the
     /// same map, voxel for voxel.
     pub insert_threads: usize,
+    /// ROI targets nearer the camera drawn more often (weight `exp(−distance / this)`, metres;
+    /// 0: uniformly, as the paper).
+    pub roi_target_near_m: f64,
     /// Threads that split and fit the clusters a cloud changed (0: one per core); any count
     /// gives the same fruits.
     pub fit_threads: usize,
@@ -192,6 +195,7 @@ impl Default for PlanningSettings {
             scoring_threads: 0,
             insert_threads: 1,
             fit_threads: 1,
+            roi_target_near_m: 0.0,
             roi_evidence: RoiEvidence::Labels,
             roi_targets: RoiTargets::default(),
             registration: RegisterSettings::default(),
@@ -264,6 +268,7 @@ impl PlanningSettings {
             method: self.method,
             scoring_threads: self.scoring_threads,
             cost_weight_per_s: self.cost_weight_per_s,
+            roi_target_near_m: self.roi_target_near_m,
             ..PlannerConfig::default()
         }
     }

@@ -48,17 +48,8 @@ impl FitCache {
         config: &FitConfig,
         threads: usize,
     ) -> (Vec<FruitSolid>, usize) {
-        let mut previous = std::mem::take(&mut self.by_first_voxel);
         let clusters: Vec<&RoiCluster> = clusters.into_iter().collect();
-        let kept: Vec<Option<CachedFit>> = clusters
-            .iter()
-            .map(|cluster| {
-                previous.remove(&cluster.voxels[0]).filter(|cached| {
-                    cached.voxels == cluster.voxels
-                        && !map.changed_since(&cached.read_min, &cached.read_max, cached.at_scans)
-                })
-            })
-            .collect();
+        let kept = still_valid(&mut self.by_first_voxel, map, &clusters);
         let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
         let mut fitted = in_parallel(stale.len(), threads, |j| {
             fit(map, clusters[stale[j]], config)
@@ -77,6 +68,43 @@ impl FitCache {
             .collect();
         (shapes, stale.len())
     }
+}
+
+/// A result kept for a cluster: the cluster's voxels and the box of the map it read, with the
+/// map's scan count then.
+trait ReadTheMap {
+    fn read(&self) -> (&[VoxelKey], &Point3<f64>, &Point3<f64>, u64);
+}
+
+impl ReadTheMap for CachedFit {
+    fn read(&self) -> (&[VoxelKey], &Point3<f64>, &Point3<f64>, u64) {
+        (&self.voxels, &self.read_min, &self.read_max, self.at_scans)
+    }
+}
+
+impl ReadTheMap for CachedSplit {
+    fn read(&self) -> (&[VoxelKey], &Point3<f64>, &Point3<f64>, u64) {
+        (&self.voxels, &self.read_min, &self.read_max, self.at_scans)
+    }
+}
+
+/// Takes every result out of `cache` and returns, in cluster order, those still valid: the
+/// cluster's voxels the same and nothing changed in the box it read. The rest are dropped.
+fn still_valid<C: ReadTheMap>(
+    cache: &mut HashMap<VoxelKey, C>,
+    map: &RoiMap,
+    clusters: &[&RoiCluster],
+) -> Vec<Option<C>> {
+    let mut previous = std::mem::take(cache);
+    clusters
+        .iter()
+        .map(|cluster| {
+            previous.remove(&cluster.voxels[0]).filter(|cached| {
+                let (voxels, min, max, at_scans) = cached.read();
+                voxels == cluster.voxels.as_slice() && !map.changed_since(min, max, at_scans)
+            })
+        })
+        .collect()
 }
 
 /// `work(i)` for every `i < n`, in index order, spread over `threads` threads (the calling one
@@ -233,17 +261,8 @@ impl SplitCache {
         fits: &mut FitCache,
         threads: usize,
     ) -> (Vec<RoiCluster>, usize) {
-        let mut previous = std::mem::take(&mut self.by_first_voxel);
         let clusters: Vec<&RoiCluster> = clusters.collect();
-        let kept: Vec<Option<CachedSplit>> = clusters
-            .iter()
-            .map(|cluster| {
-                previous.remove(&cluster.voxels[0]).filter(|cached| {
-                    cached.voxels == cluster.voxels
-                        && !map.changed_since(&cached.read_min, &cached.read_max, cached.at_scans)
-                })
-            })
-            .collect();
+        let kept = still_valid(&mut self.by_first_voxel, map, &clusters);
         let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
         let mut splits = in_parallel(stale.len(), threads, |j| {
             split_cluster(map, clusters[stale[j]].clone(), min_voxels, config)

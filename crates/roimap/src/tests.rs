@@ -2011,3 +2011,28 @@ fn a_delta_on_another_base_or_damaged_changes_nothing() {
     copy.apply_delta(&delta).expect("the right base applies");
     assert_same_map(&copy, &owner);
 }
+
+#[test]
+fn unknown_rule_flags_are_corrupt_and_known_ones_read_back() {
+    let m = RoiMap::new(MapConfig {
+        merge_far_rays: true,
+        roi_target_needs_neighbour: true,
+        ..MapConfig::default()
+    })
+    .expect("valid");
+    let header = m.stored_header();
+    // resolution (f64), seven f32 rules, the range (f64): the flags byte follows.
+    const FLAGS_AT: usize = 8 + 7 * 4 + 8;
+    assert_eq!(header[FLAGS_AT], 0b11, "both rules set");
+    let back = RoiMap::from_stored(&header, std::iter::empty::<&[u8]>()).expect("load");
+    assert!(back.config().merge_far_rays && back.config().roi_target_needs_neighbour);
+    let mut damaged = header.clone();
+    damaged[FLAGS_AT] = 0b100;
+    match RoiMap::from_stored(&damaged, std::iter::empty::<&[u8]>()) {
+        Err(snapshot::SnapshotError::Corrupt(why)) => assert!(why.contains("rule flags"), "{why}"),
+        other => panic!(
+            "a flag no rule has was read: {:?}",
+            other.map(|m| *m.config())
+        ),
+    }
+}

@@ -13,16 +13,39 @@ use glasshouse_nbv::evidence::{ClusterEvidence, ClusterShape, Interior};
 use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid};
 use glasshouse_nbv::split::{split_cluster, ReadBox};
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
+
+use crate::parallel::in_parallel;
 use nalgebra::Point3;
 
-/// A fit with what it read: the cluster's voxels, the box of the map it looked at and the map's
-/// scan count then.
+/// What a kept result read: the cluster's voxels, the box of the map it looked at and the map's
+/// scan count then. It holds while the voxels are the same and nothing changed in the box.
+#[derive(Clone, Debug)]
+struct Reading {
+    voxels: Vec<VoxelKey>,
+    min: Point3<f64>,
+    max: Point3<f64>,
+    at_scans: u64,
+}
+
+impl Reading {
+    fn of(map: &RoiMap, cluster: &RoiCluster, (min, max): ReadBox) -> Self {
+        Self {
+            voxels: cluster.voxels.clone(),
+            min,
+            max,
+            at_scans: map.scans_inserted(),
+        }
+    }
+
+    fn holds(&self, map: &RoiMap, cluster: &RoiCluster) -> bool {
+        self.voxels == cluster.voxels && !map.changed_since(&self.min, &self.max, self.at_scans)
+    }
+}
+
+/// A fit with what it read.
 #[derive(Clone, Debug)]
 struct CachedFit {
-    voxels: Vec<VoxelKey>,
-    read_min: Point3<f64>,
-    read_max: Point3<f64>,
-    at_scans: u64,
+    read: Reading,
     shape: FruitSolid,
     evidence: ClusterEvidence,
     interior: Interior,
@@ -49,7 +72,7 @@ impl FitCache {
         threads: usize,
     ) -> (Vec<FruitSolid>, usize) {
         let clusters: Vec<&RoiCluster> = clusters.into_iter().collect();
-        let kept = still_valid(&mut self.by_first_voxel, map, &clusters);
+        let kept = still_valid(&mut self.by_first_voxel, map, &clusters, |c| &c.read);
         let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
         let mut fitted = in_parallel(stale.len(), threads, |j| {
             fit(map, clusters[stale[j]], config)
@@ -70,81 +93,23 @@ impl FitCache {
     }
 }
 
-/// A result kept for a cluster: the cluster's voxels and the box of the map it read, with the
-/// map's scan count then.
-trait ReadTheMap {
-    fn read(&self) -> (&[VoxelKey], &Point3<f64>, &Point3<f64>, u64);
-}
-
-impl ReadTheMap for CachedFit {
-    fn read(&self) -> (&[VoxelKey], &Point3<f64>, &Point3<f64>, u64) {
-        (&self.voxels, &self.read_min, &self.read_max, self.at_scans)
-    }
-}
-
-impl ReadTheMap for CachedSplit {
-    fn read(&self) -> (&[VoxelKey], &Point3<f64>, &Point3<f64>, u64) {
-        (&self.voxels, &self.read_min, &self.read_max, self.at_scans)
-    }
-}
-
 /// Takes every result out of `cache` and returns, in cluster order, those still valid: the
 /// cluster's voxels the same and nothing changed in the box it read. The rest are dropped.
-fn still_valid<C: ReadTheMap>(
+fn still_valid<C>(
     cache: &mut HashMap<VoxelKey, C>,
     map: &RoiMap,
     clusters: &[&RoiCluster],
+    reading: impl Fn(&C) -> &Reading,
 ) -> Vec<Option<C>> {
     let mut previous = std::mem::take(cache);
     clusters
         .iter()
         .map(|cluster| {
-            previous.remove(&cluster.voxels[0]).filter(|cached| {
-                let (voxels, min, max, at_scans) = cached.read();
-                voxels == cluster.voxels.as_slice() && !map.changed_since(min, max, at_scans)
-            })
+            previous
+                .remove(&cluster.voxels[0])
+                .filter(|cached| reading(cached).holds(map, cluster))
         })
         .collect()
-}
-
-/// `work(i)` for every `i < n`, in index order, spread over `threads` threads (the calling one
-/// among them), each taking the next index: fits differ tenfold in cost, so fixed shares
-/// would leave a thread idle. One thread, or one item, runs here without spawning.
-pub(crate) fn in_parallel<T: Send>(
-    n: usize,
-    threads: usize,
-    work: impl Fn(usize) -> T + Sync,
-) -> Vec<T> {
-    let threads = threads.clamp(1, n.max(1));
-    if threads == 1 {
-        return (0..n).map(work).collect();
-    }
-    let next = std::sync::atomic::AtomicUsize::new(0);
-    let take = || {
-        let mut done = Vec::new();
-        loop {
-            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            if i >= n {
-                return done;
-            }
-            done.push((i, work(i)));
-        }
-    };
-    let mut results: Vec<(usize, T)> = std::thread::scope(|scope| {
-        let helpers: Vec<_> = (1..threads).map(|_| scope.spawn(take)).collect();
-        let mut all = take();
-        for helper in helpers {
-            // A panic in a helper's fit is the fit's panic, as on one thread.
-            all.extend(
-                helper
-                    .join()
-                    .unwrap_or_else(|e| std::panic::resume_unwind(e)),
-            );
-        }
-        all
-    });
-    results.sort_unstable_by_key(|(i, _)| *i);
-    results.into_iter().map(|(_, r)| r).collect()
 }
 
 impl FitCache {
@@ -158,10 +123,7 @@ impl FitCache {
         read: ReadBox,
     ) {
         let cached = CachedFit {
-            voxels: cluster.voxels.clone(),
-            read_min: read.0,
-            read_max: read.1,
-            at_scans: map.scans_inserted(),
+            read: Reading::of(map, cluster, read),
             interior: Interior::of_fruit(map, &shape),
             shape,
             evidence: ClusterEvidence::of(map, cluster),
@@ -183,7 +145,7 @@ impl FitCache {
 
     fn cached(&self, cluster: &RoiCluster) -> Option<&CachedFit> {
         let cached = self.by_first_voxel.get(cluster.voxels.first()?)?;
-        (cached.voxels == cluster.voxels).then_some(cached)
+        (cached.read.voxels == cluster.voxels).then_some(cached)
     }
 
     /// The shape of each cluster's voxels ([`ClusterShape`]), in cluster order, computed again
@@ -215,26 +177,19 @@ impl FitCache {
 
 fn fit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> CachedFit {
     let shape = fit_ellipsoid(map, cluster, config);
-    let (min, max) = fit_read_box(map, cluster, &shape, config);
+    let read = fit_read_box(map, cluster, &shape, config);
     CachedFit {
-        voxels: cluster.voxels.clone(),
-        read_min: min,
-        read_max: max,
-        at_scans: map.scans_inserted(),
+        read: Reading::of(map, cluster, read),
         interior: Interior::of_fruit(map, &shape),
         shape,
         evidence: ClusterEvidence::of(map, cluster),
     }
 }
 
-/// A split of one ROI cluster with what it read: the cluster's voxels, the box of the map its
-/// fits looked at and the map's scan count then.
+/// A split of one ROI cluster with what its fits read.
 #[derive(Clone, Debug)]
 struct CachedSplit {
-    voxels: Vec<VoxelKey>,
-    read_min: Point3<f64>,
-    read_max: Point3<f64>,
-    at_scans: u64,
+    read: Reading,
     parts: Vec<RoiCluster>,
 }
 
@@ -262,7 +217,7 @@ impl SplitCache {
         threads: usize,
     ) -> (Vec<RoiCluster>, usize) {
         let clusters: Vec<&RoiCluster> = clusters.collect();
-        let kept = still_valid(&mut self.by_first_voxel, map, &clusters);
+        let kept = still_valid(&mut self.by_first_voxel, map, &clusters, |c| &c.read);
         let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
         let mut splits = in_parallel(stale.len(), threads, |j| {
             split_cluster(map, clusters[stale[j]].clone(), min_voxels, config)
@@ -283,13 +238,10 @@ impl SplitCache {
                     fits.offer(map, part, shape, read);
                 }
             }
-            if let Some((read_min, read_max)) = split.read {
+            if let Some(read) = split.read {
                 tries += 1;
                 let cached = CachedSplit {
-                    voxels: cluster.voxels.clone(),
-                    read_min,
-                    read_max,
-                    at_scans: map.scans_inserted(),
+                    read: Reading::of(map, cluster, read),
                     parts: split.parts,
                 };
                 self.by_first_voxel.insert(first, cached);

@@ -21,6 +21,7 @@ mod detector;
 mod edge;
 pub mod fits;
 mod order;
+pub mod parallel;
 mod planning;
 mod published;
 mod reach;

@@ -103,28 +103,9 @@ fn decode_all(
     held: Vec<(String, Arc<MapSnapshot>)>,
     threads: usize,
 ) -> Vec<Decoded> {
-    let decode = |(tid, snapshot): (String, Arc<MapSnapshot>)| {
-        let (copy, ms) = decode_timed(settings, &snapshot);
-        (tid, copy, ms)
-    };
-    let decode = &decode;
-    let mut out = Vec::with_capacity(held.len());
-    let mut held = held.into_iter().peekable();
-    while held.peek().is_some() {
-        let batch: Vec<_> = held.by_ref().take(threads.max(1)).collect();
-        std::thread::scope(|scope| {
-            let workers: Vec<_> = batch
-                .into_iter()
-                .map(|job| scope.spawn(move || decode(job)))
-                .collect();
-            for worker in workers {
-                out.push(
-                    worker
-                        .join()
-                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
-                );
-            }
-        });
-    }
-    out
+    glasshouse_pipeline::parallel::in_parallel(held.len(), threads, |i| {
+        let (tid, snapshot) = &held[i];
+        let (copy, ms) = decode_timed(settings, snapshot);
+        (tid.clone(), copy, ms)
+    })
 }

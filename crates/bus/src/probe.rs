@@ -456,11 +456,33 @@ async fn answered(
     Ok(false)
 }
 
+/// [`answered`], asked again until an answer comes or `timeout` passes: a session just opened
+/// has not yet heard of the planners' queryables, and its first query gets an empty reply at once.
+async fn answered_within(
+    session: &Session,
+    planners: &[String],
+    victim: &str,
+    timeout: Duration,
+) -> Result<bool, ProbeError> {
+    let deadline = tokio::time::Instant::now() + timeout;
+    let retry_every = Duration::from_millis(250);
+    loop {
+        let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+        if answered(session, planners, victim, left.max(retry_every)).await? {
+            return Ok(true);
+        }
+        if tokio::time::Instant::now() + retry_every >= deadline {
+            return Ok(false);
+        }
+        tokio::time::sleep(retry_every).await;
+    }
+}
+
 async fn snapshot_attempt(setup: &ProbeSetup, rogue: &Session) -> Result<Attempt, ProbeError> {
     let (planners, victim) = (&setup.planners, setup.victim.as_str());
     if let Some(config) = &setup.snapshot_control {
         let planner = open_as(config, "snapshot control", setup.timeout).await?;
-        let ok = answered(&planner, planners, victim, setup.timeout).await?;
+        let ok = answered_within(&planner, planners, victim, setup.timeout).await?;
         let _ = planner.close().await;
         if !ok {
             return Err(ProbeError::SnapshotControl(setup.timeout));

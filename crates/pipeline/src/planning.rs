@@ -871,17 +871,24 @@ impl TrolleyPlanner {
         self.map_seq += 1;
         let mut voxels = Vec::new();
         let published_solid = &mut self.published_solid;
-        self.map.drain_changes(|key, voxel, is_roi| {
-            let change = voxel_change(key, voxel, is_roi);
-            let was_solid = if change.state == VoxelState::Free {
-                published_solid.remove(key)
-            } else {
-                published_solid.insert(key);
-                true
-            };
-            if was_solid {
-                voxels.push(change);
-            }
+        self.map.drain_changed_blocks(|block| {
+            // A changed voxel is news when it is solid now or was published solid: the rest
+            // (nearly all of a scan's freed voxels) are never read.
+            let (changed, solid) = (block.changed(), block.solid());
+            let published = published_solid.cell(block.coord());
+            let news: [u64; 8] = std::array::from_fn(|w| changed[w] & (solid[w] | published[w]));
+            block.for_each(&news, |key, voxel, is_roi| {
+                let change = voxel_change(key, voxel, is_roi);
+                let was_solid = if change.state == VoxelState::Free {
+                    published_solid.remove(key)
+                } else {
+                    published_solid.insert(key);
+                    true
+                };
+                if was_solid {
+                    voxels.push(change);
+                }
+            });
         });
         // Only the few kept voxels are sorted (by key, for a deterministic message).
         voxels.sort_unstable_by_key(|c| c.key);

@@ -51,6 +51,11 @@ impl PublishedSolid {
         self.last_cell = None;
     }
 
+    /// The published voxels of one cell (the map's block coordinate, a key ÷ 8).
+    pub(crate) fn cell(&self, cell: VoxelKey) -> [u64; 8] {
+        self.per_cell.get(&cell).copied().unwrap_or_default()
+    }
+
     /// Forgets `key`; whether it was published solid.
     pub(crate) fn remove(&mut self, key: VoxelKey) -> bool {
         let (cell, bit) = cell_and_bit(key);

@@ -127,6 +127,7 @@ fn queries(c: &mut Criterion) {
     after
         .insert_scan(&s.origin, &s.points, &s.roi)
         .expect("valid");
+    let undrained = after.clone();
     let changes = after.take_changes();
     eprintln!("scan 10 changes {} voxels", changes.len());
     g.bench_function("apply_one_scan_of_changes", |b| {
@@ -137,9 +138,39 @@ fn queries(c: &mut Criterion) {
         )
     });
     g.finish();
+    changes_read(c, &undrained);
 }
 
 /// The original's per-iteration recomputation: scan every known voxel.
+/// One scan's changes read back: every changed voxel's values (`drain_changes`), against only
+/// the solid ones a map update keeps (`drain_changed_blocks`); `changed` holds the scan's
+/// changes undrained.
+fn changes_read(c: &mut Criterion, changed: &RoiMap) {
+    let mut g = c.benchmark_group("changes");
+    g.sample_size(20);
+    g.bench_function("read_every_changed_voxel", |b| {
+        b.iter_batched_ref(
+            || changed.clone(),
+            |m| m.drain_changes(|k, v, roi| _ = std::hint::black_box((k, v, roi))),
+            BatchSize::LargeInput,
+        )
+    });
+    g.bench_function("read_changed_solid_voxels", |b| {
+        b.iter_batched_ref(
+            || changed.clone(),
+            |m| {
+                m.drain_changed_blocks(|block| {
+                    let (changed, solid) = (block.changed(), block.solid());
+                    let news: [u64; 8] = std::array::from_fn(|w| changed[w] & solid[w]);
+                    block.for_each(&news, |k, v, roi| _ = std::hint::black_box((k, v, roi)));
+                })
+            },
+            BatchSize::LargeInput,
+        )
+    });
+    g.finish();
+}
+
 fn brute_frontiers(m: &RoiMap, region: &Aabb) -> (usize, usize) {
     let (mut expl, mut roi) = (0, 0);
     for (k, v) in m.iter() {

@@ -61,8 +61,8 @@ use glasshouse_geom::Aabb;
 use nalgebra::{Point3, Vector3};
 
 use crate::grid::{
-    block_of, for_each_bit, key_at, local_of, mask_is_empty, mask_set, mask_test, Mask, Storage,
-    EMPTY,
+    block_of, for_each_bit, key_at, local_of, mask_is_empty, mask_set, mask_test, Block, Mask,
+    Storage, EMPTY,
 };
 use crate::walk::{axis_key, RaySetup, KEY_LIMIT};
 
@@ -470,6 +470,44 @@ impl Iterator for BlockRange {
     }
 }
 
+/// One block of changed voxels ([`RoiMap::drain_changed_blocks`]). Masks have bit
+/// `z * 64 + y * 8 + x` set for the voxel at that offset in the block, as in
+/// [`RoiMap::solid_blocks`].
+pub struct ChangedBlock<'m> {
+    coord: VoxelKey,
+    block: &'m Block,
+}
+
+impl ChangedBlock<'_> {
+    /// The block's coordinate: a voxel key ÷ 8 (rounded down).
+    pub fn coord(&self) -> VoxelKey {
+        self.coord
+    }
+
+    /// The voxels changed since the last drain.
+    pub fn changed(&self) -> &[u64; 8] {
+        &self.block.dirty
+    }
+
+    /// The solid voxels now: occupied (log-odds > 0) or ROI.
+    pub fn solid(&self) -> [u64; 8] {
+        let b = self.block;
+        std::array::from_fn(|w| b.occupied[w] | b.roi_mask[w])
+    }
+
+    /// Each voxel of `which` with its values and whether it is ROI, in bit order.
+    pub fn for_each(&self, which: &[u64; 8], mut visit: impl FnMut(VoxelKey, Voxel, bool)) {
+        let b = self.block;
+        for_each_bit(which, |l| {
+            let voxel = Voxel {
+                occupancy_logodds: b.occ_at(l),
+                roi_logodds: b.roi_at(l),
+            };
+            visit(key_at(self.coord, l), voxel, mask_test(&b.roi_mask, l));
+        });
+    }
+}
+
 /// The ROI voxel map. See the crate docs for the update rules.
 #[derive(Clone)]
 pub struct RoiMap {
@@ -781,16 +819,21 @@ impl RoiMap {
     /// lookup per voxel); clears the record. A scan changes hundreds of thousands of voxels,
     /// mostly freed ones: a caller that keeps a few of them need not sort them all.
     pub fn drain_changes(&mut self, mut visit: impl FnMut(VoxelKey, Voxel, bool)) {
+        self.drain_changed_blocks(|block| {
+            let changed = *block.changed();
+            block.for_each(&changed, &mut visit);
+        });
+    }
+
+    /// [`RoiMap::drain_changes`] block by block, for a caller that keeps a few of the changed
+    /// voxels and can tell which from masks (the solid ones, say): it reads only those voxels'
+    /// values, where a scan's hundreds of thousands of freed voxels cost one mask test per block.
+    /// Clears the record.
+    pub fn drain_changed_blocks(&mut self, mut visit: impl FnMut(ChangedBlock<'_>)) {
         for bi in self.dirty_blocks.drain() {
             let b = &mut self.store.blocks[bi as usize];
-            let bk = self.store.coords[bi as usize];
-            for_each_bit(&b.dirty, |l| {
-                let voxel = Voxel {
-                    occupancy_logodds: b.occ_at(l),
-                    roi_logodds: b.roi_at(l),
-                };
-                visit(key_at(bk, l), voxel, mask_test(&b.roi_mask, l));
-            });
+            let coord = self.store.coords[bi as usize];
+            visit(ChangedBlock { coord, block: b });
             b.dirty = EMPTY;
         }
     }

@@ -500,3 +500,53 @@ fn clouds_cast_on_several_threads_make_the_same_map_as_on_one() {
         Err(PlanningError::Settings(e)) if e.contains("insert_threads")
     ));
 }
+
+/// Map updates applied in order (solid voxels shown, freed ones taken away) show exactly the
+/// map's solid voxels after every cloud, and a voxel is reported freed only after it was shown.
+#[test]
+fn map_updates_in_order_show_exactly_the_maps_solid_voxels() {
+    use glasshouse_proto::VoxelState;
+    use std::collections::BTreeMap;
+    let mut trolley = noisy_sim(0.1, 1).unwrap();
+    let mut planner = TrolleyPlanner::new(PlanningSettings::default()).unwrap();
+    let mut shown: BTreeMap<[i32; 3], VoxelState> = BTreeMap::new();
+    let mut freed_after_shown = 0;
+    for seq in 1..=6 {
+        let frame = trolley.capture(seq).unwrap().unwrap();
+        let id = FrameId::new(EPOCH_NS, seq);
+        let cloud = detect_frame(&frame, id, "d1", &DetectorConfig::default()).unwrap();
+        planner.integrate(&cloud, EPOCH_NS).unwrap();
+        for change in planner.map_update(seq, "p1").voxels {
+            let [x, y, z] = change.key;
+            let now = planner.map().get(glasshouse_roimap::VoxelKey::new(x, y, z));
+            assert_eq!(
+                now.map(|v| (v.occupancy_logodds, v.roi_logodds)),
+                Some((change.occupancy_logodds, change.roi_logodds))
+            );
+            if change.state == VoxelState::Free {
+                assert!(shown.remove(&change.key).is_some(), "{change:?}");
+                freed_after_shown += 1;
+            } else {
+                shown.insert(change.key, change.state);
+            }
+        }
+        let map = planner.map();
+        let solid: BTreeMap<[i32; 3], VoxelState> = map
+            .iter()
+            .filter_map(|(k, v)| {
+                let state = match (map.is_roi(k), v.occupancy()) {
+                    (true, _) => VoxelState::Roi,
+                    (false, glasshouse_roimap::Occupancy::Occupied) => VoxelState::Occupied,
+                    _ => return None,
+                };
+                Some(([k.x, k.y, k.z], state))
+            })
+            .collect();
+        assert_eq!(shown, solid, "after cloud {seq}");
+        if let Some(plan) = planner.plan(&frame.world_from_camera, seq).unwrap() {
+            trolley.execute(&[plan.views[0].world_from_camera]);
+        }
+    }
+    assert!(shown.len() > 500, "{} solid voxels", shown.len());
+    assert!(freed_after_shown > 0, "no shown voxel was freed again");
+}

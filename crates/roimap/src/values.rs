@@ -276,6 +276,11 @@ impl Values {
         step: Step,
         pred: impl Fn(f32) -> bool,
     ) -> (Mask, Mask) {
+        if let Values::Uniform(v) = *self {
+            if let Some(out) = uniform_unchanged(v, touched, hits, step, &pred) {
+                return out;
+            }
+        }
         if let Some(p) = self.palette_mut() {
             if p.values.len() >= COMPACT_AT {
                 p.compact();
@@ -293,6 +298,25 @@ impl Values {
             _ => (EMPTY, EMPTY),
         }
     }
+}
+
+/// A uniform block whose touched voxels all keep their value (it sits at the clamp the update
+/// pushes towards: free air seen again): the update's masks without making a palette and
+/// collapsing it again. None when some touched voxel would change.
+fn uniform_unchanged(
+    v: f32,
+    touched: &Mask,
+    hits: &Mask,
+    step: Step,
+    pred: &impl Fn(f32) -> bool,
+) -> Option<(Mask, Mask)> {
+    let keeps = |is_hit| step.apply(v, is_hit).to_bits() == v.to_bits();
+    let any_hit = (0..8).any(|w| touched[w] & hits[w] != 0);
+    let any_miss = (0..8).any(|w| touched[w] & !hits[w] != 0);
+    if (any_hit && !keeps(true)) || (any_miss && !keeps(false)) {
+        return None;
+    }
+    Some((EMPTY, if pred(v) { *touched } else { EMPTY }))
 }
 
 /// Palette update: each entry's hit and miss successors are found once, then voxels only move
@@ -414,6 +438,35 @@ mod tests {
                     same(&Values::uniform_on(v, &known), &slow),
                     "{v} on {known:x?}"
                 );
+            }
+        }
+    }
+
+    /// Uniform blocks at either clamp, and off it, updated by every mix of touched voxels and
+    /// hits: the same values, storage and masks as the same block updated as a flat array.
+    #[test]
+    fn a_uniform_block_at_its_clamp_updates_like_a_flat_one() {
+        let step = Step {
+            hit: 0.85,
+            miss: -0.4,
+            lo: -2.0,
+            hi: 3.5,
+        };
+        let pred = |v: f32| v > 0.0;
+        let all = masks();
+        for v in [-2.0f32, 3.5, 0.0, -0.4] {
+            for touched in &all {
+                for hits in &all {
+                    let mut fast = Values::Uniform(v);
+                    let mut flat = Values::Flat(Box::new([v; BLOCK_VOXELS]));
+                    let out = fast.update(touched, hits, step, pred);
+                    assert_eq!(out, flat.update(touched, hits, step, pred), "{v}");
+                    let bits = |x: &Values| (0..BLOCK_VOXELS).map(|l| x.get(l).to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(&fast), bits(&flat), "{v}");
+                    if out.0 == EMPTY {
+                        assert!(matches!(fast, Values::Uniform(_)), "{v}: stays uniform");
+                    }
+                }
             }
         }
     }

@@ -461,7 +461,11 @@ mod tests {
                     let mut flat = Values::Flat(Box::new([v; BLOCK_VOXELS]));
                     let out = fast.update(touched, hits, step, pred);
                     assert_eq!(out, flat.update(touched, hits, step, pred), "{v}");
-                    let bits = |x: &Values| (0..BLOCK_VOXELS).map(|l| x.get(l).to_bits()).collect::<Vec<_>>();
+                    let bits = |x: &Values| {
+                        (0..BLOCK_VOXELS)
+                            .map(|l| x.get(l).to_bits())
+                            .collect::<Vec<_>>()
+                    };
                     assert_eq!(bits(&fast), bits(&flat), "{v}");
                     if out.0 == EMPTY {
                         assert!(matches!(fast, Values::Uniform(_)), "{v}: stays uniform");

@@ -169,6 +169,11 @@ impl Block {
     pub(crate) fn occ_at(&self, l: usize) -> f32 {
         self.occ.get(l)
     }
+
+    /// The solid voxels: occupied (log-odds > 0) or ROI.
+    pub(crate) fn solid(&self) -> Mask {
+        std::array::from_fn(|w| self.occupied[w] | self.roi_mask[w])
+    }
 }
 
 /// Blocks by coordinate. Blocks are never removed (voxels never become unknown again).

@@ -491,8 +491,7 @@ impl ChangedBlock<'_> {
 
     /// The solid voxels now: occupied (log-odds > 0) or ROI.
     pub fn solid(&self) -> [u64; 8] {
-        let b = self.block;
-        std::array::from_fn(|w| b.occupied[w] | b.roi_mask[w])
+        self.block.solid()
     }
 
     /// Each voxel of `which` with its values and whether it is ROI, in bit order.
@@ -780,7 +779,7 @@ impl RoiMap {
     /// a mask with bit `z * 64 + y * 8 + x` set for each solid voxel at that offset in the block.
     pub fn solid_blocks(&self) -> impl Iterator<Item = (VoxelKey, [u64; 8])> + '_ {
         let blocks = self.store.blocks.iter().zip(&self.store.coords);
-        blocks.map(|(b, &bk)| (bk, std::array::from_fn(|w| b.occupied[w] | b.roi_mask[w])))
+        blocks.map(|(b, &bk)| (bk, b.solid()))
     }
 
     /// Keys of all ROI voxels, sorted.

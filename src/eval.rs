@@ -147,6 +147,16 @@ pub struct EvalArgs {
     /// default) keeps every found fruit a target, as in the paper.
     #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS)]
     pub fruit_settles_after: u32,
+    /// Once this many clouds in a row bring no new fruit-shaped cluster, plans take the
+    /// exploration views whenever one beats the threshold (the ROI targets left are found
+    /// fruits' hidden backs and clutter); 0: the paper's choice between the lists, for a
+    /// side-by-side run.
+    #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS)]
+    pub explore_after_fruitless: u32,
+    /// Tries of ROI-targeted sampling drawn until 100 candidates survive the workspace,
+    /// occlusion and reach checks; 0: 100 tries, as the paper, for a side-by-side run.
+    #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_ROI_TRIES)]
+    pub roi_tries: usize,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
     /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
     /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
@@ -290,6 +300,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "roi_target_near_m": args.roi_target_near,
         "clutter_settles_after": args.clutter_settles_after,
         "fruit_settles_after": args.fruit_settles_after,
+        "explore_after_fruitless": args.explore_after_fruitless,
+        "roi_tries": args.roi_tries,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -355,6 +367,8 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 motion_cost_per_s: args.motion_cost_per_s,
                 clutter_settles_after_views: args.clutter_settles_after,
                 fruit_settles_after_views: args.fruit_settles_after,
+                explore_after_fruitless_clouds: args.explore_after_fruitless,
+                roi_tries: args.roi_tries,
                 revisit_aim: !args.no_revisit_aim,
                 max_range_m: args.max_range,
                 merge_far_rays: args.merge_far_rays,
@@ -654,6 +668,8 @@ mod tests {
             roi_target_near: glasshouse_pipeline::PlanningSettings::default().roi_target_near_m,
             clutter_settles_after: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
+            explore_after_fruitless: glasshouse_pipeline::DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
+            roi_tries: glasshouse_pipeline::DEFAULT_ROI_TRIES,
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,

@@ -97,6 +97,12 @@ pub struct TrialConfig {
     /// Scan directions after which a cluster taken for a fruit stops drawing ROI views
     /// (`PlanningSettings::fruit_settles_after_views`; 0: never).
     pub fruit_settles_after_views: u32,
+    /// Clouds without a new fruit-shaped cluster after which plans prefer exploration views
+    /// (`PlanningSettings::explore_after_fruitless_clouds`; 0: never).
+    pub explore_after_fruitless_clouds: u32,
+    /// Tries of ROI-targeted sampling until its candidates are drawn
+    /// (`PlanningSettings::roi_tries`; 0: the paper's).
+    pub roi_tries: usize,
     /// Rays are integrated up to this range, metres (`PlanningSettings::max_range_m`).
     pub max_range_m: f64,
     /// Points beyond the range free one ray per voxel at the range
@@ -128,6 +134,9 @@ impl TrialConfig {
             motion_cost_per_s: glasshouse_pipeline::DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: glasshouse_pipeline::DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
+            explore_after_fruitless_clouds:
+                glasshouse_pipeline::DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
+            roi_tries: glasshouse_pipeline::DEFAULT_ROI_TRIES,
             max_range_m: PlanningSettings::default().max_range_m,
             merge_far_rays: PlanningSettings::default().merge_far_rays,
             roi_target_near_m: PlanningSettings::default().roi_target_near_m,
@@ -182,6 +191,8 @@ impl TrialConfig {
         settings.cost_weight_per_s = self.motion_cost_per_s;
         settings.clutter_settles_after_views = self.clutter_settles_after_views;
         settings.fruit_settles_after_views = self.fruit_settles_after_views;
+        settings.explore_after_fruitless_clouds = self.explore_after_fruitless_clouds;
+        settings.roi_tries = self.roi_tries;
         settings
     }
 

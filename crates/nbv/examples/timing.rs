@@ -87,6 +87,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         motion_time: None,
         remembered_fruit: &[],
         settled_voxels: &[],
+        roi_stalled: false,
     };
     for method in Method::ALL {
         let config = PlannerConfig {

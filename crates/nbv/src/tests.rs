@@ -65,6 +65,7 @@ fn blob_context(map: &RoiMap) -> PlanningContext<'_> {
         motion_time: None,
         remembered_fruit: &[],
         settled_voxels: &[],
+        roi_stalled: false,
     }
 }
 
@@ -149,6 +150,67 @@ fn settled_clutter_draws_no_roi_targets_and_keeps_its_roi_voxels() {
         .expect("valid plan")
         .roi_targets;
     assert!((4..16).contains(&kept), "{kept} of 16 targets kept");
+}
+
+#[test]
+fn a_stalled_roi_search_takes_exploration_views_only_when_they_beat_the_threshold() {
+    let map = blob_map();
+    let config = PlannerConfig::default();
+    // A workspace wide enough for cameras beside the blob, where its frontier faces.
+    let wide = |roi_stalled| PlanningContext {
+        camera_workspace: aabb([-1.0, -1.0, 0.2], [1.0, 1.0, 1.8]),
+        roi_stalled,
+        ..blob_context(&map)
+    };
+    let paper = plan_views(&wide(false), &config, 7).expect("valid plan");
+    assert_eq!(paper.used_kind, ViewKind::Roi);
+    let plan = plan_views(&wide(true), &config, 7).expect("valid plan");
+    assert_eq!(plan.used_kind, ViewKind::Exploration);
+    assert!(!plan.views.is_empty());
+    for view in &plan.views {
+        assert_eq!(view.kind, ViewKind::Exploration);
+        assert!(view.utility > config.utility_threshold, "{}", view.utility);
+    }
+    // In front of the blob no exploration candidate fits the workspace: nothing of that list
+    // beats the threshold, so the ROI list stays, stalled or not.
+    let narrow = PlanningContext {
+        roi_stalled: true,
+        ..blob_context(&map)
+    };
+    let kept = plan_views(&narrow, &config, 7).expect("valid plan");
+    assert_eq!(kept.used_kind, ViewKind::Roi);
+}
+
+#[test]
+fn more_roi_tries_draw_until_the_samples_survive() {
+    let map = blob_map();
+    let paper = PlannerConfig::default();
+    let tried = PlannerConfig {
+        roi_tries: 2000,
+        ..paper
+    };
+    let scored = |config: &PlannerConfig| {
+        plan_views(&blob_context(&map), config, 7)
+            .expect("valid plan")
+            .candidates_scored
+    };
+    // Both plans score the same exploration candidates (their own seed stream, E of them):
+    // the paper's R ROI candidates (0 < R < 100) against the 100 the tries draw.
+    let (of_paper, of_tried) = (scored(&paper), scored(&tried));
+    assert!(of_tried > of_paper, "{of_tried} vs {of_paper}");
+    assert!(
+        of_tried - of_paper < paper.roi_samples,
+        "{of_tried} vs {of_paper}"
+    );
+    assert!(of_tried >= paper.roi_samples, "{of_tried}");
+    let too_many = PlannerConfig {
+        roi_tries: 100_001,
+        ..paper
+    };
+    assert!(matches!(
+        too_many.validate(),
+        Err(PlanError::InvalidConfig(_))
+    ));
 }
 
 #[test]
@@ -315,6 +377,7 @@ fn exploration_when_there_is_no_roi() {
         motion_time: None,
         remembered_fruit: &[],
         settled_voxels: &[],
+        roi_stalled: false,
     };
     for method in [Method::OursUu, Method::OursUp, Method::ExploUu] {
         let config = PlannerConfig {
@@ -348,6 +411,7 @@ fn never_empty_on_an_empty_map() {
         motion_time: None,
         remembered_fruit: &[],
         settled_voxels: &[],
+        roi_stalled: false,
     };
     for method in Method::ALL {
         let config = PlannerConfig {
@@ -537,6 +601,7 @@ fn nothing_reachable_gives_an_empty_plan_not_a_panic() {
         motion_time: None,
         remembered_fruit: &[],
         settled_voxels: &[],
+        roi_stalled: false,
     };
     for method in Method::ALL {
         let config = PlannerConfig {

@@ -38,7 +38,8 @@ pub use order::{
 pub use planning::{
     plan_seed, ranked_views, roi_evidence_logodds, ClusterOutcome, PlanningError, PlanningSettings,
     RoiEvidence, RoiTargets, StoredCopy, TrolleyPlanner, DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
-    DEFAULT_COST_WEIGHT_PER_S, DEFAULT_FRUIT_SETTLES_AFTER_VIEWS, ROI_EVIDENCE_LOGODDS,
+    DEFAULT_COST_WEIGHT_PER_S, DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
+    DEFAULT_FRUIT_SETTLES_AFTER_VIEWS, DEFAULT_ROI_TRIES, ROI_EVIDENCE_LOGODDS,
 };
 pub use reach::ReachFilter;
 pub use source::{Executed, TrolleySource, DEPTH_SCALE_M};

@@ -109,6 +109,15 @@ pub struct PlanningSettings {
     /// 95 % of the fruits on the tuning seeds and 11 s later on the report seeds
     /// (docs/results.md, "Settled fruit").
     pub fruit_settles_after_views: u32,
+    /// Once this many clouds in a row have brought no new fruit-shaped cluster (the most seen
+    /// at once has not grown), a plan takes the exploration list whenever one of its views
+    /// beats the threshold ([`PlanningContext::roi_stalled`]): the ROI targets left are then
+    /// mostly the never-seen backs of found fruit and red clutter, and the fruit not found yet
+    /// lie where no ROI target points. 0 (the default): the paper's choice.
+    pub explore_after_fruitless_clouds: u32,
+    /// Tries of ROI-targeted sampling drawn until its 100 candidates survive the workspace,
+    /// occlusion and reach checks ([`PlannerConfig::roi_tries`]; 0: the paper's 100 tries).
+    pub roi_tries: usize,
 }
 
 /// Which ROI voxels ROI-targeted sampling aims at (their free neighbours next to unknown space).
@@ -204,6 +213,8 @@ impl Default for PlanningSettings {
             cost_weight_per_s: DEFAULT_COST_WEIGHT_PER_S,
             clutter_settles_after_views: DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS,
             fruit_settles_after_views: DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
+            explore_after_fruitless_clouds: DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
+            roi_tries: DEFAULT_ROI_TRIES,
         }
     }
 }
@@ -220,6 +231,10 @@ fn threads_or_cores(threads: usize) -> usize {
 pub const DEFAULT_CLUTTER_SETTLES_AFTER_VIEWS: u32 = 0;
 /// [`PlanningSettings::fruit_settles_after_views`] by default: off.
 pub const DEFAULT_FRUIT_SETTLES_AFTER_VIEWS: u32 = 0;
+/// [`PlanningSettings::explore_after_fruitless_clouds`] by default: off.
+pub const DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS: u32 = 0;
+/// [`PlanningSettings::roi_tries`] by default: the paper's.
+pub const DEFAULT_ROI_TRIES: usize = 0;
 
 impl PlanningSettings {
     pub fn validate(&self) -> Result<(), PlanningError> {
@@ -269,6 +284,7 @@ impl PlanningSettings {
             scoring_threads: self.scoring_threads,
             cost_weight_per_s: self.cost_weight_per_s,
             roi_target_near_m: self.roi_target_near_m,
+            roi_tries: self.roi_tries,
             ..PlannerConfig::default()
         }
     }
@@ -400,6 +416,10 @@ pub struct TrolleyPlanner {
     /// The voxels, sorted, of the latest clusters that are settled (clutter and found fruit)
     /// ([`TrolleyPlanner::track`]).
     settled_voxels: Vec<VoxelKey>,
+    /// The most fruit-shaped clusters seen at once this visit, and the clouds tracked since
+    /// that number last grew ([`PlanningSettings::explore_after_fruitless_clouds`]).
+    most_fruit_shaped: usize,
+    fruitless_clouds: u32,
 }
 
 impl TrolleyPlanner {
@@ -432,6 +452,8 @@ impl TrolleyPlanner {
             season: SeasonTracker::default(),
             remembered_fruit: Vec::new(),
             settled_voxels: Vec::new(),
+            most_fruit_shaped: 0,
+            fruitless_clouds: 0,
         })
     }
 
@@ -623,6 +645,34 @@ impl TrolleyPlanner {
         self.fits_stale = true;
         self.forget_found_again();
         self.settle_clusters();
+        self.count_fruitless_clouds();
+    }
+
+    /// Whether the last cloud brought a new fruit-shaped cluster
+    /// ([`PlanningSettings::explore_after_fruitless_clouds`]; nothing is computed while off).
+    fn count_fruitless_clouds(&mut self) {
+        if self.settings.explore_after_fruitless_clouds == 0 {
+            return;
+        }
+        let evidence = self.settings.fit.evidence;
+        let shapes = self.fit_cache.shapes(&self.map, &self.clusters);
+        let fruit_shaped = shapes
+            .iter()
+            .filter(|s| s.verdict(&evidence).is_fruit())
+            .count();
+        if fruit_shaped > self.most_fruit_shaped {
+            self.most_fruit_shaped = fruit_shaped;
+            self.fruitless_clouds = 0;
+        } else {
+            self.fruitless_clouds = self.fruitless_clouds.saturating_add(1);
+        }
+    }
+
+    /// Whether the ROI views have stopped finding fruit: as many clouds in a row as
+    /// [`PlanningSettings::explore_after_fruitless_clouds`] brought no new fruit-shaped cluster.
+    pub fn roi_stalled(&self) -> bool {
+        let after = self.settings.explore_after_fruitless_clouds;
+        after > 0 && self.fruitless_clouds >= after
     }
 
     /// The voxels of the latest clusters that are settled, sorted: clutter
@@ -862,6 +912,7 @@ impl TrolleyPlanner {
                 false => &[],
             },
             settled_voxels: &self.settled_voxels,
+            roi_stalled: self.roi_stalled(),
         })
     }
 

@@ -157,6 +157,11 @@ pub struct EvalArgs {
     /// occlusion and reach checks; 0: 100 tries, as the paper, for a side-by-side run.
     #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_ROI_TRIES)]
     pub roi_tries: usize,
+    /// A voxel above this occupancy log-odds between an ROI target and a candidate camera
+    /// drops the candidate as occluded; the default is the paper's p > 0.6 (0.405), which a
+    /// single hit passes, for a side-by-side run.
+    #[arg(long, value_name = "L", default_value_t = glasshouse_pipeline::PlanningSettings::default().occlusion_occupancy_logodds)]
+    pub occlusion_logodds: f32,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
     /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
     /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
@@ -302,6 +307,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "fruit_settles_after": args.fruit_settles_after,
         "explore_after_fruitless": args.explore_after_fruitless,
         "roi_tries": args.roi_tries,
+        "occlusion_logodds": args.occlusion_logodds,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -369,6 +375,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 fruit_settles_after_views: args.fruit_settles_after,
                 explore_after_fruitless_clouds: args.explore_after_fruitless,
                 roi_tries: args.roi_tries,
+                occlusion_occupancy_logodds: args.occlusion_logodds,
                 revisit_aim: !args.no_revisit_aim,
                 max_range_m: args.max_range,
                 merge_far_rays: args.merge_far_rays,
@@ -670,6 +677,8 @@ mod tests {
             fruit_settles_after: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             explore_after_fruitless: glasshouse_pipeline::DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
             roi_tries: glasshouse_pipeline::DEFAULT_ROI_TRIES,
+            occlusion_logodds: glasshouse_pipeline::PlanningSettings::default()
+                .occlusion_occupancy_logodds,
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,

@@ -103,6 +103,9 @@ pub struct TrialConfig {
     /// Tries of ROI-targeted sampling until its candidates are drawn
     /// (`PlanningSettings::roi_tries`; 0: the paper's).
     pub roi_tries: usize,
+    /// Occupancy log-odds above which a voxel occludes an ROI target
+    /// (`PlanningSettings::occlusion_occupancy_logodds`).
+    pub occlusion_occupancy_logodds: f32,
     /// Rays are integrated up to this range, metres (`PlanningSettings::max_range_m`).
     pub max_range_m: f64,
     /// Points beyond the range free one ray per voxel at the range
@@ -137,6 +140,7 @@ impl TrialConfig {
             explore_after_fruitless_clouds:
                 glasshouse_pipeline::DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
             roi_tries: glasshouse_pipeline::DEFAULT_ROI_TRIES,
+            occlusion_occupancy_logodds: PlanningSettings::default().occlusion_occupancy_logodds,
             max_range_m: PlanningSettings::default().max_range_m,
             merge_far_rays: PlanningSettings::default().merge_far_rays,
             roi_target_near_m: PlanningSettings::default().roi_target_near_m,
@@ -193,6 +197,7 @@ impl TrialConfig {
         settings.fruit_settles_after_views = self.fruit_settles_after_views;
         settings.explore_after_fruitless_clouds = self.explore_after_fruitless_clouds;
         settings.roi_tries = self.roi_tries;
+        settings.occlusion_occupancy_logodds = self.occlusion_occupancy_logodds;
         settings
     }
 

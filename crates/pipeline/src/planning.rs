@@ -118,6 +118,10 @@ pub struct PlanningSettings {
     /// Tries of ROI-targeted sampling drawn until its 100 candidates survive the workspace,
     /// occlusion and reach checks ([`PlannerConfig::roi_tries`]; 0: the paper's 100 tries).
     pub roi_tries: usize,
+    /// A voxel above this occupancy log-odds between an ROI target and a camera drops the
+    /// candidate as occluded ([`PlannerConfig::occlusion_occupancy_logodds`]; the paper's
+    /// p > 0.6, which one hit passes).
+    pub occlusion_occupancy_logodds: f32,
 }
 
 /// Which ROI voxels ROI-targeted sampling aims at (their free neighbours next to unknown space).
@@ -215,6 +219,7 @@ impl Default for PlanningSettings {
             fruit_settles_after_views: DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             explore_after_fruitless_clouds: DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
             roi_tries: DEFAULT_ROI_TRIES,
+            occlusion_occupancy_logodds: PlannerConfig::default().occlusion_occupancy_logodds,
         }
     }
 }
@@ -285,6 +290,7 @@ impl PlanningSettings {
             cost_weight_per_s: self.cost_weight_per_s,
             roi_target_near_m: self.roi_target_near_m,
             roi_tries: self.roi_tries,
+            occlusion_occupancy_logodds: self.occlusion_occupancy_logodds,
             ..PlannerConfig::default()
         }
     }
@@ -1352,6 +1358,40 @@ mod settings_tests {
             (3, 4)
         );
         assert!(read.validate().is_ok());
+    }
+
+    #[test]
+    fn the_roi_sampling_options_are_the_papers_by_default_and_reach_the_planner() {
+        let paper = PlanningSettings::default().planner_config();
+        assert_eq!(paper.roi_tries, 0);
+        assert_eq!(
+            paper.occlusion_occupancy_logodds,
+            PlannerConfig::default().occlusion_occupancy_logodds
+        );
+        assert_eq!(
+            PlanningSettings::default().explore_after_fruitless_clouds,
+            0
+        );
+        let json = r#"{ "roi_tries": 1000, "explore_after_fruitless_clouds": 4,
+            "occlusion_occupancy_logodds": 1.0 }"#;
+        let read: PlanningSettings = serde_json::from_str(json).unwrap();
+        assert!(read.validate().is_ok());
+        let config = read.planner_config();
+        assert_eq!(
+            (config.roi_tries, config.occlusion_occupancy_logodds),
+            (1000, 1.0)
+        );
+        assert_eq!(read.explore_after_fruitless_clouds, 4);
+        let bad = PlanningSettings {
+            occlusion_occupancy_logodds: f32::NAN,
+            ..read.clone()
+        };
+        assert!(bad.validate().is_err());
+        let bad = PlanningSettings {
+            roi_tries: 1_000_000,
+            ..read
+        };
+        assert!(bad.validate().is_err());
     }
 
     #[test]

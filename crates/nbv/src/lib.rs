@@ -254,7 +254,10 @@ impl PlannerConfig {
             return bad("cost_weight_per_s must be finite and >= 0");
         }
         if self.roi_tries > MAX_ROI_TRIES {
-            return bad("roi_tries must be <= 100000");
+            return Err(PlanError::InvalidConfig(format!(
+                "roi_tries must be <= {MAX_ROI_TRIES}, got {}",
+                self.roi_tries
+            )));
         }
         if !self.utility_threshold.is_finite() {
             return bad("utility_threshold must be finite");

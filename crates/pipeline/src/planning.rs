@@ -113,7 +113,9 @@ pub struct PlanningSettings {
     /// at once has not grown), a plan takes the exploration list whenever one of its views
     /// beats the threshold ([`PlanningContext::roi_stalled`]): the ROI targets left are then
     /// mostly the never-seen backs of found fruit and red clutter, and the fruit not found yet
-    /// lie where no ROI target points. 0 (the default): the paper's choice.
+    /// lie where no ROI target points. 0 (the default): the paper's choice. The count is the
+    /// planner's own and starts again on a copy made from a snapshot or the store (a takeover,
+    /// a restart), so a new owner plans as the paper until it has counted anew.
     pub explore_after_fruitless_clouds: u32,
     /// Tries of ROI-targeted sampling drawn until its 100 candidates survive the workspace,
     /// occlusion and reach checks ([`PlannerConfig::roi_tries`]; 0: the paper's 100 tries).

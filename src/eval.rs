@@ -157,6 +157,11 @@ pub struct EvalArgs {
     /// occlusion and reach checks; 0: 100 tries, as the paper, for a side-by-side run.
     #[arg(long, value_name = "N", default_value_t = glasshouse_pipeline::DEFAULT_ROI_TRIES)]
     pub roi_tries: usize,
+    /// Report only the ROI clusters the shape rule and the inside test pass: no search for a
+    /// fruit's body in the occupancy map under the patches they turn away (a leaf-coloured
+    /// fruit in shade is labelled only in patches), for a side-by-side run.
+    #[arg(long)]
+    pub no_body_search: bool,
     /// A voxel above this occupancy log-odds between an ROI target and a candidate camera
     /// drops the candidate as occluded; the default is the paper's p > 0.6 (0.405), which a
     /// single hit passes, for a side-by-side run.
@@ -307,6 +312,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "fruit_settles_after": args.fruit_settles_after,
         "explore_after_fruitless": args.explore_after_fruitless,
         "roi_tries": args.roi_tries,
+        "body_search": !args.no_body_search,
         "occlusion_logodds": args.occlusion_logodds,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
@@ -375,6 +381,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 fruit_settles_after_views: args.fruit_settles_after,
                 explore_after_fruitless_clouds: args.explore_after_fruitless,
                 roi_tries: args.roi_tries,
+                body_search: !args.no_body_search,
                 occlusion_occupancy_logodds: args.occlusion_logodds,
                 revisit_aim: !args.no_revisit_aim,
                 max_range_m: args.max_range,
@@ -677,6 +684,7 @@ mod tests {
             fruit_settles_after: glasshouse_pipeline::DEFAULT_FRUIT_SETTLES_AFTER_VIEWS,
             explore_after_fruitless: glasshouse_pipeline::DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
             roi_tries: glasshouse_pipeline::DEFAULT_ROI_TRIES,
+            no_body_search: false,
             occlusion_logodds: glasshouse_pipeline::PlanningSettings::default()
                 .occlusion_occupancy_logodds,
             days: None,

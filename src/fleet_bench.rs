@@ -137,6 +137,10 @@ pub struct FleetBenchArgs {
     /// the range instead of one each (planner default true).
     #[arg(long, value_name = "BOOL")]
     pub merge_far_rays: Option<bool>,
+    /// Every planner's `--body-search`: whether turned-away ROI patches are searched for a
+    /// fruit's body under them (planner default true).
+    #[arg(long, value_name = "BOOL")]
+    pub body_search: Option<bool>,
     /// The simulated trolleys (edge processes) run at this nice value. On a real fleet each
     /// trolley renders nothing and runs on its own computer; here 16 simulators share the
     /// services' cores, and at nice 0 they take them from the planners in turn. 0 runs them
@@ -312,6 +316,8 @@ struct Report {
     max_range_m: Option<f64>,
     /// The planners' `--merge-far-rays` (None: their default).
     merge_far_rays: Option<bool>,
+    /// The planners' `--body-search` (None: their default).
+    body_search: Option<bool>,
     /// The simulated trolleys' nice value.
     trolley_nice: i32,
     width: u32,
@@ -730,6 +736,9 @@ impl Fleet {
             }
             if let Some(merge) = args.merge_far_rays {
                 extra.extend(["--merge-far-rays".into(), merge.to_string()]);
+            }
+            if let Some(search) = args.body_search {
+                extra.extend(["--body-search".into(), search.to_string()]);
             }
             if let Some(dir) = self.store_dir(args) {
                 let file = dir.join(format!("p{i}.redb"));
@@ -1302,6 +1311,7 @@ fn build_report(
         fit_threads: args.fit_threads,
         max_range_m: args.max_range,
         merge_far_rays: args.merge_far_rays,
+        body_search: args.body_search,
         trolley_nice: args.trolley_nice,
         width: args.width,
         fps_per_trolley_max: args.fps,

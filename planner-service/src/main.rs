@@ -63,6 +63,12 @@ struct Cli {
     /// the range are unaffected.
     #[arg(long, value_name = "BOOL")]
     merge_far_rays: Option<bool>,
+    /// Whether an ROI patch the fruit evidence turns away (too small, flat, hiding nothing)
+    /// is searched for a fruit's body in the occupancy map around it, and reported as a fruit
+    /// when one is found (default true: a leaf-coloured fruit in shade is labelled only in
+    /// patches).
+    #[arg(long, value_name = "BOOL")]
+    body_search: Option<bool>,
     /// Keep every trolley this planner owns in this store file (created if missing; one per
     /// planner), so that maps and fruit ids survive a restart of every planner. Without it maps
     /// live in memory only. The planner then waits `store.settle_ms` (3 s) for its peers
@@ -88,6 +94,7 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
     set_flag(&mut s.planning.fit_threads, cli.fit_threads);
     set_flag(&mut s.planning.max_range_m, cli.max_range);
     set_flag(&mut s.planning.merge_far_rays, cli.merge_far_rays);
+    set_flag(&mut s.planning.fit.evidence.body.enabled, cli.body_search);
     if let Some(path) = cli.store {
         s.store = Some(StoreSettings {
             path,

@@ -282,7 +282,8 @@ fitted_distance_cm,fitted_volume_accuracy,box_distance_cm,box_volume_accuracy,\
 truth_body_volume_m3,fitted_volume_m3";
 
 const CLUSTERS_CSV_HEADER: &str = "x_m,y_m,z_m,voxels,length_m,width_m,depth_m,bulge,verdict,\
-fragment,reported,unknown_inside,free_inside,occupied_inside,roi_inside,nearest_truth_id,nearest_truth_cm";
+fragment,reported,unknown_inside,free_inside,occupied_inside,roi_inside,nearest_truth_id,nearest_truth_cm,\
+body";
 
 /// Every ROI cluster at the end of one trial, reported as a fruit or not, with why (the fruit
 /// evidence's verdict, a fragment) and the nearest true fruit: where recall and precision are
@@ -311,6 +312,7 @@ pub fn clusters_csv(result: &TrialResult) -> String {
         cells.push(count(inside.map(|i| i.occupied_roi)));
         cells.push(nearest.map(|n| n.0.to_string()).unwrap_or_default());
         cells.push(nearest.map(|n| csv_num(100.0 * n.1)).unwrap_or_default());
+        cells.push(cluster.body.to_string());
         out.push_str(&cells.join(","));
         out.push('\n');
     }
@@ -881,6 +883,7 @@ mod tests {
                 fit: None,
                 interior: None,
                 fragment,
+                body: false,
             };
         let mut trial = result(Method::OursUu, 0);
         let half = Vector3::repeat(0.03);

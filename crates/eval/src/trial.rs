@@ -103,6 +103,9 @@ pub struct TrialConfig {
     /// Tries of ROI-targeted sampling until its candidates are drawn
     /// (`PlanningSettings::roi_tries`; 0: the paper's).
     pub roi_tries: usize,
+    /// Whether turned-away clusters are searched for a fruit body under them
+    /// (`EvidenceConfig::body`; on by default).
+    pub body_search: bool,
     /// Occupancy log-odds above which a voxel occludes an ROI target
     /// (`PlanningSettings::occlusion_occupancy_logodds`).
     pub occlusion_occupancy_logodds: f32,
@@ -140,6 +143,7 @@ impl TrialConfig {
             explore_after_fruitless_clouds:
                 glasshouse_pipeline::DEFAULT_EXPLORE_AFTER_FRUITLESS_CLOUDS,
             roi_tries: glasshouse_pipeline::DEFAULT_ROI_TRIES,
+            body_search: true,
             occlusion_occupancy_logodds: PlanningSettings::default().occlusion_occupancy_logodds,
             max_range_m: PlanningSettings::default().max_range_m,
             merge_far_rays: PlanningSettings::default().merge_far_rays,
@@ -197,6 +201,7 @@ impl TrialConfig {
         settings.fruit_settles_after_views = self.fruit_settles_after_views;
         settings.explore_after_fruitless_clouds = self.explore_after_fruitless_clouds;
         settings.roi_tries = self.roi_tries;
+        settings.fit.evidence.body.enabled = self.body_search;
         settings.occlusion_occupancy_logodds = self.occlusion_occupancy_logodds;
         settings
     }

@@ -1,13 +1,16 @@
 //! Time of one whole-fruit fit ([`fit_ellipsoid`]) per model on scanned synthetic fruit: a
 //! sphere seen from one side, a tilted lobed capsicum seen from two sides, an ellipsoid seen all
 //! round; and of one growth measurement between two visits of it ([`volume_ratio`], the fruit's
-//! surface against itself, what a visit's end costs per fruit). Run with `cargo bench -p
+//! surface against itself, what a visit's end costs per fruit); and of one search for the body
+//! under a cluster ([`find_body`], what each turned-away cluster costs when the map around it
+//! changed). Run with `cargo bench -p
 //! glasshouse-nbv --bench fit`. Wall-clock time is read here
 //! only, never in the libraries.
 
 use std::time::Instant;
 
 use glasshouse_geom::FruitSurface;
+use glasshouse_nbv::evidence::{find_body, BodyConfig};
 use glasshouse_nbv::fit::{fit_ellipsoid, FitConfig, ShapeModel};
 use glasshouse_nbv::growth::volume_ratio;
 use glasshouse_roimap::{MapConfig, RoiCluster, RoiMap};
@@ -111,8 +114,8 @@ fn main() {
         ("ellipsoid, all round", scanned(&ellipsoid, &all_round)),
     ];
     println!(
-        "{:<24} {:>8} {:>14} {:>14} {:>12}",
-        "case", "voxels", "aligned ms", "superell. ms", "growth ms"
+        "{:<24} {:>8} {:>14} {:>14} {:>12} {:>10}",
+        "case", "voxels", "aligned ms", "superell. ms", "growth ms", "body ms"
     );
     for (name, (map, cluster)) in &cases {
         let time = |model| {
@@ -131,8 +134,11 @@ fn main() {
         let growth_ms = fastest_ms(15, || {
             std::hint::black_box(volume_ratio(&surface, &surface));
         });
+        let body_ms = fastest_ms(15, || {
+            std::hint::black_box(find_body(map, cluster, &BodyConfig::default()));
+        });
         println!(
-            "{name:<24} {:>8} {:>14.2} {:>14.2} {growth_ms:>12.2}",
+            "{name:<24} {:>8} {:>14.2} {:>14.2} {growth_ms:>12.2} {body_ms:>10.2}",
             cluster.voxels.len(),
             time(ShapeModel::AxisAlignedEllipsoid),
             time(ShapeModel::Superellipsoid)

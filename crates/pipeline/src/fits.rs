@@ -9,9 +9,10 @@
 
 use std::collections::HashMap;
 
-use glasshouse_nbv::evidence::{ClusterEvidence, ClusterShape, Interior};
-use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid};
+use glasshouse_nbv::evidence::{find_body, Body, ClusterEvidence, ClusterShape, Interior};
+use glasshouse_nbv::fit::{fit_ellipsoid, fit_read_box, FitConfig, FruitSolid, SolidKind};
 use glasshouse_nbv::split::{split_cluster, ReadBox};
+use glasshouse_nbv::superellipsoid::Superellipsoid;
 use glasshouse_roimap::{RoiCluster, RoiMap, VoxelKey};
 
 use crate::parallel::in_parallel;
@@ -57,6 +58,14 @@ struct CachedFit {
 pub struct FitCache {
     by_first_voxel: HashMap<VoxelKey, CachedFit>,
     shapes: HashMap<VoxelKey, (Vec<VoxelKey>, ClusterShape)>,
+    bodies: HashMap<VoxelKey, CachedBody>,
+}
+
+/// The body found under a turned-away cluster, fitted, with what the search and the fit read.
+#[derive(Clone, Debug)]
+struct CachedBody {
+    read: Reading,
+    fit: Option<FruitSolid>,
 }
 
 impl FitCache {
@@ -173,6 +182,89 @@ impl FitCache {
             })
             .collect()
     }
+}
+
+impl FitCache {
+    /// For each of `clusters` (turned away by their shape or inside), the solid of the fruit
+    /// body under it ([`glasshouse_nbv::evidence::body`]), if any, in cluster order; searched
+    /// again only where the cluster or the map around it changed, on `threads` threads.
+    pub(crate) fn bodies(
+        &mut self,
+        map: &RoiMap,
+        clusters: &[&RoiCluster],
+        config: &FitConfig,
+        threads: usize,
+    ) -> Vec<Option<FruitSolid>> {
+        let kept = still_valid(&mut self.bodies, map, clusters, |c| &c.read);
+        let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
+        let mut searched = in_parallel(stale.len(), threads, |j| {
+            body_fit(map, clusters[stale[j]], config)
+        })
+        .into_iter();
+        clusters
+            .iter()
+            .zip(kept)
+            .map(|(cluster, kept)| {
+                let cached =
+                    kept.unwrap_or_else(|| searched.next().expect("a search per stale cluster"));
+                let fit = cached.fit;
+                self.bodies.insert(cluster.voxels[0], cached);
+                fit
+            })
+            .collect()
+    }
+}
+
+/// The solid of the fruit body under `cluster` ([`find_body`]), if there is one: the fit of the
+/// body's surface voxels, or the sphere found when that fit gives only a box. What the planner
+/// reports for a turned-away cluster (`TrolleyPlanner::cluster_outcomes`).
+pub fn body_solid(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> Option<FruitSolid> {
+    body_solid_read(map, cluster, config).map(|(solid, _)| solid)
+}
+
+/// [`body_solid`] and the box of the map its fit read.
+fn body_solid_read(
+    map: &RoiMap,
+    cluster: &RoiCluster,
+    config: &FitConfig,
+) -> Option<(FruitSolid, ReadBox)> {
+    let body = find_body(map, cluster, &config.evidence.body)?;
+    let surface = map.cluster_of(body.surface.clone());
+    let fitted = fit_ellipsoid(map, &surface, config);
+    let read = fit_read_box(map, &surface, &fitted, config);
+    let solid = match fitted.kind {
+        SolidKind::Box => sphere_solid(&body),
+        _ => fitted,
+    };
+    Some((solid, read))
+}
+
+/// [`body_solid`] with what the search and the fit read: the search's neighbourhood and the
+/// fit's box.
+fn body_fit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> CachedBody {
+    let res = map.config().resolution_m;
+    let reach = f64::from(config.evidence.body.reach_voxels + 1) * res;
+    let hood = nalgebra::Vector3::repeat(reach);
+    let (mut min, mut max) = (cluster.centre - hood, cluster.centre + hood);
+    let found = body_solid_read(map, cluster, config);
+    if let Some((_, (lo, hi))) = found {
+        (min, max) = (min.inf(&lo), max.sup(&hi));
+    }
+    CachedBody {
+        read: Reading::of(map, cluster, (min, max)),
+        fit: found.map(|(solid, _)| solid),
+    }
+}
+
+fn sphere_solid(body: &Body) -> FruitSolid {
+    Superellipsoid {
+        centre: body.centre,
+        world_from_body: nalgebra::Rotation3::identity(),
+        semi_axes_m: nalgebra::Vector3::repeat(body.radius_m),
+        exponents: [1.0, 1.0],
+        taper: 0.0,
+    }
+    .to_solid(1.0, 0.0)
 }
 
 fn fit(map: &RoiMap, cluster: &RoiCluster, config: &FitConfig) -> CachedFit {

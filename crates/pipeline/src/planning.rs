@@ -257,6 +257,11 @@ impl PlanningSettings {
         registration.map_err(|e| PlanningError::Settings(e.to_string()))?;
         let hand_eye = self.hand_eye.validate();
         hand_eye.map_err(|e| PlanningError::Settings(e.to_string()))?;
+        self.fit
+            .evidence
+            .body
+            .validate()
+            .map_err(PlanningError::Settings)?;
         for (name, threads) in [
             ("insert_threads", self.insert_threads),
             ("fit_threads", self.fit_threads),
@@ -765,7 +770,7 @@ impl TrolleyPlanner {
             .iter()
             .enumerate()
             .filter(|(_, outcome)| outcome.is_reported())
-            .filter_map(|(i, outcome)| Some(self.record(i, outcome.fit.as_ref()?)))
+            .filter_map(|(i, outcome)| Some(self.record(i, outcome.fit.as_ref()?, outcome.body)))
             .collect()
     }
 
@@ -790,6 +795,7 @@ impl TrolleyPlanner {
                 fit: None,
                 interior: None,
                 fragment: false,
+                body: false,
             })
             .collect();
         let shaped: Vec<usize> = (0..outcomes.len())
@@ -812,6 +818,7 @@ impl TrolleyPlanner {
                 outcome.verdict = Verdict::Sheet;
             }
         }
+        self.find_bodies(&mut outcomes);
         let (solid, fits): (Vec<usize>, Vec<FruitSolid>) = (0..outcomes.len())
             .filter(|&i| outcomes[i].verdict.is_fruit())
             .filter_map(|i| Some((i, outcomes[i].fit?)))
@@ -823,8 +830,34 @@ impl TrolleyPlanner {
         outcomes
     }
 
-    /// The fruit of cluster `i`, fitted `fitted`, with its evidence's confidence.
-    fn record(&self, i: usize, fitted: &FruitSolid) -> FruitEstimate {
+    /// Turned-away clusters (too small, flat, sheets) with a fruit's body under them
+    /// ([`glasshouse_nbv::evidence::body`]) become fruit, the body's solid their fit.
+    fn find_bodies(&mut self, outcomes: &mut [ClusterOutcome]) {
+        if !self.settings.fit.evidence.enabled || !self.settings.fit.evidence.body.enabled {
+            return;
+        }
+        let turned_away =
+            |v: Verdict| matches!(v, Verdict::TooSmall | Verdict::Flat | Verdict::Sheet);
+        let candidates: Vec<usize> = (0..outcomes.len())
+            .filter(|&i| turned_away(outcomes[i].verdict))
+            .collect();
+        let clusters: Vec<&RoiCluster> = candidates.iter().map(|&i| &self.clusters[i]).collect();
+        let threads = threads_or_cores(self.settings.fit_threads);
+        let bodies = self
+            .fit_cache
+            .bodies(&self.map, &clusters, &self.settings.fit, threads);
+        for (i, body) in candidates.into_iter().zip(bodies) {
+            if let Some(fit) = body {
+                let outcome = &mut outcomes[i];
+                (outcome.verdict, outcome.fit, outcome.body) = (Verdict::Fruit, Some(fit), true);
+                outcome.interior = None;
+            }
+        }
+    }
+
+    /// The fruit of cluster `i`, fitted `fitted` (the solid of the `body` under it, if found so),
+    /// with its evidence's confidence.
+    fn record(&self, i: usize, fitted: &FruitSolid, body: bool) -> FruitEstimate {
         use glasshouse_nbv::evidence::{ClusterEvidence, FruitEvidence};
         let (cluster, estimate) = (&self.clusters[i], &self.estimates[i]);
         let seen = match self.fit_cache.evidence_of(cluster) {
@@ -832,7 +865,8 @@ impl TrolleyPlanner {
             None => ClusterEvidence::of(&self.map, cluster),
         };
         let views = estimate.view_directions;
-        let interior = match self.fit_cache.interior_of(cluster) {
+        // A body's solid is not the cluster's own fit: what it hides is read from the map.
+        let interior = match self.fit_cache.interior_of(cluster).filter(|_| !body) {
             Some(inside) => inside,
             None => Interior::of_fruit(&self.map, fitted),
         };
@@ -1294,6 +1328,9 @@ pub struct ClusterOutcome {
     pub interior: Option<Interior>,
     /// A second patch of a fruit another cluster reports.
     pub fragment: bool,
+    /// Turned away by its shape or inside, and reported for the fruit body found under it
+    /// ([`glasshouse_nbv::evidence::body`]); `fit` is the body's.
+    pub body: bool,
 }
 
 impl ClusterOutcome {

@@ -195,14 +195,22 @@ fn fresh_fits(planner: &TrolleyPlanner) -> Vec<glasshouse_nbv::fit::FruitSolid> 
     );
     let clusters = map.clusters(min_voxels);
     let clusters = glasshouse_nbv::split::split_touching(map, clusters, min_voxels, config);
-    let shaped_like_fruit = |c: &glasshouse_roimap::RoiCluster| {
-        let seen = glasshouse_nbv::evidence::ClusterEvidence::of(map, c);
-        seen.shape.verdict(&config.evidence).is_fruit()
+    // A cluster shaped like a fruit is fitted; one turned away as too small or flat is a fruit
+    // when a body lies under it.
+    let fit = |c: &glasshouse_roimap::RoiCluster| {
+        use glasshouse_nbv::evidence::{ClusterEvidence, Verdict};
+        match ClusterEvidence::of(map, c).shape.verdict(&config.evidence) {
+            Verdict::Fruit => Some(glasshouse_nbv::fit::fit_ellipsoid(map, c, config)),
+            Verdict::TooSmall | Verdict::Flat => {
+                glasshouse_pipeline::fits::body_solid(map, c, config)
+            }
+            _ => None,
+        }
     };
-    let clusters: Vec<_> = clusters.into_iter().filter(shaped_like_fruit).collect();
-    let fit = |c| glasshouse_nbv::fit::fit_ellipsoid(map, c, config);
-    let fits: Vec<_> = clusters.iter().map(fit).collect();
-    let counts: Vec<usize> = clusters.iter().map(|c| c.voxels.len()).collect();
+    let (fits, counts): (Vec<_>, Vec<usize>) = clusters
+        .iter()
+        .filter_map(|c| Some((fit(c)?, c.voxels.len())))
+        .unzip();
     let fragment = glasshouse_nbv::split::fragments(&fits, &counts);
     fits.into_iter()
         .zip(fragment)

@@ -9,7 +9,8 @@
 //!   per true fruit and per false fruit (fitted and box centre distance and volume accuracy);
 //! - `trials/<method>-<trial>-clusters.csv`: every ROI cluster at the end, reported as a fruit
 //!   or not and why (the fruit evidence's verdict, its shape, what its fitted solid hides), with
-//!   the nearest true fruit;
+//!   the nearest true fruit, and whether it is reported for the fruit body found under it
+//!   (`body`);
 //! - `table.md`: Table I (mean ± std at the end of the budget), the missed fruits by reason and
 //!   the Mann-Whitney p-values;
 //! - `summary.json`: `{"<method>": {"<metric>": {"mean", "std", "n"}}, "fruits_total", "p_values",

@@ -1069,6 +1069,18 @@ pub(crate) mod tests_support {
         eye: Point3<f64>,
         hit: impl Fn(&Point3<f64>, &Vector3<f64>) -> Option<f64>,
     ) -> Vec<Point3<f64>> {
+        scan_labelled(map, aim, eye, hit, |_| true)
+    }
+
+    /// [`scan_with`], each hit labelled ROI only where `labelled` says so of its point (a
+    /// fruit the detector sees in part); returns the ROI points.
+    pub fn scan_labelled(
+        map: &mut RoiMap,
+        aim: Point3<f64>,
+        eye: Point3<f64>,
+        hit: impl Fn(&Point3<f64>, &Vector3<f64>) -> Option<f64>,
+        labelled: impl Fn(&Point3<f64>) -> bool,
+    ) -> Vec<Point3<f64>> {
         let forward = (aim - eye).normalize();
         let helper = if forward.z.abs() < 0.9 {
             Vector3::z()
@@ -1090,7 +1102,7 @@ pub(crate) mod tests_support {
                 match hit(&eye, &d) {
                     Some(t) => {
                         points.push((eye + d * t).cast::<f32>());
-                        roi.push(true);
+                        roi.push(labelled(&(eye + d * t)));
                     }
                     None => {
                         points.push((eye + d * (distance + 0.3)).cast::<f32>());

@@ -81,25 +81,48 @@ impl FitCache {
         threads: usize,
     ) -> (Vec<FruitSolid>, usize) {
         let clusters: Vec<&RoiCluster> = clusters.into_iter().collect();
-        let kept = still_valid(&mut self.by_first_voxel, map, &clusters, |c| &c.read);
-        let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
-        let mut fitted = in_parallel(stale.len(), threads, |j| {
-            fit(map, clusters[stale[j]], config)
-        })
-        .into_iter();
-        let shapes = clusters
-            .iter()
-            .zip(kept)
-            .map(|(cluster, kept)| {
-                let cached =
-                    kept.unwrap_or_else(|| fitted.next().expect("a fit per stale cluster"));
-                let shape = cached.shape;
-                self.by_first_voxel.insert(cluster.voxels[0], cached);
-                shape
-            })
-            .collect();
-        (shapes, stale.len())
+        let compute = |c: &RoiCluster| fit(map, c, config);
+        let cache = &mut self.by_first_voxel;
+        refreshed(
+            cache,
+            map,
+            &clusters,
+            |c| &c.read,
+            threads,
+            compute,
+            |c| c.shape,
+        )
     }
+}
+
+/// For each of `clusters`, in order, `pick` of its cached result: kept where its reading still
+/// holds, computed anew (on `threads` threads) where not; every result goes back into `cache`,
+/// the rest is dropped. Also returns how many were computed.
+fn refreshed<C: Send, T>(
+    cache: &mut HashMap<VoxelKey, C>,
+    map: &RoiMap,
+    clusters: &[&RoiCluster],
+    reading: impl Fn(&C) -> &Reading,
+    threads: usize,
+    compute: impl Fn(&RoiCluster) -> C + Sync,
+    pick: impl Fn(&C) -> T,
+) -> (Vec<T>, usize) {
+    let kept = still_valid(cache, map, clusters, reading);
+    let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
+    let mut computed =
+        in_parallel(stale.len(), threads, |j| compute(clusters[stale[j]])).into_iter();
+    let picked = clusters
+        .iter()
+        .zip(kept)
+        .map(|(cluster, kept)| {
+            let result =
+                kept.unwrap_or_else(|| computed.next().expect("a result per stale cluster"));
+            let value = pick(&result);
+            cache.insert(cluster.voxels[0], result);
+            value
+        })
+        .collect();
+    (picked, stale.len())
 }
 
 /// Takes every result out of `cache` and returns, in cluster order, those still valid: the
@@ -195,23 +218,18 @@ impl FitCache {
         config: &FitConfig,
         threads: usize,
     ) -> Vec<Option<FruitSolid>> {
-        let kept = still_valid(&mut self.bodies, map, clusters, |c| &c.read);
-        let stale: Vec<usize> = (0..clusters.len()).filter(|&i| kept[i].is_none()).collect();
-        let mut searched = in_parallel(stale.len(), threads, |j| {
-            body_fit(map, clusters[stale[j]], config)
-        })
-        .into_iter();
-        clusters
-            .iter()
-            .zip(kept)
-            .map(|(cluster, kept)| {
-                let cached =
-                    kept.unwrap_or_else(|| searched.next().expect("a search per stale cluster"));
-                let fit = cached.fit;
-                self.bodies.insert(cluster.voxels[0], cached);
-                fit
-            })
-            .collect()
+        let compute = |c: &RoiCluster| body_fit(map, c, config);
+        let cache = &mut self.bodies;
+        refreshed(
+            cache,
+            map,
+            clusters,
+            |c| &c.read,
+            threads,
+            compute,
+            |c| c.fit,
+        )
+        .0
     }
 }
 

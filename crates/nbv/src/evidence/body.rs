@@ -198,6 +198,11 @@ pub fn find_body(map: &RoiMap, cluster: &RoiCluster, config: &BodyConfig) -> Opt
             .iter()
             .filter(|(_, q)| on_surface(&centre, r, q))
             .count();
+        // The free voxels only lower a score: a sphere whose surface alone cannot beat the best
+        // is not counted further (the same best, found sooner).
+        if best.is_some_and(|(s, _, _)| surface as f64 <= s) {
+            continue;
+        }
         let free = within(&hood.free, &centre, r - half_voxel);
         let score = surface as f64 - config.free_weight * f64::from(free);
         if best.is_none_or(|(s, _, _)| score > s) {

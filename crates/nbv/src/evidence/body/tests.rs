@@ -5,40 +5,8 @@ use nalgebra::{Point3, Vector3};
 
 use super::*;
 use crate::evidence::{ClusterShape, EvidenceConfig, Verdict};
-use crate::fit::tests_support::{centre, hit_ellipsoid, map};
+use crate::fit::tests_support::{centre, hit_ellipsoid, map, scan_labelled};
 use crate::test_bodies::{turn, Lobe};
-
-/// Scans from `eye` towards `aim` (a 120 × 120 fan over ±0.25 rad): each ray ends where `hit`
-/// says, labelled fruit where `labelled` says of the point; rays that miss end on a background
-/// 0.3 m behind `aim` (not fruit). Inserted twice.
-fn scan_labelled(
-    map: &mut RoiMap,
-    eye: Point3<f64>,
-    hit: impl Fn(&Point3<f64>, &Vector3<f64>) -> Option<f64>,
-    labelled: impl Fn(&Point3<f64>) -> bool,
-) {
-    let aim = centre();
-    let forward = (aim - eye).normalize();
-    let right = forward.cross(&Vector3::z()).normalize();
-    let up = right.cross(&forward);
-    let (mut points, mut roi) = (Vec::new(), Vec::new());
-    for i in 0..120 {
-        for j in 0..120 {
-            let u = 0.25 * (2.0 * (f64::from(i) + 0.5) / 120.0 - 1.0);
-            let v = 0.25 * (2.0 * (f64::from(j) + 0.5) / 120.0 - 1.0);
-            let d = (forward + right * u.tan() + up * v.tan()).normalize();
-            let (p, label) = match hit(&eye, &d) {
-                Some(t) => (eye + d * t, labelled(&(eye + d * t))),
-                None => (eye + d * ((aim - eye).norm() + 0.3), false),
-            };
-            points.push(p.cast::<f32>());
-            roi.push(label);
-        }
-    }
-    for _ in 0..2 {
-        map.insert_scan(&eye, &points, &roi).unwrap();
-    }
-}
 
 /// The largest ROI cluster of the map.
 fn patch(m: &RoiMap) -> RoiCluster {
@@ -62,7 +30,7 @@ fn shaded_fruit() -> (RoiMap, RoiCluster) {
     for t in towards {
         let eye = centre() + t.normalize() * 0.4;
         let hit = |o: &Point3<f64>, d: &Vector3<f64>| hit_ellipsoid(o, d, &centre(), &axes);
-        scan_labelled(&mut m, eye, hit, |p| (p - cap).norm() < 0.018);
+        scan_labelled(&mut m, centre(), eye, hit, |p| (p - cap).norm() < 0.018);
     }
     let cluster = patch(&m);
     (m, cluster)
@@ -128,12 +96,8 @@ fn a_leaf_seen_from_both_sides_has_no_body_under_its_patch() {
         Vector3::new(0.8, -0.4, 0.3),
     ] {
         let eye = centre() + t.normalize() * 0.4;
-        scan_labelled(
-            &mut m,
-            eye,
-            |o, d| leaf.hit(o, d),
-            |p| (p - centre()).norm() < 0.02,
-        );
+        let labelled = |p: &Point3<f64>| (p - centre()).norm() < 0.02;
+        scan_labelled(&mut m, centre(), eye, |o, d| leaf.hit(o, d), labelled);
     }
     let cluster = patch(&m);
     assert!(cluster.voxels.len() >= 4, "{}", cluster.voxels.len());

@@ -152,6 +152,10 @@ pub struct FleetBenchArgs {
     /// uses stores in the logs folder when this is not given.
     #[arg(long, value_name = "DIR")]
     pub store: Option<PathBuf>,
+    /// A slow disk under every planner's store (`planner-service --store-write-delay-ms`):
+    /// each store transaction waits this long first. Needs `--store`.
+    #[arg(long, value_name = "MS", requires = "store")]
+    pub store_write_delay_ms: Option<u64>,
 }
 
 /// One process of the fleet.
@@ -743,6 +747,9 @@ impl Fleet {
             if let Some(dir) = self.store_dir(args) {
                 let file = dir.join(format!("p{i}.redb"));
                 extra.extend(["--store".into(), file.to_string_lossy().into_owned()]);
+                if let Some(delay) = args.store_write_delay_ms {
+                    extra.extend(["--store-write-delay-ms".into(), delay.to_string()]);
+                }
             }
             self.planner_flags.push((format!("p{i}"), extra.clone()));
             self.spawn_client("planner", format!("p{i}"), "planner-service", &extra)?;

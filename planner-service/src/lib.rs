@@ -25,6 +25,7 @@
 //! the key `fleet`) also merges every trolley's fruits into the fleet map on `gh/fleet/fruits`.
 
 mod decoder;
+mod held;
 pub mod metrics;
 pub mod node;
 mod registration;
@@ -49,8 +50,10 @@ use glasshouse_proto::{
     FleetFruit, FleetFruits, FruitEstimates, Header, MapSnapshot, MapUpdate, PlannerStatus,
     RankedViews, RoiCloud, StageTimes, TrolleyInfo,
 };
+use held::Held;
 use node::{
-    DeltaBase, KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, StoreRules, TrolleyOutput,
+    DeltaBase, KeyedCloud, PlannerAction, PlannerEvent, PlannerNode, StoreRules, StoreWrite,
+    TrolleyOutput,
 };
 use serde::Deserialize;
 use zenoh::Session;
@@ -97,6 +100,9 @@ pub struct StoreSettings {
     /// How long after its start the planner waits for its peers before it takes on trolleys,
     /// so that after a full restart each trolley goes on from the newest copy any store holds.
     pub settle_ms: u64,
+    /// Fault injection: every store transaction (the writes queued meanwhile, together) waits
+    /// this long first, as on a slow or overloaded disk (benchmarks and tests; 0 in deployment).
+    pub write_delay_ms: u64,
 }
 
 impl Default for StoreSettings {
@@ -105,6 +111,7 @@ impl Default for StoreSettings {
             path: PathBuf::from("glasshouse-planner.redb"),
             checkpoint_clouds: node::REPLICA_REFRESH_CLOUDS,
             settle_ms: 3000,
+            write_delay_ms: 0,
         }
     }
 }
@@ -153,6 +160,10 @@ impl PlannerSettings {
                 store.checkpoint_clouds > 0,
                 "store.checkpoint_clouds: at least 1 (clouds logged between two checkpoints)"
             );
+            anyhow::ensure!(
+                store.write_delay_ms <= 60_000,
+                "store.write_delay_ms: at most 60000 (a fault injected for tests, 0 in deployment)"
+            );
         }
         Ok(())
     }
@@ -183,6 +194,11 @@ pub struct PlannerCounters {
     pub store_writes: AtomicU64,
     pub store_bytes_written: AtomicU64,
     pub store_errors: AtomicU64,
+    /// Store transactions committed (writes queued together share one).
+    pub store_transactions: AtomicU64,
+    /// Views, fruits and map updates that waited for their cloud's store write before they went
+    /// out (the planner went on with other events meanwhile).
+    pub publications_held: AtomicU64,
 }
 
 /// The snapshot query's parameter that carries a standby copy's [`DeltaBase`].
@@ -221,6 +237,27 @@ struct Inputs {
     /// Events from tasks the driver started (snapshot answers).
     events: tokio::sync::mpsc::UnboundedReceiver<PlannerEvent>,
     status_tick: tokio::time::Interval,
+    /// Wakes when a store write is done (none without a store, or once the writer stopped).
+    stored: Option<tokio::sync::watch::Receiver<u64>>,
+}
+
+/// What woke the driver: an event for the node, or store writes done (held publications may
+/// go out).
+enum Wake {
+    Event(Box<PlannerEvent>),
+    Stored,
+}
+
+/// Waits until a store write is done; when the writer has stopped, wakes once more and then
+/// never again.
+async fn stored(watch: &mut Option<tokio::sync::watch::Receiver<u64>>) {
+    let closed = match watch.as_mut() {
+        Some(rx) => rx.changed().await.is_err(),
+        None => std::future::pending().await,
+    };
+    if closed {
+        *watch = None;
+    }
 }
 
 impl Inputs {
@@ -250,24 +287,23 @@ impl Inputs {
             next_query: 0,
             events,
             status_tick: tokio::time::interval(period),
+            stored: None,
         })
     }
 
-    /// The next event for the node; None when shutdown fired or an input closed.
-    async fn next(
-        &mut self,
-        shutdown: &mut Shutdown,
-        drops: &DropCounters,
-    ) -> Option<PlannerEvent> {
+    /// The next event for the node, or store writes done; None when shutdown fired or an input
+    /// closed.
+    async fn next(&mut self, shutdown: &mut Shutdown, drops: &DropCounters) -> Option<Wake> {
         // The node's own events first: a trolley taken over catches up before the clouds that
         // queued meanwhile (a batch of them integrated first held each further trolley taken
         // over back by their integration, about 0.75 s each on a loaded two-core machine).
         if let Ok(event) = self.events.try_recv() {
-            return Some(event);
+            return Some(Wake::Event(Box::new(event)));
         }
         loop {
             let event = tokio::select! {
                 _ = shutdown.wait() => return None,
+                _ = stored(&mut self.stored) => return Some(Wake::Stored),
                 e = self.planner_watch.recv() => match e? {
                     MemberEvent::Joined(id) => PlannerEvent::PlannerJoined(id),
                     MemberEvent::Left(id) => PlannerEvent::PlannerLeft(id),
@@ -311,7 +347,7 @@ impl Inputs {
                     }
                 }
             };
-            return Some(event);
+            return Some(Wake::Event(Box::new(event)));
         }
     }
 }
@@ -371,6 +407,11 @@ struct TrolleyPublishers {
     map: Publisher<MapUpdate>,
 }
 
+/// Store writes queued but not yet done beyond which the planner waits for its disk: a disk
+/// slower than the clouds come must slow the planner down (its inputs then drop the oldest
+/// clouds, counted) rather than grow the writer's queue without bound.
+const STORE_WRITES_IN_FLIGHT: u64 = 32;
+
 /// The bus side of a planner: what it publishes and the snapshots it asks for.
 struct Outputs {
     session: Session,
@@ -381,6 +422,9 @@ struct Outputs {
     trolleys: HashMap<String, TrolleyPublishers>,
     events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
     store: Option<storage::StoreWriter>,
+    /// Publications waiting for their cloud's store write.
+    held: Held<(Header, TrolleyOutput)>,
+    counters: Arc<PlannerCounters>,
     decoder: Option<decoder::StandbyDecoder>,
 }
 
@@ -388,9 +432,10 @@ impl Outputs {
     async fn declare(
         session: &Session,
         pid: &str,
-        drops: &Arc<DropCounters>,
+        counters: &Arc<PlannerCounters>,
         events: tokio::sync::mpsc::UnboundedSender<PlannerEvent>,
     ) -> anyhow::Result<Self> {
+        let drops = &counters.drops;
         Ok(Self {
             session: session.clone(),
             pid: pid.to_owned(),
@@ -400,6 +445,8 @@ impl Outputs {
             trolleys: HashMap::new(),
             events,
             store: None,
+            held: Held::default(),
+            counters: counters.clone(),
             decoder: None,
         })
     }
@@ -456,6 +503,69 @@ impl Outputs {
         });
     }
 
+    /// Queues a store write; a cloud's holds its trolley's next publications. When the disk
+    /// falls [`STORE_WRITES_IN_FLIGHT`] writes behind, waits for it first (what the writer
+    /// queues is held in memory).
+    async fn queue_store(&mut self, write: StoreWrite) {
+        let Some(store) = &mut self.store else {
+            return;
+        };
+        if let Some(behind) = store.queued().checked_sub(STORE_WRITES_IN_FLIGHT) {
+            store.wait_durable(behind).await;
+        }
+        let cloud_of = match &write {
+            StoreWrite::Cloud { tid, .. } => Some(tid.clone()),
+            _ => None,
+        };
+        if let (Some(seq), Some(tid)) = (store.queue(write), cloud_of) {
+            self.held.cloud_queued(&tid, seq);
+        }
+    }
+
+    /// Store writes done, in queue order (all without a store).
+    fn durable_through(&self) -> u64 {
+        self.store
+            .as_ref()
+            .map_or(u64::MAX, storage::StoreWriter::durable_through)
+    }
+
+    /// Publishes `output` of `tid` now if the cloud it follows is durable, else holds it.
+    async fn publish_when_stored(
+        &mut self,
+        tid: String,
+        header: Header,
+        output: TrolleyOutput,
+    ) -> anyhow::Result<()> {
+        let durable = self.durable_through();
+        match self.held.pass_or_hold(&tid, (header, output), durable) {
+            Some((header, output)) => self.publish(&tid, &header, output).await,
+            None => {
+                self.counters
+                    .publications_held
+                    .fetch_add(1, Ordering::Relaxed);
+                Ok(())
+            }
+        }
+    }
+
+    /// Publishes what was held for store writes now durable.
+    async fn publish_stored(&mut self) -> anyhow::Result<()> {
+        let durable = self.durable_through();
+        for (tid, (header, output)) in self.held.release(durable) {
+            self.publish(&tid, &header, output).await?;
+        }
+        Ok(())
+    }
+
+    /// Before `tid`'s publishers go: waits for its clouds' writes and publishes what they held.
+    async fn flush(&mut self, tid: &str) -> anyhow::Result<()> {
+        if let (Some(seq), Some(store)) = (self.held.last_cloud(tid), &self.store) {
+            store.wait_durable(seq).await;
+        }
+        self.held.forget(tid);
+        self.publish_stored().await
+    }
+
     async fn publish(
         &mut self,
         tid: &str,
@@ -492,7 +602,7 @@ async fn perform(
             tid,
             header,
             output,
-        } => out.publish(&tid, &header, output).await?,
+        } => out.publish_when_stored(tid, header, output).await?,
         PlannerAction::PublishStatus { header, status } => {
             out.status.publish(&header, &status).await?
         }
@@ -503,7 +613,10 @@ async fn perform(
         PlannerAction::ReplySnapshot { query_id, answer } => {
             return Ok(inputs.reply(query_id, answer).await as u64);
         }
-        PlannerAction::Release { tid } => out.release(&tid).await,
+        PlannerAction::Release { tid } => {
+            out.flush(&tid).await?;
+            out.release(&tid).await
+        }
         PlannerAction::CatchUp { tid } => {
             // Back into the event queue: the node picks it up after what is already waiting.
             let _ = out.events.send(PlannerEvent::CatchUp { tid });
@@ -514,11 +627,7 @@ async fn perform(
         PlannerAction::NextCloud => {
             let _ = out.events.send(PlannerEvent::NextCloud);
         }
-        PlannerAction::Store(write) => {
-            if let Some(store) = &out.store {
-                store.write(write).await;
-            }
-        }
+        PlannerAction::Store(write) => out.queue_store(write).await,
         PlannerAction::DecodeAhead { tid, snapshot } => {
             if let Some(decoder) = &out.decoder {
                 decoder.decode(tid, snapshot);
@@ -572,19 +681,26 @@ pub async fn run(
     let drops = counters.drops.clone();
     let (events_tx, events_rx) = tokio::sync::mpsc::unbounded_channel();
     let mut inputs = Inputs::declare(&session, &settings, &drops, events_rx).await?;
-    let mut out = Outputs::declare(&session, &pid, &drops, events_tx).await?;
+    let mut out = Outputs::declare(&session, &pid, &counters, events_tx).await?;
     let _alive = declare_alive(&session, MemberKind::Planner, &pid).await?;
     let mut node = start_node(&settings, &mut out, &counters).await?;
+    inputs.stored = out.store.as_ref().map(storage::StoreWriter::durable_watch);
     tracing::info!(planner = %pid, method = %settings.planning.method, "planner started");
-    while let Some(event) = inputs.next(&mut shutdown, &drops).await {
-        node = step(node, event, &mut inputs, &mut out, &counters).await?;
+    while let Some(wake) = inputs.next(&mut shutdown, &drops).await {
+        match wake {
+            Wake::Event(event) => {
+                node = step(node, *event, &mut inputs, &mut out, &counters).await?
+            }
+            Wake::Stored => out.publish_stored().await?,
+        }
     }
     if let Some(store) = out.store.take() {
-        // The checkpoints still queued are written before the planner stops.
+        // The writes still queued are done before the planner stops, then what they held goes.
         if let Err(e) = tokio::task::spawn_blocking(move || store.close()).await {
             tracing::error!(planner = %pid, error = %e, "closing the store failed");
         }
     }
+    out.publish_stored().await?;
     out.close().await;
     tracing::info!(planner = %pid, clouds = node.stats().clouds_integrated, dropped = drops.total(), "planner stopped");
     Ok(())
@@ -615,10 +731,12 @@ async fn start_node(
         let (restored, opened) = open_store(store, node, pid).await?;
         node = restored;
         let events = out.events.clone();
+        let write_delay = Duration::from_millis(store.write_delay_ms);
         out.store = Some(storage::StoreWriter::start(
             opened,
             counters.clone(),
             events,
+            write_delay,
         )?);
     }
     Ok(node)

@@ -10,7 +10,7 @@ use glasshouse_planner::{PlannerSettings, StoreSettings};
 /// fruit estimates.
 ///
 /// Settings: defaults, then `--config FILE` (JSON5: planner_id, status_period_ms,
-/// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, refresh_by_delta, `store: { path, checkpoint_clouds, settle_ms }` and
+/// replica_refresh_clouds, takeover_decode_threads, standby_decoded_ahead, refresh_by_delta, `store: { path, checkpoint_clouds, settle_ms, write_delay_ms }` and
 /// `planning: { method, seed, resolution_m, max_range_m, merge_far_rays, min_cluster_voxels, fit,
 /// scoring_threads, insert_threads, fit_threads }`), then the flags below.
 ///
@@ -75,6 +75,11 @@ struct Cli {
     /// before it takes on trolleys.
     #[arg(long, value_name = "FILE")]
     store: Option<PathBuf>,
+    /// Fault injection for benchmarks and tests: every store transaction waits this long
+    /// first, as on a slow or overloaded disk (default 0). A trolley's views still go out only once their
+    /// cloud is stored; the planner serves the others meanwhile.
+    #[arg(long, value_name = "MS", requires = "store")]
+    store_write_delay_ms: Option<u64>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -100,6 +105,9 @@ fn apply_flags(cli: Cli, s: &mut PlannerSettings) -> anyhow::Result<()> {
             path,
             ..s.store.take().unwrap_or_default()
         });
+    }
+    if let (Some(store), Some(delay)) = (s.store.as_mut(), cli.store_write_delay_ms) {
+        store.write_delay_ms = delay;
     }
     s.validate()
 }

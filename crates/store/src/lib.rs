@@ -22,9 +22,10 @@
 //!
 //! # Durability
 //!
-//! Every write is one redb transaction committed with redb's default immediate durability (an
+//! Every call is one redb transaction committed with redb's default immediate durability (an
 //! `fdatasync` on Linux before the call returns): a planner publishes its views only after the
-//! write returns, and a killed process must not lose a scan it already integrated. After a kill,
+//! write returns, and a killed process must not lose a scan it already integrated.
+//! [`Store::write_all`] puts several writes in one transaction (one `fdatasync` for all). After a kill,
 //! the next open repairs the file (redb walks all of it: ~70 ms for 70 MB here). A file is used
 //! by one process at a time (redb locks it); a second opener gets [`StoreError::Locked`].
 //!
@@ -104,6 +105,29 @@ pub struct Checkpoint<'a> {
     pub blocks: &'a [(BlockCoord, Vec<u8>)],
     /// Remove every stored block and logged cloud of the trolley first.
     pub full: bool,
+}
+
+/// One write of a batch ([`Store::write_all`]); each is what the method of its name writes.
+#[derive(Clone, Copy, Debug)]
+pub enum Write<'a> {
+    /// [`Store::append_cloud`].
+    Cloud {
+        tid: &'a str,
+        epoch: u64,
+        frame: FrameKey,
+        bytes: &'a [u8],
+    },
+    /// [`Store::checkpoint`].
+    Checkpoint {
+        tid: &'a str,
+        checkpoint: Checkpoint<'a>,
+    },
+    /// [`Store::put_fruits`].
+    Fruits {
+        tid: &'a str,
+        epoch: u64,
+        bytes: &'a [u8],
+    },
 }
 
 /// A trolley's stored state, as [`Store::load`] returns it.
@@ -224,12 +248,12 @@ impl Store {
         frame: FrameKey,
         bytes: &[u8],
     ) -> Result<(), StoreError> {
-        let txn = self.db.begin_write()?;
-        check_epoch(&txn, tid, epoch)?;
-        let key = (tid, frame.epoch_ns, frame.seq);
-        let written = encoded_len::<CloudKey>(&key) + len_u64(bytes);
-        txn.open_table(CLOUDS)?.insert(key, bytes)?;
-        self.commit(txn, written)
+        self.write_one(&Write::Cloud {
+            tid,
+            epoch,
+            frame,
+            bytes,
+        })
     }
 
     /// In one transaction: (when `full`, first removes every block and logged cloud of `tid`)
@@ -237,23 +261,48 @@ impl Store {
     /// clouds up to the checkpoint's frame. A stale epoch is refused as by
     /// [`Store::append_cloud`].
     pub fn checkpoint(&self, tid: &str, checkpoint: &Checkpoint<'_>) -> Result<(), StoreError> {
-        let txn = self.db.begin_write()?;
-        check_epoch(&txn, tid, checkpoint.epoch)?;
-        if checkpoint.full {
-            remove_blocks(&txn, tid)?;
-            remove_clouds_through(&txn, tid, FrameKey::MAX)?;
-        }
-        let mut written = put_blocks(&txn, tid, checkpoint.blocks)?;
-        written += put_checkpoint(&txn, tid, checkpoint)?;
-        remove_clouds_through(&txn, tid, checkpoint.frame)?;
-        self.commit(txn, written)
+        self.write_one(&Write::Checkpoint {
+            tid,
+            checkpoint: *checkpoint,
+        })
     }
 
     /// Replaces `tid`'s latest fruits; refused ([`StoreError::Stale`]) when `epoch` is older
     /// than the stored fruits' epoch.
     pub fn put_fruits(&self, tid: &str, epoch: u64, bytes: &[u8]) -> Result<(), StoreError> {
+        self.write_one(&Write::Fruits { tid, epoch, bytes })
+    }
+
+    /// Performs `writes` in order in one transaction: one commit, one `fdatasync`, for all of
+    /// them (a writer that fell behind its disk catches up with what queued meanwhile). A
+    /// write refused for its epoch ([`StoreError::Stale`]) writes nothing and leaves the others
+    /// be; its error is in its place of the result. Any other error aborts the transaction:
+    /// nothing of the batch is written.
+    pub fn write_all(
+        &self,
+        writes: &[Write<'_>],
+    ) -> Result<Vec<Result<(), StoreError>>, StoreError> {
         let txn = self.db.begin_write()?;
-        let written = put_fruits_in(&txn, tid, epoch, bytes)?;
+        let mut written = 0;
+        let mut outcomes = Vec::with_capacity(writes.len());
+        for write in writes {
+            match write_in(&txn, write) {
+                Ok(bytes) => {
+                    written += bytes;
+                    outcomes.push(Ok(()));
+                }
+                Err(stale @ StoreError::Stale { .. }) => outcomes.push(Err(stale)),
+                Err(e) => return Err(e),
+            }
+        }
+        self.commit(txn, written)?;
+        Ok(outcomes)
+    }
+
+    /// One write in its own transaction; a refused one commits nothing.
+    fn write_one(&self, write: &Write<'_>) -> Result<(), StoreError> {
+        let txn = self.db.begin_write()?;
+        let written = write_in(&txn, write)?;
         self.commit(txn, written)
     }
 
@@ -355,6 +404,36 @@ fn create_tables(txn: &WriteTransaction) -> Result<(), StoreError> {
     txn.open_table(CLOUDS)?;
     txn.open_table(FRUITS)?;
     Ok(())
+}
+
+/// Performs one write in `txn` (its epoch checked first); returns the bytes written.
+fn write_in(txn: &WriteTransaction, write: &Write<'_>) -> Result<u64, StoreError> {
+    match *write {
+        Write::Cloud {
+            tid,
+            epoch,
+            frame,
+            bytes,
+        } => {
+            check_epoch(txn, tid, epoch)?;
+            let key = (tid, frame.epoch_ns, frame.seq);
+            let written = encoded_len::<CloudKey>(&key) + len_u64(bytes);
+            txn.open_table(CLOUDS)?.insert(key, bytes)?;
+            Ok(written)
+        }
+        Write::Checkpoint { tid, checkpoint } => {
+            check_epoch(txn, tid, checkpoint.epoch)?;
+            if checkpoint.full {
+                remove_blocks(txn, tid)?;
+                remove_clouds_through(txn, tid, FrameKey::MAX)?;
+            }
+            let written = put_blocks(txn, tid, checkpoint.blocks)?;
+            let written = written + put_checkpoint(txn, tid, &checkpoint)?;
+            remove_clouds_through(txn, tid, checkpoint.frame)?;
+            Ok(written)
+        }
+        Write::Fruits { tid, epoch, bytes } => put_fruits_in(txn, tid, epoch, bytes),
+    }
 }
 
 /// Refuses a write of `epoch` when `tid`'s stored checkpoint is of a newer epoch.

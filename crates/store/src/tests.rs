@@ -314,3 +314,90 @@ fn totals_count_transactions_and_bytes() -> TestResult {
     assert!(totals.bytes >= after_cloud.bytes + 2 * (100 + 12) + 4 + 24);
     Ok(())
 }
+
+#[test]
+fn a_batch_is_one_transaction_and_loads_as_its_writes_one_by_one() -> TestResult {
+    let blocks = vec![(coord(0, 0, 0), vec![1]), (coord(0, 0, 1), vec![2])];
+    let later = vec![(coord(0, 0, 1), vec![3])];
+    let writes = [
+        Write::Checkpoint {
+            tid: "t1",
+            checkpoint: checkpoint(2, frame(1, 1), &blocks, true),
+        },
+        Write::Cloud {
+            tid: "t1",
+            epoch: 2,
+            frame: frame(1, 2),
+            bytes: b"c2",
+        },
+        Write::Cloud {
+            tid: "t1",
+            epoch: 2,
+            frame: frame(1, 3),
+            bytes: b"c3",
+        },
+        Write::Checkpoint {
+            tid: "t1",
+            checkpoint: checkpoint(2, frame(1, 2), &later, false),
+        },
+        Write::Fruits {
+            tid: "t1",
+            epoch: 2,
+            bytes: b"fruits",
+        },
+    ];
+    let dir = TempDir::new("batch");
+    let batched = Store::open(&dir.db())?;
+    let outcomes = batched.write_all(&writes)?;
+    assert!(outcomes.iter().all(Result::is_ok), "{outcomes:?}");
+    assert_eq!(batched.totals().transactions, 1);
+
+    let dir = TempDir::new("one-by-one");
+    let single = Store::open(&dir.db())?;
+    for write in &writes {
+        single.write_all(std::slice::from_ref(write))?;
+    }
+    assert_eq!(single.totals().transactions, 5);
+    assert_eq!(batched.totals().bytes, single.totals().bytes);
+    assert_eq!(batched.load()?, single.load()?);
+    // Frame 3's cloud outlives the checkpoint at frame 2.
+    let trolley = only_trolley(&batched)?;
+    assert_eq!(trolley.clouds, vec![(frame(1, 3), b"c3".to_vec())]);
+    Ok(())
+}
+
+#[test]
+fn a_stale_write_in_a_batch_is_refused_and_the_others_are_written() -> TestResult {
+    let dir = TempDir::new("batch-stale");
+    let store = Store::open(&dir.db())?;
+    store.checkpoint("t1", &checkpoint(5, frame(1, 1), &[], true))?;
+    let outcomes = store.write_all(&[
+        Write::Cloud {
+            tid: "t1",
+            epoch: 4,
+            frame: frame(1, 2),
+            bytes: b"stale owner",
+        },
+        Write::Cloud {
+            tid: "t1",
+            epoch: 5,
+            frame: frame(1, 3),
+            bytes: b"owner",
+        },
+    ])?;
+    assert!(
+        matches!(
+            outcomes[0],
+            Err(StoreError::Stale {
+                stored_epoch: 5,
+                epoch: 4,
+                ..
+            })
+        ),
+        "{outcomes:?}"
+    );
+    assert!(outcomes[1].is_ok(), "{outcomes:?}");
+    let trolley = only_trolley(&store)?;
+    assert_eq!(trolley.clouds, vec![(frame(1, 3), b"owner".to_vec())]);
+    Ok(())
+}

@@ -416,24 +416,37 @@ run_rogue() {
     load_fleet || fail "the dashboard API does not answer" dashboard
     declare -A views_before=()
     for tid in "${tids[@]}"; do views_before[$tid]="${T_VIEWS[$tid]:-0}"; done
-    log "rogue: glasshouse secure probe on network $network as trolley-t2 against t1"
-    # A second try when the first fails: in a fleet still settling, the detector a planner takes
-    # a trolley's clouds from can change under the probe (seen once: a compromised detector's
-    # cloud "accepted" while it was the serving one). A real hole fails both.
-    local try
-    for try in 1 2; do
+    # Up to three tries, each against another victim (never t2, the rogue's own identity): in a
+    # fleet still settling, the detector a planner takes a trolley's clouds from can change under
+    # the probe (seen once: a compromised detector's cloud "accepted" while it was the serving
+    # one), and a probe whose control cannot reach the victim's arm (seen twice in one run: every
+    # view of t1 out of reach, its control views refused or never executed) cannot judge. The
+    # holes it looks for are the identities' and the ACL's, the same for every trolley: a real
+    # hole fails every try. Each failed try logs every trolley's state.
+    local try victim victims=()
+    for tid in t1 t3 t4; do [[ -n "${views_before[$tid]+set}" ]] && victims+=("$tid"); done
+    ((${#victims[@]} > 0)) || victims=(t1)
+    for try in "${!victims[@]}"; do
+        victim="${victims[$try]}"
+        log "rogue: glasshouse secure probe on network $network as trolley-t2 against $victim"
         if out="$(docker run --rm --network "$network" --init \
             -v "$GH_IDENTITIES/rogue:$PKI_IN_CONTAINER:ro" "$RIG_IMAGE" \
             glasshouse secure probe --rogue "$PKI_IN_CONTAINER/trolley-t2.json5" \
-            --observer "$PKI_IN_CONTAINER/dashboard-probe.json5" --victim t1 --planners p1,p2,p3 \
+            --observer "$PKI_IN_CONTAINER/dashboard-probe.json5" --victim "$victim" --planners p1,p2,p3 \
             --detector-identity "$PKI_IN_CONTAINER/detector-d1.json5,$PKI_IN_CONTAINER/detector-d2.json5" \
             --planner-identity "$PKI_IN_CONTAINER/planner-p1.json5,$PKI_IN_CONTAINER/planner-p2.json5,$PKI_IN_CONTAINER/planner-p3.json5" \
             2>&1)"; then
             break
         fi
         printf '%s\n' "$out" >&2
-        ((try < 2)) || fail "the rogue container was not refused everything (or could not judge), twice" router
-        log "rogue: try $try failed (above); trying once more"
+        if load_fleet; then
+            for tid in "${tids[@]}"; do
+                log "  $tid: state ${T_STATE[$tid]:-?}, ${T_VIEWS[$tid]:-?} views, ${T_FRAMES[$tid]:-?} frames, views from ${T_PLANNER[$tid]:--}"
+            done
+        fi
+        ((try + 1 < ${#victims[@]})) ||
+            fail "the rogue container was not refused everything (or could not judge), ${#victims[@]} tries" router
+        log "rogue: try $((try + 1)) against $victim failed (above); trying against another trolley"
     done
     printf '%s\n' "$out" | sed 's/^/    /' >&2
     ROGUE_LINE="$(printf '%s\n' "$out" | tail -n1) in $((SECONDS - t0)) s"

@@ -148,8 +148,8 @@ pub struct FleetBenchArgs {
     #[arg(long, value_name = "NICE", default_value_t = 0, value_parser = clap::value_parser!(i32).range(0..=19))]
     pub trolley_nice: i32,
     /// Every planner keeps its trolleys in a store, DIR/<planner>.redb (`planner-service
-    /// --store`), and the report gives what the stores wrote per frame. `--fault restart-all`
-    /// uses stores in the logs folder when this is not given.
+    /// --store`); `glasshouse bench-store` measures what a store writes per frame. `--fault
+    /// restart-all` uses stores in the logs folder when this is not given.
     #[arg(long, value_name = "DIR")]
     pub store: Option<PathBuf>,
     /// A slow disk under every planner's store (`planner-service --store-write-delay-ms`):

@@ -68,7 +68,7 @@ impl ServiceMetrics for PlannerCounters {
     }
 }
 
-/// What the planner counts itself: clouds, views, snapshot bytes.
+/// What the planner counts itself: clouds, views, snapshot bytes, its store's writes.
 fn counts(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings {
     let c = |field: fn(&PlannerCounters) -> &AtomicU64| atomic(counters, field);
     readings
@@ -113,6 +113,37 @@ fn counts(counters: &Arc<PlannerCounters>, readings: Readings) -> Readings {
             "Map snapshot bytes sent to planners taking a trolley over",
             &[],
             c(|k| &k.snapshot_bytes_sent),
+        )
+        .in_unit(Unit::Bytes)
+        .counter(
+            "store_writes",
+            "Store writes done (a checkpoint, a logged cloud, trolleys' fruits)",
+            &[],
+            c(|k| &k.store_writes),
+        )
+        .counter(
+            "store_transactions",
+            "Store transactions committed (writes queued together share one)",
+            &[],
+            c(|k| &k.store_transactions),
+        )
+        .counter(
+            "store_errors",
+            "Store writes that failed (that state is in memory only)",
+            &[],
+            c(|k| &k.store_errors),
+        )
+        .counter(
+            "publications_held",
+            "Views, fruits and map updates held until their cloud was stored",
+            &[],
+            c(|k| &k.publications_held),
+        )
+        .counter(
+            "store_written",
+            "Key and value bytes the store wrote",
+            &[],
+            c(|k| &k.store_bytes_written),
         )
         .in_unit(Unit::Bytes)
 }

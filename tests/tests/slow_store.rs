@@ -105,6 +105,17 @@ async fn a_slow_store_holds_the_views_not_the_planner() {
         .publications_held
         .load(std::sync::atomic::Ordering::Relaxed);
     assert!(held >= 3, "{held} publications held");
+    let counters = &pipeline.planner_counters;
+    let load = |c: &std::sync::atomic::AtomicU64| c.load(std::sync::atomic::Ordering::Relaxed);
+    let (writes, transactions) = (
+        load(&counters.store_writes),
+        load(&counters.store_transactions),
+    );
+    assert!(
+        transactions >= 1 && writes >= transactions,
+        "{writes} writes in {transactions} transactions"
+    );
+    assert_eq!(load(&counters.store_errors), 0);
     pipeline.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -3,9 +3,10 @@
 //! The store is a replica on disk of every trolley this planner owns: a checkpoint (fruit ids,
 //! last frame, the map's blocks changed since the last checkpoint; every block at the first
 //! checkpoint of a term) and, after it, a log of the clouds integrated since. The node decides
-//! what to write ([`StoreWrite`], one [`PlannerAction::Store`] each); the driver writes it before
-//! it performs the actions that follow, so a trolley's views go out only once the cloud they
-//! were planned on is stored and a killed planner loses no integrated scan.
+//! what to write ([`StoreWrite`], one [`PlannerAction::Store`] each); the driver queues it and
+//! holds the trolley's publications that follow until it is durable (`held`), so a trolley's
+//! views go out only once the cloud they were planned on is stored and a killed planner loses no
+//! integrated scan.
 //!
 //! At start the driver hands the node what its store held ([`PlannerNode::restore`]): each
 //! trolley's checkpoint with its logged clouds integrated on top, kept as a restored copy until

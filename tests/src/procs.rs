@@ -22,7 +22,13 @@ pub fn build_binaries() {
     // scripts watch; passing them on would make this build redo work the outer one already did.
     for (name, _) in std::env::vars_os() {
         let name = name.to_string_lossy().into_owned();
-        let keep = ["CARGO_HOME", "CARGO_TARGET_DIR", "CARGO_TERM_COLOR"].contains(&name.as_str())
+        let keep = [
+            "CARGO_HOME",
+            "CARGO_TARGET_DIR",
+            "CARGO_TERM_COLOR",
+            "CARGO_INCREMENTAL",
+        ]
+        .contains(&name.as_str())
             || name.starts_with("CARGO_BUILD_")
             || name.starts_with("CARGO_PROFILE_");
         if !keep && (name.starts_with("CARGO_") || name.starts_with("NEXTEST") || name == "OUT_DIR")

@@ -3,8 +3,8 @@
 //! `cargo bench -p glasshouse-roimap -- --warm-up-time 1 --measurement-time 3`
 //!
 //! Rows: one filtered scan and one raw scan inserted into the map of the other nine scans (1 and
-//! 2 threads; `/portable` = the walk capped at the build's baseline vector unit, beside the
-//! widest this CPU has), the unobserved-voxel gain over a 200×150-ray fan, the frontier queries (incremental)
+//! 2 threads; `/avx2`, `/portable` = the walk capped at AVX2 or at the build's baseline vector
+//! unit, beside the widest this CPU has), the unobserved-voxel gain over a 200×150-ray fan, the frontier queries (incremental)
 //! next to a from-scratch recomputation, clustering, and snapshot writing. The memory of the
 //! 10-scan map is printed once. The `row` group sweeps a simulated row segment by segment.
 
@@ -27,6 +27,18 @@ fn map_of(w: &Workload, scans: &[Scan]) -> RoiMap {
     m
 }
 
+/// The vector units below the widest this CPU has, each with its row suffix (`/avx2`,
+/// `/portable`), for side-by-side rows.
+fn narrower_levels() -> Vec<(simd::Level, &'static str)> {
+    [
+        (simd::Level::Avx2, "/avx2"),
+        (simd::Level::Portable, "/portable"),
+    ]
+    .into_iter()
+    .filter(|&(level, _)| level < simd::detected())
+    .collect()
+}
+
 fn insertion(c: &mut Criterion) {
     let w = Workload::standard(SEED);
     let filtered = w.filtered_scans();
@@ -44,8 +56,11 @@ fn insertion(c: &mut Criterion) {
     );
     let mut g = c.benchmark_group("insert");
     g.sample_size(20);
-    let levels = [(simd::detected(), ""), (simd::Level::Portable, "/portable")];
-    for (threads, (level, suffix)) in [(1usize, levels[0]), (1, levels[1]), (2, levels[0])] {
+    let best = (simd::detected(), "");
+    let mut runs = vec![(1usize, best)];
+    runs.extend(narrower_levels().into_iter().map(|level| (1, level)));
+    runs.push((2, best));
+    for (threads, (level, suffix)) in runs {
         simd::set_cap(level);
         for (name, s) in [("filtered_scan", &filtered[9]), ("raw_scan", &raw_last)] {
             g.bench_function(format!("{name}/{threads}_thread{suffix}"), |b| {
@@ -76,10 +91,12 @@ fn queries(c: &mut Criterion) {
     g.bench_function("gain_fan_200x150/batch", |b| {
         b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &fan, 1.5))
     });
-    simd::set_cap(simd::Level::Portable);
-    g.bench_function("gain_fan_200x150/batch/portable", |b| {
-        b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &fan, 1.5))
-    });
+    for (level, suffix) in narrower_levels() {
+        simd::set_cap(level);
+        g.bench_function(format!("gain_fan_200x150/batch{suffix}"), |b| {
+            b.iter(|| unobserved_gain_batch(&m, black_box(&origin), &fan, 1.5))
+        });
+    }
     simd::set_cap(simd::detected());
     // The planner scores each candidate view with a fan this small: what a fan costs beyond
     // its rays' walk (setting up, the planes) dominates here.

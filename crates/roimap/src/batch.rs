@@ -5,7 +5,9 @@
 use nalgebra::{Point3, Vector3};
 
 use crate::grid::{block_of, local_of, mask_test, Block, Mask, BLOCK_SHIFT};
-use crate::walk::{walk_lanes, LaneVisitor, PlaneGeometry, RaySetup, KEY_LIMIT, LANES};
+use crate::walk::{
+    walk_lanes, walk_lanes_at, LaneVisitor, PlaneGeometry, RaySetup, KEY_LIMIT, LANES,
+};
 use crate::{RoiMap, Voxel, VoxelKey};
 
 /// Per-ray result of [`RoiMap::count_unknown_until_occupied`].
@@ -124,6 +126,17 @@ impl RoiMap {
         directions: &[Vector3<f64>],
         max_range_m: f64,
     ) -> Vec<RayCount> {
+        self.count_unknown_at(crate::simd::level(), origin, directions, max_range_m)
+    }
+
+    /// [`RoiMap::count_unknown_until_occupied`] walked on a given vector unit.
+    pub(crate) fn count_unknown_at(
+        &self,
+        level: crate::simd::Level,
+        origin: &Point3<f64>,
+        directions: &[Vector3<f64>],
+        max_range_m: f64,
+    ) -> Vec<RayCount> {
         let mut counts = vec![RayCount::default(); directions.len()];
         let mut cache = BlockCache::new(self);
         let mut singles = Vec::new();
@@ -140,7 +153,7 @@ impl RoiMap {
         for (ray, key) in singles {
             counter.count(ray as u32, key, None);
         }
-        walk_lanes(setups.into_iter(), &planes.geometry, &mut counter);
+        walk_lanes_at(level, setups.into_iter(), &planes.geometry, &mut counter);
         counts
     }
 
@@ -415,6 +428,29 @@ mod tests {
                 ray_by_ray.to_bits(),
                 unobserved_gain_batch(&m, &origin, &directions, range_m).to_bits()
             );
+        }
+    }
+
+    /// Every vector unit this CPU has counts each ray of a dense fan (whole steps in
+    /// registers) as the portable walk does.
+    #[test]
+    fn every_vector_unit_counts_each_ray_alike() {
+        use crate::simd::{detected, Level};
+        let w = Workload::small(3, 160, 120, 10, 3);
+        let m = w.filtered_map().expect("valid scans");
+        let (origin, directions) = w.gain_fan();
+        let portable = m.count_unknown_at(Level::Portable, &origin, &directions, 1.5);
+        let unknown: u32 = portable.iter().map(|c| c.unknown).sum();
+        let visited: u32 = portable.iter().map(|c| c.visited).sum();
+        assert!(
+            unknown > 1000 && unknown < visited,
+            "{unknown} of {visited}"
+        );
+        for level in [Level::Avx2, Level::Avx512] {
+            if level <= detected() {
+                let wide = m.count_unknown_at(level, &origin, &directions, 1.5);
+                assert!(wide == portable, "{level:?} counts differ");
+            }
         }
     }
 }

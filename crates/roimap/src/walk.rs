@@ -423,23 +423,34 @@ mod x86 {
         g: &PlaneGeometry,
         v: &mut V,
     ) {
-        walk_lanes_portable(rays, g, v)
+        walk_in_registers(rays, g, v, |l, g, v| clean_steps_avx2(l, g, v))
     }
 
     #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma,bmi1,bmi2,popcnt,lzcnt")]
     unsafe fn avx512<V: LaneVisitor>(
+        rays: impl Iterator<Item = (u32, RaySetup)>,
+        g: &PlaneGeometry,
+        v: &mut V,
+    ) {
+        walk_in_registers(rays, g, v, |l, g, v| clean_steps(l, g, v))
+    }
+
+    /// The lane walk with the whole steps in registers: while every lane holds a ray, `steps`
+    /// runs them (a `clean_steps` of one vector unit); the last rays, fewer than eight, finish
+    /// on the compiled walk. Inlined into each unit's function, so it is compiled for that unit.
+    #[inline(always)]
+    fn walk_in_registers<V: LaneVisitor>(
         mut rays: impl Iterator<Item = (u32, RaySetup)>,
         g: &PlaneGeometry,
         v: &mut V,
+        steps: impl Fn(&mut Lanes, &PlaneGeometry, &mut V) -> (u32, u32),
     ) {
         if !(V::WHOLE_STEPS && V::PLANE) {
             return walk_lanes_portable(rays, g, v);
         }
-        // While every lane holds a ray, the steps run in registers (`clean_steps`); the last
-        // rays, fewer than eight, finish on the compiled walk.
         let (mut lanes, mut active) = start_lanes(&mut rays, g, v);
         while active == ALL_LANES {
-            let masks = clean_steps(&mut lanes, g, v);
+            let masks = steps(&mut lanes, g, v);
             active = settle(&mut lanes, active, masks, &mut rays, g, v);
         }
         finish_lanes(lanes, active, rays, g, v)
@@ -524,6 +535,139 @@ mod x86 {
             st_i(&mut lanes.c[2], c2);
             st_i(&mut lanes.index, index);
             _mm256_storeu_si256(lanes.left.as_mut_ptr().cast(), left);
+            (done, outside)
+        }
+    }
+
+    /// The two halves of an eight-lane `f64` field, each made by `f` (0: lanes 0-3, 1: 4-7).
+    #[inline(always)]
+    fn half<T>(f: impl Fn(usize) -> T) -> [T; 2] {
+        [f(0), f(1)]
+    }
+
+    /// [`clean_steps`] for AVX2: the eight lanes' `f64` fields in two 256-bit registers each
+    /// (lanes 0-3 and 4-7), their `i32` fields in one, held in the order 0, 1, 4, 5, 2, 3, 6, 7
+    /// in which one `shufps` narrows a pair of `f64` compare masks, so no step reorders a
+    /// mask. The same `f64` operations as [`Lanes::advance`]: `t + (td & mask)`, the
+    /// compares of its `<`, `min` as its `if a < b { a } else { b }` (`minpd` returns the
+    /// second operand unless the first is less).
+    #[target_feature(enable = "avx2")]
+    fn clean_steps_avx2<V: LaneVisitor>(
+        lanes: &mut Lanes,
+        g: &PlaneGeometry,
+        v: &mut V,
+    ) -> (u32, u32) {
+        use std::arch::x86_64::*;
+        // SAFETY: every pointer is to an array of eight `f64` (two loads or stores of four) or
+        // eight `i32`/`u32` in `lanes` or on the stack, loaded and stored unaligned.
+        unsafe {
+            // Lane order of the i32 registers; the same permutation undoes itself.
+            let order = _mm256_setr_epi32(0, 1, 4, 5, 2, 3, 6, 7);
+            let ld_t = |a: &[f64; LANES]| {
+                let p = a.as_ptr();
+                [_mm256_loadu_pd(p), _mm256_loadu_pd(p.add(4))]
+            };
+            let ld_i = |a: &[i32; LANES]| {
+                _mm256_permutevar8x32_epi32(_mm256_loadu_si256(a.as_ptr().cast()), order)
+            };
+            // Two 4 × f64 compare masks as one 8 × i32 mask, in the registers' lane order.
+            let narrow = |m: [__m256d; 2]| {
+                _mm256_castps_si256(_mm256_shuffle_ps::<0b10_00_10_00>(
+                    _mm256_castpd_ps(m[0]),
+                    _mm256_castpd_ps(m[1]),
+                ))
+            };
+            let (mut t0, mut t1, mut t2) =
+                (ld_t(&lanes.t[0]), ld_t(&lanes.t[1]), ld_t(&lanes.t[2]));
+            let (td0, td1, td2) = (ld_t(&lanes.td[0]), ld_t(&lanes.td[1]), ld_t(&lanes.td[2]));
+            let (mut c0, mut c1, mut c2) =
+                (ld_i(&lanes.c[0]), ld_i(&lanes.c[1]), ld_i(&lanes.c[2]));
+            let (e0, e1, e2) = (ld_i(&lanes.e[0]), ld_i(&lanes.e[1]), ld_i(&lanes.e[2]));
+            let (s0, s1, s2) = (
+                ld_i(&lanes.step[0]),
+                ld_i(&lanes.step[1]),
+                ld_i(&lanes.step[2]),
+            );
+            let (d0, d1, d2) = (
+                ld_i(&lanes.stride[0]),
+                ld_i(&lanes.stride[1]),
+                ld_i(&lanes.stride[2]),
+            );
+            let mut index = ld_i(&lanes.index);
+            let mut left =
+                _mm256_permutevar8x32_epi32(_mm256_loadu_si256(lanes.left.as_ptr().cast()), order);
+            let length = ld_t(&lanes.length);
+            let lo = g.lo.map(|k| _mm256_set1_epi32(k));
+            let n = g.n.map(|n| _mm256_set1_epi32(n as i32));
+            let (one, zero) = (_mm256_set1_epi32(1), _mm256_setzero_si256());
+            // Lanes whose key left the box: (c − lo) as u32 ≥ n, i.e. max(c − lo, n) = c − lo.
+            let out = |c: __m256i, lo: __m256i, n: __m256i| {
+                let d = _mm256_sub_epi32(c, lo);
+                _mm256_cmpeq_epi32(_mm256_max_epu32(d, n), d)
+            };
+            let mut marks = [0i32; LANES];
+            let (done, outside) = loop {
+                let a = half(|h| _mm256_cmp_pd::<_CMP_LT_OQ>(t0[h], t1[h]));
+                let x = half(|h| _mm256_and_pd(a[h], _mm256_cmp_pd::<_CMP_LT_OQ>(t0[h], t2[h])));
+                let y = half(|h| _mm256_andnot_pd(a[h], _mm256_cmp_pd::<_CMP_LT_OQ>(t1[h], t2[h])));
+                let xy = half(|h| _mm256_or_pd(x[h], y[h]));
+                t0 = half(|h| _mm256_add_pd(t0[h], _mm256_and_pd(td0[h], x[h])));
+                t1 = half(|h| _mm256_add_pd(t1[h], _mm256_and_pd(td1[h], y[h])));
+                t2 = half(|h| _mm256_add_pd(t2[h], _mm256_andnot_pd(xy[h], td2[h])));
+                let (x, y, xy) = (narrow(x), narrow(y), narrow(xy));
+                c0 = _mm256_add_epi32(c0, _mm256_and_si256(s0, x));
+                c1 = _mm256_add_epi32(c1, _mm256_and_si256(s1, y));
+                c2 = _mm256_add_epi32(c2, _mm256_andnot_si256(xy, s2));
+                index = _mm256_add_epi32(index, _mm256_and_si256(d0, x));
+                index = _mm256_add_epi32(index, _mm256_and_si256(d1, y));
+                index = _mm256_add_epi32(index, _mm256_andnot_si256(xy, d2));
+                left = _mm256_sub_epi32(left, one);
+                let at_end = _mm256_and_si256(
+                    _mm256_and_si256(_mm256_cmpeq_epi32(left, zero), _mm256_cmpeq_epi32(c0, e0)),
+                    _mm256_and_si256(_mm256_cmpeq_epi32(c1, e1), _mm256_cmpeq_epi32(c2, e2)),
+                );
+                let beyond = half(|h| {
+                    let t_min = _mm256_min_pd(_mm256_min_pd(t0[h], t1[h]), t2[h]);
+                    _mm256_cmp_pd::<_CMP_GT_OQ>(t_min, length[h])
+                });
+                let done = _mm256_or_si256(at_end, narrow(beyond));
+                let outside = _mm256_or_si256(
+                    out(c0, lo[0], n[0]),
+                    _mm256_or_si256(out(c1, lo[1], n[1]), out(c2, lo[2], n[2])),
+                );
+                if _mm256_testz_si256(_mm256_or_si256(done, outside), _mm256_set1_epi32(-1)) == 0 {
+                    let bits = |m: __m256i| {
+                        let m = _mm256_permutevar8x32_epi32(m, order);
+                        _mm256_movemask_ps(_mm256_castsi256_ps(m)) as u32
+                    };
+                    break (bits(done), bits(outside));
+                }
+                _mm256_storeu_si256(
+                    marks.as_mut_ptr().cast(),
+                    _mm256_permutevar8x32_epi32(index, order),
+                );
+                if !v.mark_lanes(&marks) {
+                    break (0, 0);
+                }
+            };
+            let st_t = |a: &mut [f64; LANES], r: [__m256d; 2]| {
+                _mm256_storeu_pd(a.as_mut_ptr(), r[0]);
+                _mm256_storeu_pd(a.as_mut_ptr().add(4), r[1]);
+            };
+            let st_i = |a: &mut [i32; LANES], r| {
+                _mm256_storeu_si256(a.as_mut_ptr().cast(), _mm256_permutevar8x32_epi32(r, order))
+            };
+            st_t(&mut lanes.t[0], t0);
+            st_t(&mut lanes.t[1], t1);
+            st_t(&mut lanes.t[2], t2);
+            st_i(&mut lanes.c[0], c0);
+            st_i(&mut lanes.c[1], c1);
+            st_i(&mut lanes.c[2], c2);
+            st_i(&mut lanes.index, index);
+            _mm256_storeu_si256(
+                lanes.left.as_mut_ptr().cast(),
+                _mm256_permutevar8x32_epi32(left, order),
+            );
             (done, outside)
         }
     }

@@ -456,6 +456,60 @@ mod x86 {
         finish_lanes(lanes, active, rays, g, v)
     }
 
+    /// The lane fields a whole step reads, in one vector unit's registers: `T` holds eight
+    /// `f64`, `I` eight `i32` (`left` as `i32`, wrapping like the `u32` it is).
+    struct Regs<T, I> {
+        t: [T; 3],
+        td: [T; 3],
+        c: [I; 3],
+        e: [I; 3],
+        step: [I; 3],
+        stride: [I; 3],
+        index: I,
+        left: I,
+        length: T,
+    }
+
+    impl<T: Copy, I: Copy> Regs<T, I> {
+        #[inline(always)]
+        fn load(
+            lanes: &Lanes,
+            ld_t: impl Fn(&[f64; LANES]) -> T,
+            ld_i: impl Fn(&[i32; LANES]) -> I,
+        ) -> Self {
+            let fields = |a: &[[i32; LANES]; 3]| a.each_ref().map(&ld_i);
+            Self {
+                t: lanes.t.each_ref().map(&ld_t),
+                td: lanes.td.each_ref().map(&ld_t),
+                c: fields(&lanes.c),
+                e: fields(&lanes.e),
+                step: fields(&lanes.step),
+                stride: fields(&lanes.stride),
+                index: ld_i(&lanes.index),
+                left: ld_i(&lanes.left.map(|l| l as i32)),
+                length: ld_t(&lanes.length),
+            }
+        }
+
+        /// Stores what the steps changed: `t`, the keys, the bit index and the steps left.
+        #[inline(always)]
+        fn store(
+            &self,
+            lanes: &mut Lanes,
+            st_t: impl Fn(&mut [f64; LANES], T),
+            st_i: impl Fn(&mut [i32; LANES], I),
+        ) {
+            for axis in 0..3 {
+                st_t(&mut lanes.t[axis], self.t[axis]);
+                st_i(&mut lanes.c[axis], self.c[axis]);
+            }
+            st_i(&mut lanes.index, self.index);
+            let mut left = [0i32; LANES];
+            st_i(&mut left, self.left);
+            lanes.left = left.map(|l| l as u32);
+        }
+    }
+
     /// [`Lanes::advance`] with the lanes held in AVX-512 registers: steps every lane and gives
     /// the eight voxels to [`LaneVisitor::mark_lanes`] for as long as no lane is done or outside
     /// the plane and the visitor takes the whole step; returns the (done, outside) masks of the
@@ -470,71 +524,44 @@ mod x86 {
         unsafe {
             let ld_t = |a: &[f64; LANES]| _mm512_loadu_pd(a.as_ptr());
             let ld_i = |a: &[i32; LANES]| _mm256_loadu_si256(a.as_ptr().cast());
-            let (mut t0, mut t1, mut t2) =
-                (ld_t(&lanes.t[0]), ld_t(&lanes.t[1]), ld_t(&lanes.t[2]));
-            let (td0, td1, td2) = (ld_t(&lanes.td[0]), ld_t(&lanes.td[1]), ld_t(&lanes.td[2]));
-            let (mut c0, mut c1, mut c2) =
-                (ld_i(&lanes.c[0]), ld_i(&lanes.c[1]), ld_i(&lanes.c[2]));
-            let (e0, e1, e2) = (ld_i(&lanes.e[0]), ld_i(&lanes.e[1]), ld_i(&lanes.e[2]));
-            let (s0, s1, s2) = (
-                ld_i(&lanes.step[0]),
-                ld_i(&lanes.step[1]),
-                ld_i(&lanes.step[2]),
-            );
-            let (d0, d1, d2) = (
-                ld_i(&lanes.stride[0]),
-                ld_i(&lanes.stride[1]),
-                ld_i(&lanes.stride[2]),
-            );
-            let mut index = ld_i(&lanes.index);
-            let mut left = _mm256_loadu_si256(lanes.left.as_ptr().cast());
-            let length = ld_t(&lanes.length);
+            let mut r = Regs::load(lanes, ld_t, ld_i);
             let lo = g.lo.map(|k| _mm256_set1_epi32(k));
             let n = g.n.map(|n| _mm256_set1_epi32(n as i32));
             let (one, zero) = (_mm256_set1_epi32(1), _mm256_setzero_si256());
             let mut marks = [0i32; LANES];
             let (done, outside) = loop {
+                let [t0, t1, t2] = r.t;
                 let a = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t0, t1);
                 let x = a & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t0, t2);
                 let y = !a & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t1, t2);
                 let z = !(x | y);
-                t0 = _mm512_mask_add_pd(t0, x, t0, td0);
-                t1 = _mm512_mask_add_pd(t1, y, t1, td1);
-                t2 = _mm512_mask_add_pd(t2, z, t2, td2);
-                c0 = _mm256_mask_add_epi32(c0, x, c0, s0);
-                c1 = _mm256_mask_add_epi32(c1, y, c1, s1);
-                c2 = _mm256_mask_add_epi32(c2, z, c2, s2);
-                index = _mm256_mask_add_epi32(index, x, index, d0);
-                index = _mm256_mask_add_epi32(index, y, index, d1);
-                index = _mm256_mask_add_epi32(index, z, index, d2);
-                left = _mm256_sub_epi32(left, one);
-                let at_end = _mm256_cmpeq_epi32_mask(left, zero)
-                    & _mm256_cmpeq_epi32_mask(c0, e0)
-                    & _mm256_cmpeq_epi32_mask(c1, e1)
-                    & _mm256_cmpeq_epi32_mask(c2, e2);
-                let t_min = _mm512_min_pd(_mm512_min_pd(t0, t1), t2);
-                let done = at_end | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(t_min, length);
+                for (axis, m) in [x, y, z].into_iter().enumerate() {
+                    r.t[axis] = _mm512_mask_add_pd(r.t[axis], m, r.t[axis], r.td[axis]);
+                    r.c[axis] = _mm256_mask_add_epi32(r.c[axis], m, r.c[axis], r.step[axis]);
+                    r.index = _mm256_mask_add_epi32(r.index, m, r.index, r.stride[axis]);
+                }
+                r.left = _mm256_sub_epi32(r.left, one);
+                let [c0, c1, c2] = r.c;
+                let at_end = _mm256_cmpeq_epi32_mask(r.left, zero)
+                    & _mm256_cmpeq_epi32_mask(c0, r.e[0])
+                    & _mm256_cmpeq_epi32_mask(c1, r.e[1])
+                    & _mm256_cmpeq_epi32_mask(c2, r.e[2]);
+                let t_min = _mm512_min_pd(_mm512_min_pd(r.t[0], r.t[1]), r.t[2]);
+                let done = at_end | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(t_min, r.length);
                 let outside = _mm256_cmpge_epu32_mask(_mm256_sub_epi32(c0, lo[0]), n[0])
                     | _mm256_cmpge_epu32_mask(_mm256_sub_epi32(c1, lo[1]), n[1])
                     | _mm256_cmpge_epu32_mask(_mm256_sub_epi32(c2, lo[2]), n[2]);
                 if done | outside != 0 {
                     break (u32::from(done), u32::from(outside));
                 }
-                _mm256_storeu_si256(marks.as_mut_ptr().cast(), index);
+                _mm256_storeu_si256(marks.as_mut_ptr().cast(), r.index);
                 if !v.mark_lanes(&marks) {
                     break (0, 0);
                 }
             };
-            let st_t = |a: &mut [f64; LANES], r| _mm512_storeu_pd(a.as_mut_ptr(), r);
-            let st_i = |a: &mut [i32; LANES], r| _mm256_storeu_si256(a.as_mut_ptr().cast(), r);
-            st_t(&mut lanes.t[0], t0);
-            st_t(&mut lanes.t[1], t1);
-            st_t(&mut lanes.t[2], t2);
-            st_i(&mut lanes.c[0], c0);
-            st_i(&mut lanes.c[1], c1);
-            st_i(&mut lanes.c[2], c2);
-            st_i(&mut lanes.index, index);
-            _mm256_storeu_si256(lanes.left.as_mut_ptr().cast(), left);
+            let st_t = |a: &mut [f64; LANES], v| _mm512_storeu_pd(a.as_mut_ptr(), v);
+            let st_i = |a: &mut [i32; LANES], v| _mm256_storeu_si256(a.as_mut_ptr().cast(), v);
+            r.store(lanes, st_t, st_i);
             (done, outside)
         }
     }
@@ -559,7 +586,7 @@ mod x86 {
     ) -> (u32, u32) {
         use std::arch::x86_64::*;
         // SAFETY: every pointer is to an array of eight `f64` (two loads or stores of four) or
-        // eight `i32`/`u32` in `lanes` or on the stack, loaded and stored unaligned.
+        // eight `i32` in `lanes` or on the stack, loaded and stored unaligned.
         unsafe {
             // Lane order of the i32 registers; the same permutation undoes itself.
             let order = _mm256_setr_epi32(0, 1, 4, 5, 2, 3, 6, 7);
@@ -577,64 +604,55 @@ mod x86 {
                     _mm256_castpd_ps(m[1]),
                 ))
             };
-            let (mut t0, mut t1, mut t2) =
-                (ld_t(&lanes.t[0]), ld_t(&lanes.t[1]), ld_t(&lanes.t[2]));
-            let (td0, td1, td2) = (ld_t(&lanes.td[0]), ld_t(&lanes.td[1]), ld_t(&lanes.td[2]));
-            let (mut c0, mut c1, mut c2) =
-                (ld_i(&lanes.c[0]), ld_i(&lanes.c[1]), ld_i(&lanes.c[2]));
-            let (e0, e1, e2) = (ld_i(&lanes.e[0]), ld_i(&lanes.e[1]), ld_i(&lanes.e[2]));
-            let (s0, s1, s2) = (
-                ld_i(&lanes.step[0]),
-                ld_i(&lanes.step[1]),
-                ld_i(&lanes.step[2]),
-            );
-            let (d0, d1, d2) = (
-                ld_i(&lanes.stride[0]),
-                ld_i(&lanes.stride[1]),
-                ld_i(&lanes.stride[2]),
-            );
-            let mut index = ld_i(&lanes.index);
-            let mut left =
-                _mm256_permutevar8x32_epi32(_mm256_loadu_si256(lanes.left.as_ptr().cast()), order);
-            let length = ld_t(&lanes.length);
+            let mut r = Regs::load(lanes, ld_t, ld_i);
             let lo = g.lo.map(|k| _mm256_set1_epi32(k));
             let n = g.n.map(|n| _mm256_set1_epi32(n as i32));
             let (one, zero) = (_mm256_set1_epi32(1), _mm256_setzero_si256());
             // Lanes whose key left the box: (c − lo) as u32 ≥ n, i.e. max(c − lo, n) = c − lo.
-            let out = |c: __m256i, lo: __m256i, n: __m256i| {
-                let d = _mm256_sub_epi32(c, lo);
-                _mm256_cmpeq_epi32(_mm256_max_epu32(d, n), d)
+            let out = |axis: usize, c: __m256i| {
+                let d = _mm256_sub_epi32(c, lo[axis]);
+                _mm256_cmpeq_epi32(_mm256_max_epu32(d, n[axis]), d)
             };
             let mut marks = [0i32; LANES];
             let (done, outside) = loop {
+                let [t0, t1, t2] = r.t;
                 let a = half(|h| _mm256_cmp_pd::<_CMP_LT_OQ>(t0[h], t1[h]));
                 let x = half(|h| _mm256_and_pd(a[h], _mm256_cmp_pd::<_CMP_LT_OQ>(t0[h], t2[h])));
                 let y = half(|h| _mm256_andnot_pd(a[h], _mm256_cmp_pd::<_CMP_LT_OQ>(t1[h], t2[h])));
-                let xy = half(|h| _mm256_or_pd(x[h], y[h]));
-                t0 = half(|h| _mm256_add_pd(t0[h], _mm256_and_pd(td0[h], x[h])));
-                t1 = half(|h| _mm256_add_pd(t1[h], _mm256_and_pd(td1[h], y[h])));
-                t2 = half(|h| _mm256_add_pd(t2[h], _mm256_andnot_pd(xy[h], td2[h])));
-                let (x, y, xy) = (narrow(x), narrow(y), narrow(xy));
-                c0 = _mm256_add_epi32(c0, _mm256_and_si256(s0, x));
-                c1 = _mm256_add_epi32(c1, _mm256_and_si256(s1, y));
-                c2 = _mm256_add_epi32(c2, _mm256_andnot_si256(xy, s2));
-                index = _mm256_add_epi32(index, _mm256_and_si256(d0, x));
-                index = _mm256_add_epi32(index, _mm256_and_si256(d1, y));
-                index = _mm256_add_epi32(index, _mm256_andnot_si256(xy, d2));
-                left = _mm256_sub_epi32(left, one);
+                let not_z = half(|h| _mm256_or_pd(x[h], y[h]));
+                let [td0, td1, td2] = r.td;
+                r.t[0] = half(|h| _mm256_add_pd(t0[h], _mm256_and_pd(td0[h], x[h])));
+                r.t[1] = half(|h| _mm256_add_pd(t1[h], _mm256_and_pd(td1[h], y[h])));
+                r.t[2] = half(|h| _mm256_add_pd(t2[h], _mm256_andnot_pd(not_z[h], td2[h])));
+                let (x, y, not_z) = (narrow(x), narrow(y), narrow(not_z));
+                // Lane masks for axes 0 and 1; axis 2 takes the rest (and-not).
+                let chosen = |axis: usize, value: __m256i| match axis {
+                    0 => _mm256_and_si256(value, x),
+                    1 => _mm256_and_si256(value, y),
+                    _ => _mm256_andnot_si256(not_z, value),
+                };
+                for axis in 0..3 {
+                    r.c[axis] = _mm256_add_epi32(r.c[axis], chosen(axis, r.step[axis]));
+                    r.index = _mm256_add_epi32(r.index, chosen(axis, r.stride[axis]));
+                }
+                r.left = _mm256_sub_epi32(r.left, one);
+                let [c0, c1, c2] = r.c;
                 let at_end = _mm256_and_si256(
-                    _mm256_and_si256(_mm256_cmpeq_epi32(left, zero), _mm256_cmpeq_epi32(c0, e0)),
-                    _mm256_and_si256(_mm256_cmpeq_epi32(c1, e1), _mm256_cmpeq_epi32(c2, e2)),
+                    _mm256_and_si256(
+                        _mm256_cmpeq_epi32(r.left, zero),
+                        _mm256_cmpeq_epi32(c0, r.e[0]),
+                    ),
+                    _mm256_and_si256(
+                        _mm256_cmpeq_epi32(c1, r.e[1]),
+                        _mm256_cmpeq_epi32(c2, r.e[2]),
+                    ),
                 );
                 let beyond = half(|h| {
-                    let t_min = _mm256_min_pd(_mm256_min_pd(t0[h], t1[h]), t2[h]);
-                    _mm256_cmp_pd::<_CMP_GT_OQ>(t_min, length[h])
+                    let t_min = _mm256_min_pd(_mm256_min_pd(r.t[0][h], r.t[1][h]), r.t[2][h]);
+                    _mm256_cmp_pd::<_CMP_GT_OQ>(t_min, r.length[h])
                 });
                 let done = _mm256_or_si256(at_end, narrow(beyond));
-                let outside = _mm256_or_si256(
-                    out(c0, lo[0], n[0]),
-                    _mm256_or_si256(out(c1, lo[1], n[1]), out(c2, lo[2], n[2])),
-                );
+                let outside = _mm256_or_si256(out(0, c0), _mm256_or_si256(out(1, c1), out(2, c2)));
                 if _mm256_testz_si256(_mm256_or_si256(done, outside), _mm256_set1_epi32(-1)) == 0 {
                     let bits = |m: __m256i| {
                         let m = _mm256_permutevar8x32_epi32(m, order);
@@ -644,30 +662,20 @@ mod x86 {
                 }
                 _mm256_storeu_si256(
                     marks.as_mut_ptr().cast(),
-                    _mm256_permutevar8x32_epi32(index, order),
+                    _mm256_permutevar8x32_epi32(r.index, order),
                 );
                 if !v.mark_lanes(&marks) {
                     break (0, 0);
                 }
             };
-            let st_t = |a: &mut [f64; LANES], r: [__m256d; 2]| {
-                _mm256_storeu_pd(a.as_mut_ptr(), r[0]);
-                _mm256_storeu_pd(a.as_mut_ptr().add(4), r[1]);
+            let st_t = |a: &mut [f64; LANES], v: [__m256d; 2]| {
+                _mm256_storeu_pd(a.as_mut_ptr(), v[0]);
+                _mm256_storeu_pd(a.as_mut_ptr().add(4), v[1]);
             };
-            let st_i = |a: &mut [i32; LANES], r| {
-                _mm256_storeu_si256(a.as_mut_ptr().cast(), _mm256_permutevar8x32_epi32(r, order))
+            let st_i = |a: &mut [i32; LANES], v| {
+                _mm256_storeu_si256(a.as_mut_ptr().cast(), _mm256_permutevar8x32_epi32(v, order))
             };
-            st_t(&mut lanes.t[0], t0);
-            st_t(&mut lanes.t[1], t1);
-            st_t(&mut lanes.t[2], t2);
-            st_i(&mut lanes.c[0], c0);
-            st_i(&mut lanes.c[1], c1);
-            st_i(&mut lanes.c[2], c2);
-            st_i(&mut lanes.index, index);
-            _mm256_storeu_si256(
-                lanes.left.as_mut_ptr().cast(),
-                _mm256_permutevar8x32_epi32(left, order),
-            );
+            r.store(lanes, st_t, st_i);
             (done, outside)
         }
     }

@@ -66,8 +66,9 @@ pub struct PlanningSettings {
     pub fit: FitConfig,
     /// Threads that score candidates (0: one per core); any count gives the same plan.
     pub scoring_threads: usize,
-    /// Threads that cast a cloud's rays into the map (0: one per core); any count gives the
-    /// same map, voxel for voxel.
+    /// Threads that cast a cloud's rays into the map and search the hand-eye estimate's
+    /// matches (0: one per core); any count gives the same map, voxel for voxel, and the same
+    /// estimate, bit for bit.
     pub insert_threads: usize,
     /// ROI targets nearer the camera drawn more often (weight `exp(−distance / this)`, metres;
     /// 0: uniformly, as the paper).
@@ -613,8 +614,10 @@ impl TrolleyPlanner {
             return None;
         }
         let world_from_camera = &cloud.world_from_camera;
+        // The estimate's match search is part of the integration: it takes the insert's threads.
+        let threads = threads_or_cores(self.settings.insert_threads);
         self.hand_eye
-            .add_scan(world_from_camera, &cloud.points_in_world);
+            .add_scan_threaded(world_from_camera, &cloud.points_in_world, threads);
         let world_correction = self.hand_eye.world_correction(world_from_camera)?;
         let scan = RegisteredScan {
             origin: world_correction * cloud.sensor_origin_in_world,

@@ -286,6 +286,17 @@ impl HandEyeEstimator {
         world_from_camera: &Isometry3<f64>,
         points_in_world: &[Point3<f32>],
     ) {
+        self.add_scan_threaded(world_from_camera, points_in_world, 1);
+    }
+
+    /// [`HandEyeEstimator::add_scan`] with the scans' matches searched on `threads` threads; any
+    /// count gives the same estimate, bit for bit (the sums are made in one order).
+    pub fn add_scan_threaded(
+        &mut self,
+        world_from_camera: &Isometry3<f64>,
+        points_in_world: &[Point3<f32>],
+        threads: usize,
+    ) {
         if !self.settings.enabled || self.is_final() {
             return;
         }
@@ -307,7 +318,7 @@ impl HandEyeEstimator {
             self.scans.pop_front();
         }
         if self.scans.len() >= 2 {
-            self.refine();
+            self.refine(threads);
         }
     }
 
@@ -321,9 +332,9 @@ impl HandEyeEstimator {
         Some(corrected * world_from_camera.inverse())
     }
 
-    fn refine(&mut self) {
+    fn refine(&mut self, threads: usize) {
         for _ in 0..self.settings.rounds {
-            let Some((step, figures)) = self.solve_round() else {
+            let Some((step, figures)) = self.solve_round(threads) else {
                 return;
             };
             let candidate = self.camera_believed_from_true * exp(&step);
@@ -337,19 +348,28 @@ impl HandEyeEstimator {
 
     /// One round: every scan's query points matched to the other scans' surfaces under the
     /// current estimate, and the Gauss-Newton step of the right perturbation of the estimate.
-    fn solve_round(&self) -> Option<(Vector6<f64>, HandEyeFigures)> {
+    /// The matches (most of the work) are searched on `threads` threads in contiguous runs of
+    /// queries; the normal equations are summed afterwards in query order, as on one thread.
+    fn solve_round(&self, threads: usize) -> Option<(Vector6<f64>, HandEyeFigures)> {
         let placed: Vec<Placed> = self.scans.iter().map(|s| self.place(s)).collect();
         let grid = Grid::new(&placed, self.settings.match_radius_m);
-        let mut nearest = Nearest::new(placed.len());
+        let queries: Vec<(u32, u32)> = placed
+            .iter()
+            .enumerate()
+            .flat_map(|(a, scan)| {
+                let stride = (scan.surfels.len() / self.settings.query_points).max(1);
+                (0..scan.surfels.len())
+                    .step_by(stride)
+                    .map(move |i| (a as u32, i as u32))
+            })
+            .collect();
+        let search =
+            |part: &[(u32, u32)]| grid.matches_of(&placed, part, self.settings.match_radius_m);
+        let runs = in_runs(&queries, threads, search);
         let mut normal = Normal::default();
-        for (a, scan) in placed.iter().enumerate() {
-            let stride = (scan.surfels.len() / self.settings.query_points).max(1);
-            for i in (0..scan.surfels.len()).step_by(stride) {
-                grid.matches(&placed, a, i, self.settings.match_radius_m, &mut nearest);
-                for &(b, j) in &nearest.found {
-                    normal.add(&self.settings, &placed[a], i, &placed[b], j);
-                }
-            }
+        for &(a, i, b, j) in runs.iter().flatten() {
+            let [a, i, b, j] = [a, i, b, j].map(|v| v as usize);
+            normal.add(&self.settings, &placed[a], i, &placed[b], j);
         }
         normal.step(&self.settings)
     }
@@ -449,6 +469,28 @@ impl Grid {
         }
     }
 
+    /// Every match of `queries` ((scan, surfel) pairs), in their order: (a, i, b, j) for the
+    /// nearest surfel `j` of scan `b` to query surfel `i` of scan `a`.
+    fn matches_of(
+        &self,
+        placed: &[Placed],
+        queries: &[(u32, u32)],
+        radius_m: f64,
+    ) -> Vec<(u32, u32, u32, u32)> {
+        let mut nearest = Nearest::new(placed.len());
+        let mut out = Vec::new();
+        for &(a, i) in queries {
+            self.matches(placed, a as usize, i as usize, radius_m, &mut nearest);
+            out.extend(
+                nearest
+                    .found
+                    .iter()
+                    .map(|&(b, j)| (a, i, b as u32, j as u32)),
+            );
+        }
+        out
+    }
+
     /// The nearest surfel within `radius_m` of surfel `i` of scan `a` in every other scan, into
     /// `nearest.found` (scans in the order first met).
     fn matches(&self, placed: &[Placed], a: usize, i: usize, radius_m: f64, nearest: &mut Nearest) {
@@ -477,6 +519,34 @@ impl Grid {
         }
         nearest.finish();
     }
+}
+
+/// `work` over `items` cut into `threads` contiguous runs, one thread each; the results in the
+/// runs' order. A thread's panic is the caller's.
+fn in_runs<T: Sync, R: Send>(
+    items: &[T],
+    threads: usize,
+    work: impl Fn(&[T]) -> R + Sync,
+) -> Vec<R> {
+    let run = items.len().div_ceil(threads.max(1)).max(1);
+    if threads <= 1 || items.len() <= run {
+        return vec![work(items)];
+    }
+    let work = &work;
+    std::thread::scope(|scope| {
+        let mut runs = items.chunks(run);
+        let first = runs.next().unwrap_or(&[]);
+        let others: Vec<_> = runs.map(|part| scope.spawn(move || work(part))).collect();
+        let mut out = vec![work(first)];
+        for handle in others {
+            out.push(
+                handle
+                    .join()
+                    .unwrap_or_else(|e| std::panic::resume_unwind(e)),
+            );
+        }
+        out
+    })
 }
 
 /// The nearest candidate per scan for one query point: a slot per scan of the window, so a

@@ -212,6 +212,31 @@ fn the_hand_eye_error_is_estimated_across_scans() {
 }
 
 #[test]
+fn the_hand_eye_estimate_is_the_same_on_any_number_of_threads() {
+    let (clouds, truth) = clouds_in(WorldSettings::realistic(), 5, 12);
+    let estimate_on = |threads: usize| {
+        let mut estimator = HandEyeEstimator::new(HandEyeSettings::default());
+        let mut after_each = Vec::new();
+        for cloud in &clouds {
+            estimator.add_scan_threaded(&cloud.world_from_camera, &cloud.points_in_world, threads);
+            after_each.push((*estimator.camera_believed_from_true(), estimator.figures()));
+        }
+        after_each
+    };
+    let one = estimate_on(1);
+    // The estimate moved: the comparison is of real work, not of identities.
+    let (deg, mm) = apart(&one[one.len() - 1].0, &Isometry3::identity());
+    assert!(
+        deg > 0.05 && mm > 0.5,
+        "{deg} deg, {mm} mm (truth {truth:?})"
+    );
+    assert!(one.iter().any(|(_, f)| f.matches > 1000), "{one:?}");
+    for threads in [2, 3, 7] {
+        assert_eq!(estimate_on(threads), one, "{threads} threads");
+    }
+}
+
+#[test]
 fn in_a_perfect_world_the_hand_eye_estimate_stays_near_none() {
     let (clouds, truth) = clouds_in(WorldSettings::default(), 3, 32);
     assert_eq!(truth, Isometry3::identity());

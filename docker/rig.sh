@@ -418,8 +418,9 @@ run_rogue() {
     for tid in "${tids[@]}"; do views_before[$tid]="${T_VIEWS[$tid]:-0}"; done
     # Up to three tries, each against another victim (never t2, the rogue's own identity): in a
     # fleet still settling, the detector a planner takes a trolley's clouds from can change under
-    # the probe (seen once: a compromised detector's cloud "accepted" while it was the serving
-    # one), and a probe whose control cannot reach the victim's arm (seen twice in one run: every
+    # the probe (seen twice: a compromised detector's cloud "accepted" while it was the one the
+    # owner took clouds from; the probe now takes as serving only a detector whose frame the
+    # victim's map has taken), and a probe whose control cannot reach the victim's arm (seen twice in one run: every
     # view of t1 out of reach, its control views refused or never executed) cannot judge. The
     # holes it looks for are the identities' and the ACL's, the same for every trolley: a real
     # hole fails every try. Each failed try logs every trolley's state.

@@ -756,10 +756,10 @@ async fn step(
     let step_started = Instant::now();
     let started_ns = wall_clock_ns();
     let taken_before = node.stats().clouds_taken;
-    let (back, actions, cpu_ms) = tokio::task::spawn_blocking(move || {
-        let cpu_before = thread_cpu_ms();
+    let (back, actions, costs) = tokio::task::spawn_blocking(move || {
+        let before = StepCosts::now();
         let actions = node.handle(event);
-        (node, actions, thread_cpu_ms() - cpu_before)
+        (node, actions, StepCosts::now().since(&before))
     })
     .await
     .context("planner task failed")?;
@@ -792,7 +792,9 @@ async fn step(
         actions = n_actions,
         waited_ms,
         handle_ms = handled.as_secs_f64() * 1e3,
-        handle_cpu_ms = cpu_ms,
+        handle_cpu_ms = costs.thread_cpu_ms,
+        handle_process_cpu_ms = costs.process_cpu_ms,
+        handle_run_delay_ms = costs.run_delay_ms,
         perform_ms = (step_started.elapsed() - handled).as_secs_f64() * 1e3,
         integrate_ms = stages.integrate_ms,
         fit_ms = stages.fit_ms,
@@ -803,19 +805,56 @@ async fn step(
     Ok(node)
 }
 
-/// CPU time of the calling thread, ms (0 where the clock cannot be read): a step's CPU beside
-/// its wall time tells work from waiting for a core.
+/// What a step cost beside its wall time, ms: the CPU of the thread that ran it, the CPU of the
+/// whole process meanwhile (the step's ray and fit threads, and the bus's), and the time the
+/// step's thread was ready to run but waited for a core. Wall time minus the thread's CPU and
+/// its wait is the time it waited for its helper threads.
+#[derive(Clone, Copy, Default)]
+struct StepCosts {
+    thread_cpu_ms: f64,
+    process_cpu_ms: f64,
+    run_delay_ms: f64,
+}
+
+impl StepCosts {
+    fn now() -> Self {
+        Self {
+            thread_cpu_ms: cpu_clock_ms(libc::CLOCK_THREAD_CPUTIME_ID),
+            process_cpu_ms: cpu_clock_ms(libc::CLOCK_PROCESS_CPUTIME_ID),
+            run_delay_ms: thread_run_delay_ms(),
+        }
+    }
+
+    fn since(&self, before: &Self) -> Self {
+        Self {
+            thread_cpu_ms: self.thread_cpu_ms - before.thread_cpu_ms,
+            process_cpu_ms: self.process_cpu_ms - before.process_cpu_ms,
+            run_delay_ms: self.run_delay_ms - before.run_delay_ms,
+        }
+    }
+}
+
+/// A CPU-time clock, ms (0 where it cannot be read).
 #[allow(unsafe_code)]
-fn thread_cpu_ms() -> f64 {
+fn cpu_clock_ms(clock: libc::clockid_t) -> f64 {
     let mut now = libc::timespec {
         tv_sec: 0,
         tv_nsec: 0,
     };
     // SAFETY: clock_gettime writes one timespec through the pointer it is given.
-    match unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut now) } {
+    match unsafe { libc::clock_gettime(clock, &mut now) } {
         0 => now.tv_sec as f64 * 1e3 + now.tv_nsec as f64 / 1e6,
         _ => 0.0,
     }
+}
+
+/// Time the calling thread has spent ready to run but waiting for a core, ms: the second field
+/// of Linux's `/proc/thread-self/schedstat` (0 where it cannot be read).
+fn thread_run_delay_ms() -> f64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|line| line.split_whitespace().nth(1)?.parse::<u64>().ok())
+        .map_or(0.0, |ns| ns as f64 / 1e6)
 }
 
 /// The clouds an event brings (0 for every other kind).

@@ -224,24 +224,45 @@ pub(super) async fn detector_attempts(
 /// fleet settles, two detectors can both send clouds for a trolley for a moment.
 const SETTLED_CLOUDS: usize = 3;
 
-/// The detector serving the victim: the one its last [`SETTLED_CLOUDS`] clouds came from.
+/// Frames whose senders the probe remembers while it looks for the serving detector.
+const REMEMBERED_FRAMES: usize = 256;
+
+/// The detector serving the victim: the one its last [`SETTLED_CLOUDS`] clouds came from, once
+/// the victim's map has taken a frame that detector alone sent. The clouds on the wire show
+/// which detector believes it serves the victim; the map shows which one the owner takes
+/// clouds from. While a fleet settles the two can differ (a planner that has not yet heard of a
+/// detector takes the other's clouds), and a probe that judged by the wire alone once saw the
+/// owner take the detector it served from as a forgery.
 async fn serving_detector(watch: &Victim, deadline: Instant) -> Result<String, ProbeError> {
     let (mut sender, mut in_a_row) = (String::new(), 0);
-    while in_a_row < SETTLED_CLOUDS {
-        let cloud = next(
-            &watch.clouds,
-            deadline,
-            "clouds of the victim from one detector",
-        )
-        .await?;
-        let from = keys::sender(&cloud.key).unwrap_or_default();
-        if from == sender {
-            in_a_row += 1;
-        } else {
-            (sender, in_a_row) = (from.to_owned(), 1);
+    let mut senders_of_frame: std::collections::BTreeMap<u64, Vec<String>> = Default::default();
+    let what = "clouds of the victim from one detector, one of them taken into its map";
+    loop {
+        tokio::select! {
+            cloud = next(&watch.clouds, deadline, what) => {
+                let cloud = cloud?;
+                let from = keys::sender(&cloud.key).unwrap_or_default().to_owned();
+                let senders = senders_of_frame.entry(cloud.message.source_frame_seq).or_default();
+                if !senders.contains(&from) {
+                    senders.push(from.clone());
+                }
+                while senders_of_frame.len() > REMEMBERED_FRAMES {
+                    senders_of_frame.pop_first();
+                }
+                if from == sender {
+                    in_a_row += 1;
+                } else {
+                    (sender, in_a_row) = (from, 1);
+                }
+            }
+            update = next(&watch.maps, deadline, what) => {
+                let taken = senders_of_frame.get(&update?.message.based_on_seq);
+                if in_a_row >= SETTLED_CLOUDS && taken.is_some_and(|s| *s == [sender.clone()]) {
+                    return Ok(sender);
+                }
+            }
         }
     }
-    Ok(sender)
 }
 
 fn cloud_header(tid: &str, source: &str) -> Header {

@@ -809,7 +809,7 @@ async fn step(
 /// whole process meanwhile (the step's ray and fit threads, and the bus's), and the time the
 /// step's thread was ready to run but waited for a core. Wall time minus the thread's CPU and
 /// its wait is the time it waited for its helper threads.
-#[derive(Clone, Copy, Default)]
+#[derive(Clone, Copy)]
 struct StepCosts {
     thread_cpu_ms: f64,
     process_cpu_ms: f64,

@@ -11,6 +11,9 @@
 //!   or not and why (the fruit evidence's verdict, its shape, what its fitted solid hides), with
 //!   the nearest true fruit, and whether it is reported for the fruit body found under it
 //!   (`body`);
+//! - `trials/<method>-<trial>-views.csv`: the best view of every plan, when it was planned,
+//!   its list (ROI or exploration), scores and predicted motion time, and the fruits detected
+//!   then (`scripts/view-yield OUT` sums what each list's views cost and find);
 //! - `table.md`: Table I (mean ± std at the end of the budget), the missed fruits by reason and
 //!   the Mann-Whitney p-values;
 //! - `summary.json`: `{"<method>": {"<metric>": {"mean", "std", "n"}}, "fruits_total", "p_values",
@@ -284,6 +287,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             write(&path, report::fruits_csv(result))?;
             let path = trials_dir.join(format!("{}-{t}-clusters.csv", run.method));
             write(&path, report::clusters_csv(result))?;
+            let path = trials_dir.join(format!("{}-{t}-views.csv", run.method));
+            write(&path, report::best_views_csv(result))?;
             let path = trials_dir.join(format!("{}-{t}-registration.json", run.method));
             write(&path, serde_json::to_string_pretty(&result.registration)?)?;
         }

@@ -72,6 +72,8 @@ pub(super) fn run(args: &EvalArgs, plan: &Plan, days: &[f64]) -> anyhow::Result<
         write(&trials_dir.join(format!("{stem}-fruits.csv")), fruits)?;
         let clusters = report::clusters_csv(&result);
         write(&trials_dir.join(format!("{stem}-clusters.csv")), clusters)?;
+        let views = report::best_views_csv(&result);
+        write(&trials_dir.join(format!("{stem}-views.csv")), views)?;
         if visit == 0 {
             per_trial.push(Vec::new());
         }

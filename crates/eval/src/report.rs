@@ -274,6 +274,34 @@ pub fn trial_csv(result: &TrialResult) -> String {
     out
 }
 
+/// Header of the per-trial views CSV ([`best_views_csv`]).
+pub const VIEWS_CSV_HEADER: &str = "planned_at_s,kind,utility,gain,cost_m,motion_s,detected";
+
+/// The best view of every plan of one trial, in order: when it was planned, its list, scores
+/// and motion time, and the fruits detected then. The time to the next row is what the view
+/// cost (motion, capture, plan), the change in `detected` what it found.
+pub fn best_views_csv(result: &TrialResult) -> String {
+    let mut out = String::from(VIEWS_CSV_HEADER);
+    out.push('\n');
+    for view in &result.best_views {
+        let kind = match view.kind {
+            glasshouse_nbv::ViewKind::Roi => "roi",
+            glasshouse_nbv::ViewKind::Exploration => "exploration",
+        };
+        let _ = writeln!(
+            out,
+            "{},{kind},{},{},{},{},{}",
+            csv_num(view.planned_at_s),
+            csv_num(view.utility),
+            csv_num(view.gain),
+            csv_num(view.cost_m),
+            view.motion_s.map(csv_num).unwrap_or_default(),
+            view.detected,
+        );
+    }
+    out
+}
+
 /// Header of the per-trial fruit CSV.
 pub const FRUITS_CSV_HEADER: &str = "truth_id,truth_x_m,truth_y_m,truth_z_m,\
 truth_half_x_m,truth_half_y_m,truth_half_z_m,estimate_id,voxels,fit_kind,fit_confidence,\
@@ -860,6 +888,7 @@ mod tests {
             truths: Vec::new(),
             registration: Default::default(),
             plans: Vec::new(),
+            best_views: Vec::new(),
         }
     }
 

@@ -274,6 +274,28 @@ pub struct TrialResult {
     /// The views planned on every frame, in order (what the planner service would publish).
     #[serde(skip)]
     pub plans: Vec<RankedViews>,
+    /// The best view of every plan (the one the edge tries first), with when it was planned.
+    #[serde(skip)]
+    pub best_views: Vec<PlannedView>,
+}
+
+/// The best view of one plan ([`TrialResult::best_views`]): what the time to the next plan
+/// went on (the motion to it, the capture there and the plan on that frame) and which list
+/// it came from, to read where a planner's time goes and what each kind of view finds.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlannedView {
+    /// Simulated clock when the plan's views were available, seconds.
+    pub planned_at_s: f64,
+    pub kind: glasshouse_nbv::ViewKind,
+    /// The paper's utility (gain less the distance cost).
+    pub utility: f64,
+    pub gain: f64,
+    /// Straight-line distance from the camera, metres.
+    pub cost_m: f64,
+    /// The robot's motion time to the view, when the planner knew it.
+    pub motion_s: Option<f64>,
+    /// True fruits matched by a box estimate when the plan's views were available.
+    pub detected: usize,
 }
 
 impl TrialResult {
@@ -319,6 +341,7 @@ pub struct Trial<S: TrolleySource = SimTrolley> {
     published: Published,
     samples: Vec<Sample>,
     plans: Vec<RankedViews>,
+    best_views: Vec<PlannedView>,
     /// Whole seconds 0..=last_second are sampled.
     last_second: u32,
     /// The ROI cloud of the latest frame planned on.
@@ -370,6 +393,7 @@ impl<S: TrolleySource> Trial<S> {
             },
             samples: Vec::new(),
             plans: Vec::new(),
+            best_views: Vec::new(),
             last_second: config.budget_s.floor() as u32,
             last_cloud: None,
             config,
@@ -567,7 +591,9 @@ impl<S: TrolleySource> Trial<S> {
             ComputeTime::Fixed { ms } => ms / 1e3,
             ComputeTime::Measured => started.elapsed().as_secs_f64(),
         };
-        let views = plan.map(|p| ranked_views(&p, frame_id, (compute_s * 1e3) as f32, EVAL_ID));
+        let views = plan
+            .as_ref()
+            .map(|p| ranked_views(p, frame_id, (compute_s * 1e3) as f32, EVAL_ID));
         self.compute_time_s += compute_s;
         let available_s = self.clock_s + compute_s;
         // Seconds before the new estimates exist hold the previous ones.
@@ -577,6 +603,17 @@ impl<S: TrolleySource> Trial<S> {
             return Ok(None);
         }
         self.publish(frame_seq);
+        if let Some(best) = plan.as_ref().and_then(|p| p.views.first()) {
+            self.best_views.push(PlannedView {
+                planned_at_s: available_s,
+                kind: best.kind,
+                utility: best.utility,
+                gain: best.gain,
+                cost_m: best.cost_m,
+                motion_s: best.motion_s,
+                detected: self.published.boxes.detected,
+            });
+        }
         self.last_cloud = Some(cloud);
         if let Some(views) = &views {
             self.plans.push(views.clone());
@@ -630,6 +667,7 @@ impl<S: TrolleySource> Trial<S> {
             truths: self.scene.fruits().to_vec(),
             registration,
             plans: self.plans,
+            best_views: self.best_views,
         };
         Ok((result, self.planner.into_map()))
     }

@@ -47,6 +47,40 @@ fn a_trial_samples_every_second_and_finds_fruit() {
 }
 
 #[test]
+fn each_plan_s_best_view_is_kept_with_when_it_was_planned_and_what_was_found_by_then() {
+    let result = run_trial(small(Method::OursUu, 20.0), |_| {}).unwrap();
+    assert_eq!(result.best_views.len(), result.plans.len());
+    for (best, plan) in result.best_views.iter().zip(&result.plans) {
+        let first = &plan.views[0];
+        assert_eq!(best.utility as f32, first.utility);
+        assert_eq!(best.gain as f32, first.gain);
+        assert!(best.motion_s.is_some_and(|t| t >= 0.0), "{best:?}");
+        assert!(best.detected <= result.fruits_total);
+    }
+    // Each view costs its motion, a capture and 50 ms of planning before the next plan.
+    for pair in result.best_views.windows(2) {
+        assert!(
+            pair[1].planned_at_s >= pair[0].planned_at_s + 0.05,
+            "{pair:?}"
+        );
+    }
+    let last = result.best_views.last().unwrap();
+    assert!(last.planned_at_s <= 20.0);
+    // The samples see what the plans saw: the fruits detected at the last plan are those of
+    // the second it was planned in.
+    let second = last.planned_at_s.ceil() as usize;
+    assert_eq!(result.samples[second].boxes.detected, last.detected);
+    let csv = crate::report::best_views_csv(&result);
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(lines[0], crate::report::VIEWS_CSV_HEADER);
+    assert_eq!(lines.len(), result.best_views.len() + 1);
+    assert!(lines[1..].iter().all(|l| l
+        .split(',')
+        .nth(1)
+        .is_some_and(|k| k == "roi" || k == "exploration")));
+}
+
+#[test]
 fn fixed_compute_time_replays_exactly() {
     let config = small(Method::ExploUp, 8.0);
     let (a, b) = (

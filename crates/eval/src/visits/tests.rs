@@ -38,6 +38,7 @@ fn visit(truths: Vec<FruitTruth>, fruits: Vec<FruitEstimate>) -> TrialResult {
         truths,
         registration: Default::default(),
         plans: Vec::new(),
+        best_views: Vec::new(),
     }
 }
 

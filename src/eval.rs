@@ -171,6 +171,12 @@ pub struct EvalArgs {
     /// single hit passes, for a side-by-side run.
     #[arg(long, value_name = "L", default_value_t = glasshouse_pipeline::PlanningSettings::default().occlusion_occupancy_logodds)]
     pub occlusion_logodds: f32,
+    /// Fitted solids are shrunk by F · voxel² / R on every semi-axis (R their mean semi-axis):
+    /// the voxels a convex fruit's surface passes through have their centres outside it on
+    /// average, so a solid through them is too large; 0 fits through the voxel centres, for a
+    /// side-by-side run.
+    #[arg(long, value_name = "F", default_value_t = glasshouse_pipeline::PlanningSettings::default().fit.voxel_bias_factor)]
+    pub voxel_bias_factor: f64,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:
     /// `--visit-every-days`), one trial per visit, the scene grown between them (fruit swell,
     /// set and are harvested, leaves move), and each fruit followed from visit to visit. Writes
@@ -320,6 +326,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         "roi_tries": args.roi_tries,
         "body_search": !args.no_body_search,
         "occlusion_logodds": args.occlusion_logodds,
+        "voxel_bias_factor": args.voxel_bias_factor,
         "detector": plan.fruit_detector.name(),
         "fruit_model": args.perception.fruit_model,
     });
@@ -389,6 +396,7 @@ fn trial_configs(args: &EvalArgs, plan: &Plan, height: u32) -> anyhow::Result<Ve
                 roi_tries: args.roi_tries,
                 body_search: !args.no_body_search,
                 occlusion_occupancy_logodds: args.occlusion_logodds,
+                voxel_bias_factor: args.voxel_bias_factor,
                 revisit_aim: !args.no_revisit_aim,
                 max_range_m: args.max_range,
                 merge_far_rays: args.merge_far_rays,
@@ -693,6 +701,9 @@ mod tests {
             no_body_search: false,
             occlusion_logodds: glasshouse_pipeline::PlanningSettings::default()
                 .occlusion_occupancy_logodds,
+            voxel_bias_factor: glasshouse_pipeline::PlanningSettings::default()
+                .fit
+                .voxel_bias_factor,
             days: None,
             visit_every_days: 3.5,
             revisit_from_empty: false,

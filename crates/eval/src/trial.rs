@@ -109,6 +109,8 @@ pub struct TrialConfig {
     /// Occupancy log-odds above which a voxel occludes an ROI target
     /// (`PlanningSettings::occlusion_occupancy_logodds`).
     pub occlusion_occupancy_logodds: f32,
+    /// Fitted solids shrunk by this times voxel² / R (`FitConfig::voxel_bias_factor`).
+    pub voxel_bias_factor: f64,
     /// Rays are integrated up to this range, metres (`PlanningSettings::max_range_m`).
     pub max_range_m: f64,
     /// Points beyond the range free one ray per voxel at the range
@@ -145,6 +147,7 @@ impl TrialConfig {
             roi_tries: glasshouse_pipeline::DEFAULT_ROI_TRIES,
             body_search: true,
             occlusion_occupancy_logodds: PlanningSettings::default().occlusion_occupancy_logodds,
+            voxel_bias_factor: PlanningSettings::default().fit.voxel_bias_factor,
             max_range_m: PlanningSettings::default().max_range_m,
             merge_far_rays: PlanningSettings::default().merge_far_rays,
             roi_target_near_m: PlanningSettings::default().roi_target_near_m,
@@ -203,6 +206,7 @@ impl TrialConfig {
         settings.roi_tries = self.roi_tries;
         settings.fit.evidence.body.enabled = self.body_search;
         settings.occlusion_occupancy_logodds = self.occlusion_occupancy_logodds;
+        settings.fit.voxel_bias_factor = self.voxel_bias_factor;
         settings
     }
 

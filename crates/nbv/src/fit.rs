@@ -133,6 +133,14 @@ pub struct FitConfig {
     pub split_extent_m: f64,
     /// Points spread over the surface for the confidence.
     pub surface_samples: usize,
+    /// The fitted solid is shrunk by this times `voxel² / R` on every semi-axis (`R` the
+    /// geometric mean of its semi-axes): the voxels a convex surface passes through have their
+    /// centres outside it on average (more of a shell around a convex surface lies outside it
+    /// than inside; for cubes of side `v` about `2·E[h²] / (3R) ≈ 0.38·v² / R`, `h` a cube's
+    /// half-width along the normal), so a solid through them is too large, the more so the
+    /// smaller the fruit: 1.1 mm on a 7 cm fruit in 1 cm voxels. 0: the solid through the
+    /// voxel centres.
+    pub voxel_bias_factor: f64,
     pub max_iterations: usize,
     /// Which clusters are reported as fruit ([`crate::evidence`]).
     pub evidence: EvidenceConfig,
@@ -158,6 +166,7 @@ impl Default for FitConfig {
             max_rms_voxels: 1.5,
             split_extent_m: 0.11,
             surface_samples: 256,
+            voxel_bias_factor: 0.3,
             max_iterations: 60,
             evidence: EvidenceConfig::default(),
         }
@@ -418,6 +427,18 @@ fn free_voxels_in(map: &RoiMap, lo: &Point3<f64>, hi: &Point3<f64>) -> Vec<Point
         }
     }
     out
+}
+
+/// Semi-axes shrunk by the voxel centres' outward bias, `factor · voxel² / R`
+/// ([`FitConfig::voxel_bias_factor`]), by at most a quarter of the shortest.
+pub fn unbiased_semi_axes(semi_axes_m: &Vector3<f64>, voxel_m: f64, factor: f64) -> Vector3<f64> {
+    let radius_m = (semi_axes_m.x * semi_axes_m.y * semi_axes_m.z).cbrt();
+    let bias_m = factor * voxel_m * voxel_m / radius_m;
+    if !(bias_m.is_finite() && bias_m > 0.0) {
+        return *semi_axes_m;
+    }
+    let bias_m = bias_m.min(0.25 * semi_axes_m.min());
+    semi_axes_m.map(|a| a - bias_m)
 }
 
 fn shape(
@@ -721,6 +742,7 @@ fn finish_axis_aligned(
         return box_shape(map, cluster, config);
     }
     let confidence = observed_share(map, &centre, &axes, config.surface_samples);
+    let axes = unbiased_semi_axes(&axes, res, config.voxel_bias_factor);
     shape(SolidKind::Ellipsoid, centre, axes, confidence, rms_m)
 }
 

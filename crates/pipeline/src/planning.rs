@@ -263,6 +263,12 @@ impl PlanningSettings {
             .body
             .validate()
             .map_err(PlanningError::Settings)?;
+        let factor = self.fit.voxel_bias_factor;
+        if !(factor.is_finite() && (0.0..=1.0).contains(&factor)) {
+            return Err(PlanningError::Settings(format!(
+                "fit.voxel_bias_factor must be in [0, 1], got {factor}"
+            )));
+        }
         for (name, threads) in [
             ("insert_threads", self.insert_threads),
             ("fit_threads", self.fit_threads),
@@ -1378,6 +1384,21 @@ mod settings_tests {
             read.registration.max_scan_points,
             RegisterSettings::default().max_scan_points
         );
+    }
+
+    #[test]
+    fn the_voxel_bias_factor_is_read_from_settings_and_checked() {
+        let json = r#"{ "fit": { "voxel_bias_factor": 0 } }"#;
+        let read: PlanningSettings = serde_json::from_str(json).unwrap();
+        assert_eq!(read.fit.voxel_bias_factor, 0.0);
+        assert!(read.validate().is_ok());
+        assert!(PlanningSettings::default().fit.voxel_bias_factor > 0.0);
+        for bad in [-0.1, 1.5, f64::NAN] {
+            let mut settings = PlanningSettings::default();
+            settings.fit.voxel_bias_factor = bad;
+            let error = settings.validate().unwrap_err().to_string();
+            assert!(error.contains("voxel_bias_factor"), "{bad}: {error}");
+        }
     }
 
     #[test]

@@ -4,7 +4,7 @@
 use glasshouse_roimap::{Occupancy, RoiMap};
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 
-use super::{fibonacci_sphere, refine, FitConfig, FitData, FruitSolid};
+use super::{fibonacci_sphere, refine, unbiased_semi_axes, FitConfig, FitData, FruitSolid};
 use crate::evidence::principal_axes;
 use crate::superellipsoid::Superellipsoid;
 
@@ -173,7 +173,8 @@ pub(super) fn finish_superellipsoid(
         return Err(Some(Box::new(s)));
     }
     let confidence = observed_share(map, &s, config.surface_samples);
-    Ok(s.to_solid(confidence, rms_m))
+    let semi_axes_m = unbiased_semi_axes(&s.semi_axes_m, res, config.voxel_bias_factor);
+    Ok(Superellipsoid { semi_axes_m, ..s }.to_solid(confidence, rms_m))
 }
 
 /// Step 4: while free voxels lie deeper than `margin_m` inside, the semi-axis along which they

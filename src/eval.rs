@@ -843,7 +843,38 @@ mod tests {
                 .unwrap();
         assert!(summary["ours-uu"]["detected"]["mean"].is_number());
         assert!(summary["fruits_total"].as_u64().unwrap() > 0);
+        view_yield_counts_every_view_but_the_last_plan(&a);
         let _ = std::fs::remove_dir_all(&base);
+    }
+
+    /// `scripts/view-yield OUT --whole-run` on a run's views CSVs: a row per method and list,
+    /// a view per plan that has a next one (what it cost runs to the next plan).
+    fn view_yield_counts_every_view_but_the_last_plan(out: &Path) {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/view-yield");
+        let run = std::process::Command::new("python3")
+            .arg(&script)
+            .arg(out)
+            .arg("--whole-run")
+            .output()
+            .unwrap();
+        let table = String::from_utf8(run.stdout).unwrap();
+        assert!(run.status.success(), "{table}");
+        for method in ["ours-uu", "explo-uu"] {
+            let plans = std::fs::read_to_string(out.join(format!("trials/{method}-0-views.csv")))
+                .unwrap()
+                .lines()
+                .count()
+                - 1;
+            let row = format!("| {method} | all | {} |", plans - 1);
+            assert!(table.contains(&row), "{row} not in\n{table}");
+        }
+        let empty = std::process::Command::new("python3")
+            .arg(&script)
+            .arg(out.join("no-such-run"))
+            .output()
+            .unwrap();
+        assert!(!empty.status.success());
+        assert!(String::from_utf8_lossy(&empty.stderr).contains("views.csv"));
     }
 
     #[test]

@@ -171,10 +171,10 @@ pub struct EvalArgs {
     /// single hit passes, for a side-by-side run.
     #[arg(long, value_name = "L", default_value_t = glasshouse_pipeline::PlanningSettings::default().occlusion_occupancy_logodds)]
     pub occlusion_logodds: f32,
-    /// Fitted solids are shrunk by F · voxel² / R on every semi-axis (R their mean semi-axis):
-    /// the voxels a convex fruit's surface passes through have their centres outside it on
-    /// average, so a solid through them is too large; 0 fits through the voxel centres, for a
-    /// side-by-side run.
+    /// Fitted solids are shrunk by F · voxel² / R on every semi-axis (R the geometric mean of
+    /// their semi-axes): the voxels a convex fruit's surface passes through have their centres
+    /// outside it on average, so a solid through them is too large; 0 fits through the voxel
+    /// centres, for a side-by-side run.
     #[arg(long, value_name = "F", default_value_t = glasshouse_pipeline::PlanningSettings::default().fit.voxel_bias_factor)]
     pub voxel_bias_factor: f64,
     /// Visit every trial's scene over a season: on days 0, D, 2D, ... up to this day (D:

@@ -47,7 +47,8 @@ pub struct FruitSolid {
     pub box_volume_m3: f64,
     /// Share of the fitted surface the map has observed, in [0, 1].
     pub confidence: f64,
-    /// Root mean square distance of the cluster's voxel centres from the surface, metres.
+    /// Root mean square distance of the cluster's voxel centres from the fitted surface, metres
+    /// (the surface they were fitted to, before the fit's voxel bias was taken off the solid).
     pub rms_residual_m: f64,
 }
 

@@ -300,7 +300,7 @@ fn a_capsicum_grown_together_with_red_leaves_is_fitted_by_its_best_part() {
 /// Spheres of 2.5-4 cm scanned from five sides into 1 cm voxels: the solid through the voxel
 /// centres is too large (the centres of the voxels a convex surface passes through lie outside
 /// it on average), the more so the smaller the sphere; shrunk by
-/// [`FitConfig::voxel_bias_factor`] · voxel² / R the volumes err less, and not all one way.
+/// [`FitConfig::voxel_bias_factor`] · voxel² / R every volume is within 6 % and they err less.
 #[test]
 fn the_voxel_centres_outward_bias_is_taken_off_the_solid() {
     let eyes = [
@@ -330,7 +330,10 @@ fn the_voxel_centres_outward_bias_is_taken_off_the_solid() {
         println!(
             "R {radius_m}: volume ÷ truth {before:.3} through the centres, {after:.3} unbiased"
         );
-        assert!(after < before, "R {radius_m}: {after} against {before}");
+        assert!(
+            (after - 1.0).abs() < 0.06,
+            "R {radius_m}: {after} against {before}"
+        );
         through_centres.push(before);
         unbiased.push(after);
     }
